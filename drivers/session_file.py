@@ -540,14 +540,21 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
         raise SessionFileError(f"{path}: no such session file")
     if path.is_dir():
         raise SessionFileError(f"{path}: is a directory, not a session file")
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if head != b"\x89HDF\r\n\x1a\n":
+        raise SessionFileError(f"{path}: not an HDF5 file, so not a skinstretch session")
     try:
-        f = h5py.File(path, "r", swmr=swmr, libver="latest") if swmr else h5py.File(path, "r")
+        f = h5py.File(path, "r", swmr=True, libver="latest") if swmr else h5py.File(path, "r")
     except OSError as exc:
-        with open(path, "rb") as fh:
-            head = fh.read(8)
-        if head != b"\x89HDF\r\n\x1a\n":
-            raise SessionFileError(f"{path}: not an HDF5 file, so not a skinstretch session") from None
-        raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
+        if swmr or "already open for write" not in str(exc):
+            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
+        # A SWMR writer that is still running, or was killed, leaves the file marked open for writing; an SWMR
+        # reader opens it all the same and sees everything flushed (the session then reads as incomplete).
+        try:
+            f = h5py.File(path, "r", swmr=True, libver="latest")
+        except OSError as exc2:
+            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc2})") from None
     try:
         fmt = f.attrs.get("format")
         if isinstance(fmt, bytes):
