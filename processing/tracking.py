@@ -1,0 +1,579 @@
+"""Feature matching between consecutive frames and feature trajectories (seed 5.1).
+
+Matching (seed 5.1.1): each feature of frame k-1 is looked for near its expected position in frame k. The
+expected displacement is the feature's previous displacement when it has one, otherwise the average of the
+predictions (or, with a :class:`processing.robust_tracking.GlobalMotionEstimator`, the measured global motion).
+Candidates are the features of the same kind inside a circular search window (0.3 mm); each candidate pair is
+rated by eq. 5.1, ``C = (180 - theta) / 180 + (d_max - d) / d_max`` (the orientation term is zero for pores and
+minutiae of unknown orientation), and pairs are finalised in decreasing confidence, each feature used once.
+
+Trajectories (seed 5.1.2): matches are chained into trajectories; trajectories shorter than a minimum number of
+frames (30) are rejected; positions are smoothed by a Gaussian kernel (eq. 5.2, 5.3). When a
+:class:`processing.subpixel_displacement.SubpixelRefiner` is given, each matched displacement is refined by local
+image registration and a trajectory's positions are the running sum of its refined displacements, anchored to
+the mean of its extracted positions: relative motion at a few hundredths of a pixel, absolute position to the
+extraction's accuracy divided by the square root of the track length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from processing.calibration import Calibration
+from processing.errors import InsufficientDataError, InvalidInputError
+from processing.feature_table import FEATURE_DTYPE, validate_features
+from processing.robust_tracking import GlobalMotionEstimator, local_predictions
+from processing.subpixel_displacement import SubpixelRefiner
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """Options of feature matching and trajectory building (seed 5.1), in mm and frames.
+
+    Parameters
+    ----------
+    search_radius_mm : float
+        Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
+    min_length_frames : int
+        Trajectories present in fewer frames are rejected (seed 5.1.2: 30).
+    smoothing_radius_frames : int
+        Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
+    smoothing_sigma_frames : float
+        Standard deviation of that kernel (seed Figure 53: 1).
+    max_gap_frames : int
+        A feature lost for at most this many frames is re-linked to its trajectory (0 = the seed's behaviour:
+        "no attempt is made to keep track of features through discontinuities").
+    """
+
+    search_radius_mm: float = 0.3
+    min_length_frames: int = 30
+    smoothing_radius_frames: int = 1
+    smoothing_sigma_frames: float = 1.0
+    max_gap_frames: int = 0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.search_radius_mm) and self.search_radius_mm > 0):
+            raise InvalidInputError(f"search_radius_mm must be positive, got {self.search_radius_mm!r}")
+        if int(self.min_length_frames) < 1:
+            raise InvalidInputError(f"min_length_frames must be >= 1, got {self.min_length_frames!r}")
+        if int(self.smoothing_radius_frames) < 0:
+            raise InvalidInputError(f"smoothing_radius_frames must be >= 0, got {self.smoothing_radius_frames!r}")
+        if self.smoothing_radius_frames > 0 and not self.smoothing_sigma_frames > 0:
+            raise InvalidInputError(f"smoothing_sigma_frames must be positive, got {self.smoothing_sigma_frames!r}")
+        if int(self.max_gap_frames) < 0:
+            raise InvalidInputError(f"max_gap_frames must be >= 0, got {self.max_gap_frames!r}")
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Matched pairs between two feature tables: row indices into each, and the eq. 5.1 confidence."""
+
+    prev_index: np.ndarray  # (m,) int64
+    curr_index: np.ndarray  # (m,) int64
+    confidence: np.ndarray  # (m,) float64
+
+    def __len__(self) -> int:
+        return int(self.prev_index.size)
+
+
+@dataclass(frozen=True)
+class MotionSample:
+    """Displacements measured between two frames at points of the first: what stretch and mapping consume.
+
+    Produced by :meth:`Trajectories.motion` (tracked features) and by :mod:`processing.flow` (dense grid).
+    """
+
+    frame_a: int
+    frame_b: int
+    points: np.ndarray  # (n, 2) x, y px in frame_a
+    displacement: np.ndarray  # (n, 2) px from frame_a to frame_b
+    ids: np.ndarray  # (n,) int64: track (or grid point) index, stable across pairs
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+def match_features(
+    prev: np.ndarray,
+    curr: np.ndarray,
+    *,
+    calibration: Calibration,
+    predicted_displacement: np.ndarray | None = None,
+    search_radius_mm: float = 0.3,
+) -> Matches:
+    """Match the features of two consecutive frames (seed 5.1.1).
+
+    Parameters
+    ----------
+    prev, curr : FEATURE_DTYPE arrays
+        Features of frame k-1 and frame k.
+    calibration : Calibration
+        Converts the search radius to pixels.
+    predicted_displacement : array of shape (2,) or (len(prev), 2), optional
+        Expected displacement (dx, dy) px of every feature of ``prev`` (default: none).
+    search_radius_mm : float
+        Radius of the circular search window around each expected position.
+
+    Returns
+    -------
+    Matches
+        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
+
+    Examples
+    --------
+    >>> from processing.feature_table import make_features
+    >>> a = make_features([10.0, 50.0], [10.0, 10.0], [2, 2])
+    >>> b = make_features([52.0, 12.0], [10.0, 11.0], [2, 2])
+    >>> m = match_features(a, b, calibration=Calibration(px_per_mm=62.0))
+    >>> m.prev_index.tolist(), m.curr_index.tolist()
+    ([0, 1], [1, 0])
+    """
+    validate_features(prev)
+    validate_features(curr)
+    if not (np.isfinite(search_radius_mm) and search_radius_mm > 0):
+        raise InvalidInputError(f"search_radius_mm must be positive, got {search_radius_mm!r}")
+    radius = calibration.px(search_radius_mm)
+    pred = _broadcast_prediction(predicted_displacement, prev.shape[0])
+    return _match(_columns(prev), _columns(curr), pred, radius)
+
+
+def _broadcast_prediction(pred, n: int) -> np.ndarray:
+    if pred is None:
+        return np.zeros((n, 2))
+    pred = np.asarray(pred, dtype=np.float64)
+    if pred.shape == (2,):
+        return np.tile(pred, (n, 1))
+    if pred.shape != (n, 2):
+        raise InvalidInputError(f"predicted_displacement must have shape (2,) or ({n}, 2), got {pred.shape}")
+    if not np.all(np.isfinite(pred)):
+        raise InvalidInputError("predicted_displacement holds non-finite values")
+    return pred
+
+
+@dataclass(frozen=True)
+class _Cols:
+    xy: np.ndarray
+    kind: np.ndarray
+    orientation: np.ndarray
+    known: np.ndarray
+
+
+def _columns(table: np.ndarray) -> _Cols:
+    return _Cols(
+        np.column_stack([table["x"], table["y"]]).astype(np.float64),
+        table["kind"].astype(np.int8),
+        table["orientation"].astype(np.float64),
+        table["orientation_known"].astype(bool),
+    )
+
+
+def _match(prev: _Cols, curr: _Cols, pred: np.ndarray, radius: float) -> Matches:
+    empty = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if prev.xy.shape[0] == 0 or curr.xy.shape[0] == 0:
+        return empty
+    expected = prev.xy + pred
+    pairs = cKDTree(expected).sparse_distance_matrix(cKDTree(curr.xy), radius, output_type="ndarray")
+    # sparse_distance_matrix leaves out pairs at distance exactly 0; add them back.
+    i, j, d = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"].astype(np.float64)
+    exact = cKDTree(curr.xy).query(expected, k=1, distance_upper_bound=1e-12)
+    hit = np.isfinite(exact[0])
+    if np.any(hit):
+        ei = np.nonzero(hit)[0]
+        ej = exact[1][hit].astype(np.int64)
+        i, j, d = np.concatenate([i, ei]), np.concatenate([j, ej]), np.concatenate([d, np.zeros(ei.size)])
+        key = np.unique(i * curr.xy.shape[0] + j, return_index=True)[1]
+        i, j, d = i[key], j[key], d[key]
+    same = prev.kind[i] == curr.kind[j]
+    i, j, d = i[same], j[same], d[same]
+    if i.size == 0:
+        return empty
+    # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
+    both = prev.known[i] & curr.known[j]
+    dtheta = np.abs(np.mod(prev.orientation[i] - curr.orientation[j] + 180.0, 360.0) - 180.0)
+    orient = np.where(both, (180.0 - np.where(both, dtheta, 0.0)) / 180.0, 0.0)
+    conf = orient + (radius - d) / radius
+    order = np.lexsort((d, -conf))
+    used_p = np.zeros(prev.xy.shape[0], bool)
+    used_c = np.zeros(curr.xy.shape[0], bool)
+    keep = []
+    for t in order.tolist():
+        a, b = i[t], j[t]
+        if used_p[a] or used_c[b]:
+            continue
+        used_p[a] = used_c[b] = True
+        keep.append(t)
+    keep = np.asarray(keep, dtype=np.int64)
+    keep = keep[np.argsort(i[keep], kind="stable")]
+    return Matches(i[keep], j[keep], conf[keep])
+
+
+@dataclass
+class Trajectories:
+    """Feature trajectories over a sequence (seed 5.1.2). Arrays are (frames, tracks); absent entries are flagged.
+
+    Attributes
+    ----------
+    x, y : (N, T) float64
+        Position px (refined and/or smoothed) of each track in each frame; NaN exactly where ``present`` is False.
+    present : (N, T) bool
+        The track's feature was found (and matched) in that frame.
+    raw_x, raw_y : (N, T) float64
+        Extracted positions (NaN where absent).
+    feature_index : (N, T) int64
+        Row of the feature in the concatenated feature table of the sequence, -1 where absent.
+    linked : (N, T) bool
+        The track's displacement from frame k-1 to k was measured (consecutive match), as opposed to a start or a
+        re-link across a gap.
+    refined : (N, T) bool
+        That displacement was refined to sub-pixel by image registration.
+    kind : (T,) int8
+        Feature kind of each track.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    present: np.ndarray
+    raw_x: np.ndarray
+    raw_y: np.ndarray
+    feature_index: np.ndarray
+    linked: np.ndarray
+    refined: np.ndarray
+    kind: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.present.shape[0])
+
+    @property
+    def n_tracks(self) -> int:
+        return int(self.present.shape[1])
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Number of frames each track is present in."""
+        return self.present.sum(axis=0)
+
+    def positions(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """(track indices, (n, 2) positions) of the tracks present in ``frame``."""
+        idx = np.nonzero(self.present[frame])[0]
+        return idx, np.column_stack([self.x[frame, idx], self.y[frame, idx]])
+
+    def motion(self, frame_a: int, frame_b: int) -> MotionSample:
+        """Displacements from ``frame_a`` to ``frame_b`` of the tracks present in both."""
+        n = self.n_frames
+        if not (0 <= frame_a < n and 0 <= frame_b < n):
+            raise InvalidInputError(f"frames ({frame_a}, {frame_b}) out of range for {n} frames")
+        idx = np.nonzero(self.present[frame_a] & self.present[frame_b])[0]
+        pa = np.column_stack([self.x[frame_a, idx], self.y[frame_a, idx]])
+        pb = np.column_stack([self.x[frame_b, idx], self.y[frame_b, idx]])
+        return MotionSample(int(frame_a), int(frame_b), pa, pb - pa, idx.astype(np.int64))
+
+
+class FeatureTracker:
+    """Streaming feature matcher: feed one frame's features (and optionally its image) at a time.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    params : TrackingParams, optional
+    refiner : SubpixelRefiner, optional
+        Refine each matched displacement by local image registration (needs the images).
+    motion_estimator : GlobalMotionEstimator, optional
+        Predict displacements from the measured global motion and then from matched neighbours (two passes),
+        instead of from each feature's previous displacement alone (needs the images).
+
+    Examples
+    --------
+    >>> from processing.feature_table import make_features
+    >>> cal = Calibration(px_per_mm=62.0)
+    >>> tracker = FeatureTracker(calibration=cal, params=TrackingParams(min_length_frames=3))
+    >>> for k in range(4):
+    ...     _ = tracker.add_frame(make_features([10.0 + 2 * k, 80.0 + 2 * k], [20.0, 40.0], [0, 2], frame=k))
+    >>> tr = tracker.finish()
+    >>> tr.n_tracks, tr.lengths.tolist()
+    (2, [4, 4])
+    """
+
+    def __init__(
+        self,
+        *,
+        calibration: Calibration,
+        params: TrackingParams | None = None,
+        refiner: SubpixelRefiner | None = None,
+        motion_estimator: GlobalMotionEstimator | None = None,
+    ) -> None:
+        self.calibration = calibration
+        self.params = params or TrackingParams()
+        self.refiner = refiner
+        self.motion_estimator = motion_estimator
+        self._radius = calibration.px(self.params.search_radius_mm)
+        self._n_frames = 0
+        self._n_tracks = 0
+        self._n_features = 0
+        self._prev: _Cols | None = None
+        self._prev_image: np.ndarray | None = None
+        self._prev_tracks = np.zeros(0, np.int64)
+        self._prev_disp = np.zeros((0, 2))
+        # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
+        self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
+        self._track_kind: list[np.ndarray] = []
+        self._lost = _LostTracks()
+        self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
+        self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
+
+    @property
+    def n_frames(self) -> int:
+        return self._n_frames
+
+    def add_frame(self, features: np.ndarray, *, image: np.ndarray | None = None) -> Matches:
+        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first)."""
+        validate_features(features)
+        if (self.refiner is not None or self.motion_estimator is not None) and image is None:
+            raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
+        cols = _columns(features)
+        n = cols.xy.shape[0]
+        disp = np.full((n, 2), np.nan)
+        refined = np.zeros(n, bool)
+        tracks = np.full(n, -1, np.int64)
+        matches = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        if self._prev is not None:
+            prev = self._prev
+            known = np.all(np.isfinite(self._prev_disp), axis=1)
+            shift = self._prediction_shift(known, image)
+            pred = np.where(known[:, None], self._prev_disp, shift)
+            if self.motion_estimator is not None and self._prev_image is not None:
+                # A previous displacement disagreeing with the measured global motion is stale (direction change).
+                stale = np.hypot(*(pred - shift).T) > self._radius / 2
+                pred[stale] = shift
+            matches = _match(prev, cols, pred, self._radius)
+            if self.motion_estimator is not None and len(matches) >= 3:
+                # Second pass: predict from matched neighbours (local structure, sticking and slipping regions).
+                d1 = cols.xy[matches.curr_index] - prev.xy[matches.prev_index]
+                pred2 = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
+                matches = _match(prev, cols, pred2, self._radius)
+            pi, ci = matches.prev_index, matches.curr_index
+            d = cols.xy[ci] - prev.xy[pi]
+            if self.refiner is not None and self._prev_image is not None and pi.size:
+                r = self.refiner.refine(self._prev_image, image, prev.xy[pi], d)
+                d = r.displacement
+                refined[ci] = r.refined
+            disp[ci] = d
+            tracks[ci] = self._prev_tracks[pi]
+            self.global_shifts.append(shift)
+            self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
+            # Features of frame k-1 left unmatched may be re-linked within max_gap_frames (beyond the seed).
+            unmatched_prev = np.setdiff1d(np.arange(prev.xy.shape[0]), pi)
+            step = np.median(d, axis=0) if pi.size else shift
+            self._lost.advance(step)
+            free = np.nonzero(tracks < 0)[0]
+            if self.params.max_gap_frames > 0 and free.size and len(self._lost):
+                got_idx, got_track = self._lost.relink(cols, free, self._radius)
+                tracks[got_idx] = got_track
+            if self.params.max_gap_frames > 0 and unmatched_prev.size:
+                self._lost.add(
+                    prev.xy[unmatched_prev] + step,
+                    prev,
+                    unmatched_prev,
+                    self._prev_tracks[unmatched_prev],
+                )
+            self._lost.expire(self.params.max_gap_frames)
+        new = tracks < 0
+        tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
+        self._n_tracks += int(new.sum())
+        self._track_kind.append(cols.kind[new])
+        self._frames.append((tracks, cols.xy, self._n_features, disp, refined))
+        self._n_features += n
+        self._n_frames += 1
+        self._prev = cols
+        self._prev_tracks = tracks
+        self._prev_disp = disp
+        self._prev_image = None if image is None else np.asarray(image)
+        return matches
+
+    def _prediction_shift(self, known: np.ndarray, image: np.ndarray | None) -> np.ndarray:
+        if self.motion_estimator is not None and self._prev_image is not None:
+            gm = self.motion_estimator.estimate(self._prev_image, image)
+            if gm.reliable:
+                return gm.shift
+        # Seed 5.1.1: features without a previous position take the average of the predicted displacements.
+        if np.any(known):
+            return np.mean(self._prev_disp[known], axis=0)
+        return np.zeros(2)
+
+    def finish(self) -> Trajectories:
+        """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far."""
+        if self._n_frames == 0:
+            raise InsufficientDataError("no frames were added to the tracker")
+        n, t = self._n_frames, self._n_tracks
+        fidx = np.full((n, t), -1, np.int64)
+        raw = np.full((n, t, 2), np.nan)
+        disp = np.full((n, t, 2), np.nan)
+        refined = np.zeros((n, t), bool)
+        for k, (tracks, xy, offset, d, ref) in enumerate(self._frames):
+            fidx[k, tracks] = offset + np.arange(tracks.size)
+            raw[k, tracks] = xy
+            disp[k, tracks] = d
+            refined[k, tracks] = ref
+        kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
+        present = fidx >= 0
+        keep = present.sum(axis=0) >= int(self.params.min_length_frames)
+        fidx, raw, disp, refined, present, kind = (
+            fidx[:, keep],
+            raw[:, keep],
+            disp[:, keep],
+            refined[:, keep],
+            present[:, keep],
+            kind[keep],
+        )
+        linked = np.all(np.isfinite(disp), axis=2) & present
+        pos = _chain_positions(raw, disp, linked, present)
+        pos = smooth_positions(
+            pos,
+            present,
+            linked,
+            radius_frames=int(self.params.smoothing_radius_frames),
+            sigma_frames=float(self.params.smoothing_sigma_frames),
+        )
+        return Trajectories(
+            x=pos[..., 0],
+            y=pos[..., 1],
+            present=present,
+            raw_x=raw[..., 0],
+            raw_y=raw[..., 1],
+            feature_index=fidx,
+            linked=linked,
+            refined=refined & linked,
+            kind=kind.astype(np.int8),
+        )
+
+
+@dataclass
+class _LostTracks:
+    """Features lost by matching, kept with a predicted position for re-linking (beyond the seed)."""
+
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+    orientation: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    known: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    track: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    age: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return int(self.track.size)
+
+    def add(self, xy, cols: _Cols, rows, tracks) -> None:
+        self.xy = np.concatenate([self.xy, xy])
+        self.kind = np.concatenate([self.kind, cols.kind[rows]])
+        self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
+        self.known = np.concatenate([self.known, cols.known[rows]])
+        self.track = np.concatenate([self.track, tracks])
+        self.age = np.concatenate([self.age, np.zeros(len(rows), np.int64)])
+
+    def advance(self, step: np.ndarray) -> None:
+        self.xy = self.xy + step
+        self.age = self.age + 1
+
+    def expire(self, max_age: int) -> None:
+        self._select(self.age < max_age)
+
+    def _select(self, keep) -> None:
+        for name in ("xy", "kind", "orientation", "known", "track", "age"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    def relink(self, cols: _Cols, free: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        lost = _Cols(self.xy, self.kind, self.orientation, self.known)
+        sub = _Cols(cols.xy[free], cols.kind[free], cols.orientation[free], cols.known[free])
+        m = _match(lost, sub, np.zeros_like(self.xy), radius)
+        got_idx = free[m.curr_index]
+        got_track = self.track[m.prev_index]
+        keep = np.ones(len(self), bool)
+        keep[m.prev_index] = False
+        self._select(keep)
+        return got_idx, got_track
+
+
+def _chain_positions(raw: np.ndarray, disp: np.ndarray, linked: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
+    the run's extracted positions (equal to the extracted positions when displacements are raw differences)."""
+    pos = np.full(raw.shape, np.nan)
+    n, t = present.shape
+    for j in range(t):
+        frames = np.nonzero(present[:, j])[0]
+        if frames.size == 0:
+            continue
+        # A run starts at every present frame whose displacement from the previous frame is unknown.
+        starts = frames[~linked[frames, j]] if frames.size else frames
+        bounds = list(starts) + [n]
+        for s, e in zip(bounds[:-1], bounds[1:]):
+            run = frames[(frames >= s) & (frames < e)]
+            steps = disp[run, j].copy()
+            steps[0] = 0.0
+            chain = np.cumsum(steps, axis=0)
+            offset = np.mean(raw[run, j] - chain, axis=0)
+            pos[run, j] = chain + offset
+    return pos
+
+
+def smooth_positions(
+    positions: np.ndarray,
+    present: np.ndarray,
+    linked: np.ndarray,
+    *,
+    radius_frames: int = 1,
+    sigma_frames: float = 1.0,
+) -> np.ndarray:
+    """Gaussian smoothing of trajectories along time (seed eq. 5.2, 5.3), within each linked run.
+
+    The kernel ``K(i) = exp(-i^2 / (2 sigma^2))``, ``|i| <= R`` is normalised over the samples that exist, so
+    the ends of a run are not pulled toward zero (eq. 5.3 as printed is unnormalised).
+
+    Parameters
+    ----------
+    positions : (N, T, 2) array
+    present, linked : (N, T) bool arrays
+        Where a position exists, and where it is linked to the previous frame's (runs are not smoothed across).
+    radius_frames, sigma_frames
+        R and sigma of eq. 5.2-5.3; ``radius_frames=0`` returns the positions unchanged.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[2] != 2 or positions.shape[:2] != present.shape:
+        raise InvalidInputError(f"positions must have shape (N, T, 2) matching present, got {positions.shape}")
+    if radius_frames < 0:
+        raise InvalidInputError(f"radius_frames must be >= 0, got {radius_frames!r}")
+    if radius_frames == 0 or positions.shape[0] < 2:
+        return positions.copy()
+    if not sigma_frames > 0:
+        raise InvalidInputError(f"sigma_frames must be positive, got {sigma_frames!r}")
+    n = positions.shape[0]
+    # Run label per sample: a new run begins wherever a present sample is not linked to the previous frame.
+    start = present & ~linked
+    run_id = np.cumsum(start, axis=0)
+    out = np.zeros_like(positions)
+    weight = np.zeros(present.shape)
+    filled = np.where(present[..., None], positions, 0.0)
+    for i in range(-radius_frames, radius_frames + 1):
+        k = float(np.exp(-(i * i) / (2.0 * sigma_frames**2)))
+        lo, hi = max(0, -i), min(n, n - i)  # target frames t with t + i in range
+        src = slice(lo + i, hi + i)
+        tgt = slice(lo, hi)
+        ok = present[src] & present[tgt] & (run_id[src] == run_id[tgt])
+        out[tgt] += np.where(ok[..., None], filled[src] * k, 0.0)
+        weight[tgt] += np.where(ok, k, 0.0)
+    result = np.full_like(positions, np.nan)
+    has = present & (weight > 0)
+    result[has] = out[has] / weight[has][:, None]
+    return result
+
+
+def concatenate_features(tables: list[np.ndarray]) -> np.ndarray:
+    """The concatenated feature table that :attr:`Trajectories.feature_index` points into (frame set per table)."""
+    if not tables:
+        return np.zeros(0, dtype=FEATURE_DTYPE)
+    out = np.concatenate([validate_features(t) for t in tables])
+    sizes = [t.shape[0] for t in tables]
+    out["frame"] = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
+    out["id"] = np.arange(out.shape[0])
+    return out
