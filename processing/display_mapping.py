@@ -1,0 +1,157 @@
+"""From measured skin movement to a tactile movie for the STReSS 10x10 display (seed 5.4).
+
+The display's 10 x 10 mm active area is associated with a 10 x 10 mm patch of skin centred on the visibility
+window (which follows the fingertip). The patch is divided into 10 x 10 squares; the movement of each square is
+the average movement, relative to the fingertip, of the points inside it (seed 5.3.2). A contactor's ideal
+position is the cumulated movement since the first frame (Figure 63(b)); the display moves contactors in x only,
+so the horizontal position is either the projection of the ideal vector on x (Figure 63(d)) or the vector rotated
+onto x (Figure 63(c)). A contactor whose square leaves the field of view, or holds no measured point, is reset to
+rest (seed 5.4). Positions are in micrometres, clipped to the display's +/-50 um range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import Sequence
+
+import numpy as np
+
+from processing.calibration import Calibration
+from processing.errors import InvalidInputError
+from processing.fingertip import FingertipMotion, VisibilityWindow
+from processing.tracking import MotionSample
+
+
+class HorizontalMapping(Enum):
+    """How the 2-D ideal contactor position becomes a horizontal one (seed Figure 63(c), (d))."""
+
+    PROJECTION = "projection"
+    ROTATION = "rotation"
+
+
+@dataclass(frozen=True)
+class DisplayMappingParams:
+    """Geometry and range of the display, in mm and um (seed 5.4: 10 x 10 contactors at 1 mm, +/-50 um)."""
+
+    contactors: int = 10
+    pitch_mm: float = 1.0
+    range_um: float = 50.0
+    horizontal: HorizontalMapping = HorizontalMapping.PROJECTION
+
+    def __post_init__(self) -> None:
+        if int(self.contactors) < 2:
+            raise InvalidInputError(f"contactors must be >= 2, got {self.contactors!r}")
+        if not self.pitch_mm > 0:
+            raise InvalidInputError(f"pitch_mm must be positive, got {self.pitch_mm!r}")
+        if not self.range_um > 0:
+            raise InvalidInputError(f"range_um must be positive, got {self.range_um!r}")
+        if not isinstance(self.horizontal, HorizontalMapping):
+            raise InvalidInputError(f"horizontal must be a HorizontalMapping, got {self.horizontal!r}")
+
+
+@dataclass(frozen=True)
+class TactileMovie:
+    """Contactor positions over time and how they were obtained.
+
+    Attributes
+    ----------
+    positions_um : (N, C, C) float32
+        Horizontal contactor position (um, +x to the right of the image), rows top to bottom of the image.
+    reset : (N, C, C) bool
+        The contactor was reset to 0 in that frame (square out of view, or no movement measured in it).
+    clipped : (N, C, C) bool
+        The position reached the display's range and was clipped.
+    ideal_um : (N, C, C, 2) float32
+        Cumulated 2-D movement (um) before the horizontal mapping and clipping.
+    stretch_change : (N, C, C-1) float32
+        Change in stretch between horizontally neighbouring contactors (fraction of the pitch, Figure 66).
+    """
+
+    positions_um: np.ndarray
+    reset: np.ndarray
+    clipped: np.ndarray
+    ideal_um: np.ndarray
+    stretch_change: np.ndarray
+
+
+def tactile_movie(
+    samples: Sequence[MotionSample],
+    *,
+    fingertip: FingertipMotion,
+    window: VisibilityWindow,
+    calibration: Calibration,
+    image_shape: tuple[int, int],
+    params: DisplayMappingParams | None = None,
+) -> TactileMovie:
+    """Map per-pair movements (``samples[k]``: frame k -> k+1) to contactor positions for every frame.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from processing.fingertip import fingertip_motion, visibility_window
+    >>> cal = Calibration(px_per_mm=20.0)
+    >>> g = np.stack(np.meshgrid(np.arange(20.0, 380, 5), np.arange(20.0, 380, 5)), -1).reshape(-1, 2)
+    >>> d = np.zeros_like(g); d[:, 0] = 0.01 * (g[:, 0] - 200)  # 1 % horizontal stretch about x=200
+    >>> s = [MotionSample(0, 1, g, d, np.arange(len(g)))]
+    >>> ft = fingertip_motion(s, n_frames=2)
+    >>> movie = tactile_movie(s, fingertip=ft, window=visibility_window(ft, image_shape=(400, 400)),
+    ...                       calibration=cal, image_shape=(400, 400))
+    >>> movie.positions_um.shape, bool(movie.positions_um[1, 0, -1] > 0 > movie.positions_um[1, 0, 0])
+    ((2, 10, 10), True)
+    """
+    p = params or DisplayMappingParams()
+    n = fingertip.n_frames
+    if len(samples) != n - 1:
+        raise InvalidInputError(f"expected {n - 1} consecutive-pair samples, got {len(samples)}")
+    if window.centers.shape != (n, 2):
+        raise InvalidInputError(f"window has {window.centers.shape[0]} frames, fingertip motion {n}")
+    c = int(p.contactors)
+    pitch = calibration.px(p.pitch_mm)
+    um_per_px = 1000.0 / calibration.px_per_mm
+    h, w = image_shape
+    ideal = np.zeros((n, c, c, 2))
+    reset = np.zeros((n, c, c), bool)
+    offsets = (np.arange(c) - (c - 1) / 2.0) * pitch
+    for k, s in enumerate(samples):
+        if s.frame_a != k or s.frame_b != k + 1:
+            raise InvalidInputError(f"samples[{k}] is frames {s.frame_a}->{s.frame_b}, expected {k}->{k + 1}")
+        cx, cy = window.centers[k]
+        # Square (row, col) spans [c - pitch/2, c + pitch/2) around its centre.
+        cols = np.floor((np.asarray(s.points)[:, 0] - (cx + offsets[0] - pitch / 2)) / pitch).astype(np.int64)
+        rows = np.floor((np.asarray(s.points)[:, 1] - (cy + offsets[0] - pitch / 2)) / pitch).astype(np.int64)
+        inside = (cols >= 0) & (cols < c) & (rows >= 0) & (rows < c)
+        rel = (np.asarray(s.displacement, dtype=np.float64) - fingertip.displacement[k]) * um_per_px
+        sums = np.zeros((c, c, 2))
+        count = np.zeros((c, c), np.int64)
+        np.add.at(sums, (rows[inside], cols[inside]), rel[inside])
+        np.add.at(count, (rows[inside], cols[inside]), 1)
+        # Squares must be in view in both frames of the pair (seed 5.4: occluded contactors are reset).
+        in_view = np.ones((c, c), bool)
+        for centre in (window.centers[k], window.centers[k + 1]):
+            xs = centre[0] + offsets
+            ys = centre[1] + offsets
+            okx = (xs - pitch / 2 >= 0) & (xs + pitch / 2 <= w - 1)
+            oky = (ys - pitch / 2 >= 0) & (ys + pitch / 2 <= h - 1)
+            in_view &= oky[:, None] & okx[None, :]
+        measured = (count > 0) & in_view
+        step = np.zeros((c, c, 2))
+        step[measured] = sums[measured] / count[measured][:, None]
+        ideal[k + 1] = np.where(measured[..., None], ideal[k] + step, 0.0)
+        reset[k + 1] = ~measured
+    if p.horizontal is HorizontalMapping.PROJECTION:
+        horizontal = ideal[..., 0]
+    else:
+        # Rotate the ideal vector onto the x axis, keeping the side it points to.
+        horizontal = np.sign(ideal[..., 0]) * np.hypot(ideal[..., 0], ideal[..., 1])
+    clipped = np.abs(horizontal) > p.range_um
+    positions = np.clip(horizontal, -p.range_um, p.range_um)
+    pitch_um = p.pitch_mm * 1000.0
+    stretch = np.diff(positions, axis=2) / pitch_um
+    return TactileMovie(
+        positions_um=positions.astype(np.float32),
+        reset=reset,
+        clipped=clipped,
+        ideal_um=ideal.astype(np.float32),
+        stretch_change=stretch.astype(np.float32),
+    )

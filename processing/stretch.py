@@ -1,0 +1,306 @@
+"""Skin stretch from tracked points (seed 5.3): triangulation changes and local movement of skin patches.
+
+* :func:`triangulation_strain` (seed 5.3.1): the points tracked from frame a to frame b are triangulated
+  (Delaunay) in frame a; the triangulation is kept in frame b and the relative change of every edge length and
+  triangle area is measured. Any span b - a works (the seed uses 1 and 11 frames).
+* :func:`local_movement` (seed 5.3.2, Figure 59): average movement relative to the fingertip inside a disk.
+* :func:`patch_area_change` (Figure 61): relative area change of the tetragon of 4 neighbouring patch centres.
+* :func:`horizontal_stretch_profile` (Figure 62, 94): change in stretch along x from the average horizontal
+  movement of two vertical strips of width w either side of each position.
+
+Strains are fractions (0.01 = 1 %). Degenerate inputs raise :class:`InsufficientDataError` or are flagged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from processing.errors import InsufficientDataError, InvalidInputError
+from processing.tracking import MotionSample
+
+
+@dataclass(frozen=True)
+class TriangulationStrain:
+    """Relative changes of a Delaunay triangulation between two frames (seed 5.3.1).
+
+    Attributes
+    ----------
+    frame_a, frame_b : int
+    ids : (n,) int64
+        Ids (track indices) of the triangulated points.
+    points : (n, 2) float64
+        Their positions in frame a.
+    triangles : (m, 3) int64
+        Rows of ``points``, counter-clockwise on the image in frame a.
+    edges : (e, 2) int64
+        Rows of ``points``, each edge once.
+    edge_length : (e,) float64
+        Length in frame a, px.
+    edge_change : (e,) float64
+        ``L_b / L_a - 1``.
+    area : (m,) float64
+        Area in frame a, px^2.
+    area_change : (m,) float64
+        ``A_b / A_a - 1`` with signed areas: below -1 exactly where ``flipped``.
+    flipped : (m,) bool
+        The triangle changed orientation (a tracking error or a fold): its area change is not a strain.
+    n_dropped : int
+        Duplicate points and degenerate (zero-area) triangles left out.
+    """
+
+    frame_a: int
+    frame_b: int
+    ids: np.ndarray
+    points: np.ndarray
+    triangles: np.ndarray
+    edges: np.ndarray
+    edge_length: np.ndarray
+    edge_change: np.ndarray
+    area: np.ndarray
+    area_change: np.ndarray
+    flipped: np.ndarray
+    n_dropped: int = 0
+
+
+def _signed_area(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+    # Image y points down; a positive value here is counter-clockwise as seen on the image.
+    return -0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
+
+
+def triangulation_strain(
+    sample: MotionSample, *, max_edge_px: float | None = None, min_area_px2: float = 1.0
+) -> TriangulationStrain:
+    """Relative edge-length and triangle-area change of the Delaunay triangulation of ``sample.points``.
+
+    Parameters
+    ----------
+    sample : MotionSample
+        Points in frame a and their displacement to frame b.
+    max_edge_px : float, optional
+        Triangles with an edge longer than this in frame a are left out (long hull slivers span regions with
+        no features between them).
+    min_area_px2 : float
+        Triangles smaller than this in frame a are degenerate and left out.
+
+    Raises
+    ------
+    InsufficientDataError
+        Fewer than 3 distinct points, or all of them collinear.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> p = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    >>> s = MotionSample(0, 1, p, p * 0.02, np.arange(4))  # 2 % uniform expansion
+    >>> r = triangulation_strain(s)
+    >>> np.allclose(r.edge_change, 0.02), np.allclose(r.area_change, 1.02**2 - 1)
+    (True, True)
+    """
+    pa = np.asarray(sample.points, dtype=np.float64).reshape(-1, 2)
+    d = np.asarray(sample.displacement, dtype=np.float64).reshape(-1, 2)
+    ids = np.asarray(sample.ids, dtype=np.int64).reshape(-1)
+    if d.shape != pa.shape or ids.shape[0] != pa.shape[0]:
+        raise InvalidInputError(f"sample arrays disagree: points {pa.shape}, displacement {d.shape}, ids {ids.shape}")
+    finite = np.all(np.isfinite(pa), axis=1) & np.all(np.isfinite(d), axis=1)
+    pa, d, ids = pa[finite], d[finite], ids[finite]
+    n_in = pa.shape[0]
+    if n_in:
+        _, first = np.unique(np.round(pa, 6), axis=0, return_index=True)
+        first = np.sort(first)
+        pa, d, ids = pa[first], d[first], ids[first]
+    n_dropped = n_in - pa.shape[0]
+    if pa.shape[0] < 3:
+        raise InsufficientDataError(
+            f"frames {sample.frame_a}->{sample.frame_b}: {pa.shape[0]} distinct matched points, need at least 3"
+        )
+    try:
+        tri = Delaunay(pa).simplices.astype(np.int64)
+    except QhullError:
+        raise InsufficientDataError(
+            f"frames {sample.frame_a}->{sample.frame_b}: the {pa.shape[0]} matched points are collinear"
+        ) from None
+    pb = pa + d
+    area_a = _signed_area(pa, tri)
+    neg = area_a < 0
+    tri[neg] = tri[neg][:, [0, 2, 1]]
+    area_a = np.abs(area_a)
+    keep = area_a >= min_area_px2
+    if max_edge_px is not None:
+        ea = np.stack([np.hypot(*(pa[tri[:, i]] - pa[tri[:, (i + 1) % 3]]).T) for i in range(3)], axis=1)
+        keep &= ea.max(axis=1) <= max_edge_px
+    n_dropped += int((~keep).sum())
+    tri, area_a = tri[keep], area_a[keep]
+    if tri.shape[0] == 0:
+        raise InsufficientDataError(
+            f"frames {sample.frame_a}->{sample.frame_b}: no usable triangle (points nearly collinear or too far apart)"
+        )
+    area_b = _signed_area(pb, tri)
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    la = np.hypot(*(pa[edges[:, 0]] - pa[edges[:, 1]]).T)
+    lb = np.hypot(*(pb[edges[:, 0]] - pb[edges[:, 1]]).T)
+    return TriangulationStrain(
+        frame_a=int(sample.frame_a),
+        frame_b=int(sample.frame_b),
+        ids=ids,
+        points=pa,
+        triangles=tri,
+        edges=edges,
+        edge_length=la,
+        edge_change=lb / la - 1.0,
+        area=area_a,
+        area_change=area_b / area_a - 1.0,
+        flipped=area_b <= 0,
+        n_dropped=int(n_dropped),
+    )
+
+
+@dataclass(frozen=True)
+class LocalMovement:
+    """Average movement relative to the fingertip around each centre (seed 5.3.2).
+
+    ``movement`` is NaN exactly where ``valid`` is False (no point inside the window).
+    """
+
+    centers: np.ndarray  # (..., 2) px in frame a
+    movement: np.ndarray  # (..., 2) px
+    count: np.ndarray  # (...) int64
+    valid: np.ndarray  # (...) bool
+
+
+def local_movement(
+    sample: MotionSample, *, fingertip_displacement: np.ndarray, centers: np.ndarray, radius_px: float
+) -> LocalMovement:
+    """Mean displacement minus fingertip displacement of the points within ``radius_px`` of each centre (disk).
+
+    ``centers`` may have any leading shape (e.g. a (GY, GX, 2) grid).
+    """
+    if not radius_px > 0:
+        raise InvalidInputError(f"radius_px must be positive, got {radius_px!r}")
+    centers = np.asarray(centers, dtype=np.float64)
+    if centers.shape[-1] != 2:
+        raise InvalidInputError(f"centers must end in an axis of 2, got shape {centers.shape}")
+    ft = np.asarray(fingertip_displacement, dtype=np.float64).reshape(2)
+    flat = centers.reshape(-1, 2)
+    rel = np.asarray(sample.displacement, dtype=np.float64) - ft
+    sums = np.zeros_like(flat)
+    count = np.zeros(flat.shape[0], np.int64)
+    if len(sample):
+        lists = cKDTree(np.asarray(sample.points, dtype=np.float64)).query_ball_point(flat, radius_px)
+        lengths = np.fromiter((len(lst) for lst in lists), dtype=np.int64, count=flat.shape[0])
+        if lengths.sum():
+            owner = np.repeat(np.arange(flat.shape[0]), lengths)
+            members = np.concatenate([np.asarray(lst, dtype=np.int64) for lst in lists if lst])
+            np.add.at(sums, owner, rel[members])
+            count = lengths
+    valid = count > 0
+    mov = np.full_like(flat, np.nan)
+    mov[valid] = sums[valid] / count[valid][:, None]
+    shape = centers.shape[:-1]
+    return LocalMovement(centers, mov.reshape(*shape, 2), count.reshape(shape), valid.reshape(shape))
+
+
+def patch_area_change(centers: np.ndarray, movement: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Relative area change of the tetragons of 4 neighbouring patch centres (seed 5.3.2, Figure 61).
+
+    Parameters
+    ----------
+    centers, movement : (GY, GX, 2) arrays
+        Patch centres in frame a and their movement (relative to the fingertip; a common motion cancels).
+    valid : (GY, GX) bool
+
+    Returns
+    -------
+    change : (GY-1, GX-1) float64
+        ``A_b / A_a - 1``; NaN exactly where ``ok`` is False.
+    ok : (GY-1, GX-1) bool
+        All four corners valid and the tetragon non-degenerate.
+    """
+    centers = np.asarray(centers, dtype=np.float64)
+    movement = np.asarray(movement, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if centers.ndim != 3 or centers.shape[2] != 2 or movement.shape != centers.shape or valid.shape != centers.shape[:2]:
+        raise InvalidInputError(
+            f"centers {centers.shape}, movement {movement.shape}, valid {valid.shape} must be (GY, GX, 2) and (GY, GX)"
+        )
+
+    def area(p):
+        a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
+        xs = np.stack([a[..., 0], b[..., 0], c[..., 0], d[..., 0]])
+        ys = np.stack([a[..., 1], b[..., 1], c[..., 1], d[..., 1]])
+        return 0.5 * np.sum(xs * np.roll(ys, -1, axis=0) - np.roll(xs, -1, axis=0) * ys, axis=0)
+
+    after = centers + np.where(valid[..., None], movement, 0.0)
+    a0, a1 = area(centers), area(after)
+    ok = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, 1:] & valid[1:, :-1] & (np.abs(a0) > 1e-9)
+    change = np.full(a0.shape, np.nan)
+    change[ok] = a1[ok] / a0[ok] - 1.0
+    return change, ok
+
+
+@dataclass(frozen=True)
+class StretchProfile:
+    """Change in horizontal stretch at positions along x (seed 5.3.2, Figure 62). NaN exactly where not ``valid``."""
+
+    x: np.ndarray  # (P,) px
+    change: np.ndarray  # (P,) fraction
+    valid: np.ndarray  # (P,) bool
+
+
+def horizontal_stretch_profile(
+    sample: MotionSample,
+    *,
+    fingertip_displacement: np.ndarray,
+    x_positions: np.ndarray,
+    strip_width_px: float,
+    min_points: int = 2,
+) -> StretchProfile:
+    """Change in horizontal stretch at each x: (mean dx in [x, x+w) - mean dx in [x-w, x)) / w.
+
+    The two vertical strips' centres are ``w`` apart, so the result is the mean horizontal strain between them
+    (positive = expansion). Strips with fewer than ``min_points`` points leave the position invalid.
+    """
+    if not strip_width_px > 0:
+        raise InvalidInputError(f"strip_width_px must be positive, got {strip_width_px!r}")
+    xs = np.asarray(x_positions, dtype=np.float64).reshape(-1)
+    px = np.asarray(sample.points, dtype=np.float64)[:, 0] if len(sample) else np.zeros(0)
+    dx = (np.asarray(sample.displacement, dtype=np.float64)[:, 0] - float(np.asarray(fingertip_displacement)[0])) if len(sample) else np.zeros(0)
+    order = np.argsort(px)
+    px, dx = px[order], dx[order]
+    csum = np.concatenate([[0.0], np.cumsum(dx)])
+
+    def strip(lo, hi):
+        i0 = np.searchsorted(px, lo, side="left")
+        i1 = np.searchsorted(px, hi, side="left")
+        n = i1 - i0
+        s = csum[i1] - csum[i0]
+        return s, n
+
+    sl, nl = strip(xs - strip_width_px, xs)
+    sr, nr = strip(xs, xs + strip_width_px)
+    valid = (nl >= min_points) & (nr >= min_points)
+    change = np.full(xs.shape, np.nan)
+    change[valid] = (sr[valid] / nr[valid] - sl[valid] / nl[valid]) / strip_width_px
+    return StretchProfile(xs, change, valid)
+
+
+def mean_profile(profiles: list[StretchProfile]) -> StretchProfile:
+    """Average of profiles at the same positions over a sequence (seed Figure 94), ignoring invalid entries."""
+    if not profiles:
+        raise InsufficientDataError("no stretch profile to average")
+    x = profiles[0].x
+    total = np.zeros(x.shape)
+    count = np.zeros(x.shape)
+    for p in profiles:
+        if p.x.shape != x.shape or not np.allclose(p.x, x):
+            raise InvalidInputError("profiles must share their x positions")
+        total += np.where(p.valid, p.change, 0.0)
+        count += p.valid
+    valid = count > 0
+    change = np.full(x.shape, np.nan)
+    change[valid] = total[valid] / count[valid]
+    return StretchProfile(x, change, valid)
