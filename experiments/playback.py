@@ -1,0 +1,468 @@
+"""Closed-loop playback of a tactile movie on a STReSS display, with force and link safety (seed 5.4, 6.4).
+
+The seed could not test its movies because "the latest prototype of the STReSS is not sufficiently accurate"
+(seed 6.4). Here every frame ack carries the contactors' measured positions, so playback can correct each
+contactor's *persistent* error online:
+
+* :class:`ContactorCorrector` fits, per contactor and by recursive least squares with forgetting, the model
+  ``measured = gain * command + offset + backlash * direction`` (direction = sign of the last commanded motion,
+  which captures hysteresis; the finger's load shows up as offset and gain), and inverts it for the next command.
+  The correction ``|command - target|`` is bounded (``max_correction_um``), the estimates are clamped to sane
+  ranges, and the display driver applies its own range and slew limits on top.
+* :func:`play_movie` streams the frames, stops the movie and sends every contactor to rest when the normal force
+  exceeds a ceiling or the link fails (a flagged :class:`PlaybackResult`, never a silent stop), and records
+  target, command, measured positions and force in a session file.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from drivers.camera_modes import CAMERA_MODES
+from drivers.display.base import TactileDisplay
+from processing.calibration import Calibration
+from processing.errors import DeviceError, InvalidInputError, SessionFileError
+from experiments.recorder import Recorder
+
+__all__ = [
+    "ContactorCorrector",
+    "PlaybackResult",
+    "play_movie",
+    "load_movie",
+    "rms_tracking_error",
+    "play_protocol_movie",
+]
+
+SHAPE = (10, 10)
+
+
+# ----------------------------------------------------------------------------------------------- controller
+
+
+class ContactorCorrector:
+    """Online per-contactor gain / offset / backlash estimate and its bounded inverse.
+
+    Parameters
+    ----------
+    max_correction_um : float, keyword-only
+        Largest difference between the command sent and the target (um); keeps a bad estimate harmless.
+    forgetting : float, keyword-only
+        RLS forgetting factor in (0.9, 1]; lower tracks a changing finger load faster.
+    gain_bounds : (float, float), keyword-only
+        Clamp of the estimated gain.
+    ack_lag_frames : int, keyword-only
+        The ack of frame k reports the positions reached under the command of frame k - lag.
+    """
+
+    def __init__(
+        self,
+        *,
+        max_correction_um: float = 15.0,
+        forgetting: float = 0.995,
+        gain_bounds: tuple[float, float] = (0.5, 2.0),
+        ack_lag_frames: int = 1,
+        shape: tuple[int, int] = SHAPE,
+    ) -> None:
+        if not (math.isfinite(max_correction_um) and max_correction_um >= 0):
+            raise InvalidInputError(f"max_correction_um must be >= 0, got {max_correction_um!r}")
+        if not (0.9 < forgetting <= 1.0):
+            raise InvalidInputError(f"forgetting must be in (0.9, 1], got {forgetting!r}")
+        if not (0 < gain_bounds[0] < 1 < gain_bounds[1]):
+            raise InvalidInputError(f"gain_bounds must bracket 1, got {gain_bounds!r}")
+        if ack_lag_frames not in (0, 1, 2, 3):
+            raise InvalidInputError(f"ack_lag_frames must be 0..3, got {ack_lag_frames!r}")
+        self.max_correction_um = float(max_correction_um)
+        self.forgetting = float(forgetting)
+        self.gain_bounds = (float(gain_bounds[0]), float(gain_bounds[1]))
+        self.ack_lag_frames = int(ack_lag_frames)
+        n = int(np.prod(shape))
+        self.shape = shape
+        # theta = (gain, offset, backlash) per contactor; P its covariance (n, 3, 3).
+        self.theta = np.tile(np.array([1.0, 0.0, 0.0]), (n, 1))
+        self.P = np.tile(np.diag([1e-3, 10.0, 10.0]), (n, 1, 1))
+        self._direction = np.ones(n)
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # (command, direction) of recent frames
+        self._last_target = np.zeros(n)
+        self.updates = 0
+
+    @property
+    def gain(self) -> np.ndarray:
+        return self.theta[:, 0].reshape(self.shape)
+
+    @property
+    def offset_um(self) -> np.ndarray:
+        return self.theta[:, 1].reshape(self.shape)
+
+    @property
+    def backlash_um(self) -> np.ndarray:
+        return self.theta[:, 2].reshape(self.shape)
+
+    def command(self, target_um: np.ndarray) -> np.ndarray:
+        """The command to send so that the contactors reach ``target_um`` (10, 10), correction bounded."""
+        target = np.asarray(target_um, dtype=float).reshape(-1)
+        if target.shape[0] != self.theta.shape[0] or not np.all(np.isfinite(target)):
+            raise InvalidInputError(f"target_um must be a finite {self.shape} array")
+        step = target - self._last_target
+        # Direction of motion: the sign of the commanded step, held while the target stands still (backlash).
+        self._direction = np.where(np.abs(step) > 1e-9, np.sign(step), self._direction)
+        self._last_target = target
+        gain, offset, backlash = self.theta.T
+        cmd = (target - offset - backlash * self._direction) / gain
+        cmd = np.clip(cmd, target - self.max_correction_um, target + self.max_correction_um)
+        self._history.append((cmd.copy(), self._direction.copy()))
+        del self._history[: -(self.ack_lag_frames + 2)]
+        return cmd.reshape(self.shape)
+
+    def sent(self, command_um: np.ndarray) -> None:
+        """Tell the corrector what actually left the driver (after range/slew limits) for the last frame."""
+        if self._history:
+            self._history[-1] = (np.asarray(command_um, float).reshape(-1).copy(), self._history[-1][1])
+
+    def observe(self, measured_um: np.ndarray) -> None:
+        """Update the estimates with the measured positions of the ack of the last frame sent."""
+        lag = self.ack_lag_frames
+        if len(self._history) < lag + 1:
+            return
+        cmd, direction = self._history[-1 - lag]
+        y = np.asarray(measured_um, dtype=float).reshape(-1)
+        if y.shape != cmd.shape or not np.all(np.isfinite(y)):
+            return  # a damaged ack teaches nothing
+        phi = np.stack([cmd, np.ones_like(cmd), direction], axis=1)  # (n, 3)
+        P_phi = np.einsum("nij,nj->ni", self.P, phi)
+        denom = self.forgetting + np.einsum("ni,ni->n", phi, P_phi)
+        k = P_phi / denom[:, None]
+        err = y - np.einsum("ni,ni->n", phi, self.theta)
+        self.theta = self.theta + k * err[:, None]
+        self.P = (self.P - np.einsum("ni,nj->nij", k, P_phi)) / self.forgetting
+        # Keep the covariance bounded while the movie does not excite a contactor (no wind-up).
+        tr = np.trace(self.P, axis1=1, axis2=2)
+        big = tr > 100.0
+        if np.any(big):
+            self.P[big] *= (100.0 / tr[big])[:, None, None]
+        self.theta[:, 0] = np.clip(self.theta[:, 0], *self.gain_bounds)
+        self.theta[:, 1:] = np.clip(self.theta[:, 1:], -self.max_correction_um, self.max_correction_um)
+        self.updates += 1
+
+
+# ------------------------------------------------------------------------------------------------- playback
+
+
+@dataclass
+class PlaybackResult:
+    """What was played and measured. ``stopped`` is a reason string when the movie was cut short (safety)."""
+
+    closed_loop: bool
+    frames_total: int
+    frames_played: int
+    target_um: np.ndarray  # (k, 10, 10)
+    command_um: np.ndarray  # (k, 10, 10) as limited by the driver
+    measured_um: np.ndarray  # (k, 10, 10) from the acks, aligned to the target they answer (NaN: none)
+    force_n: np.ndarray  # (k,) normal force when the frame was sent (NaN: no sensor)
+    stopped: str = ""
+    rested: bool = True
+    late_frames: int = 0
+    duration_s: float = 0.0
+    path: Path | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return not self.stopped and self.frames_played == self.frames_total
+
+    @property
+    def rms_error_um(self) -> float:
+        """RMS of measured - target over the played frames (skipping the first ``settle`` frames)."""
+        return rms_tracking_error(self.target_um, self.measured_um, settle=self.extra.get("settle", 0))
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "closed_loop": self.closed_loop,
+            "frames_total": self.frames_total,
+            "frames_played": self.frames_played,
+            "stopped": self.stopped,
+            "rested": self.rested,
+            "late_frames": self.late_frames,
+            "duration_s": self.duration_s,
+            "rms_error_um": self.rms_error_um,
+            "max_force_n": float(np.nanmax(self.force_n)) if np.any(np.isfinite(self.force_n)) else None,
+            "path": str(self.path) if self.path else None,
+        }
+
+
+def rms_tracking_error(target_um: np.ndarray, measured_um: np.ndarray, *, settle: int = 0) -> float:
+    """RMS position error (um) over frames with a measurement; NaN-free: raises when there is none."""
+    t = np.asarray(target_um, float)[settle:]
+    m = np.asarray(measured_um, float)[settle:]
+    ok = np.isfinite(m)
+    if not np.any(ok):
+        return float("nan")
+    return float(np.sqrt(np.mean((m[ok] - t[ok]) ** 2)))
+
+
+def play_movie(
+    display: TactileDisplay,
+    movie_um: np.ndarray,
+    *,
+    rate_hz: float | None = None,
+    closed_loop: bool = True,
+    corrector: ContactorCorrector | None = None,
+    force=None,
+    force_ceiling_n: float = 5.0,
+    path: str | os.PathLike | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    settle_frames: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> PlaybackResult:
+    """Play a (T, 10, 10) movie in micrometres; return what was commanded and measured.
+
+    Parameters
+    ----------
+    display : TactileDisplay
+        An opened display; it is armed here and disarmed (contactors at rest) at the end, whatever happens.
+    movie_um : ndarray (T, 10, 10)
+        Target contactor positions per frame.
+    rate_hz : float, optional
+        Frame rate; None plays as fast as the display acknowledges (the simulator paces itself).
+    closed_loop : bool
+        Correct each contactor from the measured positions (:class:`ContactorCorrector`) or send targets as is.
+    force : optional
+        A force source with ``latest() -> (6,) or None`` (Fx Fy Fz Tx Ty Tz, N and N m).
+    force_ceiling_n : float
+        Normal force above which the movie stops and the contactors return to rest (safety).
+    path : path-like, optional
+        Session file recording target, command, measured positions and force (streams ``display_target``,
+        ``display_command``, ``display_measured``, ``force``).
+    settle_frames : int
+        Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
+    """
+    movie = np.asarray(movie_um, dtype=float)
+    if movie.ndim != 3 or movie.shape[1:] != SHAPE or movie.shape[0] < 1:
+        raise InvalidInputError(f"movie_um must have shape (T, 10, 10) with T >= 1, got {movie.shape}")
+    if not np.all(np.isfinite(movie)):
+        raise InvalidInputError("movie_um holds NaN or inf; fill or reset those contactors first (seed 5.4)")
+    if rate_hz is not None and not (0 < rate_hz <= 2000):
+        raise InvalidInputError(f"rate_hz must be in (0, 2000], got {rate_hz!r}")
+    if not (0 < force_ceiling_n <= 100):
+        raise InvalidInputError(f"force_ceiling_n must be in (0, 100] N, got {force_ceiling_n!r}")
+    n = movie.shape[0]
+    corrector = corrector or (ContactorCorrector() if closed_loop else None)
+    lag = corrector.ack_lag_frames if corrector is not None else 1
+    target = movie
+    command = np.full_like(movie, np.nan)
+    measured = np.full_like(movie, np.nan)
+    forces = np.full(n, np.nan)
+    recorder = None
+    if path is not None:
+        mode = CAMERA_MODES["full"]
+        recorder = Recorder(
+            path,
+            camera_mode=mode,
+            calibration=Calibration(px_per_mm=mode.width / 10.3),
+            metadata={"kind": "playback", "closed_loop": closed_loop, "frames": n, "rate_hz": rate_hz,
+                      "force_ceiling_n": force_ceiling_n, **dict(metadata or {})},
+            streams={
+                "display_target": (SHAPE, "f4"),
+                "display_command": (SHAPE, "f4"),
+                "display_measured": (SHAPE, "f4"),
+                "force": ((6,), "f8"),
+            },
+        ).start()
+    # Rows are queued to the recorder's writer thread in blocks: one HDF5 append per frame and stream would cost
+    # more than a 700 Hz frame period.
+    block: dict[str, list] = {"t": [], "target": [], "command": [], "measured": [], "ft": [], "ft_t": []}
+
+    def flush_block() -> None:
+        if recorder is None or not block["t"]:
+            return
+        t = np.array(block["t"])
+        recorder.put_samples("display_target", t, np.array(block["target"], np.float32))
+        recorder.put_samples("display_command", t, np.array(block["command"], np.float32))
+        recorder.put_samples("display_measured", t, np.array(block["measured"], np.float32))
+        if block["ft"]:
+            recorder.put_samples("force", np.array(block["ft_t"]), np.array(block["ft"], float))
+        for v in block.values():
+            v.clear()
+
+    stopped = ""
+    played = 0
+    late = 0
+    t0 = time.perf_counter()
+    try:
+        display.arm()
+        period = None if rate_hz is None else 1.0 / rate_hz
+        for k in range(n):
+            if period is not None:
+                due = t0 + k * period
+                now = time.perf_counter()
+                if now < due:
+                    time.sleep(due - now)
+                elif now - due > period:
+                    late += 1
+            wrench = force.latest() if force is not None else None
+            fz = math.nan if wrench is None else float(abs(wrench[2]))
+            forces[k] = fz
+            if math.isfinite(fz) and fz > force_ceiling_n:
+                stopped = f"safety stop: normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N"
+                break
+            want = corrector.command(target[k]) if corrector is not None else target[k]
+            try:
+                ack = display.send_frame(want)
+            except DeviceError as exc:
+                stopped = f"safety stop: display link failed ({type(exc).__name__}: {exc})"
+                break
+            command[k] = ack.command_um
+            if corrector is not None:
+                corrector.sent(ack.command_um)
+                corrector.observe(ack.measured_um)
+            # The ack of frame k shows where the contactors got under frame k - lag: file it under that frame.
+            if k - lag >= 0:
+                measured[k - lag] = ack.measured_um
+            played = k + 1
+            if recorder is not None:
+                t = time.time()
+                block["t"].append(t)
+                block["target"].append(target[k])
+                block["command"].append(ack.command_um)
+                block["measured"].append(ack.measured_um)
+                if wrench is not None:
+                    block["ft_t"].append(t)
+                    block["ft"].append(np.asarray(wrench, float))
+                if len(block["t"]) >= 32:
+                    flush_block()
+            if progress is not None and (k + 1) % 500 == 0:
+                progress(f"  playback: {k + 1}/{n} frames")
+    except DeviceError as exc:  # arm() failed: nothing moved
+        stopped = f"display could not start: {type(exc).__name__}: {exc}"
+    finally:
+        rested = _to_rest(display)
+        duration = time.perf_counter() - t0
+        if recorder is not None:
+            flush_block()
+            recorder.finish(failed_reason=stopped or None)
+    result = PlaybackResult(
+        closed_loop=closed_loop,
+        frames_total=n,
+        frames_played=played,
+        target_um=target[:played],
+        command_um=command[:played],
+        measured_um=measured[:played],
+        force_n=forces[:played],
+        stopped=stopped,
+        rested=rested,
+        late_frames=late,
+        duration_s=duration,
+        path=Path(path) if path is not None else None,
+        extra={"settle": min(settle_frames, max(played - 1, 0))},
+    )
+    if progress is not None:
+        progress(
+            f"  playback ({'closed' if closed_loop else 'open'} loop): {played}/{n} frames, "
+            f"RMS error {result.rms_error_um:.2f} um" + (f", STOPPED: {stopped}" if stopped else "")
+        )
+    return result
+
+
+def _to_rest(display: TactileDisplay) -> bool:
+    """Every contactor back to rest: REST then DISARM; if the link is gone the firmware watchdog does it."""
+    ok = True
+    try:
+        display.rest()
+    except (DeviceError, OSError):
+        ok = False
+    try:
+        display.disarm()
+    except (DeviceError, OSError):
+        ok = False
+    return ok
+
+
+# ------------------------------------------------------------------------------------------------- movies
+
+
+def load_movie(source: str | os.PathLike) -> tuple[np.ndarray, float | None]:
+    """Read a tactile movie: a ``.npy`` (T, 10, 10) um, an ``.h5`` with a ``movie`` dataset (or a results file),
+    or an analysed results directory. Returns (movie_um, rate_hz or None)."""
+    p = Path(source)
+    if not p.exists():
+        raise SessionFileError(f"{p}: no such movie file or results directory")
+    if p.is_dir():
+        try:
+            from experiments.results_file import read_movie  # noqa: PLC0415 - optional reader of results
+        except ImportError:
+            read_movie = None
+        if read_movie is not None:
+            movie, rate = read_movie(p)
+            return _check_movie(np.asarray(movie, float), p), rate
+        for name in ("movie.npy", "tactile_movie.npy"):
+            if (p / name).exists():
+                return _check_movie(np.load(p / name), p), None
+        raise SessionFileError(f"{p}: results directory holds no tactile movie")
+    if p.suffix == ".npy":
+        try:
+            return _check_movie(np.load(p, allow_pickle=False), p), None
+        except ValueError as exc:
+            raise SessionFileError(f"{p}: not a readable .npy movie ({exc})") from None
+    if p.suffix in (".h5", ".hdf5"):
+        import h5py  # noqa: PLC0415
+
+        try:
+            with h5py.File(p, "r") as f:
+                for key in ("movie", "tactile_movie", "movie/positions_um"):
+                    if key in f and isinstance(f[key], h5py.Dataset):
+                        rate = f[key].attrs.get("rate_hz")
+                        return _check_movie(f[key][()], p), (float(rate) if rate is not None else None)
+        except OSError as exc:
+            raise SessionFileError(f"{p}: HDF5 file cannot be read ({exc})") from None
+        raise SessionFileError(f"{p}: HDF5 file has no 'movie' dataset")
+    raise SessionFileError(f"{p}: a movie is a .npy or .h5 file or a results directory")
+
+
+def _check_movie(movie: np.ndarray, source: Path) -> np.ndarray:
+    movie = np.asarray(movie, float)
+    if movie.ndim != 3 or movie.shape[1:] != SHAPE:
+        raise SessionFileError(f"{source}: movie must have shape (T, 10, 10), got {movie.shape}")
+    # Contactors with no measurement are reset to rest (seed 5.4: "its position is reset").
+    return np.where(np.isfinite(movie), movie, 0.0)
+
+
+def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=print) -> PlaybackResult:
+    """Play the protocol's movie (``movie.source``: a trial name, ``last_trial``, or a file) on the rig's display."""
+    spec = protocol.movie
+    sdir = Path(session_directory)
+    source = spec.source
+    trial_dirs = sorted(d for d in sdir.iterdir() if d.is_dir() and (d / "analysis").exists())
+    if source == "last_trial":
+        if not trial_dirs:
+            raise SessionFileError(f"{sdir}: no analysed trial to take a movie from")
+        movie_path = trial_dirs[-1] / "analysis"
+    elif any(d.name.split("-", 1)[-1].rsplit("-r", 1)[0] == source for d in trial_dirs):
+        movie_path = [d for d in trial_dirs if d.name.split("-", 1)[-1].rsplit("-r", 1)[0] == source][0] / "analysis"
+    else:
+        movie_path = Path(source)
+    movie, rate = load_movie(movie_path)
+    movie = movie * spec.gain
+    out = sdir / "playback"
+    out.mkdir(exist_ok=True)
+    k = 1
+    while (out / f"playback-{k}.h5").exists():
+        k += 1
+    progress(f"playback of {movie_path} ({movie.shape[0]} frames, gain {spec.gain}) "
+             f"{'closed' if spec.closed_loop else 'open'} loop")
+    return play_movie(
+        devices.display_device(),
+        movie,
+        rate_hz=spec.rate_hz or rate,
+        closed_loop=spec.closed_loop,
+        force=devices.force,
+        force_ceiling_n=spec.force_ceiling_n,
+        path=out / f"playback-{k}.h5",
+        metadata={"movie": str(movie_path), "gain": spec.gain},
+        progress=progress,
+    )

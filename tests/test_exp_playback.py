@@ -1,0 +1,168 @@
+"""Closed-loop playback: the corrector beats open loop on a display with hysteresis and finger load, and the
+force ceiling and a link failure stop the movie with every contactor at rest."""
+
+import time
+
+import numpy as np
+import pytest
+
+from drivers.display.base import DisplayInfo, FrameAck, TactileDisplay
+from drivers.display.stress_protocol import Status
+from drivers.session_file import open_session
+from experiments.playback import ContactorCorrector, load_movie, play_movie
+from processing.errors import DeviceError, InvalidInputError, SessionFileError
+
+
+class PlantDisplay(TactileDisplay):
+    """A display whose contactors have a gain error, a load offset and backlash (hysteresis); the ack of a frame
+    reports the positions reached under the previous frame, quantised to 0.5 um like the wire encoding."""
+
+    def __init__(self, *, seed=0, backlash_um=4.0, load_um=-3.0, fail_after=None, **kw):
+        super().__init__(**kw)
+        rng = np.random.default_rng(seed)
+        self.gain = rng.uniform(0.8, 1.1, (10, 10))
+        self.offset = load_um + rng.normal(0, 1.0, (10, 10))
+        self.half_band = backlash_um / 2
+        self.pos = np.zeros((10, 10))
+        self.inner = np.zeros((10, 10))
+        self.fail_after = fail_after
+        self.frames = 0
+        self.rested = True
+        self._seq = 0
+        self._pending = []
+
+    @property
+    def outstanding(self):
+        return len(self._pending)
+
+    def _do_identify(self):
+        return DisplayInfo("plant", "0", 1, 10, 10, 50.0, 1000)
+
+    def _do_configure(self, *, watchdog_s, max_step_um):
+        pass
+
+    def _do_arm(self):
+        self.rested = False
+
+    def _do_disarm(self):
+        self._do_rest()
+
+    def _do_zero(self):
+        pass
+
+    def _do_rest(self):
+        if self.fail_after is not None and self.frames >= self.fail_after:
+            raise DeviceError("link lost (plant)")
+        self.inner[:] = 0
+        self.pos[:] = 0
+        self.rested = True
+
+    def _do_read_status(self):
+        raise NotImplementedError
+
+    def _do_submit_frame(self, command_um):
+        if self.fail_after is not None and self.frames >= self.fail_after:
+            raise DeviceError("link lost (plant)")
+        self.frames += 1
+        measured = np.round(self.pos * 2) / 2  # what the sensors read when the frame arrives
+        drive = self.gain * command_um
+        # backlash: the inner position follows the drive only beyond the dead band
+        self.inner = np.clip(self.inner, drive - self.half_band, drive + self.half_band)
+        self.pos = self.inner + self.offset
+        self._seq = (self._seq + 1) & 0xFF
+        self._pending.append(FrameAck(self._seq, Status.ARMED, measured, command_um, 0.0, 0.0))
+        return self._seq
+
+    def _do_collect_acks(self, *, wait_for, timeout_s):
+        got, self._pending = self._pending, []
+        return got
+
+    def _do_close(self):
+        pass
+
+
+class FixedForce:
+    def __init__(self, values):
+        self.values = list(values)
+        self.k = 0
+
+    def latest(self):
+        v = self.values[min(self.k, len(self.values) - 1)]
+        self.k += 1
+        return np.array([0.0, 0.0, v, 0.0, 0.0, 0.0])
+
+
+def _movie(n=1500, seed=1):
+    t = np.arange(n) / 700.0
+    rng = np.random.default_rng(seed)
+    phase = rng.uniform(0, 2 * np.pi, (10, 10))
+    amp = rng.uniform(10, 30, (10, 10))
+    return amp * np.sin(2 * np.pi * 2.0 * t[:, None, None] + phase)
+
+
+def test_closed_loop_cuts_rms_error_at_least_five_times(tmp_path):
+    movie = _movie()
+    open_ = play_movie(PlantDisplay(), movie, closed_loop=False, settle_frames=300)
+    closed = play_movie(PlantDisplay(), movie, closed_loop=True, settle_frames=300, path=tmp_path / "pb.h5")
+    assert open_.complete and closed.complete and closed.rested
+    assert open_.rms_error_um > 2.0
+    assert closed.rms_error_um * 5 <= open_.rms_error_um, (open_.rms_error_um, closed.rms_error_um)
+    with open_session(tmp_path / "pb.h5") as s:
+        assert s.complete and s.metadata["closed_loop"] is True
+        t, measured = s.read_stream("display_measured")
+        assert measured.shape == (1500, 10, 10)
+        _, cmd = s.read_stream("display_command")
+        # the corrections stay bounded
+        assert np.max(np.abs(cmd - movie.astype(np.float32))[300:]) <= ContactorCorrector().max_correction_um + 0.5
+
+
+def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
+    display = PlantDisplay()
+    force = FixedForce([1.0] * 100 + [6.0])
+    result = play_movie(display, _movie(400), force=force, force_ceiling_n=5.0, path=tmp_path / "pb.h5")
+    assert result.stopped.startswith("safety stop: normal force 6.00 N")
+    assert result.frames_played == 100 and not result.complete
+    assert display.rested and not display.armed and result.rested
+    assert np.all(display.pos == 0)
+    with open_session(tmp_path / "pb.h5") as s:
+        assert s.status == "failed" and "safety stop" in s.status_reason
+        assert s.read_stream("display_target")[1].shape[0] == 100
+
+
+def test_link_failure_stops_movie_and_reports_it():
+    display = PlantDisplay(fail_after=50)
+    result = play_movie(display, _movie(200))
+    assert result.frames_played == 50 and "display link failed" in result.stopped
+    assert not result.rested  # the link is gone: the host could not confirm; the firmware watchdog rests it
+    assert not display.armed
+
+
+def test_corrector_learns_gain_offset_and_backlash():
+    display = PlantDisplay(seed=3)
+    corrector = ContactorCorrector()
+    play_movie(display, _movie(2000), corrector=corrector)
+    np.testing.assert_allclose(corrector.gain, display.gain, atol=0.05)
+    np.testing.assert_allclose(corrector.offset_um, display.offset, atol=1.0)
+    assert np.median(np.abs(corrector.backlash_um + display.half_band)) < 0.7
+
+
+def test_bad_inputs_are_named():
+    with pytest.raises(InvalidInputError, match="movie_um"):
+        play_movie(PlantDisplay(), np.zeros((5, 8, 8)))
+    with pytest.raises(InvalidInputError, match="NaN"):
+        play_movie(PlantDisplay(), np.full((5, 10, 10), np.nan))
+    with pytest.raises(InvalidInputError, match="max_correction_um"):
+        ContactorCorrector(max_correction_um=-1)
+
+
+def test_load_movie_formats(tmp_path):
+    m = np.zeros((4, 10, 10))
+    m[1, 2, 3] = np.nan
+    np.save(tmp_path / "m.npy", m)
+    got, rate = load_movie(tmp_path / "m.npy")
+    assert got.shape == (4, 10, 10) and got[1, 2, 3] == 0 and rate is None
+    with pytest.raises(SessionFileError, match="no such"):
+        load_movie(tmp_path / "none.npy")
+    np.save(tmp_path / "bad.npy", np.zeros((4, 3)))
+    with pytest.raises(SessionFileError, match="shape"):
+        load_movie(tmp_path / "bad.npy")
