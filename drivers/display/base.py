@@ -1,0 +1,197 @@
+"""The tactile display interface: one small ABC, public methods validate and clamp, ``_do_*`` talk to the device.
+
+Every command passes :func:`drivers.display.safety.limit_command` in :meth:`TactileDisplay.send_frame` /
+:meth:`TactileDisplay.submit_frame` before a subclass sees it, so no concrete driver can forget the limits.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from processing.errors import DeviceError, InvalidInputError
+
+from .safety import LimitedCommand, limit_command, validate_limits
+from .stress_protocol import COLS, DEFAULT_MAX_STEP_UM, DEFAULT_WATCHDOG_S, RANGE_UM, ROWS, Status, StatusReport
+
+
+@dataclass(frozen=True)
+class DisplayInfo:
+    """What the display says it is."""
+
+    model: str
+    firmware: str
+    protocol_version: int
+    rows: int
+    cols: int
+    range_um: float
+    max_rate_hz: int
+
+
+@dataclass(frozen=True)
+class FrameAck:
+    """The display's answer to one frame: the contactors' measured positions when the frame arrived."""
+
+    seq: int
+    status: Status
+    measured_um: np.ndarray = field(repr=False)  # (10, 10) um
+    command_um: np.ndarray = field(repr=False)  # the (limited) command this ack answers
+    sent_at: float  # host perf_counter when the frame was written
+    received_at: float  # host perf_counter when the ack was decoded
+
+    @property
+    def round_trip_s(self) -> float:
+        return self.received_at - self.sent_at
+
+
+class TactileDisplay(abc.ABC):
+    """A 10x10 lateral skin-stretch display.
+
+    Subclasses implement the ``_do_*`` methods; the public methods validate arguments, enforce the range and
+    slew limits, and keep the last command and the acks.
+
+    Parameters
+    ----------
+    range_um : float, keyword-only
+        Largest commanded deflection (<= 50 um).
+    max_step_um : float, keyword-only
+        Largest change of one contactor between consecutive frames.
+    watchdog_s : float, keyword-only
+        The firmware returns every contactor to rest when no frame arrived for this long.
+    """
+
+    def __init__(self, *, range_um: float = RANGE_UM, max_step_um: float = DEFAULT_MAX_STEP_UM,
+                 watchdog_s: float = DEFAULT_WATCHDOG_S) -> None:
+        self.range_um, self.max_step_um = validate_limits(range_um=range_um, max_step_um=max_step_um)
+        if not (np.isfinite(watchdog_s) and 0.001 <= watchdog_s <= 65.0):
+            raise InvalidInputError(f"watchdog_s must be in 0.001..65 s, got {watchdog_s!r}")
+        self.watchdog_s = float(watchdog_s)
+        self._last_command = np.zeros((ROWS, COLS))
+        self._armed = False
+        self.acks: list[FrameAck] = []
+
+    # ---- public API ------------------------------------------------------------------------------------------
+
+    @property
+    def last_command_um(self) -> np.ndarray:
+        """The last command that left the driver (a copy)."""
+        return self._last_command.copy()
+
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    def identify(self) -> DisplayInfo:
+        """Ask the display what it is."""
+        return self._do_identify()
+
+    def arm(self) -> None:
+        """Configure the watchdog and slew limit on the display, then enable the contactors."""
+        self._do_configure(watchdog_s=self.watchdog_s, max_step_um=self.max_step_um)
+        self._do_arm()
+        self._last_command = np.zeros((ROWS, COLS))
+        self._armed = True
+
+    def disarm(self) -> None:
+        """Disable the contactors (the firmware brings them to rest first)."""
+        self._armed = False
+        self._do_disarm()
+        self._last_command = np.zeros((ROWS, COLS))
+
+    def zero(self) -> None:
+        """Re-reference the position sensors with the contactors at rest. Only while disarmed."""
+        if self._armed:
+            raise DeviceError("zero() needs a disarmed display; call disarm() first")
+        self._do_zero()
+
+    def rest(self) -> None:
+        """Send every contactor back to 0 with the firmware's soft ramp."""
+        self._do_rest()
+        self._last_command = np.zeros((ROWS, COLS))
+
+    def read_status(self) -> StatusReport:
+        return self._do_read_status()
+
+    def limit(self, positions_um) -> LimitedCommand:
+        """What :meth:`send_frame` would actually send for ``positions_um`` (does not send)."""
+        return limit_command(positions_um, self._last_command, range_um=self.range_um,
+                             max_step_um=self.max_step_um)
+
+    def send_frame(self, positions_um, *, timeout_s: float = 0.1) -> FrameAck:
+        """Clamp, send one (10, 10) frame in micrometres and wait for its ack (recorded in :attr:`acks`)."""
+        seq = self.submit_frame(positions_um)
+        for ack in self.collect_acks(wait_for=seq, timeout_s=timeout_s):
+            if ack.seq == seq:
+                return ack
+        raise AssertionError("collect_acks returned without the awaited ack")  # pragma: no cover
+
+    def submit_frame(self, positions_um) -> int:
+        """Clamp and send one frame without waiting; returns its sequence number. Pair with collect_acks."""
+        if not self._armed:
+            raise DeviceError("the display is not armed; call arm() before sending frames")
+        limited = self.limit(positions_um)
+        seq = self._do_submit_frame(limited.command_um)
+        self._last_command = limited.command_um
+        return seq
+
+    def collect_acks(self, *, wait_for: int | None = None, timeout_s: float = 0.0) -> list[FrameAck]:
+        """Acks that arrived since the last call (also appended to :attr:`acks`).
+
+        With ``wait_for`` a sequence number, wait up to ``timeout_s`` for that ack (DeviceTimeoutError if it does
+        not come); otherwise return what is there without waiting beyond ``timeout_s``.
+        """
+        if not (np.isfinite(timeout_s) and timeout_s >= 0):
+            raise InvalidInputError(f"timeout_s must be >= 0, got {timeout_s!r}")
+        got = self._do_collect_acks(wait_for=wait_for, timeout_s=float(timeout_s))
+        self.acks.extend(got)
+        return got
+
+    @property
+    @abc.abstractmethod
+    def outstanding(self) -> int:
+        """Frames sent whose ack has not arrived yet."""
+
+    def close(self) -> None:
+        """Rest (when the link still works) and release the transport."""
+        self._do_close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- device specifics -----------------------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _do_identify(self) -> DisplayInfo: ...
+
+    @abc.abstractmethod
+    def _do_configure(self, *, watchdog_s: float, max_step_um: float) -> None: ...
+
+    @abc.abstractmethod
+    def _do_arm(self) -> None: ...
+
+    @abc.abstractmethod
+    def _do_disarm(self) -> None: ...
+
+    @abc.abstractmethod
+    def _do_zero(self) -> None: ...
+
+    @abc.abstractmethod
+    def _do_rest(self) -> None: ...
+
+    @abc.abstractmethod
+    def _do_read_status(self) -> StatusReport: ...
+
+    @abc.abstractmethod
+    def _do_submit_frame(self, command_um: np.ndarray) -> int:
+        """Send an already limited command; return its sequence number."""
+
+    @abc.abstractmethod
+    def _do_collect_acks(self, *, wait_for: int | None, timeout_s: float) -> list[FrameAck]: ...
+
+    @abc.abstractmethod
+    def _do_close(self) -> None: ...

@@ -1,0 +1,363 @@
+"""The STReSS wire protocol: a pure, byte-testable codec (no I/O). Documented in ``docs/protocols/stress.md``.
+
+The STReSS display has no public wire protocol (FACTS: "No public wire protocol"), so this project defines one.
+Every packet, in both directions, is::
+
+    0xA5 0x5A | LEN (u8) | SEQ (u8) | CMD (u8) | PAYLOAD (LEN bytes) | CRC16 (u16, big endian)
+
+The CRC is CRC-16/CCITT-FALSE (polynomial 0x1021, initial value 0xFFFF, no reflection, no final xor) over
+``LEN SEQ CMD PAYLOAD``. A reply carries the request's SEQ and ``CMD | 0x80``; a refusal is ``NAK`` (0x7F) with an
+error code. Contactor positions travel as int8 in 0.5 um steps (+/-63.5 um covers the +/-50 um range).
+
+>>> packet = encode_packet(seq=7, command=Command.IDENTIFY)
+>>> packet.hex()
+'a55a000701452a'
+>>> decoder = StreamDecoder()
+>>> [Command(p.command) for p in decoder.feed(b"garbage" + packet)]
+[<Command.IDENTIFY: 1>]
+"""
+
+from __future__ import annotations
+
+import binascii
+import enum
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from processing.errors import InvalidInputError, ProtocolError
+
+SYNC = b"\xa5\x5a"
+HEADER_SIZE = 5  # sync (2) + len + seq + cmd
+CRC_SIZE = 2
+OVERHEAD = HEADER_SIZE + CRC_SIZE
+MAX_PAYLOAD = 255
+REPLY_FLAG = 0x80
+
+PROTOCOL_VERSION = 1
+ROWS = COLS = 10
+N_CONTACTORS = ROWS * COLS
+POSITION_STEP_UM = 0.5  # one int8 count
+POSITION_CODE_MAX = 127
+RANGE_UM = 50.0  # mechanical range of a contactor, seed 2 / Pasquero & Hayward 2003 (~ +/-50 um)
+DEFAULT_BAUD = 2_000_000
+DEFAULT_WATCHDOG_S = 0.050
+DEFAULT_MAX_STEP_UM = 10.0
+FIRMWARE_NAME_MAX = 32
+
+
+class Command(enum.IntEnum):
+    """Request codes (host -> display). The reply uses ``code | 0x80``."""
+
+    IDENTIFY = 0x01
+    CONFIGURE = 0x02  # payload: watchdog_ms u16, max_step u8 (0.5 um counts)
+    ARM = 0x03
+    DISARM = 0x04
+    ZERO = 0x05  # re-reference the position sensors (only when disarmed)
+    FRAME = 0x06  # payload: 100 x int8 positions (0.5 um), row-major
+    REST = 0x07  # every contactor back to 0 with the firmware's soft ramp
+    READ_STATUS = 0x08
+    NAK = 0x7F  # reply only: payload u8 error code + u8 offending command
+
+
+class Status(enum.IntFlag):
+    """Status bits carried by every status reply and frame ack (u16)."""
+
+    ARMED = 0x0001
+    WATCHDOG_TRIPPED = 0x0002  # no frame within the watchdog time: contactors sent to rest, disarmed
+    RESTING = 0x0004  # contactors ramping to / sitting at rest
+    CLAMPED = 0x0008  # the firmware had to clamp a command (range or slew): the host sent an unsafe frame
+    CRC_ERRORS = 0x0010  # at least one corrupted packet received since the last READ_STATUS
+    SEQUENCE_GAP = 0x0020  # at least one frame sequence number skipped since the last READ_STATUS
+    SATURATED = 0x0040  # a measured position is outside the int8 encoding
+    ZEROED = 0x0080  # position sensors have been re-referenced since power-up
+
+
+class NakCode(enum.IntEnum):
+    """Why the display refused a request."""
+
+    UNKNOWN_COMMAND = 1
+    BAD_LENGTH = 2
+    NOT_ARMED = 3
+    ARMED = 4  # command only allowed while disarmed
+    BAD_VALUE = 5
+
+
+@dataclass(frozen=True)
+class Packet:
+    """One decoded packet. ``end`` is the stream offset just past its last byte (decoder byte count)."""
+
+    seq: int
+    command: int
+    payload: bytes
+    end: int = 0
+
+    @property
+    def is_reply(self) -> bool:
+        return bool(self.command & REPLY_FLAG) or self.command == Command.NAK
+
+    @property
+    def request_command(self) -> int:
+        return self.command & ~REPLY_FLAG if self.command != Command.NAK else Command.NAK
+
+
+def crc16_ccitt(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE of ``data`` (check value of ``b"123456789"`` is 0x29B1)."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def encode_packet(*, seq: int, command: int, payload: bytes = b"") -> bytes:
+    """Frame one packet. Raises InvalidInputError for an out-of-range seq/command or an oversized payload."""
+    if not 0 <= int(seq) <= 255:
+        raise InvalidInputError(f"seq must be in 0..255, got {seq!r}")
+    if not 0 <= int(command) <= 255:
+        raise InvalidInputError(f"command must be in 0..255, got {command!r}")
+    payload = bytes(payload)
+    if len(payload) > MAX_PAYLOAD:
+        raise InvalidInputError(f"payload must be at most {MAX_PAYLOAD} bytes, got {len(payload)}")
+    body = bytes((len(payload), int(seq), int(command))) + payload
+    return SYNC + body + struct.pack(">H", crc16_ccitt(body))
+
+
+def reply_command(command: int) -> int:
+    """The reply code of a request code."""
+    return int(command) | REPLY_FLAG
+
+
+@dataclass
+class DecoderCounters:
+    """What the decoder had to throw away, for diagnostics (never silently lost: the counts are kept)."""
+
+    skipped_bytes: int = 0
+    crc_errors: int = 0
+    bad_lengths: int = 0
+
+
+class StreamDecoder:
+    """Incremental decoder: feed any chunking of a byte stream, get whole packets out.
+
+    Garbage before a sync, truncated packets and CRC failures are skipped; the decoder resynchronises on the
+    next sync word (a failed CRC rescans from the byte after the bad sync, so a packet hidden inside garbage is
+    still found). What was skipped is counted in :attr:`counters`. ``feed`` never raises on bad bytes.
+    """
+
+    def __init__(self, *, max_buffer: int = 4096) -> None:
+        self._buffer = bytearray()
+        self._consumed = 0  # absolute stream offset of _buffer[0]
+        self._max_buffer = max_buffer
+        self.counters = DecoderCounters()
+
+    @property
+    def pending(self) -> int:
+        """Bytes held waiting for the rest of a packet."""
+        return len(self._buffer)
+
+    @property
+    def position(self) -> int:
+        """Total number of bytes fed so far."""
+        return self._consumed + len(self._buffer)
+
+    def reset(self) -> None:
+        self.counters.skipped_bytes += len(self._buffer)
+        self._consumed += len(self._buffer)
+        self._buffer.clear()
+
+    def _drop(self, n: int, *, skipped: bool) -> None:
+        del self._buffer[:n]
+        self._consumed += n
+        if skipped:
+            self.counters.skipped_bytes += n
+
+    def feed(self, data: bytes) -> list[Packet]:
+        """Add bytes; return every packet completed by them, in stream order."""
+        self._buffer += data
+        out: list[Packet] = []
+        buf = self._buffer
+        while True:
+            start = buf.find(SYNC)
+            if start < 0:
+                # keep a trailing 0xA5: it may be the first half of a sync word
+                keep = 1 if buf[-1:] == SYNC[:1] else 0
+                self._drop(len(buf) - keep, skipped=True)
+                break
+            if start:
+                self._drop(start, skipped=True)
+            if len(buf) < HEADER_SIZE:
+                break
+            length = buf[2]
+            total = HEADER_SIZE + length + CRC_SIZE
+            if len(buf) < total:
+                if len(buf) > self._max_buffer:  # cannot happen with u8 lengths; guards a broken invariant
+                    self._drop(1, skipped=True)
+                    continue
+                break
+            body = bytes(buf[2:HEADER_SIZE + length])
+            (crc,) = struct.unpack_from(">H", buf, HEADER_SIZE + length)
+            if crc != crc16_ccitt(body):
+                self.counters.crc_errors += 1
+                self._drop(1, skipped=True)  # rescan from the next byte: resynchronise
+                continue
+            packet = Packet(seq=buf[3], command=buf[4], payload=body[3:], end=self._consumed + total)
+            self._drop(total, skipped=False)
+            out.append(packet)
+        return out
+
+
+# ---- payload codecs ---------------------------------------------------------------------------------------------
+
+def encode_positions(positions_um: np.ndarray) -> bytes:
+    """(10, 10) um -> 100 int8 counts of 0.5 um, row-major. Values must already be within the encodable range."""
+    a = np.asarray(positions_um, dtype=float)
+    if a.shape != (ROWS, COLS):
+        raise InvalidInputError(f"positions_um must have shape (10, 10), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InvalidInputError("positions_um must be finite (clamp with drivers.display.safety first)")
+    counts = np.rint(a / POSITION_STEP_UM)
+    if np.any(np.abs(counts) > POSITION_CODE_MAX):
+        raise InvalidInputError(f"positions_um outside +/-{POSITION_CODE_MAX * POSITION_STEP_UM} um: "
+                                f"min {a.min()}, max {a.max()}")
+    return counts.astype(np.int8).tobytes()
+
+
+def decode_positions(data: bytes) -> np.ndarray:
+    """100 int8 counts -> (10, 10) float um."""
+    if len(data) != N_CONTACTORS:
+        raise ProtocolError(f"positions need {N_CONTACTORS} bytes, got {len(data)}")
+    return np.frombuffer(bytes(data), dtype=np.int8).astype(float).reshape(ROWS, COLS) * POSITION_STEP_UM
+
+
+@dataclass(frozen=True)
+class Identity:
+    """IDENTIFY reply."""
+
+    protocol_version: int
+    rows: int
+    cols: int
+    range_um: float
+    max_rate_hz: int
+    firmware: str
+
+    def encode(self) -> bytes:
+        name = self.firmware.encode("ascii", "replace")[:FIRMWARE_NAME_MAX]
+        return struct.pack(">BBBBH", self.protocol_version, self.rows, self.cols, int(self.range_um),
+                           self.max_rate_hz) + name
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "Identity":
+        if len(payload) < 6:
+            raise ProtocolError(f"IDENTIFY reply too short: {len(payload)} bytes")
+        version, rows, cols, range_um, rate = struct.unpack_from(">BBBBH", payload)
+        return cls(version, rows, cols, float(range_um), rate, payload[6:].decode("ascii", "replace"))
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    """CONFIGURE payload: watchdog time and the firmware's own per-frame slew limit."""
+
+    watchdog_s: float = DEFAULT_WATCHDOG_S
+    max_step_um: float = DEFAULT_MAX_STEP_UM
+
+    def __post_init__(self) -> None:
+        if not 0.001 <= self.watchdog_s <= 65.535:
+            raise InvalidInputError(f"watchdog_s must be in 0.001..65.535 s, got {self.watchdog_s!r}")
+        if not POSITION_STEP_UM <= self.max_step_um <= 2 * RANGE_UM:
+            raise InvalidInputError(f"max_step_um must be in 0.5..100 um, got {self.max_step_um!r}")
+
+    def encode(self) -> bytes:
+        return struct.pack(">HB", round(self.watchdog_s * 1000), int(self.max_step_um / POSITION_STEP_UM))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "WatchdogConfig":
+        if len(payload) != 3:
+            raise ProtocolError(f"CONFIGURE payload must be 3 bytes, got {len(payload)}")
+        ms, step = struct.unpack(">HB", payload)
+        try:
+            return cls(watchdog_s=ms / 1000.0, max_step_um=step * POSITION_STEP_UM)
+        except InvalidInputError as exc:
+            raise ProtocolError(f"CONFIGURE values out of range: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class StatusReport:
+    """READ_STATUS reply: status bits, measured positions and the firmware's counters."""
+
+    status: Status
+    positions_um: np.ndarray = field(repr=False)
+    frames_received: int
+    crc_errors: int
+    sequence_gaps: int
+    watchdog_trips: int
+
+    def encode(self) -> bytes:
+        return (struct.pack(">H", int(self.status)) + _encode_measured(self.positions_um)
+                + struct.pack(">IHHH", self.frames_received & 0xFFFFFFFF, min(self.crc_errors, 0xFFFF),
+                              min(self.sequence_gaps, 0xFFFF), min(self.watchdog_trips, 0xFFFF)))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "StatusReport":
+        if len(payload) != 2 + N_CONTACTORS + 10:
+            raise ProtocolError(f"status reply must be {2 + N_CONTACTORS + 10} bytes, got {len(payload)}")
+        (status,) = struct.unpack_from(">H", payload)
+        positions = decode_positions(payload[2:2 + N_CONTACTORS])
+        frames, crc, gaps, trips = struct.unpack_from(">IHHH", payload, 2 + N_CONTACTORS)
+        return cls(Status(status), positions, frames, crc, gaps, trips)
+
+
+def _encode_measured(positions_um: np.ndarray) -> bytes:
+    """Measured positions saturate at the int8 limits (the SATURATED status bit says so)."""
+    counts = np.clip(np.rint(np.asarray(positions_um, float) / POSITION_STEP_UM), -128, 127)
+    return counts.astype(np.int8).tobytes()
+
+
+def encode_frame_ack(status: int, measured_um: np.ndarray) -> bytes:
+    """FRAME reply payload: status u16 + 100 int8 measured positions (sampled when the frame arrived)."""
+    return struct.pack(">H", int(status)) + _encode_measured(measured_um)
+
+
+def decode_frame_ack(payload: bytes) -> tuple[Status, np.ndarray]:
+    if len(payload) != 2 + N_CONTACTORS:
+        raise ProtocolError(f"frame ack must be {2 + N_CONTACTORS} bytes, got {len(payload)}")
+    (status,) = struct.unpack_from(">H", payload)
+    return Status(status), decode_positions(payload[2:])
+
+
+def encode_status(status: int) -> bytes:
+    """Reply payload of CONFIGURE, ARM, DISARM, ZERO and REST: the status word."""
+    return struct.pack(">H", int(status))
+
+
+def decode_status(payload: bytes) -> Status:
+    if len(payload) != 2:
+        raise ProtocolError(f"status payload must be 2 bytes, got {len(payload)}")
+    return Status(struct.unpack(">H", payload)[0])
+
+
+def encode_nak(code: NakCode, command: int) -> bytes:
+    return bytes((int(code), int(command) & 0xFF))
+
+
+def decode_nak(payload: bytes) -> tuple[int, int]:
+    if len(payload) != 2:
+        raise ProtocolError(f"NAK payload must be 2 bytes, got {len(payload)}")
+    return payload[0], payload[1]
+
+
+def link_budget(*, rate_hz: float, baud: float, bits_per_byte: int = 10) -> dict[str, float]:
+    """Bytes and line occupancy of streaming at ``rate_hz`` over a UART (8N1: 10 bits a byte).
+
+    >>> link_budget(rate_hz=700, baud=2_000_000)["min_baud"]
+    749000
+    """
+    frame_bytes = OVERHEAD + N_CONTACTORS
+    ack_bytes = OVERHEAD + 2 + N_CONTACTORS
+    byte_s = bits_per_byte / baud
+    return {
+        "frame_bytes": frame_bytes,
+        "ack_bytes": ack_bytes,
+        "frame_time_s": frame_bytes * byte_s,
+        "ack_time_s": ack_bytes * byte_s,
+        "frame_utilisation": frame_bytes * byte_s * rate_hz,
+        "ack_utilisation": ack_bytes * byte_s * rate_hz,
+        "min_baud": frame_bytes * bits_per_byte * rate_hz,
+    }

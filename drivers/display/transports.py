@@ -1,0 +1,186 @@
+"""Byte transports a display owns (never inherits): a serial port (pyserial URL) or a USB bulk pair (pyusb).
+
+A transport moves bytes and nothing else. Link failures become :class:`processing.errors.DeviceError`; a read
+that times out returns ``b""`` (the protocol layer decides what a missing reply means).
+"""
+
+from __future__ import annotations
+
+import abc
+import errno
+import math
+
+from processing.errors import DeviceError, InvalidInputError
+
+#: pid.codes test VID/PID: the STReSS prototype has no USB identity of its own; a real build would get one.
+STRESS_USB_VENDOR_ID = 0x1209
+STRESS_USB_PRODUCT_ID = 0x0001
+STRESS_USB_EP_OUT = 0x01
+STRESS_USB_EP_IN = 0x81
+
+
+class Transport(abc.ABC):
+    """A full-duplex byte pipe."""
+
+    @abc.abstractmethod
+    def write(self, data: bytes) -> None:
+        """Send every byte of ``data`` or raise DeviceError."""
+
+    @abc.abstractmethod
+    def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
+        """Return 1..max_bytes bytes as soon as some arrive, or ``b""`` after ``timeout_s``."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the link (idempotent)."""
+
+    @property
+    @abc.abstractmethod
+    def description(self) -> str: ...
+
+
+def _check_timeout(timeout_s: float) -> float:
+    if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0):
+        raise InvalidInputError(f"timeout_s must be a finite number >= 0, got {timeout_s!r}")
+    return float(timeout_s)
+
+
+class SerialTransport(Transport):
+    """A serial port opened with :func:`serial.serial_for_url` (device path, ``loop://``, ``stresssim://``...).
+
+    Parameters
+    ----------
+    url : str
+        Anything pyserial accepts. Custom schemes must be registered by the caller (experiments/simulators).
+    baudrate : int, keyword-only
+        Line rate in bit/s; the protocol needs >= 749 kbaud at 700 Hz (``docs/protocols/stress.md``).
+    """
+
+    def __init__(self, url: str, *, baudrate: int = 2_000_000) -> None:
+        import serial  # the dependency is only needed when a serial link is used
+
+        if not isinstance(url, str) or not url:
+            raise InvalidInputError(f"url must be a non-empty string, got {url!r}")
+        if not (isinstance(baudrate, int) and baudrate > 0):
+            raise InvalidInputError(f"baudrate must be a positive int, got {baudrate!r}")
+        self._serial_module = serial
+        self._url = url
+        try:
+            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"cannot open serial link {url!r}: {exc}") from exc
+        self.baudrate = baudrate
+
+    @property
+    def description(self) -> str:
+        return f"serial {self._url} @ {self.baudrate} baud"
+
+    def write(self, data: bytes) -> None:
+        try:
+            written = self._port.write(data)
+            if written is not None and written != len(data):
+                raise DeviceError(f"serial link {self._url!r} wrote {written} of {len(data)} bytes")
+        except (self._serial_module.SerialException, OSError) as exc:
+            raise DeviceError(f"serial link {self._url!r} lost while writing: {exc}") from exc
+
+    def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
+        timeout_s = _check_timeout(timeout_s)
+        try:
+            self._port.timeout = timeout_s
+            first = self._port.read(1)
+            if not first:
+                return b""
+            waiting = self._port.in_waiting
+            if waiting and max_bytes > 1:
+                self._port.timeout = 0
+                return first + self._port.read(min(waiting, max_bytes - 1))
+            return first
+        except (self._serial_module.SerialException, OSError, TypeError) as exc:
+            # pyserial reports an unplugged adapter / closed pty as SerialException ("returned no data")
+            raise DeviceError(f"serial link {self._url!r} lost while reading: {exc}") from exc
+
+    def close(self) -> None:
+        try:
+            self._port.close()
+        except (self._serial_module.SerialException, OSError):
+            pass  # closing a vanished port: nothing left to release
+
+
+class UsbTransport(Transport):
+    """A pair of USB bulk endpoints, found with :func:`usb.core.find` (``backend`` pluggable, e.g. a simulator).
+
+    Parameters
+    ----------
+    vendor_id, product_id : int, keyword-only
+        USB identity to look for.
+    backend : usb.backend.IBackend or None, keyword-only
+        None lets pyusb pick libusb; a simulator passes its own backend object.
+    """
+
+    def __init__(self, *, vendor_id: int = STRESS_USB_VENDOR_ID, product_id: int = STRESS_USB_PRODUCT_ID,
+                 backend=None, ep_out: int = STRESS_USB_EP_OUT, ep_in: int = STRESS_USB_EP_IN,
+                 read_size: int = 512) -> None:
+        import usb.core
+        import usb.util
+
+        self._usb = usb
+        try:
+            device = usb.core.find(idVendor=vendor_id, idProduct=product_id, backend=backend)
+        except (usb.core.NoBackendError, usb.core.USBError) as exc:
+            raise DeviceError(f"cannot search USB for {vendor_id:04x}:{product_id:04x}: {exc}") from exc
+        if device is None:
+            raise DeviceError(f"no USB device {vendor_id:04x}:{product_id:04x} found")
+        try:
+            device.set_configuration()
+        except usb.core.USBError as exc:
+            raise DeviceError(f"cannot configure USB device {vendor_id:04x}:{product_id:04x}: {exc}") from exc
+        self._device = device
+        self._ep_out, self._ep_in = ep_out, ep_in
+        self._read_size = read_size
+        self._name = f"usb {vendor_id:04x}:{product_id:04x}"
+        self._closed = False
+
+    @property
+    def description(self) -> str:
+        return self._name
+
+    def _lost(self, exc: Exception, doing: str) -> DeviceError:
+        return DeviceError(f"{self._name} lost while {doing}: {exc}")
+
+    def write(self, data: bytes) -> None:
+        if self._closed:
+            raise DeviceError(f"{self._name} is closed")
+        try:
+            written = self._device.write(self._ep_out, data, timeout=1000)
+        except self._usb.core.USBTimeoutError as exc:
+            raise DeviceError(f"{self._name} did not accept a bulk write within 1 s") from exc
+        except (self._usb.core.USBError, OSError) as exc:
+            raise self._lost(exc, "writing") from exc
+        if written != len(data):
+            raise DeviceError(f"{self._name} took {written} of {len(data)} bytes")
+
+    def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
+        timeout_s = _check_timeout(timeout_s)
+        if self._closed:
+            raise DeviceError(f"{self._name} is closed")
+        # pyusb: timeout 0 means "forever", so the shortest poll is 1 ms
+        timeout_ms = max(1, round(timeout_s * 1000))
+        try:
+            data = self._device.read(self._ep_in, max(self._read_size, max_bytes), timeout=timeout_ms)
+        except self._usb.core.USBTimeoutError:
+            return b""
+        except (self._usb.core.USBError, OSError) as exc:
+            if getattr(exc, "errno", None) == errno.ETIMEDOUT:
+                return b""
+            raise self._lost(exc, "reading") from exc
+        return bytes(data)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._usb.util.dispose_resources(self._device)
+        except (self._usb.core.USBError, OSError):
+            pass  # the device is gone already
+
