@@ -1,0 +1,337 @@
+"""Build the devices of a rig: the ONLY place in skinstretch that chooses a real or a simulated device.
+
+A :class:`experiments.protocol.Rig` names, for the camera, the force sensor and the display, either ``sim`` (the
+default) or the real driver. :class:`RigDevices` turns it into objects the runner and playback use through small,
+uniform adapters:
+
+* ``camera_for(trial=, protocol=, n_frames=)`` -> a :class:`drivers.camera.base.Camera`-like object whose
+  ``start()`` opens it in the protocol's mode and ``stop()`` releases it. A simulated camera renders the trial's
+  surface (``Surface.scene_name``: ``flatL``, ``ridgeL``, ``valleyL``...) with the scene simulator.
+* ``force`` -> a :class:`ForceSource` (``begin``/``end``/``read_block``/``latest``), or None.
+* ``display`` -> a :class:`DisplayAdapter` (``rest``, ``measured_positions_um``) and ``display_device()`` the
+  :class:`drivers.display.base.TactileDisplay` itself, for playback.
+
+Device modules are imported when a device is built, so a rig that does not use Aravis never imports ``gi``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from typing import Any
+
+import numpy as np
+
+from drivers.camera_modes import CAMERA_MODES
+from processing.errors import DeviceError, InvalidInputError
+from experiments.protocol import Rig
+
+__all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "sim_display_url"]
+
+_sim_names = itertools.count()
+
+
+# ------------------------------------------------------------------------------------------------------ force
+
+
+class ForceSource:
+    """Uniform view of a force sensor for the recorder (blocks of samples) and playback (latest sample).
+
+    Wraps any object with ``start()``, ``stop()`` and ``read(timeout_s)`` returning a sample with ``t`` /
+    ``timestamp_s`` and a 6-vector ``wrench`` / ``values`` (Fx Fy Fz N, Tx Ty Tz N m), or a ``read_block`` method.
+    """
+
+    def __init__(self, sensor: Any, *, description: str) -> None:
+        self.sensor = sensor
+        self.description = description
+        self._latest: np.ndarray | None = None
+        self._lock = threading.Lock()
+        self._running = False
+        self._bg: threading.Thread | None = None
+        self._bg_stop = threading.Event()
+        self._first = threading.Event()
+
+    def begin(self) -> None:
+        if not self._running:
+            self.sensor.start()
+            self._running = True
+
+    def end(self) -> None:
+        if self._running:
+            self._running = False
+            self.sensor.stop()
+
+    def read_block(self, *, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Samples that arrived (t (k,), wrench (k, 6)); may be empty after ``timeout_s``."""
+        if hasattr(self.sensor, "read_block"):
+            t, data = self.sensor.read_block(timeout_s=timeout_s)
+        else:
+            t, data = _read_samples(self.sensor, timeout_s)
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        data = np.asarray(data, dtype=np.float64).reshape(-1, 6)
+        if len(t):
+            with self._lock:
+                self._latest = data[-1].copy()
+        return t, data
+
+    def latest(self) -> np.ndarray | None:
+        """The most recent wrench (6,), reading the sensor in the background while playback runs."""
+        if self._bg is None:
+            self.begin()
+            self._bg_stop.clear()
+            self._bg = threading.Thread(target=self._background, name="force-latest", daemon=True)
+            self._bg.start()
+            self._first.wait(0.5)
+        with self._lock:
+            return None if self._latest is None else self._latest.copy()
+
+    def _background(self) -> None:
+        while not self._bg_stop.is_set():
+            try:
+                t, _ = self.read_block(timeout_s=0.05)
+            except (DeviceError, OSError):
+                with self._lock:
+                    self._latest = None
+                return
+            if len(t):
+                self._first.set()
+
+    def stop_background(self) -> None:
+        if self._bg is not None:
+            self._bg_stop.set()
+            self._bg.join(1.0)
+            self._bg = None
+
+    def close(self) -> None:
+        self.stop_background()
+        try:
+            self.end()
+        finally:
+            close = getattr(self.sensor, "close", None)
+            if close is not None:
+                close()
+
+
+def _read_samples(sensor: Any, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Drain what a sample-at-a-time sensor has (first read waits up to ``timeout_s``)."""
+    ts, rows = [], []
+    wait = timeout_s
+    for _ in range(256):
+        try:
+            s = sensor.read(timeout_s=wait)
+        except TimeoutError:
+            break
+        if s is None:
+            break
+        ts.append(float(getattr(s, "host_timestamp_s", getattr(s, "timestamp_s", getattr(s, "t", np.nan)))))
+        wrench = getattr(s, "wrench", None)
+        if wrench is None:
+            wrench = np.concatenate([np.asarray(getattr(s, "force_n")), np.asarray(getattr(s, "torque_nm"))])
+        rows.append(np.asarray(wrench, float).reshape(6))
+        wait = 0.0
+    return np.array(ts), np.array(rows).reshape(-1, 6)
+
+
+# ---------------------------------------------------------------------------------------------------- display
+
+
+class DisplayAdapter:
+    """What the recorder needs of the display: send it to rest, read where the contactors are."""
+
+    def __init__(self, display: Any, *, description: str) -> None:
+        self.device = display
+        self.description = description
+
+    def rest(self) -> None:
+        self.device.rest()
+
+    def measured_positions_um(self) -> np.ndarray:
+        acks = getattr(self.device, "acks", None)
+        if acks:
+            return np.asarray(acks[-1].measured_um, dtype=np.float32)
+        return np.zeros((10, 10), np.float32)
+
+    def close(self) -> None:
+        self.device.close()
+
+
+def sim_display_url(*, seed: int = 0, load_n_per_mm: float = 0.15, faults: str = "", name: str | None = None) -> str:
+    """Start a simulated STReSS (firmware twin behind a paced link) and return its ``stresssim://`` URL.
+
+    ``load_n_per_mm`` is the finger's lateral stiffness on every contactor (the bender deflects less under it).
+    """
+    from simulators import stresssim  # noqa: PLC0415 - simulators are imported only for a sim rig
+
+    if not (np.isfinite(load_n_per_mm) and load_n_per_mm >= 0):
+        raise InvalidInputError(f"load_n_per_mm must be >= 0, got {load_n_per_mm!r}")
+    stresssim.register_url_handler()
+    link = stresssim.make_link(seed=seed, faults=faults)
+    link.firmware.benders.set_load(load_n_per_mm)
+    return stresssim.attach(name or f"rig{next(_sim_names)}", link)
+
+
+def make_display(url: str, **options: Any):
+    """A :class:`drivers.display.stress.StressDisplay` on a serial port or pyserial URL."""
+    from drivers.display.stress import StressDisplay  # noqa: PLC0415
+    from drivers.display.transports import SerialTransport  # noqa: PLC0415
+
+    baud = int(options.pop("baudrate", 2_000_000))
+    return StressDisplay(SerialTransport(url, baudrate=baud), **options)
+
+
+# ----------------------------------------------------------------------------------------------------- camera
+
+
+class _TrialCamera:
+    """Opens a camera in the protocol's mode on ``start`` and releases it on ``stop`` (one per trial)."""
+
+    def __init__(self, camera: Any, mode, *, keep_open: bool = False) -> None:
+        self.camera = camera
+        self.mode = mode
+        self.keep_open = keep_open
+
+    def start(self) -> None:
+        if not self.camera.is_open:
+            self.camera.open()
+        self.camera.set_mode(self.mode)
+        self.camera.start()
+
+    def read(self, timeout_s: float):
+        return self.camera.read(timeout_s=timeout_s)
+
+    def stop(self) -> None:
+        try:
+            if self.camera.is_streaming:
+                self.camera.stop()
+        finally:
+            if not self.keep_open:
+                self.camera.close()
+
+    @property
+    def stats(self):
+        return self.camera.stats()
+
+
+# -------------------------------------------------------------------------------------------------------- rig
+
+
+class RigDevices:
+    """The devices of a rig, built on first use and closed by :meth:`close`."""
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self._force: ForceSource | None = None
+        self._force_built = False
+        self._display: DisplayAdapter | None = None
+        self._display_built = False
+        self._aravis = None
+        self._sim_servers: list[Any] = []
+
+    def describe(self) -> dict[str, str]:
+        r = self.rig
+        return {
+            "camera": r.camera.kind + (f":{r.camera.device}" if r.camera.device else ""),
+            "force": r.force.kind + (f":{r.force.address}" if r.force.address else ""),
+            "display": r.display.kind + (f":{r.display.url}" if r.display.url else ""),
+        }
+
+    # -- camera
+    def camera_for(self, *, trial, protocol, n_frames: int):
+        spec = self.rig.camera
+        mode = CAMERA_MODES[protocol.camera_mode]
+        if spec.kind == "sim":
+            try:
+                from simulators.camera import SimulatedCamera  # noqa: PLC0415
+            except ImportError as exc:
+                raise DeviceError(f"the simulated camera is not available ({exc})") from None
+            cam = SimulatedCamera.from_scene(
+                trial.surface.scene_name,
+                mode=mode,
+                n_frames=n_frames,
+                seed=spec.seed + trial.index,
+                **spec.options,
+            )
+            return _TrialCamera(cam, mode)
+        if spec.kind == "aravis":
+            from drivers.camera.aravis import AravisCamera  # noqa: PLC0415
+
+            if self._aravis is None:
+                self._aravis = AravisCamera.fake(**spec.options) if spec.device == "Fake_1" else AravisCamera(
+                    spec.device, **spec.options
+                )
+            return _TrialCamera(self._aravis, mode, keep_open=True)
+        if spec.kind == "replay":
+            from drivers.camera.replay import ReplayCamera  # noqa: PLC0415
+
+            return _TrialCamera(ReplayCamera(spec.device, **spec.options), mode)
+        raise DeviceError(f"camera kind {spec.kind!r} is not supported")
+
+    # -- force
+    @property
+    def force(self) -> ForceSource | None:
+        if not self._force_built:
+            self._force_built = True
+            self._force = self._build_force()
+        return self._force
+
+    def _build_force(self) -> ForceSource | None:
+        spec = self.rig.force
+        if spec.kind == "none":
+            return None
+        from drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
+
+        if spec.kind == "sim":
+            from simulators.netft import NetFTSimulator  # noqa: PLC0415
+
+            server = NetFTSimulator(seed=spec.seed, **spec.options)
+            server.start()
+            self._sim_servers.append(server)
+            host, port = server.address
+            return ForceSource(NetFTSensor(host, port=port), description=f"sim Net F/T at {host}:{port}")
+        return ForceSource(NetFTSensor(spec.address, **spec.options), description=f"Net F/T at {spec.address}")
+
+    # -- display
+    @property
+    def display(self) -> DisplayAdapter | None:
+        if not self._display_built:
+            self._display_built = True
+            spec = self.rig.display
+            if spec.kind == "none":
+                self._display = None
+            else:
+                if spec.kind == "sim":
+                    opts = dict(spec.options)
+                    url = sim_display_url(seed=spec.seed, load_n_per_mm=float(opts.pop("load_n_per_mm", 0.15)),
+                                          faults=str(opts.pop("faults", "")))
+                    device = make_display(url, **opts)
+                    device.zero()  # the twin's sensors have offsets, removed by ZERO like the real display's
+                else:
+                    url = spec.url
+                    device = make_display(url, **spec.options)
+                self._display = DisplayAdapter(device, description=f"{spec.kind}:{url}")
+        return self._display
+
+    def display_device(self):
+        """The TactileDisplay itself (for playback); DeviceError when the rig has none."""
+        if self.display is None:
+            raise DeviceError("the rig has no display (display.kind: none)")
+        return self.display.device
+
+    def close(self) -> None:
+        errors = []
+        for closer in (
+            (lambda: self._force.close()) if self._force is not None else None,
+            (lambda: self._display.close()) if self._display is not None else None,
+            (lambda: self._aravis.close()) if self._aravis is not None else None,
+            *[(lambda s=s: s.stop()) for s in self._sim_servers],
+        ):
+            if closer is None:
+                continue
+            try:
+                closer()
+            except Exception as exc:  # closing must go on for the other devices
+                errors.append(f"{type(exc).__name__}: {exc}")
+        self._force = self._display = self._aravis = None
+        self._sim_servers = []
+        if errors:
+            raise DeviceError("closing the rig: " + "; ".join(errors))
