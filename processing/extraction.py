@@ -1,0 +1,483 @@
+"""The feature extraction chain of seed chapter 4 (with 3.5), from one grey frame to a feature table.
+
+smoothing (4.1) -> local average (4.2) -> background (4.3) -> binarization (4.4) -> blob pores (4.5) -> thinning
+(4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6, each switchable) -> sub-pixel positions.
+
+Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
+:class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a
+sequence (and can run a sequence on a thread pool: OpenCV and the compiled steps release the GIL).
+
+Feature ids: ``frame_index * 1_000_000 + i`` for the i-th feature of the frame, so ids are unique within a results
+file of up to a million features per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, fields
+from typing import Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from processing.calibration import Calibration
+from processing.editing import (
+    border_mask,
+    feature_density_mask,
+    heal_broken_valleys,
+    outside_border,
+    remove_bridges,
+    remove_short_spurs,
+    remove_short_valleys,
+)
+from processing.errors import InvalidInputError
+from processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
+from processing.illumination import compensate_illumination, illumination_map
+from processing.minutiae import SkeletonGraph, node_orientation, trace_skeleton
+from processing.pores import detect_blob_pores
+from processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
+from processing.subpixel import refine_minutiae, refine_pores
+from processing.thinning import thin
+
+__all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
+
+#: Feature ids are ``frame_index * FEATURE_ID_STRIDE + i``.
+FEATURE_ID_STRIDE = 1_000_000
+
+#: Names of the editing steps, in the order of seed Figure 48 (plus "initial").
+STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "density", "border")
+
+
+@dataclass(frozen=True)
+class ExtractionParams:
+    """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255. Seed defaults.
+
+    Each editing step of seed 4.8 can be switched off with its boolean.
+    """
+
+    # 4.1 smoothing: sigma 1 px and a 3 px kernel at the seed's ~62 px/mm.
+    smoothing_sigma_mm: float = 0.016
+    smoothing_kernel_mm: float = 0.048
+    # 4.2 local average: 2 mm window (at least one ridge/valley cycle).
+    local_average_mm: float = 2.0
+    # 4.3 background: local mean above min_mean AND local std below max_std (grey levels), then dilated.
+    background_min_mean: float = 150.0
+    background_max_std: float = 25.0
+    background_dilation_mm: float = 0.1
+    # 4.4 binarization threshold = scale x local average.
+    binarization_scale: float = 1.0
+    # 4.5 blob pores below 0.25 mm across; smaller blobs than min diameter are noise.
+    detect_pores_by_blob: bool = True
+    pore_max_diameter_mm: float = 0.25
+    pore_min_diameter_mm: float = 0.04
+    # 4.7 orientation from the N-th valley pixel.
+    orientation_distance_mm: float = 0.16
+    # 4.8.1
+    remove_short_valleys: bool = True
+    short_valley_max_mm: float = 0.2
+    # 4.8.2
+    heal_broken_valleys: bool = True
+    heal_max_distance_mm: float = 0.6
+    heal_max_angle_deg: float = 30.0
+    # 4.8.3
+    remove_short_spurs: bool = True
+    spur_min_mm: float = 0.1
+    spur_max_mm: float = 1.0
+    spur_max_deviation_deg: float = 60.0
+    # 4.8.4
+    remove_bridges: bool = True
+    bridge_min_mm: float = 0.1
+    bridge_max_mm: float = 1.0
+    bridge_max_deviation_deg: float = 60.0
+    # 4.8.5
+    filter_feature_density: bool = True
+    density_radius_mm: float = 0.25
+    density_max_count: int = 3
+    # 4.8.6
+    remove_border_features: bool = True
+    border_dilation_mm: float = 0.2
+    # Beyond the seed (7.2.2): sub-pixel positions of pores and minutiae.
+    subpixel: bool = True
+    # Frame checks: below black_level everywhere = all black; more than saturated_fraction at 255 = saturated;
+    # more than no_finger_fraction background = no finger in view.
+    black_level: float = 20.0
+    saturated_fraction: float = 0.5
+    no_finger_fraction: float = 0.95
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.type in ("bool", bool):
+                if not isinstance(v, (bool, np.bool_)):
+                    raise InvalidInputError(f"ExtractionParams.{f.name} must be a bool, got {v!r}")
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not math.isfinite(v):
+                raise InvalidInputError(f"ExtractionParams.{f.name} must be a finite number, got {v!r}")
+            if v < 0:
+                raise InvalidInputError(f"ExtractionParams.{f.name} must be >= 0, got {v!r}")
+        positive = [
+            "smoothing_sigma_mm", "local_average_mm", "pore_max_diameter_mm", "orientation_distance_mm",
+            "short_valley_max_mm", "heal_max_distance_mm", "heal_max_angle_deg", "spur_max_mm", "bridge_max_mm",
+            "density_radius_mm", "binarization_scale", "background_max_std",
+        ]  # fmt: skip
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise InvalidInputError(f"ExtractionParams.{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("heal_max_angle_deg", "spur_max_deviation_deg", "bridge_max_deviation_deg"):
+            if not 0 < getattr(self, name) <= 90:
+                raise InvalidInputError(f"ExtractionParams.{name} must be in (0, 90] degrees, got {getattr(self, name)!r}")
+        if self.spur_min_mm >= self.spur_max_mm:
+            raise InvalidInputError(f"spur_min_mm ({self.spur_min_mm}) must be below spur_max_mm ({self.spur_max_mm})")
+        if self.bridge_min_mm >= self.bridge_max_mm:
+            raise InvalidInputError(
+                f"bridge_min_mm ({self.bridge_min_mm}) must be below bridge_max_mm ({self.bridge_max_mm})"
+            )
+        if self.pore_min_diameter_mm >= self.pore_max_diameter_mm:
+            raise InvalidInputError(
+                f"pore_min_diameter_mm ({self.pore_min_diameter_mm}) must be below "
+                f"pore_max_diameter_mm ({self.pore_max_diameter_mm})"
+            )
+        if not isinstance(self.density_max_count, (int, np.integer)) or self.density_max_count < 1:
+            raise InvalidInputError(f"density_max_count must be a positive integer, got {self.density_max_count!r}")
+        for name in ("saturated_fraction", "no_finger_fraction"):
+            if not 0 < getattr(self, name) <= 1:
+                raise InvalidInputError(f"ExtractionParams.{name} must be in (0, 1], got {getattr(self, name)!r}")
+        if not 0 <= self.background_min_mean <= 255 or not 0 <= self.black_level <= 255:
+            raise InvalidInputError("background_min_mean and black_level must be grey levels in [0, 255]")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class ExtractionResult:
+    """What :func:`extract_features` returns for one frame.
+
+    Attributes
+    ----------
+    features : FEATURE_DTYPE array
+        Valley endings, valley bifurcations and pores after editing (empty when the frame is flagged).
+    step_counts : OrderedDict[str, dict[str, int]]
+        Feature count per kind after each performed step, in the order of seed Figure 48 ("initial" first).
+    background : (H, W) bool
+        The background mask of seed 4.3.
+    binary : (H, W) uint8
+        The binarized frame (valleys and pores = 255), before the blob pores were removed.
+    skeleton : (H, W) uint8
+        The valley skeleton after editing (1 on the skeleton).
+    flags : set of str
+        Why the frame gave no features: "all_black", "saturated", "no_finger". Empty when fine.
+    """
+
+    features: np.ndarray
+    step_counts: "OrderedDict[str, dict[str, int]]"
+    background: np.ndarray
+    binary: np.ndarray
+    skeleton: np.ndarray
+    flags: set = field(default_factory=set)
+
+    @property
+    def ok(self) -> bool:
+        """True when the frame was processed (no flag raised)."""
+        return not self.flags
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Pixel values of the parameters for one calibration (converted once)."""
+
+    sigma: float
+    kernel: int
+    window: int
+    bg_dilation: int
+    pore_max: float
+    pore_min_area: int
+    pore_radius: float
+    orient_n: int
+    short_valley: float
+    heal_dist: float
+    spur_min: float
+    spur_max: float
+    bridge_min: float
+    bridge_max: float
+    density_radius: float
+    border_dilation: int
+    minutia_radius: float
+
+    @classmethod
+    def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
+        pore_min = cal.px(p.pore_min_diameter_mm)
+        return cls(
+            sigma=max(cal.px(p.smoothing_sigma_mm), 0.3),
+            kernel=cal.odd_px(p.smoothing_kernel_mm, minimum=3) if p.smoothing_kernel_mm > 0 else 3,
+            window=cal.odd_px(p.local_average_mm, minimum=3),
+            bg_dilation=cal.px_int(p.background_dilation_mm),
+            pore_max=cal.px(p.pore_max_diameter_mm),
+            pore_min_area=max(int(math.floor(math.pi / 4 * pore_min * pore_min)), 1),
+            pore_radius=max(cal.px(p.pore_max_diameter_mm) / 2, 1.5),
+            orient_n=cal.px_int(p.orientation_distance_mm, minimum=2),
+            short_valley=cal.px(p.short_valley_max_mm),
+            heal_dist=cal.px(p.heal_max_distance_mm),
+            spur_min=cal.px(p.spur_min_mm),
+            spur_max=cal.px(p.spur_max_mm),
+            bridge_min=cal.px(p.bridge_min_mm),
+            bridge_max=cal.px(p.bridge_max_mm),
+            density_radius=cal.px(p.density_radius_mm),
+            border_dilation=cal.px_int(p.border_dilation_mm),
+            minutia_radius=max(cal.px(0.1), 2.0),
+        )
+
+
+def _counts(kinds: np.ndarray) -> dict[str, int]:
+    return {KIND_NAMES[k.value]: int(np.count_nonzero(kinds == k.value)) for k in FeatureKind}
+
+
+def _graph_features(g: SkeletonGraph, orient_n: int):
+    xs, ys, ks, os_ = [], [], [], []
+    for n in g.alive_nodes():
+        d = g.degree(n)
+        if d == 2 or d == 0:
+            continue
+        xs.append(g.node_x[n])
+        ys.append(g.node_y[n])
+        ks.append(int(FeatureKind.VALLEY_ENDING) if d == 1 else int(FeatureKind.VALLEY_BIFURCATION))
+        os_.append(node_orientation(g, n, n_px=orient_n))
+    for k, alive in enumerate(g.pore_alive):
+        if alive:
+            xs.append(g.pore_x[k])
+            ys.append(g.pore_y[k])
+            ks.append(int(FeatureKind.PORE))
+            os_.append(math.nan)
+    return (
+        np.asarray(xs, dtype=np.float64),
+        np.asarray(ys, dtype=np.float64),
+        np.asarray(ks, dtype=np.int8),
+        np.asarray(os_, dtype=np.float64),
+    )
+
+
+def _flags(frame: np.ndarray, p: ExtractionParams) -> set:
+    flags = set()
+    if int(frame.max()) < p.black_level:
+        flags.add("all_black")
+    elif np.count_nonzero(frame == 255) > p.saturated_fraction * frame.size:
+        flags.add("saturated")
+    return flags
+
+
+class FeatureExtractor:
+    """Extraction for a sequence of frames sharing one calibration and parameter set.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    params : ExtractionParams, optional
+    illumination : (H, W) float32, optional
+        An illumination map (seed 3.5) to apply to every frame; see :meth:`fit_illumination`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from processing.calibration import Calibration
+    >>> ex = FeatureExtractor(calibration=Calibration(px_per_mm=62.0))
+    >>> res = ex.extract(np.zeros((200, 200), np.uint8), frame_index=3)
+    >>> res.ok, sorted(res.flags), len(res.features)
+    (False, ['all_black'], 0)
+    """
+
+    def __init__(self, *, calibration: Calibration, params: ExtractionParams | None = None, illumination=None):
+        if not isinstance(calibration, Calibration):
+            raise InvalidInputError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+        params = ExtractionParams() if params is None else params
+        if not isinstance(params, ExtractionParams):
+            raise InvalidInputError(f"params must be ExtractionParams, got {type(params).__name__}")
+        self.calibration = calibration
+        self.params = params
+        self.illumination = illumination
+        self._plan = _Plan.make(calibration, params)
+
+    # -- seed 3.5 ---------------------------------------------------------------------------------------------
+    def fit_illumination(self, frames: Iterable[np.ndarray], *, lowpass_sigma_mm: float = 0.5) -> np.ndarray:
+        """Compute the illumination map of a sequence (seed 3.5) and apply it to every later frame."""
+        self.illumination = illumination_map(frames, calibration=self.calibration, lowpass_sigma_mm=lowpass_sigma_mm)
+        return self.illumination
+
+    # -- one frame --------------------------------------------------------------------------------------------
+    def extract(self, frame: np.ndarray, *, frame_index: int = 0) -> ExtractionResult:
+        """Extract and edit the features of one frame. See :func:`extract_features`."""
+        p, q = self.params, self._plan
+        check_frame(frame, min_size=q.window)
+        if not isinstance(frame_index, (int, np.integer)) or frame_index < 0:
+            raise InvalidInputError(f"frame_index must be a non-negative integer, got {frame_index!r}")
+        h, w = frame.shape
+        flags = _flags(frame, p)
+        if flags:
+            return self._empty(frame.shape, flags)
+        if self.illumination is not None:
+            frame = compensate_illumination(frame, illumination=self.illumination)
+        s = smooth(frame, sigma_px=q.sigma, kernel_px=q.kernel)  # 4.1
+        avg = local_mean(s, window_px=q.window)  # 4.2
+        background = detect_background(  # 4.3
+            s,
+            window_px=q.window,
+            min_mean=p.background_min_mean,
+            max_std=p.background_max_std,
+            dilation_px=q.bg_dilation,
+            mean=avg,
+        )
+        if np.count_nonzero(background) > p.no_finger_fraction * background.size:
+            return self._empty(frame.shape, {"no_finger"}, background=background)
+        thr = avg if p.binarization_scale == 1.0 else cv2.multiply(avg, float(p.binarization_scale))
+        binary = binarize(s, local_average=thr, background=background)  # 4.4
+        if p.detect_pores_by_blob:  # 4.5
+            blobs = detect_blob_pores(
+                binary, grey=cv2.subtract(s, thr), max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
+            )
+            valleys = blobs.binary_without_pores
+            pore_x, pore_y = blobs.x, blobs.y
+        else:
+            valleys = binary
+            pore_x = pore_y = np.zeros(0)
+        skeleton = thin(valleys)  # 4.6
+        g = trace_skeleton(skeleton)  # 4.7
+        for x, y in zip(pore_x.tolist(), pore_y.tolist()):
+            g.add_pore(x, y)
+
+        counts: OrderedDict[str, dict[str, int]] = OrderedDict()
+        counts["initial"] = _counts(_graph_features(g, q.orient_n)[2])
+        if p.remove_short_valleys:  # 4.8.1
+            g = remove_short_valleys(g, max_length_px=q.short_valley)
+            counts["short_valleys"] = _counts(_graph_features(g, q.orient_n)[2])
+        if p.heal_broken_valleys:  # 4.8.2
+            g = heal_broken_valleys(
+                g, max_distance_px=q.heal_dist, max_angle_deg=p.heal_max_angle_deg, orientation_px=q.orient_n
+            )
+            counts["healing"] = _counts(_graph_features(g, q.orient_n)[2])
+        if p.remove_short_spurs:  # 4.8.3
+            g = remove_short_spurs(
+                g,
+                min_length_px=q.spur_min,
+                max_length_px=q.spur_max,
+                max_deviation_deg=p.spur_max_deviation_deg,
+                orientation_px=q.orient_n,
+            )
+            counts["short_spurs"] = _counts(_graph_features(g, q.orient_n)[2])
+        if p.remove_bridges:  # 4.8.4
+            g = remove_bridges(
+                g,
+                min_length_px=q.bridge_min,
+                max_length_px=q.bridge_max,
+                max_deviation_deg=p.bridge_max_deviation_deg,
+                orientation_px=q.orient_n,
+            )
+            counts["bridges"] = _counts(_graph_features(g, q.orient_n)[2])
+        x, y, kind, orient = _graph_features(g, q.orient_n)
+        keep = np.ones(x.size, dtype=bool)
+        if p.filter_feature_density:  # 4.8.5
+            keep &= feature_density_mask(x, y, kind, radius_px=q.density_radius, max_count=int(p.density_max_count))
+            counts["density"] = _counts(kind[keep])
+        if p.remove_border_features:  # 4.8.6
+            keep &= outside_border(x, y, border_mask(background, dilation_px=q.border_dilation))
+            counts["border"] = _counts(kind[keep])
+        x, y, kind, orient = x[keep], y[keep], kind[keep], orient[keep]
+        if p.subpixel:
+            x, y = self._refine(s, thr, x, y, kind)
+        n = x.size
+        features = make_features(
+            x,
+            y,
+            kind,
+            frame=frame_index,
+            orientation=orient,
+            quality=np.where(np.isfinite(orient) | (kind == FeatureKind.PORE), 1.0, 0.5),
+            ids=frame_index * FEATURE_ID_STRIDE + np.arange(n, dtype=np.int64),
+        )
+        return ExtractionResult(
+            features=features,
+            step_counts=counts,
+            background=background,
+            binary=binary,
+            skeleton=g.skeleton,
+            flags=set(),
+        )
+
+    def _refine(self, s, thr, x, y, kind):
+        q = self._plan
+        x = x.copy()
+        y = y.copy()
+        pores = kind == FeatureKind.PORE
+        if pores.any():
+            rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=q.pore_radius)
+            x[pores], y[pores] = rx, ry
+        return x, y
+
+    def _empty(self, shape, flags, background=None) -> ExtractionResult:
+        bg = np.zeros(shape, dtype=bool) if background is None else background
+        return ExtractionResult(
+            features=empty_features(0),
+            step_counts=OrderedDict(),
+            background=bg,
+            binary=np.zeros(shape, dtype=np.uint8),
+            skeleton=np.zeros(shape, dtype=np.uint8),
+            flags=set(flags),
+        )
+
+    # -- sequences --------------------------------------------------------------------------------------------
+    def extract_many(
+        self,
+        frames: Sequence[np.ndarray],
+        *,
+        frame_indices: Sequence[int] | None = None,
+        workers: int = 2,
+    ) -> list[ExtractionResult]:
+        """Extract every frame of a sequence, on ``workers`` threads (results in frame order)."""
+        if not isinstance(workers, (int, np.integer)) or workers < 1:
+            raise InvalidInputError(f"workers must be a positive integer, got {workers!r}")
+        indices = list(range(len(frames))) if frame_indices is None else list(frame_indices)
+        if len(indices) != len(frames):
+            raise InvalidInputError(f"frame_indices has {len(indices)} entries for {len(frames)} frames")
+        if workers == 1:
+            return [self.extract(f, frame_index=k) for f, k in zip(frames, indices)]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(lambda fk: self.extract(fk[0], frame_index=fk[1]), zip(frames, indices)))
+
+
+def extract_features(
+    frame: np.ndarray,
+    *,
+    calibration: Calibration,
+    params: ExtractionParams | None = None,
+    frame_index: int = 0,
+    illumination: np.ndarray | None = None,
+) -> ExtractionResult:
+    """Extract valley endings, valley bifurcations and pores from one FTIR frame (seed chapter 4).
+
+    Parameters
+    ----------
+    frame : (H, W) uint8
+        Grey frame, ridges dark and valleys/pores bright; at least as large as the local-average window.
+    calibration : Calibration
+        Pixel scale; every parameter in mm is converted through it.
+    params : ExtractionParams, optional
+        Defaults to the seed's values.
+    frame_index : int
+        Written in the ``frame`` column and used for ids (``frame_index * 1_000_000 + i``).
+    illumination : (H, W) float32, optional
+        Illumination map of the sequence (seed 3.5, :func:`processing.illumination.illumination_map`).
+
+    Returns
+    -------
+    ExtractionResult
+        ``.ok`` is False, with ``.flags`` saying why, for all-black, saturated or finger-less frames.
+
+    Raises
+    ------
+    InvalidInputError
+        Wrong dtype or shape, or a frame smaller than the averaging window.
+    """
+    return FeatureExtractor(calibration=calibration, params=params, illumination=illumination).extract(
+        frame, frame_index=frame_index
+    )
+

@@ -1,0 +1,174 @@
+"""Pre-processing of FTIR fingerprint frames (seed 4.1-4.4): smoothing, local average, background, binarization.
+
+Polarity: ridges in contact are DARK, valleys, pores and the uncovered prism (the background) are BRIGHT. The
+binary image of :func:`binarize` has the valleys and pores as foreground (255), because the seed's skeleton is the
+valley skeleton.
+
+Every local statistic is a box filter (``cv2.boxFilter``, running sums), so it costs a constant time per pixel
+whatever the window: this is the seed's Appendix B idea, and it lets the local variance of seed 4.3 be computed at
+every pixel instead of on a coarse grid.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from processing.errors import InvalidInputError
+
+__all__ = ["check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize"]
+
+
+def check_frame(frame: np.ndarray, *, name: str = "frame", min_size: int = 1) -> np.ndarray:
+    """Return ``frame`` if it is a 2-D uint8 image at least ``min_size`` pixels on each side, else raise."""
+    if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.ndim != 2:
+        got = f"{getattr(frame, 'dtype', type(frame).__name__)} {getattr(frame, 'shape', '')}"
+        raise InvalidInputError(f"{name} must be a 2-D uint8 image, got {got}")
+    if min(frame.shape) < min_size:
+        raise InvalidInputError(f"{name} of shape {frame.shape} is smaller than the {min_size}-px window it needs")
+    return frame
+
+
+def _odd_window(width_px: int, name: str) -> int:
+    if not isinstance(width_px, (int, np.integer)) or width_px < 1 or width_px % 2 == 0:
+        raise InvalidInputError(f"{name} must be a positive odd number of pixels, got {width_px!r}")
+    return int(width_px)
+
+
+def smooth(frame: np.ndarray, *, sigma_px: float, kernel_px: int) -> np.ndarray:
+    """Gaussian low-pass filter (seed 4.1, eq. 4.1: sigma 1 px, kernel 3 px at the seed's scale).
+
+    Parameters
+    ----------
+    frame : (H, W) uint8
+    sigma_px : float
+        Standard deviation of the Gaussian, pixels (> 0).
+    kernel_px : int
+        Odd kernel width, pixels.
+
+    Returns
+    -------
+    (H, W) float32
+        The smoothed image. Float keeps the sub-grey-level information the sub-pixel steps use.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> float(smooth(np.full((5, 5), 7, np.uint8), sigma_px=1.0, kernel_px=3)[2, 2])
+    7.0
+    """
+    check_frame(frame, min_size=kernel_px)
+    if not np.isfinite(sigma_px) or sigma_px <= 0:
+        raise InvalidInputError(f"sigma_px must be positive, got {sigma_px!r}")
+    k = _odd_window(kernel_px, "kernel_px")
+    return cv2.GaussianBlur(frame.astype(np.float32), (k, k), sigmaX=float(sigma_px), borderType=cv2.BORDER_REFLECT)
+
+
+def local_mean(image: np.ndarray, *, window_px: int) -> np.ndarray:
+    """Mean of ``image`` in a centred square window of ``window_px`` pixels at every pixel (seed 4.2).
+
+    The border is handled by reflection, so the window never leaves the image. Constant time per pixel.
+    """
+    k = _odd_window(window_px, "window_px")
+    if image.ndim != 2 or min(image.shape) < k:
+        raise InvalidInputError(f"image of shape {image.shape} is smaller than the averaging window ({k} px)")
+    return cv2.boxFilter(image, cv2.CV_32F, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
+
+
+def local_mean_and_std(image: np.ndarray, *, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Local mean and local standard deviation (seed eq. 4.2) in a centred square window, at every pixel."""
+    img = image.astype(np.float32, copy=False)
+    mean = local_mean(img, window_px=window_px)
+    mean_sq = local_mean(cv2.multiply(img, img), window_px=window_px)
+    var = cv2.subtract(mean_sq, cv2.multiply(mean, mean))
+    np.maximum(var, 0.0, out=var)  # rounding can make a flat window's variance slightly negative
+    return mean, cv2.sqrt(var)
+
+
+def detect_background(
+    smoothed: np.ndarray,
+    *,
+    window_px: int,
+    min_mean: float,
+    max_std: float,
+    dilation_px: int,
+    mean: np.ndarray | None = None,
+) -> np.ndarray:
+    """Where the prism is uncovered (seed 4.3): high local mean AND low local variance, then dilated.
+
+    Parameters
+    ----------
+    smoothed : (H, W) float32
+        The smoothed frame.
+    window_px : int
+        Odd window width of the local statistics.
+    min_mean : float
+        Grey level above which the local mean says "background" (the bare prism is almost white).
+    max_std : float
+        Local standard deviation (grey levels) below which the local variance says "background" (no ridge cycles).
+    dilation_px : int
+        Radius of the dilation that closes holes and brings the background up to the fingertip (seed: "a few
+        morphological dilation operations").
+    mean : (H, W) float32, optional
+        A local mean already computed with the same window (reused to save one box filter).
+
+    Returns
+    -------
+    (H, W) bool
+        True on the background.
+    """
+    if not (0 <= min_mean <= 255):
+        raise InvalidInputError(f"min_mean must be a grey level in [0, 255], got {min_mean!r}")
+    if not max_std > 0:
+        raise InvalidInputError(f"max_std must be positive, got {max_std!r}")
+    if dilation_px < 0:
+        raise InvalidInputError(f"dilation_px must be >= 0, got {dilation_px!r}")
+    img = smoothed.astype(np.float32, copy=False)
+    if mean is None:
+        mean, std = local_mean_and_std(img, window_px=window_px)
+    else:
+        mean_sq = local_mean(cv2.multiply(img, img), window_px=window_px)
+        std = cv2.sqrt(np.maximum(cv2.subtract(mean_sq, cv2.multiply(mean, mean)), 0.0))
+    # Both tests must agree (seed 4.3): the mean alone mistakes bright, well-pressed fingerprint areas for background.
+    bg = ((mean > min_mean) & (std < max_std)).view(np.uint8)
+    if dilation_px > 0:
+        d = 2 * int(dilation_px) + 1
+        bg = cv2.dilate(bg, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d)))
+    return bg.astype(bool)
+
+
+def binarize(
+    smoothed: np.ndarray,
+    *,
+    local_average: np.ndarray,
+    scale: float = 1.0,
+    background: np.ndarray | None = None,
+) -> np.ndarray:
+    """Valleys and pores as foreground: pixels brighter than ``scale`` times the local average (seed 4.4).
+
+    Parameters
+    ----------
+    smoothed : (H, W) float32
+    local_average : (H, W) float32
+        The local mean map (seed 4.2, ~2 mm window) used as a pixel-wise threshold.
+    scale : float
+        The seed's user-defined factor applied to the local average (1 = the plain local mean).
+    background : (H, W) bool, optional
+        Background pixels are set to black (seed 4.3), so no valley is found there.
+
+    Returns
+    -------
+    (H, W) uint8
+        255 on valleys and pores, 0 on ridges and background.
+    """
+    if smoothed.shape != local_average.shape:
+        raise InvalidInputError(f"local_average shape {local_average.shape} differs from the image's {smoothed.shape}")
+    if not np.isfinite(scale) or scale <= 0:
+        raise InvalidInputError(f"scale must be positive, got {scale!r}")
+    thr = local_average if scale == 1.0 else cv2.multiply(local_average, float(scale))
+    binary = cv2.compare(smoothed.astype(np.float32, copy=False), thr, cv2.CMP_GT)
+    if background is not None:
+        if background.shape != smoothed.shape:
+            raise InvalidInputError(f"background shape {background.shape} differs from the image's {smoothed.shape}")
+        binary[background] = 0
+    return binary
