@@ -114,7 +114,7 @@ class AravisCamera(Camera):
         self._cam = None
         self._stream = None
         self._shape = (0, 0)
-        self._underruns_at_start = 0
+        self._final_statistics = {"completed": 0, "failures": 0, "underruns": 0}
 
     @classmethod
     def fake(cls, **kwargs) -> "AravisCamera":
@@ -181,6 +181,7 @@ class AravisCamera(Camera):
 
     def _do_start(self) -> None:
         arv, cam = self._arv, self._cam
+        self._stream = None
         try:
             stream = cam.create_stream(None, None)
             if isinstance(stream, arv.GvStream):
@@ -190,7 +191,6 @@ class AravisCamera(Camera):
             for _ in range(self._n_buffers):
                 stream.push_buffer(arv.Buffer.new_allocate(payload))
             self._stream = stream
-            self._underruns_at_start = 0
             cam.start_acquisition()
         except Exception as exc:
             self._stream = None
@@ -201,7 +201,11 @@ class AravisCamera(Camera):
             self._cam.stop_acquisition()
         except Exception as exc:
             raise DeviceError(f"{self._device_name!r}: stopping acquisition failed: {exc}") from None
-        # The stream is kept until the next start so that its final statistics stay readable through stats.
+        finally:
+            # Keep the final counters, then release the stream (its socket and thread): a GigE camera streams
+            # to one receiver, so a stream left alive would steal the frames of the next start.
+            self._final_statistics = self._read_statistics()
+            self._stream = None
 
     def _do_grab(self) -> Frame | None:
         arv, stream = self._arv, self._stream
@@ -230,12 +234,16 @@ class AravisCamera(Camera):
             image = image.astype(dtype)
         return Frame(image, int(frame_id), device_t, host_t if host_t > 0 else time.time())
 
-    def _device_drops(self) -> int:
+    def _read_statistics(self) -> dict[str, int]:
         stream = self._stream
         if stream is None:
-            return 0
+            return dict(self._final_statistics)
         # The base-class statistics (completed, failures, underruns); GvStream overrides get_statistics.
-        return int(self._arv.Stream.get_statistics(stream)[2])
+        completed, failures, underruns = self._arv.Stream.get_statistics(stream)
+        return {"completed": int(completed), "failures": int(failures), "underruns": int(underruns)}
+
+    def _device_drops(self) -> int:
+        return self._read_statistics()["underruns"]
 
     def _frame_id_unwrapper(self) -> FrameIdUnwrapper:
         return FrameIdUnwrapper(modulus=65536, skip_zero=True)
@@ -248,10 +256,7 @@ class AravisCamera(Camera):
     @property
     def device_statistics(self) -> dict[str, int]:
         """Aravis's own stream counters (completed, failures, underruns) since the last start."""
-        if self._stream is None:
-            return {"completed": 0, "failures": 0, "underruns": 0}
-        completed, failures, underruns = self._arv.Stream.get_statistics(self._stream)
-        return {"completed": int(completed), "failures": int(failures), "underruns": int(underruns)}
+        return self._read_statistics()
 
     def __repr__(self) -> str:
         return f"AravisCamera({self._device_name!r})"
