@@ -1,0 +1,402 @@
+"""The dense method: displacement and strain over the contact region without features (beyond the seed, 7.2:
+"other methods, such as an analysis of the optical flow, could provide better results").
+
+Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on fingerprint texture:
+
+1. The coarse global motion between the frames comes from phase correlation of the whole images
+   (:class:`processing.robust_tracking.GlobalMotionEstimator`). Local window methods started at zero lock onto a
+   neighbouring ridge; started from the global motion they are within a fraction of a ridge period.
+2. Pyramidal Lucas-Kanade registration of a ~0.5 mm window at every node of a regular grid (default 0.2 mm)
+   inside the contact region (where the local grey-level spread shows ridges), started from the global motion.
+3. Outliers (a node disagreeing with the median of its neighbours by more than ``outlier_mm``) are registered
+   again from that median at full resolution; nodes still disagreeing are flagged invalid, never silently kept.
+
+Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
+:func:`processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import sparse
+from scipy.ndimage import map_coordinates
+from scipy.sparse.linalg import spsolve
+
+from processing.calibration import Calibration
+from processing.errors import InvalidInputError
+from processing.robust_tracking import GlobalMotionEstimator
+from processing.tracking import MotionSample
+
+
+@dataclass(frozen=True)
+class FlowParams:
+    """Options of :class:`DenseFlow`, in mm and grey levels.
+
+    Parameters
+    ----------
+    grid_step_mm : float
+        Spacing of the measurement grid.
+    window_mm : float
+        Side of the registration window (about one ridge period either side).
+    pyramid_levels : int
+        Pyramid levels above full resolution for the first registration.
+    min_contrast : float
+        Minimum local grey-level standard deviation for a node to count as in contact (FTIR: no contact = no
+        ridges = flat bright image).
+    outlier_mm : float
+        Disagreement with the neighbours' median beyond which a node is registered again, then flagged.
+    """
+
+    grid_step_mm: float = 0.2
+    window_mm: float = 0.5
+    pyramid_levels: int = 2
+    min_contrast: float = 8.0
+    outlier_mm: float = 0.01
+    smoothness: float = 0.05
+    refine_iterations: int = 3
+    jacobi_sweeps: int = 20
+    max_residual_ratio: float = 3.0
+    clg_levels: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("grid_step_mm", "window_mm", "outlier_mm"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InvalidInputError(f"{name} must be positive, got {v!r}")
+        if not 0 <= int(self.pyramid_levels) <= 5:
+            raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
+        if not self.min_contrast >= 0:
+            raise InvalidInputError(f"min_contrast must be >= 0, got {self.min_contrast!r}")
+
+
+@dataclass(frozen=True)
+class FlowField:
+    """Displacement on a grid of frame a, to frame b. ``displacement`` is NaN exactly where ``valid`` is False.
+
+    ``status`` says why nodes are invalid in bulk: "ok", or e.g. "no contact" when no node has texture.
+    """
+
+    frame_a: int
+    frame_b: int
+    grid_x: np.ndarray  # (GX,) px
+    grid_y: np.ndarray  # (GY,) px
+    displacement: np.ndarray  # (GY, GX, 2) px
+    valid: np.ndarray  # (GY, GX) bool
+    global_shift: np.ndarray  # (2,) px
+    n_outliers: int
+    status: str = "ok"
+
+    def motion(self, *, stride: int = 1) -> MotionSample:
+        """The valid nodes (every ``stride``-th along each axis) as a :class:`MotionSample`; ids = flat node index."""
+        if stride < 1:
+            raise InvalidInputError(f"stride must be >= 1, got {stride!r}")
+        gy, gx = self.valid.shape
+        rows, cols = np.meshgrid(np.arange(0, gy, stride), np.arange(0, gx, stride), indexing="ij")
+        rows, cols = rows.ravel(), cols.ravel()
+        ok = self.valid[rows, cols]
+        rows, cols = rows[ok], cols[ok]
+        pts = np.column_stack([self.grid_x[cols], self.grid_y[rows]])
+        return MotionSample(self.frame_a, self.frame_b, pts, self.displacement[rows, cols], rows * gx + cols)
+
+    def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bilinear displacement at ``points`` (n, 2); returns (displacement, valid) with NaN where not valid
+        (outside the grid or next to an invalid node)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        gx, gy = self.grid_x, self.grid_y
+        step_x = gx[1] - gx[0] if gx.size > 1 else 1.0
+        step_y = gy[1] - gy[0] if gy.size > 1 else 1.0
+        fc = (points[:, 0] - gx[0]) / step_x
+        fr = (points[:, 1] - gy[0]) / step_y
+        inside = (fc >= 0) & (fc <= gx.size - 1) & (fr >= 0) & (fr <= gy.size - 1)
+        coords = np.vstack([fr, fc])
+        bad = (~self.valid).astype(np.float64)
+        near_bad = map_coordinates(bad, coords, order=1, mode="nearest") > 1e-9
+        field = np.where(self.valid[..., None], self.displacement, 0.0)
+        out = np.stack([map_coordinates(field[..., i], coords, order=1, mode="nearest") for i in range(2)], axis=1)
+        ok = inside & ~near_bad
+        out[~ok] = np.nan
+        return out, ok
+
+
+class DenseFlow:
+    """Grid displacement between two frames: global phase correlation, then pyramidal LK, then outlier repair.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    params : FlowParams, optional
+
+    Examples
+    --------
+    >>> import numpy as np, cv2
+    >>> rng = np.random.default_rng(2)
+    >>> a = cv2.GaussianBlur((rng.random((200, 240)) * 255).astype(np.float32), (0, 0), 2.5)
+    >>> a = cv2.normalize(a, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    >>> m = np.float32([[1, 0, 3.25], [0, 1, -1.5]])
+    >>> b = cv2.warpAffine(a, m, (240, 200), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    >>> f = DenseFlow(calibration=Calibration(px_per_mm=62.0)).compute(a, b)
+    >>> d = f.displacement[f.valid]
+    >>> bool(np.abs(np.median(d, axis=0) - [3.25, -1.5]).max() < 0.05)
+    True
+    """
+
+    def __init__(self, *, calibration: Calibration, params: FlowParams | None = None) -> None:
+        self.params = params or FlowParams()
+        self.calibration = calibration
+        self._step = max(2, calibration.px_int(self.params.grid_step_mm))
+        self._win = calibration.odd_px(self.params.window_mm, minimum=7)
+        self._outlier = calibration.px(self.params.outlier_mm)
+        self._estimator = GlobalMotionEstimator()
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
+
+    def grid(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Grid node coordinates (x, y) for images of ``shape``: nodes whose window fits in the image."""
+        h, w = shape
+        half = self._win // 2
+        gx = np.arange(half, w - half, self._step, dtype=np.float64)
+        gy = np.arange(half, h - half, self._step, dtype=np.float64)
+        return gx, gy
+
+    def compute(
+        self,
+        image_a: np.ndarray,
+        image_b: np.ndarray,
+        *,
+        frame_a: int = 0,
+        frame_b: int = 1,
+        initial_shift: np.ndarray | None = None,
+    ) -> FlowField:
+        a = _gray(image_a, "image_a")
+        b = _gray(image_b, "image_b")
+        if a.shape != b.shape:
+            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
+        gx, gy = self.grid(a.shape)
+        if gx.size < 2 or gy.size < 2:
+            raise InvalidInputError(f"images of shape {a.shape} are too small for a {self._win} px window grid")
+        if initial_shift is None:
+            gm = self._estimator.estimate(a, b)
+            shift = gm.shift
+        else:
+            shift = np.asarray(initial_shift, dtype=np.float64).reshape(2)
+        # Contact: local grey-level spread over the window at each node (FTIR: no contact -> no ridges).
+        af = a.astype(np.float32)
+        k = (self._win, self._win)
+        mean = cv2.boxFilter(af, -1, k)
+        sq = cv2.boxFilter(af * af, -1, k)
+        contrast = np.sqrt(np.maximum(sq - mean * mean, 0.0))
+        rr, cc = np.meshgrid(gy.astype(int), gx.astype(int), indexing="ij")
+        contact = contrast[rr, cc] >= self.params.min_contrast
+        gyn, gxn = gy.size, gx.size
+        if not np.any(contact):
+            return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
+                             shift, 0, "no contact")
+        pa, pb = [af], [b.astype(np.float32)]
+        for _ in range(int(self.params.pyramid_levels)):
+            pa.append(cv2.pyrDown(pa[-1]))
+            pb.append(cv2.pyrDown(pb[-1]))
+        top = int(self.params.pyramid_levels)
+        # The smoothness term acts on the deviation from this global affine motion (see _clg).
+        affine = _affine_init(pa[top], pb[top], shift / 2.0**top)
+        gxx, gyy = np.meshgrid(gx, gy)
+        if affine is None:
+            field = np.tile(shift.astype(np.float64), (gyn, gxn, 1))
+        else:
+            # The affine was fitted at the top level: scale its translation back to full resolution.
+            f = 2.0**top
+            m = affine
+            field = np.stack(
+                [
+                    (m[0, 0] - 1) * gxx + m[0, 1] * gyy + m[0, 2] * f,
+                    m[1, 0] * gxx + (m[1, 1] - 1) * gyy + m[1, 2] * f,
+                ],
+                axis=-1,
+            )
+        prior = field.copy()
+        # Coarse to fine: the same nodes, the same window in pixels of each level (a wider skin area up top).
+        for level in range(min(top, int(self.params.clg_levels)), -1, -1):
+            f = 2.0**level
+            field = self._clg(pa[level], pb[level], gx / f, gy / f, field / f, contact, prior / f) * f
+        residual = self._residual(pa[0], pb[0], gx, gy, field)
+        med = float(np.median(residual[contact]))
+        valid = contact & (residual <= self.params.max_residual_ratio * med + 1e-6)
+        # A node whose window leaves the second image cannot be registered there.
+        h, w = a.shape
+        half = self._win // 2
+        tx, ty = gxx + field[..., 0], gyy + field[..., 1]
+        valid &= (tx >= half) & (tx <= w - 1 - half) & (ty >= half) & (ty <= h - 1 - half)
+        n_out = int((contact & ~valid).sum())
+        disp = np.where(valid[..., None], field, np.nan)
+        status = "ok" if valid.any() else "no node registered"
+        return FlowField(frame_a, frame_b, gx, gy, disp, valid, shift, n_out, status)
+
+    def _warp(self, b, gx, gy, field):
+        h, w = b.shape
+        step_x, step_y = gx[1] - gx[0], gy[1] - gy[0]
+        xs = ((np.arange(w, dtype=np.float32) - gx[0]) / step_x).astype(np.float32)
+        ys = ((np.arange(h, dtype=np.float32) - gy[0]) / step_y).astype(np.float32)
+        mx, my = np.meshgrid(xs, ys)
+        dense = cv2.remap(field.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        bx, by = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        return cv2.remap(b, bx + dense[..., 0], by + dense[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+    def _clg(self, a, b, gx, gy, field, contact, prior):
+        """Gauss-Newton on all nodes at once: windowed brightness constancy at each node (Lucas-Kanade) plus a
+        membrane term tying each node's deviation from the global affine ``prior`` to its neighbours', solved by
+        Jacobi sweeps. The neighbour term carries the along-ridge component, which one window cannot see
+        (aperture problem), from the pores and minutiae nearby; acting on the deviation from the affine, it
+        leaves uniform strain and rotation unbiased, borders included."""
+        k = (self._win, self._win)
+        h, w = a.shape
+        rr = np.clip(np.round(gy).astype(int), 0, h - 1)[:, None]
+        cc = np.clip(np.round(gx).astype(int), 0, w - 1)[None, :]
+        cmask = contact.astype(np.float64)
+        for _ in range(int(self.params.refine_iterations)):
+            bw = self._warp(b, gx, gy, field)
+            avg = 0.5 * (a + bw)
+            ix = cv2.Sobel(avg, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+            iy = cv2.Sobel(avg, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+            it = bw - a
+
+            def box(img):
+                return cv2.boxFilter(img, -1, k, normalize=False)[rr, cc].astype(np.float64)
+
+            gxx, gxy, gyy = box(ix * ix), box(ix * iy), box(iy * iy)
+            bx, by = box(ix * it), box(iy * it)
+            lam = self.params.smoothness * float(np.median((gxx + gyy)[contact]))
+            u0 = field.copy()
+            # right-hand side of the linearised data term: G u0 - b
+            rx = gxx * u0[..., 0] + gxy * u0[..., 1] - bx
+            ry = gxy * u0[..., 0] + gyy * u0[..., 1] - by
+            u = u0.copy()
+            for _ in range(int(self.params.jacobi_sweeps)):
+                s, n = _neighbour_sum(u - prior, cmask)
+                s = s + n[..., None] * prior
+                ax = gxx + lam * n
+                ay = gyy + lam * n
+                px = rx + lam * s[..., 0]
+                py = ry + lam * s[..., 1]
+                det = ax * ay - gxy * gxy
+                det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+                ux = (ay * px - gxy * py) / det
+                uy = (ax * py - gxy * px) / det
+                u = np.where(contact[..., None], np.stack([ux, uy], -1), u)
+            field = u
+        return field
+
+    def _residual(self, a, b, gx, gy, field):
+        bw = self._warp(b, gx, gy, field)
+        h, w = a.shape
+        rr = np.clip(np.round(gy).astype(int), 0, h - 1)[:, None]
+        cc = np.clip(np.round(gx).astype(int), 0, w - 1)[None, :]
+        return cv2.boxFilter(np.abs(bw - a), -1, (self._win, self._win))[rr, cc].astype(np.float64)
+
+    def _lk(self, a, b, pts, init, levels) -> tuple[np.ndarray, np.ndarray]:
+        p0 = pts.reshape(-1, 1, 2).astype(np.float32)
+        p1 = (pts + init).reshape(-1, 1, 2).astype(np.float32)
+        out, status, _ = cv2.calcOpticalFlowPyrLK(
+            a, b, p0, p1, winSize=(self._win, self._win), maxLevel=levels, criteria=self._criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        d = out.reshape(-1, 2).astype(np.float64) - pts.astype(np.float64)
+        ok = status.reshape(-1).astype(bool) & np.all(np.isfinite(d), axis=1)
+        return d, ok
+
+
+def _neighbour_median(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Median of the valid 8-neighbours of every node (NaN where fewer than 3)."""
+    gy, gx, _ = disp.shape
+    pad = np.pad(np.where(valid[..., None], disp, np.nan), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+    stack = np.stack(
+        [pad[1 + dy : 1 + dy + gy, 1 + dx : 1 + dx + gx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    )
+    n = np.sum(np.isfinite(stack[..., 0]), axis=0)
+    out = np.full((gy, gx, 2), np.nan)
+    enough = n >= 3
+    if np.any(enough):
+        med = np.nanmedian(stack[:, enough], axis=0) if stack[:, enough].size else None
+        out[enough] = med
+    return out
+
+
+def _affine_init(a: np.ndarray, b: np.ndarray, shift: np.ndarray) -> np.ndarray | None:
+    """Affine motion between two (downsampled) images by ECC, started from a translation; None if it fails.
+
+    Returns the 2x3 matrix mapping frame-a points to frame-b points (at the resolution of ``a``)."""
+    warp = np.array([[1, 0, shift[0]], [0, 1, shift[1]]], dtype=np.float32)
+    try:
+        # ECC's warp maps template (a) coordinates into the input image (b).
+        _, warp = cv2.findTransformECC(
+            a, b, warp, cv2.MOTION_AFFINE, (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4), None, 3
+        )
+    except cv2.error:
+        return None
+    if not np.all(np.isfinite(warp)) or np.abs(warp[:, :2] - np.eye(2)).max() > 0.3:
+        return None
+    return warp.astype(np.float64)
+
+
+def _neighbour_sum(u: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum of the 4-neighbours' values and their count, over nodes where ``mask`` is 1."""
+    um = u * mask[..., None]
+    s = np.zeros_like(u)
+    n = np.zeros(mask.shape)
+    s[1:] += um[:-1]
+    n[1:] += mask[:-1]
+    s[:-1] += um[1:]
+    n[:-1] += mask[1:]
+    s[:, 1:] += um[:, :-1]
+    n[:, 1:] += mask[:, :-1]
+    s[:, :-1] += um[:, 1:]
+    n[:, :-1] += mask[:, 1:]
+    return s, n
+
+
+def _fill_invalid(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Invalid nodes take the mean of the valid ones (only to warp the image smoothly; they stay invalid)."""
+    fill = np.nanmean(disp[valid], axis=0) if valid.any() else np.zeros(2)
+    return np.broadcast_to(fill, disp.shape)
+
+
+def grid_strain(field: FlowField) -> tuple[np.ndarray, np.ndarray]:
+    """Small-strain tensor (exx, eyy, exy) of a flow field by central differences on its grid.
+
+    Returns ``(strain (GY, GX, 3), ok (GY, GX))``; strain is NaN exactly where ``ok`` is False (a node or one of
+    its four neighbours invalid, or on the border).
+    """
+    d = field.displacement
+    v = field.valid
+    sx = field.grid_x[1] - field.grid_x[0]
+    sy = field.grid_y[1] - field.grid_y[0]
+    out = np.full(d.shape[:2] + (3,), np.nan)
+    ok = np.zeros(v.shape, bool)
+    ok[1:-1, 1:-1] = v[1:-1, 1:-1] & v[1:-1, 2:] & v[1:-1, :-2] & v[2:, 1:-1] & v[:-2, 1:-1]
+    dudx = (d[1:-1, 2:, 0] - d[1:-1, :-2, 0]) / (2 * sx)
+    dvdy = (d[2:, 1:-1, 1] - d[:-2, 1:-1, 1]) / (2 * sy)
+    dudy = (d[2:, 1:-1, 0] - d[:-2, 1:-1, 0]) / (2 * sy)
+    dvdx = (d[1:-1, 2:, 1] - d[1:-1, :-2, 1]) / (2 * sx)
+    inner = np.stack([dudx, dvdy, 0.5 * (dudy + dvdx)], axis=-1)
+    sub = out[1:-1, 1:-1]
+    sub[ok[1:-1, 1:-1]] = inner[ok[1:-1, 1:-1]]
+    return out, ok
+
+
+def sample_dense_flow(flow: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a dense (H, W, 2) flow (e.g. from OpenCV) at ``points`` (n, 2) x, y px."""
+    flow = np.asarray(flow, dtype=np.float32)
+    if flow.ndim != 3 or flow.shape[2] != 2:
+        raise InvalidInputError(f"flow must have shape (H, W, 2), got {flow.shape}")
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    coords = np.vstack([p[:, 1], p[:, 0]])
+    return np.stack([map_coordinates(flow[..., i], coords, order=1, mode="nearest") for i in range(2)], axis=1)
+
+
+def _gray(image: np.ndarray, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise InvalidInputError(f"{name} must be a 2-D grey image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    return image
