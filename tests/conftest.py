@@ -11,3 +11,14 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def sim_session():
+    """A small simulated session (scene flatL, 20 frames, seed 0) as a simulators.scene.RenderedSession.
+
+    Shared by the whole test run: treat it as read-only.
+    """
+    from simulators.scene import render_session
+
+    return render_session("flatL", n_frames=20, seed=0)
