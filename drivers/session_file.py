@@ -388,6 +388,19 @@ def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
         g.create_dataset(name, data=arr, compression="gzip" if big else None, compression_opts=1 if big else None)
 
 
+def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
+    """Add the ground truth of a simulated *recorded* session to its closed file (the truth of frame k of the
+    file must be row k of ``truth``). A file that already has a truth is an error."""
+    path = Path(path)
+    with h5py.File(path, "r+", libver="latest") as f:
+        if "truth" in f:
+            raise InvalidInputError(f"{path} already has a ground truth")
+        n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
+        truth.validate(n)
+        _write_truth(f, truth)
+    return path
+
+
 # --------------------------------------------------------------------------------------------------- reading
 
 

@@ -26,9 +26,37 @@ from drivers.camera_modes import CAMERA_MODES
 from processing.errors import DeviceError, InvalidInputError
 from experiments.protocol import Rig
 
-__all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "sim_display_url"]
+__all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "sim_display_url", "subset_truth"]
+
+
+def subset_truth(truth, rows: np.ndarray):
+    """The truth of the recorded frames only: ``rows`` are source frame indices (from the frame ids)."""
+    from drivers.session_file import SessionTruth  # noqa: PLC0415
+
+    rows = np.asarray(rows, dtype=np.int64)
+    per_frame = {"feature_x", "feature_y", "feature_visible", "displacement", "displacement_valid", "rigid", "strain"}
+    arrays = {
+        name: (np.asarray(getattr(truth, name))[rows] if name in per_frame else getattr(truth, name))
+        for name in SessionTruth._ARRAYS
+    }
+    return SessionTruth(**arrays, attrs=dict(truth.attrs))
 
 _sim_names = itertools.count()
+
+
+# ----------------------------------------------------------------------------------------------- rendering
+
+
+def render_scene(scene_yaml: str, seed: int):
+    """Render every frame of a scene and its ground truth (runs in a worker process for a simulated camera)."""
+    from simulators.scene import SceneRenderer, parse_scene  # noqa: PLC0415
+
+    scene = parse_scene(scene_yaml, source="<trial scene>")
+    renderer = SceneRenderer(scene, seed=seed)
+    frames = np.stack([renderer.render_frame(k) for k in range(scene.n_frames)])
+    truth = renderer.truth()
+    truth.attrs.update({"scene": scene.name, "scene_yaml": scene_yaml, "seed": int(seed)})
+    return frames, truth
 
 
 # ------------------------------------------------------------------------------------------------------ force
@@ -189,6 +217,7 @@ class _TrialCamera:
         self.camera = camera
         self.mode = mode
         self.keep_open = keep_open
+        self.truth = None  # SessionTruth of a simulated camera (row k = source frame k)
 
     def start(self) -> None:
         if not self.camera.is_open:
@@ -226,6 +255,8 @@ class RigDevices:
         self._display_built = False
         self._aravis = None
         self._sim_servers: list[Any] = []
+        self._render_pool = None
+        self._renders: dict[tuple[str, int], Any] = {}
 
     def describe(self) -> dict[str, str]:
         r = self.rig
@@ -240,18 +271,7 @@ class RigDevices:
         spec = self.rig.camera
         mode = CAMERA_MODES[protocol.camera_mode]
         if spec.kind == "sim":
-            try:
-                from simulators.camera import SimulatedCamera  # noqa: PLC0415
-            except ImportError as exc:
-                raise DeviceError(f"the simulated camera is not available ({exc})") from None
-            cam = SimulatedCamera.from_scene(
-                trial.surface.scene_name,
-                mode=mode,
-                n_frames=n_frames,
-                seed=spec.seed + trial.index,
-                **spec.options,
-            )
-            return _TrialCamera(cam, mode)
+            return self._sim_camera(trial=trial, protocol=protocol, n_frames=n_frames, mode=mode)
         if spec.kind == "aravis":
             from drivers.camera.aravis import AravisCamera  # noqa: PLC0415
 
@@ -265,6 +285,78 @@ class RigDevices:
 
             return _TrialCamera(ReplayCamera(spec.device, **spec.options), mode)
         raise DeviceError(f"camera kind {spec.kind!r} is not supported")
+
+    def _sim_scene(self, *, trial, protocol, n_frames: int):
+        """The simulator scene of a trial, adapted to it.
+
+        The protocol's camera mode and field of view, the surface's shape, and the scene's bulk motion compressed
+        (never stretched) into the trial's duration, so a short trial still crosses the whole ridge or valley
+        (faster sliding, closer to the seed's 2.8-5.3 mm/s, seed 6.1).
+        """
+        try:
+            from simulators.scene import load_scene  # noqa: PLC0415
+        except ImportError as exc:
+            raise DeviceError(f"the simulated camera is not available ({exc})") from None
+        mode = CAMERA_MODES[protocol.camera_mode]
+        surface = trial.surface
+        scene = load_scene(surface.scene_name)
+        scene_duration = scene.n_frames / CAMERA_MODES[scene.camera.mode].fps
+        scale = min(1.0, (n_frames / mode.fps) / scene_duration)
+        motion = scene.motion.model_copy(
+            update={"keyframes": [(t * scale, u, s_, th) for t, u, s_, th in scene.motion.keyframes]}
+        )
+        update: dict[str, Any] = {
+            "n_frames": int(n_frames),
+            "camera": scene.camera.model_copy(update={"mode": mode.name, "field_of_view_mm": protocol.field_of_view_mm}),
+            "motion": motion,
+        }
+        if surface.kind in ("flat", "ridge", "valley") and surface.scene is None:
+            update["surface"] = scene.surface.model_copy(
+                update={"kind": surface.kind, "width_mm": surface.width_mm, "height_mm": surface.height_mm}
+            )
+        return scene.model_copy(update=update)
+
+    def prepare(self, *, protocol, trials) -> None:
+        """Start rendering the simulated camera's frames of ``trials`` in worker processes (no-op for a real
+        camera), so that rendering — slower than the camera rate — overlaps the recording of earlier trials."""
+        if self.rig.camera.kind != "sim" or not trials:
+            return
+        import concurrent.futures as cf  # noqa: PLC0415
+        import multiprocessing  # noqa: PLC0415
+
+        if self._render_pool is None:
+            self._render_pool = cf.ProcessPoolExecutor(
+                max_workers=min(2, len(trials)), mp_context=multiprocessing.get_context("spawn")
+            )
+        mode = CAMERA_MODES[protocol.camera_mode]
+        for trial in trials:
+            n = max(1, int(round(trial.spec.duration_s * mode.fps)))
+            scene = self._sim_scene(trial=trial, protocol=protocol, n_frames=n)
+            seed = self.rig.camera.seed + trial.index
+            self._renders[(trial.dirname, n)] = self._render_pool.submit(render_scene, scene.to_yaml(), seed)
+
+    def _sim_camera(self, *, trial, protocol, n_frames: int, mode):
+        """A simulated camera streaming the trial's surface at the camera's real rate, with the ground truth."""
+        from simulators.camera import SimulatedCamera  # noqa: PLC0415
+
+        spec = self.rig.camera
+        future = self._renders.pop((trial.dirname, n_frames), None)
+        rendered = None
+        if future is not None:
+            try:
+                rendered = future.result()
+            except Exception:  # a worker died (e.g. no __main__ guard in the caller): render here instead
+                rendered = None
+        if rendered is not None:
+            frames, truth = rendered
+        else:
+            scene = self._sim_scene(trial=trial, protocol=protocol, n_frames=n_frames)
+            frames, truth = render_scene(scene.to_yaml(), spec.seed + trial.index)
+        cam = SimulatedCamera(frames.__getitem__, mode, n_frames=n_frames, loop=False, seed=spec.seed + trial.index,
+                              **spec.options)
+        trial_cam = _TrialCamera(cam, mode)
+        trial_cam.truth = truth
+        return trial_cam
 
     # -- force
     @property
@@ -323,6 +415,7 @@ class RigDevices:
             (lambda: self._force.close()) if self._force is not None else None,
             (lambda: self._display.close()) if self._display is not None else None,
             (lambda: self._aravis.close()) if self._aravis is not None else None,
+            (lambda: self._render_pool.shutdown(wait=True, cancel_futures=True)) if self._render_pool else None,
             *[(lambda s=s: s.stop()) for s in self._sim_servers],
         ):
             if closer is None:
@@ -331,7 +424,7 @@ class RigDevices:
                 closer()
             except Exception as exc:  # closing must go on for the other devices
                 errors.append(f"{type(exc).__name__}: {exc}")
-        self._force = self._display = self._aravis = None
+        self._force = self._display = self._aravis = self._render_pool = None
         self._sim_servers = []
         if errors:
             raise DeviceError("closing the rig: " + "; ".join(errors))

@@ -38,7 +38,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from drivers.camera_modes import CAMERA_MODES, CameraMode
-from drivers.session_file import open_session
+from drivers.session_file import attach_truth, open_session
 from processing.calibration import Calibration
 from processing.errors import ConfigError, DeviceError, InvalidInputError, SessionFileError, SkinstretchError
 from experiments.protocol import PlannedTrial, Protocol, Rig
@@ -350,9 +350,26 @@ def record_trial(
     if failure is None and recorder.failure is not None:
         failure = recorder.failure
     stats = recorder.finish(failed_reason=failure)
+    truth = getattr(camera, "truth", None)
+    if truth is not None and stats.frames_written > 0:
+        _attach_truth(path, truth)
     summary = _summarise(path, stats)
     status = "complete" if stats.status == "complete" else "failed"
     return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary)
+
+
+def _attach_truth(path: Path, truth) -> None:
+    """Store a simulated camera's ground truth, row k for recorded frame k (frame ids index the source)."""
+    from experiments.rig import subset_truth  # noqa: PLC0415
+
+    try:
+        with open_session(path) as s:
+            ids = s.frame_ids
+        rows = ids - ids[0] if ids.size else ids
+        if ids.size and rows[-1] < np.asarray(truth.feature_x).shape[0]:
+            attach_truth(path, subset_truth(truth, rows))
+    except (SessionFileError, OSError, InvalidInputError):
+        pass  # the recording stands without its truth; the report then shows no measured-vs-true section
 
 
 def _print(msg: str) -> None:
@@ -429,6 +446,9 @@ def run_protocol(
                     log.emit("stop", {"uid": uuid.uuid4().hex, "run_start": d["uid"], "exit_status": "abort",
                                       "reason": reason})
                     done[dirname] = {"exit_status": "abort", "reason": reason}
+            todo = [t for t in plan if t.dirname not in done and not (sdir / t.dirname / SESSION_FILE).exists()]
+            if hasattr(devices, "prepare"):
+                devices.prepare(protocol=protocol, trials=todo)
             for k, trial in enumerate(plan):
                 tdir = sdir / trial.dirname
                 path = tdir / SESSION_FILE
