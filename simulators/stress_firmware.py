@@ -470,7 +470,11 @@ class PacedLink:
             self._rx_free = start + len(data) * self.byte_time_s
 
     def host_read(self, max_bytes: int) -> bytes:
-        """Bytes whose delivery time has passed (up to ``max_bytes``)."""
+        """Replies whose last byte has been delivered (up to ``max_bytes``).
+
+        A reply is handed over whole once its last byte is due: one wake-up per reply instead of one per byte
+        (the host cannot use a partial packet anyway). ``max_bytes`` may split a reply.
+        """
         with self._lock:
             now = self.clock.now()
             self._process(now)
@@ -481,6 +485,8 @@ class PacedLink:
                 chunk = self._tx[0]
                 t0, data, done = chunk
                 ready = min(len(data), int((now - t0) / self.byte_time_s) + 1) if now >= t0 else 0
+                if ready < len(data):
+                    break
                 take = min(ready - done, max_bytes - len(out))
                 if take <= 0:
                     break
@@ -496,12 +502,12 @@ class PacedLink:
         """Earliest time something changes for the host or the firmware (None: nothing pending)."""
         with self._lock:
             times = []
-            if self._rx:
+            if self._rx:  # requests matter when complete; a chunk is usually one packet
                 c = self._rx[0]
-                times.append(c[0] + c[3] * self.byte_time_s)
+                times.append(c[0] + (len(c[2]) - 1) * self.byte_time_s)
             if self._tx:
                 t0, data, done = self._tx[0]
-                times.append(t0 + done * self.byte_time_s)
+                times.append(t0 + (len(data) - 1) * self.byte_time_s)
             deadline = self.firmware.next_deadline()
             if deadline is not None:
                 times.append(deadline)
@@ -661,6 +667,7 @@ def main(argv: list[str] | None = None) -> int:
     link = PacedLink.uart(firmware, clock=clock, baud=args.baud, faults=LinkFaults.parse(args.faults),
                           seed=args.seed)
     server = PtyFirmwareServer(link, master_fd=args.pty_fd)
+    print("ready", flush=True)  # the parent waits for this before talking to the port
     try:
         server.serve()
     except KeyboardInterrupt:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import array
 import errno
 import os
+import select
 import subprocess
 import sys
 import threading
@@ -214,7 +215,8 @@ class FirmwareProcess:
     ``record_path`` (``.npz``), read back with :meth:`records`.
     """
 
-    def __init__(self, *, record_path: Path, baud: int = sp.DEFAULT_BAUD, seed: int = 0, faults: str = "") -> None:
+    def __init__(self, *, record_path: Path, baud: int = sp.DEFAULT_BAUD, seed: int = 0, faults: str = "",
+                 startup_timeout_s: float = 20.0) -> None:
         self.record_path = Path(record_path)
         master, slave = os.openpty()
         tty.setraw(slave)
@@ -224,9 +226,14 @@ class FirmwareProcess:
             self._process = subprocess.Popen(
                 [sys.executable, "-m", "simulators.stress_firmware", "--pty-fd", str(master), "--baud", str(baud),
                  "--seed", str(seed), "--faults", faults, "--record", str(self.record_path)],
-                pass_fds=(master,))
+                pass_fds=(master,), stdout=subprocess.PIPE, text=True)
         finally:
             os.close(master)
+        ready, _, _ = select.select([self._process.stdout], [], [], startup_timeout_s)
+        line = self._process.stdout.readline() if ready else ""
+        if line.strip() != "ready":
+            self.close(timeout_s=1.0)
+            raise DeviceError(f"the firmware process did not start within {startup_timeout_s} s")
 
     def __enter__(self) -> "FirmwareProcess":
         return self
@@ -243,6 +250,8 @@ class FirmwareProcess:
         except subprocess.TimeoutExpired:
             self._process.terminate()
             self._process.wait(timeout_s)
+        if self._process.stdout is not None:
+            self._process.stdout.close()
 
     def records(self) -> dict[str, np.ndarray]:
         if not self.record_path.exists():

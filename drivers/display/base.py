@@ -46,6 +46,15 @@ class FrameAck:
         return self.received_at - self.sent_at
 
 
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A limited, encoded frame ready to go at its deadline (see :meth:`TactileDisplay.prepare_frame`)."""
+
+    command_um: np.ndarray = field(repr=False)
+    wire: object = field(repr=False)  # whatever the driver needs to send it fast (e.g. the encoded payload)
+    epoch: int  # the driver's command epoch it was limited against
+
+
 class TactileDisplay(abc.ABC):
     """A 10x10 lateral skin-stretch display.
 
@@ -69,6 +78,7 @@ class TactileDisplay(abc.ABC):
             raise InvalidInputError(f"watchdog_s must be in 0.001..65 s, got {watchdog_s!r}")
         self.watchdog_s = float(watchdog_s)
         self._last_command = np.zeros((ROWS, COLS))
+        self._epoch = 0  # bumped whenever _last_command changes: a prepared frame is only valid in its epoch
         self._armed = False
         self.acks: list[FrameAck] = []
 
@@ -91,14 +101,14 @@ class TactileDisplay(abc.ABC):
         """Configure the watchdog and slew limit on the display, then enable the contactors."""
         self._do_configure(watchdog_s=self.watchdog_s, max_step_um=self.max_step_um)
         self._do_arm()
-        self._last_command = np.zeros((ROWS, COLS))
+        self._set_last(np.zeros((ROWS, COLS)))
         self._armed = True
 
     def disarm(self) -> None:
         """Disable the contactors (the firmware brings them to rest first)."""
         self._armed = False
         self._do_disarm()
-        self._last_command = np.zeros((ROWS, COLS))
+        self._set_last(np.zeros((ROWS, COLS)))
 
     def zero(self) -> None:
         """Re-reference the position sensors with the contactors at rest. Only while disarmed."""
@@ -109,10 +119,15 @@ class TactileDisplay(abc.ABC):
     def rest(self) -> None:
         """Send every contactor back to 0 with the firmware's soft ramp."""
         self._do_rest()
-        self._last_command = np.zeros((ROWS, COLS))
+        self._set_last(np.zeros((ROWS, COLS)))
 
     def read_status(self) -> StatusReport:
+        """Status bits, measured positions and the firmware's counters."""
         return self._do_read_status()
+
+    def measured_positions_um(self) -> np.ndarray:
+        """The contactors' measured positions now (10, 10) um (one status round trip)."""
+        return self.read_status().positions_um
 
     def limit(self, positions_um) -> LimitedCommand:
         """What :meth:`send_frame` would actually send for ``positions_um`` (does not send)."""
@@ -129,12 +144,28 @@ class TactileDisplay(abc.ABC):
 
     def submit_frame(self, positions_um) -> int:
         """Clamp and send one frame without waiting; returns its sequence number. Pair with collect_acks."""
+        return self.send_prepared(self.prepare_frame(positions_um))
+
+    def prepare_frame(self, positions_um) -> PreparedFrame:
+        """Limit and encode a frame ahead of its deadline; :meth:`send_prepared` then only writes bytes."""
+        limited = self.limit(positions_um)
+        return PreparedFrame(limited.command_um, self._do_prepare_frame(limited.command_um), self._epoch)
+
+    def send_prepared(self, frame: PreparedFrame) -> int:
+        """Send a prepared frame; re-limited first if another command left since it was prepared."""
         if not self._armed:
             raise DeviceError("the display is not armed; call arm() before sending frames")
-        limited = self.limit(positions_um)
-        seq = self._do_submit_frame(limited.command_um)
-        self._last_command = limited.command_um
+        if not isinstance(frame, PreparedFrame):
+            raise InvalidInputError(f"frame must be a PreparedFrame, got {type(frame).__name__}")
+        if frame.epoch != self._epoch:  # limited against a stale previous command: the slew bound would not hold
+            frame = self.prepare_frame(frame.command_um)
+        seq = self._do_send_prepared(frame.wire, frame.command_um)
+        self._set_last(frame.command_um)
         return seq
+
+    def _set_last(self, command_um: np.ndarray) -> None:
+        self._last_command = command_um
+        self._epoch += 1
 
     def collect_acks(self, *, wait_for: int | None = None, timeout_s: float = 0.0) -> list[FrameAck]:
         """Acks that arrived since the last call (also appended to :attr:`acks`).
@@ -189,6 +220,14 @@ class TactileDisplay(abc.ABC):
     @abc.abstractmethod
     def _do_submit_frame(self, command_um: np.ndarray) -> int:
         """Send an already limited command; return its sequence number."""
+
+    def _do_prepare_frame(self, command_um: np.ndarray) -> object:
+        """Precompute what sending ``command_um`` needs (default: nothing beyond the command)."""
+        return command_um
+
+    def _do_send_prepared(self, wire: object, command_um: np.ndarray) -> int:
+        """Send a prepared frame (default: :meth:`_do_submit_frame`)."""
+        return self._do_submit_frame(command_um)
 
     @abc.abstractmethod
     def _do_collect_acks(self, *, wait_for: int | None, timeout_s: float) -> list[FrameAck]: ...

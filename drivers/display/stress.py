@@ -188,7 +188,13 @@ class StressDisplay(TactileDisplay):
         return sp.StatusReport.decode(self._transact(sp.Command.READ_STATUS).payload)
 
     def _do_submit_frame(self, command_um: np.ndarray) -> int:
-        seq, sent_at = self._send(sp.Command.FRAME, sp.encode_positions(command_um))
+        return self._do_send_prepared(self._do_prepare_frame(command_um), command_um)
+
+    def _do_prepare_frame(self, command_um: np.ndarray) -> bytes:
+        return sp.encode_positions(command_um)
+
+    def _do_send_prepared(self, wire: bytes, command_um: np.ndarray) -> int:
+        seq, sent_at = self._send(sp.Command.FRAME, wire)
         if seq in self._outstanding:  # 256 frames without an ack: the old one is certainly lost
             del self._outstanding[seq]
             self.lost_acks += 1

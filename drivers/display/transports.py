@@ -9,6 +9,7 @@ from __future__ import annotations
 import abc
 import errno
 import math
+import select
 
 from processing.errors import DeviceError, InvalidInputError
 
@@ -70,6 +71,10 @@ class SerialTransport(Transport):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open serial link {url!r}: {exc}") from exc
         self.baudrate = baudrate
+        try:
+            self._fd = self._port.fileno()
+        except (AttributeError, OSError, self._serial_module.SerialException):
+            self._fd = None  # URL handlers (loop://, stresssim://) have no file descriptor
 
     @property
     def description(self) -> str:
@@ -86,16 +91,25 @@ class SerialTransport(Transport):
     def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
         timeout_s = _check_timeout(timeout_s)
         try:
-            self._port.timeout = timeout_s
+            if self._fd is not None:
+                # a real port: wait with select; changing pyserial's timeout would re-run tcsetattr every call
+                ready, _, _ = select.select([self._fd], [], [], timeout_s)
+                if not ready:
+                    return b""
+                data = self._port.read(max(1, min(max_bytes, self._port.in_waiting)))
+                if not data:
+                    raise DeviceError(f"serial link {self._url!r} lost: readable but no data (device gone)")
+                return data
+            if self._port.timeout != timeout_s:
+                self._port.timeout = timeout_s
             first = self._port.read(1)
             if not first:
                 return b""
             waiting = self._port.in_waiting
             if waiting and max_bytes > 1:
-                self._port.timeout = 0
                 return first + self._port.read(min(waiting, max_bytes - 1))
             return first
-        except (self._serial_module.SerialException, OSError, TypeError) as exc:
+        except (self._serial_module.SerialException, OSError, TypeError, ValueError) as exc:
             # pyserial reports an unplugged adapter / closed pty as SerialException ("returned no data")
             raise DeviceError(f"serial link {self._url!r} lost while reading: {exc}") from exc
 

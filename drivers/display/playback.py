@@ -1,0 +1,213 @@
+"""Stream a tactile movie to a display at a fixed rate (up to 700 Hz) with deadline tracking.
+
+Frames are pipelined: frame k is sent at its deadline ``t0 + k / rate`` without waiting for the ack of frame
+k - 1 (at 2 Mbaud a request/ack round trip is ~1.1 ms of the 1.43 ms period, so a lock-step loop has no margin).
+The wait for a deadline reads acks (the transport's blocking read, which releases the GIL) until ``spin_s``
+before the deadline, then spins on ``perf_counter`` (sleep alone overshoots by 50-100 us on Linux).
+
+On a link failure (write error, silent link, too many unacknowledged frames) the movie stops, the driver sends
+rest when it can (the firmware watchdog does it otherwise) and the report, with everything acquired so far, is
+returned flagged ``outcome="link_failure"``. A callback may correct each command (closed loop) and may stop the
+movie by raising :class:`processing.errors.SafetyStop` (force ceiling): ``outcome="safety_stop"``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, SafetyStop
+
+from .base import FrameAck, TactileDisplay
+from .stress_protocol import COLS, ROWS
+
+#: ``callback(index, command_um, latest_ack) -> corrected command (10, 10) or None (keep)``
+FrameCallback = Callable[[int, np.ndarray, Optional[FrameAck]], Optional[np.ndarray]]
+
+
+@dataclass
+class PlaybackReport:
+    """What happened during a playback. Arrays cover the frames sent; ``acked`` flags frames with an ack.
+
+    ``measured_um[k]`` is what the contactors read when frame k arrived (the response to frame k - 1); where
+    no ack came back it is NaN *and* ``acked[k]`` is False. Position errors compare ``measured_um[k]`` with the
+    command of frame k - 1 (``settle_frames`` excluded).
+    """
+
+    outcome: str  # "completed" | "link_failure" | "safety_stop"
+    error: str
+    rested: bool
+    rate_hz: float
+    frames_total: int
+    frames_sent: int
+    commands_um: np.ndarray = field(repr=False)
+    measured_um: np.ndarray = field(repr=False)
+    acked: np.ndarray = field(repr=False)
+    deadlines_s: np.ndarray = field(repr=False)  # relative to the first deadline
+    send_times_s: np.ndarray = field(repr=False)  # relative to the first deadline
+    missed_deadlines: int
+    miss_tolerance_s: float
+    lost_acks: int
+    settle_frames: int
+
+    @property
+    def completed(self) -> bool:
+        return self.outcome == "completed"
+
+    @property
+    def lateness_s(self) -> np.ndarray:
+        return self.send_times_s - self.deadlines_s
+
+    @property
+    def periods_s(self) -> np.ndarray:
+        return np.diff(self.send_times_s)
+
+    @property
+    def period_jitter_p99_s(self) -> float:
+        """99th percentile of |period - nominal| of the host's send times (0 with fewer than 2 frames)."""
+        p = self.periods_s
+        return float(np.percentile(np.abs(p - 1.0 / self.rate_hz), 99)) if p.size else 0.0
+
+    def _errors(self) -> np.ndarray:
+        """(n, 10, 10) measured - previous command over acked frames after the settle time."""
+        k = np.arange(max(1, self.settle_frames), self.frames_sent)
+        k = k[self.acked[k]]
+        if k.size == 0:
+            return np.empty((0, ROWS, COLS))
+        return self.measured_um[k] - self.commands_um[k - 1]
+
+    @property
+    def error_frames(self) -> int:
+        return int(self._errors().shape[0])
+
+    def position_rms_error_um(self) -> np.ndarray:
+        """Per-contactor RMS of measured - commanded (10, 10). InvalidInputError if no ack is usable."""
+        e = self._errors()
+        if e.shape[0] == 0:
+            raise InvalidInputError("no acknowledged frame after the settle time: no position error to report")
+        return np.sqrt(np.mean(e ** 2, axis=0))
+
+    def position_mean_error_um(self) -> np.ndarray:
+        """Per-contactor mean (bias) of measured - commanded (10, 10)."""
+        e = self._errors()
+        if e.shape[0] == 0:
+            raise InvalidInputError("no acknowledged frame after the settle time: no position error to report")
+        return e.mean(axis=0)
+
+
+def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
+                 callback: FrameCallback | None = None, spin_s: float = 0.0004, max_outstanding: int = 32,
+                 miss_tolerance_s: float | None = None, final_ack_timeout_s: float = 0.05, settle_frames: int = 5,
+                 rest_at_end: bool = True, clock: Callable[[], float] = time.perf_counter) -> PlaybackReport:
+    """Play ``movie_um`` (frames, 10, 10) in micrometres on ``display`` at ``rate_hz``.
+
+    Parameters
+    ----------
+    display : TactileDisplay
+        Armed here if it is not armed yet. Its range / slew limits apply to every frame.
+    movie_um : array_like, shape (frames, 10, 10)
+        Requested positions; anything unsafe is limited by the driver (see :mod:`drivers.display.safety`).
+    rate_hz : float, keyword-only
+        Frame rate, 1..700 Hz (the STReSS refresh rate).
+    callback : callable, keyword-only
+        Called just before each frame's deadline with (index, command, latest ack); returns a corrected
+        command or None. Raise SafetyStop in it to stop the movie (contactors go to rest).
+    spin_s : float, keyword-only
+        The last part of every wait is a busy spin of this length.
+    max_outstanding : int, keyword-only
+        More unacknowledged frames than this is a link failure.
+    miss_tolerance_s : float, keyword-only
+        A frame sent later than its deadline plus this is a missed deadline (default: a quarter period).
+    settle_frames : int, keyword-only
+        Frames left out of the position error statistics.
+    clock : callable, keyword-only
+        Must be the clock the display driver uses (``time.perf_counter``).
+    """
+    movie = np.asarray(movie_um, dtype=float)
+    if movie.ndim != 3 or movie.shape[1:] != (ROWS, COLS) or movie.shape[0] < 1:
+        raise InvalidInputError(f"movie_um must have shape (frames, 10, 10), got {movie.shape}")
+    if not (np.isfinite(rate_hz) and 1.0 <= rate_hz <= 700.0):
+        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
+    period = 1.0 / rate_hz
+    if not (np.isfinite(spin_s) and 0 <= spin_s < period):
+        raise InvalidInputError(f"spin_s must be in [0, period), got {spin_s!r}")
+    if not (isinstance(max_outstanding, int) and 1 <= max_outstanding <= 200):
+        raise InvalidInputError(f"max_outstanding must be an int in 1..200, got {max_outstanding!r}")
+    tolerance = period / 4 if miss_tolerance_s is None else float(miss_tolerance_s)
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise InvalidInputError(f"miss_tolerance_s must be >= 0, got {miss_tolerance_s!r}")
+    if not (isinstance(settle_frames, int) and settle_frames >= 0):
+        raise InvalidInputError(f"settle_frames must be an int >= 0, got {settle_frames!r}")
+
+    n = movie.shape[0]
+    commands = np.zeros((n, ROWS, COLS))
+    measured = np.full((n, ROWS, COLS), np.nan)
+    acked = np.zeros(n, dtype=bool)
+    deadlines = np.arange(n) * period
+    send_times = np.zeros(n)
+    frame_of_seq: dict[int, int] = {}
+    latest: list[FrameAck | None] = [None]
+    lost_before = getattr(display, "lost_acks", 0)
+
+    def file_acks(acks: list[FrameAck]) -> None:
+        for ack in acks:
+            k = frame_of_seq.pop(ack.seq, None)
+            if k is not None:
+                measured[k] = ack.measured_um
+                acked[k] = True
+            latest[0] = ack
+
+    outcome, error, sent = "completed", "", 0
+    try:
+        if not display.armed:
+            display.arm()
+        t0 = clock() + 2 * period  # a little lead so frame 0 is not late by construction
+        for k in range(n):
+            deadline = t0 + k * period
+            while True:
+                remaining = deadline - clock() - spin_s
+                if remaining <= 0:
+                    break
+                file_acks(display.collect_acks(timeout_s=remaining))
+            command = movie[k]
+            if callback is not None:
+                corrected = callback(k, command.copy(), latest[0])
+                if corrected is not None:
+                    command = corrected
+            prepared = display.prepare_frame(command)  # limits and encoding off the deadline path
+            while clock() < deadline:
+                pass
+            now = clock()
+            seq = display.send_prepared(prepared)
+            send_times[k] = now - t0
+            commands[k] = display.last_command_um
+            frame_of_seq[seq] = k
+            sent = k + 1
+            if display.outstanding > max_outstanding:
+                raise DeviceTimeoutError(f"{display.outstanding} frames unacknowledged "
+                                         f"({display.outstanding * period * 1000:.0f} ms of movie)")
+        file_acks(display.collect_acks(timeout_s=0.0))
+        end = clock() + final_ack_timeout_s
+        while display.outstanding and clock() < end:
+            file_acks(display.collect_acks(timeout_s=max(end - clock(), 0.0)))
+    except SafetyStop as exc:
+        outcome, error = "safety_stop", str(exc)
+    except DeviceError as exc:
+        outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
+    rested = True
+    if outcome != "completed" or rest_at_end:
+        try:
+            display.rest()
+        except DeviceError as exc:
+            rested = False  # the firmware watchdog returns the contactors to rest
+            error = error or f"rest failed: {exc}"
+    lateness = send_times[:sent] - deadlines[:sent]
+    return PlaybackReport(
+        outcome=outcome, error=error, rested=rested, rate_hz=float(rate_hz), frames_total=n, frames_sent=sent,
+        commands_um=commands[:sent], measured_um=measured[:sent], acked=acked[:sent],
+        deadlines_s=deadlines[:sent], send_times_s=send_times[:sent],
+        missed_deadlines=int(np.sum(lateness > tolerance)), miss_tolerance_s=tolerance,
+        lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames)
