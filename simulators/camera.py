@@ -116,6 +116,7 @@ class SimulatedCamera(Camera):
         self._seed = seed
         self._frame_shape: tuple[int, int] | None = None
         self._next = 0
+        self._lost = 0
         self._t0 = 0.0
         self._epoch_offset = 0.0
         self._rng = np.random.default_rng(seed)
@@ -209,12 +210,17 @@ class SimulatedCamera(Camera):
 
     def _do_start(self) -> None:
         self._next = 0
+        self._lost = 0
         self._rng = np.random.default_rng(self._seed)
         self._t0 = self._clock.now()
         self._epoch_offset = time.time() - self._t0
 
     def _do_stop(self) -> None:
         pass
+
+    def _device_drops(self) -> int:
+        # The simulator knows what it dropped at once; frame-id gaps only show when a later frame arrives.
+        return self._lost
 
     def _do_grab(self) -> Frame | None:
         k = self._next
@@ -236,9 +242,11 @@ class SimulatedCamera(Camera):
                 return None
             # Frame k and those that fell due during the stall are lost (their ids are skipped).
             self._next = k + max(1, math.ceil((resume - due) / period - 1e-9))
+            self._lost += self._next - k
             return None
         self._next = k + 1
         if k in faults.drop_frames or (faults.drop_probability > 0 and self._rng.random() < faults.drop_probability):
+            self._lost += 1
             return None
         image = self._render(k if self._n_source is None else k % self._n_source)
         device_t = k * period
