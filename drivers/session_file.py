@@ -401,6 +401,41 @@ def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
     return path
 
 
+def write_calibration(path: str | os.PathLike, calibration: Calibration) -> Path:
+    """Store a calibration (pixel scale and fitted mapping, seed 3.4) into an existing, closed session file.
+
+    The file is opened read-write (not SWMR): a recorder must have closed it. Returns the path.
+    """
+    path = Path(path)
+    if not isinstance(calibration, Calibration):
+        raise InvalidInputError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+    open_session(path).close()  # refuse anything that is not a readable session, saying why
+    mapping = calibration.mapping
+    mapping_json = json.dumps(mapping.to_dict()) if mapping is not None else ""
+    try:
+        with h5py.File(path, "r+", libver="latest") as f:
+            f["calibration"].attrs["px_per_mm"] = calibration.px_per_mm
+            f["calibration"].attrs["mapping_json"] = mapping_json
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot open the session to write its calibration ({exc})") from None
+    return path
+
+
+def _calibration_from_attrs(path: Path, px_per_mm: float, mapping_json: str) -> Calibration:
+    """The session's Calibration, with its fitted pixel-to-skin mapping rebuilt when one is stored."""
+    if not mapping_json:
+        return Calibration(px_per_mm=px_per_mm)
+    # Imported here: only sessions that carry a mapping need the calibration module (scipy, OpenCV).
+    from processing.errors import CalibrationError
+    from processing.geometric_calibration import mapping_from_dict
+
+    try:
+        mapping = mapping_from_dict(json.loads(mapping_json))
+    except (json.JSONDecodeError, CalibrationError, InvalidInputError) as exc:
+        raise SessionFileError(f"{path}: /calibration mapping_json is not a valid mapping ({exc})") from None
+    return Calibration(px_per_mm=px_per_mm, mapping=mapping)
+
+
 # --------------------------------------------------------------------------------------------------- reading
 
 
@@ -420,8 +455,8 @@ class Session:
                 str(cam["mode"]), int(cam["width"]), int(cam["height"]), float(cam["fps"])
             )
             cal = f["calibration"].attrs
-            self.calibration = Calibration(px_per_mm=float(cal["px_per_mm"]))
             self.mapping_json: str = str(cal.get("mapping_json", ""))
+            self.calibration = _calibration_from_attrs(path, float(cal["px_per_mm"]), self.mapping_json)
             self.metadata: dict[str, Any] = json.loads(str(f.attrs.get("metadata_json", "{}")))
             self._status = int(f["status"][()])
             raw_reason = f["status_reason"][()]
