@@ -17,12 +17,14 @@ are ``phi = 0 (mod 2 pi)`` and valley centres ``phi = pi``.
 
 Minutiae
 --------
-Each spiral point is exactly one minutia. Near a spiral point the line of phase ``phi_0 = phi_rest(P)`` (the phase
-of all *other* terms at P) ends at P and the line of phase ``phi_0 + pi`` forks there. Each point is therefore moved
-along the phase gradient until ``phi_rest(P) = pi`` (a valley ends at P: :attr:`FeatureKind.VALLEY_ENDING`) or
-``phi_rest(P) = 0`` (a ridge ends at P, so the valley forks: :attr:`FeatureKind.VALLEY_BIFURCATION`), which makes
-the kind exact and the configuration clean. The kinds are verified by binarising and thinning a rendering
-(tests/test_sim_fingerprint.py).
+Each spiral point is exactly one minutia: one line ends at P and the line of opposite phase forks there. With
+``g`` the gradient of the phase of all *other* terms, the spiral adds a line on the side ``e_p = p (g_s, -g_u)/|g|``,
+so the ending line leaves P along ``e_p`` with phase ``phi_rest(P) + p angle(e_p)``. Each point is moved along
+``g`` until that phase is ``pi`` (a valley ends at P: :attr:`FeatureKind.VALLEY_ENDING`) or ``0`` (a ridge ends
+at P and the valley forks: :attr:`FeatureKind.VALLEY_BIFURCATION`), which makes the kind exact and the
+configuration clean. The true *position* is then read off the valley skeleton of a fine local rendering (see
+:meth:`Fingerprint._skeleton_positions`); kinds and positions are verified at camera resolution in
+tests/test_sim_fingerprint.py.
 
 Pores
 -----
@@ -39,7 +41,7 @@ import numba
 import numpy as np
 from scipy import sparse
 from scipy.fft import dctn, idctn
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import convolve, gaussian_filter, label
 
 from processing.errors import InvalidInputError
 from processing.feature_table import FeatureKind
@@ -155,6 +157,8 @@ class Fingerprint:
     phase_grid: np.ndarray
     contrast_grid: np.ndarray
     minutia_xy: np.ndarray
+    spiral_xy: np.ndarray
+    minutia_skeleton_found: np.ndarray
     minutia_polarity: np.ndarray
     minutia_kind: np.ndarray
     pore_xy: np.ndarray
@@ -187,6 +191,8 @@ class Fingerprint:
             phase_grid=phase,
             contrast_grid=contrast.astype(np.float32),
             minutia_xy=np.zeros((0, 2)),
+            spiral_xy=np.zeros((0, 2)),
+            minutia_skeleton_found=np.zeros(0, dtype=bool),
             minutia_polarity=np.zeros(0, dtype=np.int8),
             minutia_kind=np.zeros(0, dtype=np.int8),
             pore_xy=np.zeros((0, 2)),
@@ -220,11 +226,50 @@ class Fingerprint:
             # Removing spirals changes the phase at the others: adjust the survivors again.
             pts, pol, kind = pts[keep], pol[keep], kind[keep]
             pts = self._adjust_minutiae(pts, pol, kind)
-        self.minutia_xy, self.minutia_polarity, self.minutia_kind = pts, pol, kind
+        self.spiral_xy, self.minutia_polarity, self.minutia_kind = pts, pol, kind
+        self.minutia_xy, self.minutia_skeleton_found = self._skeleton_positions()
+
+    def _skeleton_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where the valley skeleton has its ending / junction next to each spiral point (skin mm).
+
+        The seed locates minutiae on the skeleton of the binarised print (seed 4.6). A valley ending's skeleton
+        stops short of the spiral point, and a valley fork's junction lies behind the ridge tip (about 0.15 mm for
+        the default period). Each minutia's true position is therefore taken from the skeleton of a local rendering
+        at 4 um per pixel, binarised at the ridge/valley mid-level (cos phi = 0) and thinned
+        (skimage ``skeletonize``). ``minutia_skeleton_found`` is False where the expected skeleton point was not
+        found within 0.3 mm; the spiral point is used then.
+        """
+        from skimage.morphology import skeletonize
+
+        m = len(self.spiral_xy)
+        out = self.spiral_xy.copy()
+        found = np.zeros(m, dtype=bool)
+        step, half = 0.004, 0.4
+        offs = np.arange(-half, half + step / 2, step)
+        n = offs.size
+        kernel = np.ones((3, 3))
+        for i in range(m):
+            pu, ps = self.spiral_xy[i]
+            U, S = np.meshgrid(pu + offs, ps + offs)
+            phi, _ = self.phase_and_gradient(np.column_stack([U.ravel(), S.ravel()]), with_gradient=False)
+            valley = (np.cos(phi) < 0).reshape(n, n)
+            sk = skeletonize(valley)
+            nb = convolve(sk.astype(np.int32), kernel.astype(np.int32), mode="constant") - 1
+            want = (nb == 1) if self.minutia_kind[i] == FeatureKind.VALLEY_ENDING else (nb >= 3)
+            lab, nlab = label(sk & want, structure=np.ones((3, 3)))
+            if nlab == 0:
+                continue
+            centres = np.array([np.argwhere(lab == j + 1).mean(axis=0) for j in range(nlab)])  # (row, col)
+            d = np.hypot(offs[0] + centres[:, 1] * step - 0.0, offs[0] + centres[:, 0] * step - 0.0)
+            j = int(np.argmin(d))
+            if d[j] <= 0.3:
+                out[i] = (pu + offs[0] + centres[j, 1] * step, ps + offs[0] + centres[j, 0] * step)
+                found[i] = True
+        return out, found
 
     def _adjust_minutiae(self, pts: np.ndarray, pol: np.ndarray, kind: np.ndarray) -> np.ndarray:
-        """Move each spiral point along the gradient of the phase of all *other* terms until that phase is pi
-        (valley ending) or 0 (valley bifurcation). Jacobi iteration; moves are below lambda / 2."""
+        """Move each spiral point along the phase gradient until the line ending at it is a valley (phase pi) or a
+        ridge (phase 0, the valley forks). Jacobi iteration; moves are below lambda / 2."""
         pts = pts.copy()
         m = len(pts)
         if m == 0:
@@ -243,7 +288,10 @@ class Fingerprint:
             phi = phi + np.sum(np.where(off, pol[None, :] * np.arctan2(ds, du), 0.0), axis=1)
             gu = gu - np.sum(np.where(off, pol[None, :] * ds / r2, 0.0), axis=1)
             gs = gs + np.sum(np.where(off, pol[None, :] * du / r2, 0.0), axis=1)
-            delta = _wrap(target - phi)
+            # The line that ends at P leaves it along e_p = p (g_s, -g_u) / |g| (the side where the spiral adds
+            # a line), and its phase is phi_rest(P) + p * angle(e_p).
+            ending_phase = phi + pol * np.arctan2(-pol * gu, pol * gs)
+            delta = _wrap(target - ending_phase)
             pts += (delta / (gu * gu + gs * gs))[:, None] * np.column_stack([gu, gs])
             if np.max(np.abs(delta)) < 1e-10:
                 break
@@ -261,9 +309,10 @@ class Fingerprint:
         phi, grad = self.phase_and_gradient(cand)
         ok = np.abs(_wrap(phi)) < 1e-3
         ok &= (cand[:, 0] >= u_min) & (cand[:, 0] <= u_max) & (cand[:, 1] >= s_min) & (cand[:, 1] <= s_max)
-        if len(self.minutia_xy):
-            dm = np.min(np.hypot(cand[:, None, 0] - self.minutia_xy[None, :, 0], cand[:, None, 1] - self.minutia_xy[None, :, 1]), axis=1)
-            ok &= dm >= p.pore_minutia_clearance_mm
+        for ref in (self.minutia_xy, self.spiral_xy):
+            if len(ref):
+                dm = np.min(np.hypot(cand[:, None, 0] - ref[None, :, 0], cand[:, None, 1] - ref[None, :, 1]), axis=1)
+                ok &= dm >= p.pore_minutia_clearance_mm
         # The local period must be near nominal, i.e. not near a phase singularity.
         ok &= np.abs(2 * np.pi / np.hypot(*grad.T) / p.ridge_period_mm - 1.0) < 0.35
         target = int(round(p.pore_density_per_mm2 * area))
@@ -305,26 +354,28 @@ class Fingerprint:
                 out += ws[:, a] * wu[:, b] * self.phase_grid[ra, cb]
         return out
 
-    def _phase_and_gradient(self, pts: np.ndarray, spirals: np.ndarray, polarity: np.ndarray, *, skip: int = -1):
+    def _phase_and_gradient(self, pts, spirals, polarity, *, skip: int = -1, with_gradient: bool = True):
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         h = 1e-4
         phi = self._phase_c(pts)
-        gu = (self._phase_c(pts + [h, 0]) - self._phase_c(pts - [h, 0])) / (2 * h)
-        gs = (self._phase_c(pts + [0, h]) - self._phase_c(pts - [0, h])) / (2 * h)
+        if with_gradient:
+            gu = (self._phase_c(pts + [h, 0]) - self._phase_c(pts - [h, 0])) / (2 * h)
+            gs = (self._phase_c(pts + [0, h]) - self._phase_c(pts - [0, h])) / (2 * h)
         for n in range(len(spirals)):
             if n == skip:
                 continue
             du = pts[:, 0] - spirals[n, 0]
             ds = pts[:, 1] - spirals[n, 1]
-            r2 = du * du + ds * ds
             phi = phi + polarity[n] * np.arctan2(ds, du)
-            gu = gu - polarity[n] * ds / r2
-            gs = gs + polarity[n] * du / r2
-        return phi, np.column_stack([gu, gs])
+            if with_gradient:
+                r2 = du * du + ds * ds
+                gu = gu - polarity[n] * ds / r2
+                gs = gs + polarity[n] * du / r2
+        return phi, (np.column_stack([gu, gs]) if with_gradient else None)
 
-    def phase_and_gradient(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def phase_and_gradient(self, pts: np.ndarray, *, with_gradient: bool = True):
         """Full phase ``phi`` (unwrapped only locally) and its gradient (rad/mm) at skin points (K, 2)."""
-        return self._phase_and_gradient(pts, self.minutia_xy, self.minutia_polarity)
+        return self._phase_and_gradient(pts, self.spiral_xy, self.minutia_polarity, with_gradient=with_gradient)
 
     # ------------------------------------------------------------------ rendering
     def render(self, *, u0: float, s0: float, step_mm: float, shape: tuple[int, int]) -> np.ndarray:
@@ -347,8 +398,8 @@ class Fingerprint:
             float(step_mm),
             float(s0),
             float(step_mm),
-            self.minutia_xy[:, 0].copy(),
-            self.minutia_xy[:, 1].copy(),
+            self.spiral_xy[:, 0].copy(),
+            self.spiral_xy[:, 1].copy(),
             self.minutia_polarity.astype(np.int64),
         )
         g = self.params.ridge_sharpness
