@@ -206,6 +206,8 @@ class StressDisplay(TactileDisplay):
         while True:
             if wait_for is not None and any(a.seq == wait_for for a in self._early_acks):
                 break
+            if self._frame_refusal is not None:
+                self._check_link()  # raises the refusal
             if wait_for is not None and wait_for not in self._outstanding:
                 raise DeviceTimeoutError(f"frame {wait_for} was written off before its ack arrived")
             remaining = deadline - self._clock()

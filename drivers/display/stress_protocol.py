@@ -169,6 +169,19 @@ class StreamDecoder:
         if skipped:
             self.counters.skipped_bytes += n
 
+    def _complete_packet_after(self, start: int) -> int | None:
+        """Offset of the first later sync that begins a complete packet with a good CRC, or None."""
+        buf = self._buffer
+        at = buf.find(SYNC, start + 1)
+        while at >= 0 and len(buf) - at >= OVERHEAD:
+            total = HEADER_SIZE + buf[at + 2] + CRC_SIZE
+            if len(buf) - at >= total:
+                (crc,) = struct.unpack_from(">H", buf, at + total - CRC_SIZE)
+                if crc == crc16_ccitt(bytes(buf[at + 2:at + total - CRC_SIZE])):
+                    return at
+            at = buf.find(SYNC, at + 1)
+        return None
+
     def feed(self, data: bytes) -> list[Packet]:
         """Add bytes; return every packet completed by them, in stream order."""
         self._buffer += data
@@ -188,10 +201,14 @@ class StreamDecoder:
             length = buf[2]
             total = HEADER_SIZE + length + CRC_SIZE
             if len(buf) < total:
-                if len(buf) > self._max_buffer:  # cannot happen with u8 lengths; guards a broken invariant
-                    self._drop(1, skipped=True)
-                    continue
-                break
+                # A sync word in garbage can announce a long packet that never comes. If a complete, valid
+                # packet already sits behind it, the candidate was garbage: skip to the real one now rather than
+                # after LEN more bytes (a false CRC match needs 1 in 65536 luck).
+                later = self._complete_packet_after(0)
+                if later is None:
+                    break
+                self._drop(later, skipped=True)
+                continue
             body = bytes(buf[2:HEADER_SIZE + length])
             (crc,) = struct.unpack_from(">H", buf, HEADER_SIZE + length)
             if crc != crc16_ccitt(body):
