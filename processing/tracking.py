@@ -256,17 +256,23 @@ class Trajectories:
         """Number of frames each track is present in."""
         return self.present.sum(axis=0)
 
+    @property
+    def runs(self) -> np.ndarray:
+        """(N, T) run number of each sample: displacements are measured only within a run (linked steps)."""
+        return np.cumsum(self.present & ~self.linked, axis=0)
+
     def positions(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(track indices, (n, 2) positions) of the tracks present in ``frame``."""
         idx = np.nonzero(self.present[frame])[0]
         return idx, np.column_stack([self.x[frame, idx], self.y[frame, idx]])
 
     def motion(self, frame_a: int, frame_b: int) -> MotionSample:
-        """Displacements from ``frame_a`` to ``frame_b`` of the tracks present in both."""
+        """Displacements from ``frame_a`` to ``frame_b`` of the tracks present in both, linked all the way."""
         n = self.n_frames
         if not (0 <= frame_a < n and 0 <= frame_b < n):
             raise InvalidInputError(f"frames ({frame_a}, {frame_b}) out of range for {n} frames")
-        idx = np.nonzero(self.present[frame_a] & self.present[frame_b])[0]
+        runs = self.runs
+        idx = np.nonzero(self.present[frame_a] & self.present[frame_b] & (runs[frame_a] == runs[frame_b]))[0]
         pa = np.column_stack([self.x[frame_a, idx], self.y[frame_a, idx]])
         pb = np.column_stack([self.x[frame_b, idx], self.y[frame_b, idx]])
         return MotionSample(int(frame_a), int(frame_b), pa, pb - pa, idx.astype(np.int64))
@@ -429,6 +435,10 @@ class FeatureTracker:
             kind[keep],
         )
         linked = np.all(np.isfinite(disp), axis=2) & present
+        if self.refiner is not None:
+            # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps its
+            # identity but its positions restart there, so no measured displacement spans that step.
+            linked &= refined
         pos = _chain_positions(raw, disp, linked, present)
         pos = smooth_positions(
             pos,

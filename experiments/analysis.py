@@ -1,0 +1,527 @@
+"""The analyze pipeline: one session file -> results (seed chapters 4-5), by features or by dense flow.
+
+``analyze_session(session_path, outdir, method=..., params=..., progress=...)`` reads the session, measures
+motion between consecutive frames (tracked features refined to sub-pixel, or the dense flow grid), then derives
+everything else from those per-pair :class:`~processing.tracking.MotionSample` s: fingertip motion and the
+visibility window (seed 5.2), triangulation strain at each span (5.3.1), the stretch profile along the sliding
+direction (5.3.2, Figure 94) and the tactile movie (5.4). It writes ``OUTDIR/results.h5`` and
+``OUTDIR/summary.json`` (see ``docs/results-format.md``) and returns the results path.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from drivers.session_file import open_session
+from experiments.results_file import (
+    EDGE_DTYPE,
+    MOTION_DTYPE,
+    PAIR_DTYPE,
+    TRIANGLE_DTYPE,
+    Results,
+    SpanStrain,
+    write_results,
+)
+from processing.calibration import Calibration
+from processing.display_mapping import DisplayMappingParams, tactile_movie
+from processing.errors import InsufficientDataError, InvalidInputError
+from processing.fingertip import fingertip_motion, visibility_window
+from processing.flow import DenseFlow, FlowField, FlowParams
+from processing.robust_tracking import GlobalMotionEstimator
+from processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strain
+from processing.subpixel_displacement import SubpixelParams, SubpixelRefiner
+from processing.tracking import FeatureTracker, MotionSample, TrackingParams, concatenate_features
+
+METHODS = ("features", "flow")
+
+
+@dataclass(frozen=True)
+class AnalysisParams:
+    """Options of the whole pipeline (each stage keeps its own small parameter object).
+
+    ``spans`` are the frame spans of the triangulation strain (seed 6.3.2: 1 and 11). ``max_edge_mm`` drops long
+    hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
+    profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the
+    feature triangulation's ~48 px, seed 6.3.3).
+    """
+
+    tracking: TrackingParams = field(default_factory=lambda: TrackingParams(smoothing_radius_frames=0, max_gap_frames=3))
+    subpixel: SubpixelParams | None = field(default_factory=SubpixelParams)
+    robust_matching: bool = True
+    flow: FlowParams = field(default_factory=FlowParams)
+    display: DisplayMappingParams = field(default_factory=DisplayMappingParams)
+    spans: tuple[int, ...] = (1, 11)
+    max_edge_mm: float = 2.0
+    profile_strip_mm: float = 1.0
+    profile_step_mm: float = 0.25
+    flow_stride: int = 4
+    extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
+
+    def __post_init__(self) -> None:
+        if not self.spans or any(int(s) < 1 for s in self.spans):
+            raise InvalidInputError(f"spans must be positive frame counts, got {self.spans!r}")
+        for name in ("max_edge_mm", "profile_strip_mm", "profile_step_mm"):
+            if not getattr(self, name) > 0:
+                raise InvalidInputError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if int(self.flow_stride) < 1:
+            raise InvalidInputError(f"flow_stride must be >= 1, got {self.flow_stride!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {}
+        for k, v in self.__dict__.items():
+            if hasattr(v, "__dataclass_fields__"):
+                d[k] = {kk: (vv.value if hasattr(vv, "value") else vv) for kk, vv in asdict(v).items()}
+            else:
+                d[k] = v
+        return d
+
+
+@dataclass
+class MotionMeasurement:
+    """What a method measured: per consecutive pair samples, and per span the samples of every pair."""
+
+    samples: list[MotionSample]
+    span_samples: dict[int, list[MotionSample | str]]  # a str says why that pair has no sample
+    frame_flags: list[str]
+    features: np.ndarray | None = None
+    trajectories: dict[str, np.ndarray] | None = None
+    flow_fields: list[FlowField] | None = None
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+def _versions() -> dict[str, str]:
+    import cv2
+    import h5py
+    import scipy
+
+    try:
+        from importlib.metadata import version
+
+        own = version("skinstretch")
+    except Exception:  # package metadata missing (not installed): report it, do not fail
+        own = "unknown"
+    return {
+        "skinstretch": own,
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+        "h5py": h5py.__version__,
+        "platform": platform.platform(),
+    }
+
+
+def _mapping_of(session) -> Any:
+    if not session.mapping_json:
+        return None
+    from processing.geometric_calibration import mapping_from_dict
+
+    return mapping_from_dict(json.loads(session.mapping_json))
+
+
+def _rectify(xy: np.ndarray, mapping, px_per_mm: float) -> np.ndarray:
+    """Image px -> skin px (mapping's mm times px_per_mm), so strains are on the skin (seed 3.4)."""
+    if mapping is None:
+        return xy
+    return np.asarray(mapping.image_to_surface(xy), dtype=np.float64) * px_per_mm
+
+
+def measure_features(
+    frames: Sequence[np.ndarray],
+    *,
+    calibration: Calibration,
+    params: AnalysisParams,
+    mapping=None,
+    progress: bool = False,
+) -> MotionMeasurement:
+    """Extract, match, refine and chain features (seed 4, 5.1) and return their per-pair motion."""
+    from processing.extraction import ExtractionParams, FeatureExtractor
+
+    n = len(frames)
+    extractor = FeatureExtractor(calibration=calibration, params=params.extraction or ExtractionParams())
+    tracker = FeatureTracker(
+        calibration=calibration,
+        params=params.tracking,
+        refiner=SubpixelRefiner(calibration=calibration, params=params.subpixel) if params.subpixel else None,
+        motion_estimator=GlobalMotionEstimator() if params.robust_matching else None,
+    )
+    tables, flags = [], []
+    t_extract = t_track = 0.0
+    for k in _progress(range(n), progress, "features"):
+        frame = np.asarray(frames[k])
+        t0 = time.perf_counter()
+        res = extractor.extract(frame, frame_index=k)
+        t1 = time.perf_counter()
+        feats = res.features if res.ok else res.features[:0]
+        tracker.add_frame(feats, image=frame)
+        t2 = time.perf_counter()
+        t_extract += t1 - t0
+        t_track += t2 - t1
+        tables.append(feats)
+        flags.append(",".join(sorted(res.flags)))
+    t0 = time.perf_counter()
+    tr = tracker.finish()
+    if mapping is not None:
+        for a, b in (("x", "y"), ("raw_x", "raw_y")):
+            xy = np.stack([getattr(tr, a), getattr(tr, b)], axis=-1)
+            ok = np.all(np.isfinite(xy), axis=-1)
+            out = np.full(xy.shape, np.nan)
+            out[ok] = _rectify(xy[ok], mapping, calibration.px_per_mm)
+            setattr(tr, a, out[..., 0])
+            setattr(tr, b, out[..., 1])
+    samples = [tr.motion(k, k + 1) for k in range(n - 1)]
+    span_samples = {int(s): [tr.motion(k, k + s) for k in range(n - s)] for s in params.spans}
+    t_chain = time.perf_counter() - t0
+    trajectories = {
+        name: getattr(tr, name)
+        for name in ("x", "y", "present", "raw_x", "raw_y", "feature_index", "linked", "refined", "kind")
+    }
+    return MotionMeasurement(
+        samples=samples,
+        span_samples=span_samples,
+        frame_flags=flags,
+        features=concatenate_features(tables),
+        trajectories=trajectories,
+        timing={"extraction_s": t_extract, "tracking_s": t_track + t_chain},
+    )
+
+
+def measure_flow(
+    frames: Sequence[np.ndarray],
+    *,
+    calibration: Calibration,
+    params: AnalysisParams,
+    mapping=None,
+    progress: bool = False,
+) -> MotionMeasurement:
+    """Dense flow between consecutive frames; longer spans chain the fields along the skin points."""
+    n = len(frames)
+    flow = DenseFlow(calibration=calibration, params=params.flow)
+    fields: list[FlowField] = []
+    flags = [""] * n
+    t0 = time.perf_counter()
+    prev = np.asarray(frames[0]) if n else None
+    for k in _progress(range(1, n), progress, "flow"):
+        cur = np.asarray(frames[k])
+        f = flow.compute(prev, cur, frame_a=k - 1, frame_b=k)
+        fields.append(f)
+        if f.status != "ok":
+            flags[k - 1] = f.status
+        prev = cur
+    t_flow = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    samples = [_rectified_sample(f.motion(), mapping, calibration) for f in fields]
+    span_samples: dict[int, list[MotionSample | str]] = {}
+    for s in params.spans:
+        out: list[MotionSample | str] = []
+        for k in range(n - s):
+            out.append(_rectified_sample(chain_flows(fields[k : k + s], stride=params.flow_stride), mapping, calibration))
+        span_samples[int(s)] = out
+    return MotionMeasurement(
+        samples=samples,
+        span_samples=span_samples,
+        frame_flags=flags,
+        flow_fields=fields,
+        timing={"flow_s": t_flow, "chaining_s": time.perf_counter() - t0},
+    )
+
+
+def chain_flows(fields: Sequence[FlowField], *, stride: int = 1) -> MotionSample:
+    """Displacement from the first field's frame to the last field's second frame, following skin points
+    (every ``stride``-th node of the first grid) through each field in turn; points lost on the way drop out."""
+    if not fields:
+        raise InvalidInputError("chain_flows needs at least one field")
+    first = fields[0].motion(stride=stride)
+    p0 = first.points
+    p = p0 + first.displacement
+    ids = first.ids
+    for f in fields[1:]:
+        d, ok = f.sample(p)
+        p, p0, ids = p[ok] + d[ok], p0[ok], ids[ok]
+    return MotionSample(fields[0].frame_a, fields[-1].frame_b, p0, p - p0, ids)
+
+
+def _rectified_sample(s: MotionSample, mapping, cal: Calibration) -> MotionSample:
+    if mapping is None or len(s) == 0:
+        return s
+    pa = _rectify(s.points, mapping, cal.px_per_mm)
+    pb = _rectify(s.points + s.displacement, mapping, cal.px_per_mm)
+    return MotionSample(s.frame_a, s.frame_b, pa, pb - pa, s.ids)
+
+
+def _progress(it, enabled: bool, desc: str):
+    if not enabled:
+        return it
+    from tqdm import tqdm
+
+    return tqdm(it, desc=desc, unit="frame", file=sys.stderr, leave=False)
+
+
+def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px: float) -> SpanStrain:
+    """Triangulation strain of every pair of one span; pairs that cannot give one carry the reason."""
+    pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
+    edges, tris = [], []
+    for i, s in enumerate(samples):
+        if isinstance(s, str):
+            pairs[i] = (i, i + span, 0, s.encode()[:96])
+            continue
+        pairs[i]["frame_a"], pairs[i]["frame_b"], pairs[i]["n_points"] = s.frame_a, s.frame_b, len(s)
+        try:
+            t = triangulation_strain(s, max_edge_px=max_edge_px)
+        except InsufficientDataError as exc:
+            pairs[i]["status"] = str(exc).encode()[:96]
+            continue
+        pairs[i]["status"] = b"ok"
+        e = np.zeros(t.edges.shape[0], dtype=EDGE_DTYPE)
+        e["pair"] = i
+        e["id_a"], e["id_b"] = t.ids[t.edges[:, 0]], t.ids[t.edges[:, 1]]
+        e["xa"], e["ya"] = t.points[t.edges[:, 0]].T
+        e["xb"], e["yb"] = t.points[t.edges[:, 1]].T
+        e["length"], e["change"] = t.edge_length, t.edge_change
+        edges.append(e)
+        tr = np.zeros(t.triangles.shape[0], dtype=TRIANGLE_DTYPE)
+        tr["pair"] = i
+        tr["id_a"], tr["id_b"], tr["id_c"] = t.ids[t.triangles].T
+        for j in range(3):
+            tr[f"x{j}"], tr[f"y{j}"] = t.points[t.triangles[:, j]].T
+        tr["area"], tr["change"], tr["flipped"] = t.area, t.area_change, t.flipped
+        tris.append(tr)
+    return SpanStrain(
+        span,
+        pairs,
+        np.concatenate(edges) if edges else np.zeros(0, EDGE_DTYPE),
+        np.concatenate(tris) if tris else np.zeros(0, TRIANGLE_DTYPE),
+    )
+
+
+def sliding_axis(fingertip_position: np.ndarray) -> int:
+    """0 (x) or 1 (y): the axis along which the fingertip travelled furthest (the profile's axis)."""
+    travel = np.ptp(fingertip_position, axis=0) if fingertip_position.shape[0] else np.zeros(2)
+    return int(np.argmax(travel))
+
+
+def stretch_profile(
+    samples: Sequence[MotionSample],
+    fingertip_displacement: np.ndarray,
+    *,
+    axis: int,
+    positions: np.ndarray,
+    strip_px: float,
+):
+    """Seed Figure 94: the change in stretch along ``axis`` averaged over every consecutive pair."""
+    profiles = []
+    for k, s in enumerate(samples):
+        if axis == 1:
+            s = MotionSample(s.frame_a, s.frame_b, s.points[:, ::-1], s.displacement[:, ::-1], s.ids)
+            ft = fingertip_displacement[k][::-1]
+        else:
+            ft = fingertip_displacement[k]
+        profiles.append(
+            horizontal_stretch_profile(s, fingertip_displacement=ft, x_positions=positions, strip_width_px=strip_px)
+        )
+    return mean_profile(profiles)
+
+
+def derive(
+    m: MotionMeasurement,
+    *,
+    n_frames: int,
+    image_shape: tuple[int, int],
+    calibration: Calibration,
+    params: AnalysisParams,
+    profile_axis: int | None = None,
+) -> dict[str, Any]:
+    """Everything computed from the measured motion (seed 5.2-5.4)."""
+    out: dict[str, Any] = {}
+    ft = fingertip_motion(m.samples, n_frames=n_frames)
+    out["fingertip"] = ft
+    try:
+        win = visibility_window(ft, image_shape=image_shape)
+        out["window"] = win
+    except InsufficientDataError as exc:
+        win = None
+        out["window_status"] = str(exc)
+    out["strain"] = {
+        int(s): span_strain(m.span_samples[int(s)], span=int(s), max_edge_px=calibration.px(params.max_edge_mm))
+        for s in params.spans
+    }
+    axis = sliding_axis(ft.position) if profile_axis is None else int(profile_axis)
+    length = image_shape[1] if axis == 0 else image_shape[0]
+    step = calibration.px(params.profile_step_mm)
+    positions = np.arange(step, length - step / 2, step)
+    out["profile_axis"] = axis
+    out["profile"] = stretch_profile(
+        m.samples, ft.displacement, axis=axis, positions=positions, strip_px=calibration.px(params.profile_strip_mm)
+    )
+    if win is not None:
+        out["movie"] = tactile_movie(
+            m.samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape, params=params.display
+        )
+    return out
+
+
+def _motion_table(samples: Sequence[MotionSample]) -> tuple[np.ndarray, np.ndarray]:
+    pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
+    parts = []
+    for i, s in enumerate(samples):
+        pairs[i] = (s.frame_a, s.frame_b, len(s), b"ok" if len(s) else b"no motion measured")
+        t = np.zeros(len(s), dtype=MOTION_DTYPE)
+        t["pair"] = i
+        t["id"] = s.ids
+        t["x"], t["y"] = s.points.T
+        t["dx"], t["dy"] = s.displacement.T
+        parts.append(t)
+    return pairs, (np.concatenate(parts) if parts else np.zeros(0, MOTION_DTYPE))
+
+
+def analyze_frames(
+    frames: Sequence[np.ndarray],
+    *,
+    calibration: Calibration,
+    method: str = "features",
+    params: AnalysisParams | None = None,
+    mapping=None,
+    session_path: str = "",
+    progress: bool = False,
+) -> Results:
+    """The whole pipeline on frames in memory; :func:`analyze_session` wraps it for a session file."""
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    params = params or AnalysisParams()
+    n = len(frames)
+    if n < 2:
+        raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n}")
+    image_shape = tuple(int(v) for v in np.asarray(frames[0]).shape)
+    t_start = time.perf_counter()
+    measure = measure_features if method == "features" else measure_flow
+    m = measure(frames, calibration=calibration, params=params, mapping=mapping, progress=progress)
+    t0 = time.perf_counter()
+    d = derive(m, n_frames=n, image_shape=image_shape, calibration=calibration, params=params)
+    t_derive = time.perf_counter() - t0
+    total = time.perf_counter() - t_start
+    timing = dict(m.timing)
+    timing.update({"derive_s": t_derive, "total_s": total, "frames_per_s": n / total if total > 0 else float("nan")})
+    pairs, motion = _motion_table(m.samples)
+    ft = d["fingertip"]
+    win = d.get("window")
+    movie = d.get("movie")
+    prof = d["profile"]
+    flow_disp = flow_valid = gx = gy = None
+    if m.flow_fields:
+        gx, gy = m.flow_fields[0].grid_x, m.flow_fields[0].grid_y
+        flow_disp = np.stack([np.nan_to_num(f.displacement, nan=0.0) for f in m.flow_fields]).astype(np.float32)
+        flow_valid = np.stack([f.valid for f in m.flow_fields])
+    return Results(
+        method=method,
+        session_path=session_path,
+        n_frames=n,
+        image_shape=image_shape,
+        px_per_mm=calibration.px_per_mm,
+        coordinates="image" if mapping is None else "rectified",
+        frame_flags=m.frame_flags,
+        motion_pairs=pairs,
+        motion=motion,
+        fingertip_displacement=ft.displacement,
+        fingertip_valid=ft.valid,
+        fingertip_position=ft.position,
+        window={"x0": win.x0, "y0": win.y0, "x1": win.x1, "y1": win.y1} if win else {"status": d["window_status"]},
+        window_centers=win.centers if win else None,
+        strain=d["strain"],
+        profile_axis=d["profile_axis"],
+        profile_position=prof.x,
+        profile_change=prof.change,
+        profile_valid=prof.valid,
+        tactile_positions_um=movie.positions_um if movie else None,
+        tactile_reset=movie.reset if movie else None,
+        tactile_clipped=movie.clipped if movie else None,
+        tactile_stretch_change=movie.stretch_change if movie else None,
+        timing=timing,
+        params=params.to_dict(),
+        versions=_versions(),
+        features=m.features,
+        trajectories=m.trajectories,
+        flow_grid_x=gx,
+        flow_grid_y=gy,
+        flow_displacement=flow_disp,
+        flow_valid=flow_valid,
+    )
+
+
+def summarize(r: Results, results_path: Path) -> dict[str, Any]:
+    """The small JSON summary written next to the results."""
+    out: dict[str, Any] = {
+        "results": str(results_path),
+        "session": r.session_path,
+        "method": r.method,
+        "n_frames": r.n_frames,
+        "coordinates": r.coordinates,
+        "timing": r.timing,
+        "frames_flagged": int(sum(1 for f in r.frame_flags if f)),
+        "fingertip_travel_px": np.ptp(r.fingertip_position, axis=0).tolist(),
+        "profile_axis": "x" if r.profile_axis == 0 else "y",
+        "window": r.window,
+    }
+    if r.trajectories is not None:
+        lengths = r.trajectories["present"].sum(axis=0)
+        out["n_trajectories"] = int(lengths.size)
+        out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
+    for span, s in r.strain.items():
+        ok = s.pairs["status"] == b"ok"
+        e = s.edges["change"]
+        out[f"strain_span_{span}"] = {
+            "pairs": int(s.pairs.size),
+            "pairs_ok": int(ok.sum()),
+            "edges": int(e.size),
+            "edge_change_p5_p95": np.percentile(e, [5, 95]).tolist() if e.size else None,
+        }
+    return out
+
+
+def analyze_session(
+    session_path: str | Path,
+    outdir: str | Path,
+    *,
+    method: str = "features",
+    params: AnalysisParams | None = None,
+    progress: bool = False,
+) -> Path:
+    """Analyze one session file into ``outdir`` (created); returns the path of ``results.h5``."""
+    session_path = Path(session_path)
+    outdir = Path(outdir)
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    with open_session(session_path) as session:
+        frames = session.read_frames()
+        mapping = _mapping_of(session)
+        calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
+    r = analyze_frames(
+        frames,
+        calibration=calibration,
+        method=method,
+        params=params,
+        mapping=mapping,
+        session_path=str(session_path.resolve()),
+        progress=progress,
+    )
+    outdir.mkdir(parents=True, exist_ok=True)
+    path = write_results(outdir / "results.h5", r)
+    (outdir / "summary.json").write_text(json.dumps(summarize(r, path), indent=2, default=_json_default))
+    return path
+
+
+def _json_default(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return None if not np.isfinite(v) else float(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)
