@@ -28,8 +28,8 @@ import numpy as np
 from drivers.camera_modes import CAMERA_MODES
 from drivers.display.base import TactileDisplay
 from processing.calibration import Calibration
-from processing.errors import DeviceError, InvalidInputError, SessionFileError
-from experiments.recorder import Recorder
+from drivers.session_file import SessionWriter, open_session
+from processing.errors import DeviceError, InvalidInputError, SafetyStop, SessionFileError
 
 __all__ = [
     "ContactorCorrector",
@@ -38,6 +38,7 @@ __all__ = [
     "load_movie",
     "rms_tracking_error",
     "play_protocol_movie",
+    "resample_movie",
 ]
 
 SHAPE = (10, 10)
@@ -57,8 +58,6 @@ class ContactorCorrector:
         RLS forgetting factor in (0.9, 1]; lower tracks a changing finger load faster.
     gain_bounds : (float, float), keyword-only
         Clamp of the estimated gain.
-    ack_lag_frames : int, keyword-only
-        The ack of frame k reports the positions reached under the command of frame k - lag.
     """
 
     def __init__(
@@ -66,8 +65,7 @@ class ContactorCorrector:
         *,
         max_correction_um: float = 15.0,
         forgetting: float = 0.995,
-        gain_bounds: tuple[float, float] = (0.5, 2.0),
-        ack_lag_frames: int = 1,
+        gain_bounds: tuple[float, float] = (0.2, 2.0),
         shape: tuple[int, int] = SHAPE,
     ) -> None:
         if not (math.isfinite(max_correction_um) and max_correction_um >= 0):
@@ -76,20 +74,18 @@ class ContactorCorrector:
             raise InvalidInputError(f"forgetting must be in (0.9, 1], got {forgetting!r}")
         if not (0 < gain_bounds[0] < 1 < gain_bounds[1]):
             raise InvalidInputError(f"gain_bounds must bracket 1, got {gain_bounds!r}")
-        if ack_lag_frames not in (0, 1, 2, 3):
-            raise InvalidInputError(f"ack_lag_frames must be 0..3, got {ack_lag_frames!r}")
         self.max_correction_um = float(max_correction_um)
         self.forgetting = float(forgetting)
         self.gain_bounds = (float(gain_bounds[0]), float(gain_bounds[1]))
-        self.ack_lag_frames = int(ack_lag_frames)
         n = int(np.prod(shape))
         self.shape = shape
         # theta = (gain, offset, backlash) per contactor; P its covariance (n, 3, 3).
         self.theta = np.tile(np.array([1.0, 0.0, 0.0]), (n, 1))
         self.P = np.tile(np.diag([1e-3, 10.0, 10.0]), (n, 1, 1))
         self._direction = np.ones(n)
-        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # (command, direction) of recent frames
         self._last_target = np.zeros(n)
+        self._prev_ack: tuple[int, np.ndarray, np.ndarray] | None = None  # (seq, command, its direction)
+        self._ack_direction = np.ones(n)
         self.updates = 0
 
     @property
@@ -116,22 +112,26 @@ class ContactorCorrector:
         gain, offset, backlash = self.theta.T
         cmd = (target - offset - backlash * self._direction) / gain
         cmd = np.clip(cmd, target - self.max_correction_um, target + self.max_correction_um)
-        self._history.append((cmd.copy(), self._direction.copy()))
-        del self._history[: -(self.ack_lag_frames + 2)]
         return cmd.reshape(self.shape)
 
-    def sent(self, command_um: np.ndarray) -> None:
-        """Tell the corrector what actually left the driver (after range/slew limits) for the last frame."""
-        if self._history:
-            self._history[-1] = (np.asarray(command_um, float).reshape(-1).copy(), self._history[-1][1])
+    def observe_ack(self, ack) -> None:
+        """Learn from one frame ack (acks in the order they arrive; lost ones are simply skipped).
 
-    def observe(self, measured_um: np.ndarray) -> None:
-        """Update the estimates with the measured positions of the ack of the last frame sent."""
-        lag = self.ack_lag_frames
-        if len(self._history) < lag + 1:
-            return
-        cmd, direction = self._history[-1 - lag]
-        y = np.asarray(measured_um, dtype=float).reshape(-1)
+        The ack of frame j reports the positions reached under the command of frame j - 1 (seed-less detail of
+        this project's protocol, docs/protocols/stress.md), so the regression pairs ack j's measured positions
+        with ack j - 1's command, whose motion direction came from ack j - 2's command.
+        """
+        cmd = np.asarray(ack.command_um, dtype=float).reshape(-1)
+        prev = self._prev_ack
+        self._prev_ack = (int(ack.seq), cmd, self._ack_direction.copy())
+        if prev is None or (prev[0] + 1) & 0xFF != int(ack.seq):
+            return  # a gap: this ack's measurement cannot be paired with a known command
+        prev_cmd, prev_dir = prev[1], prev[2]
+        step = cmd - prev_cmd
+        self._ack_direction = np.where(np.abs(step) > 1e-9, np.sign(step), self._ack_direction)
+        self._update(prev_cmd, prev_dir, np.asarray(ack.measured_um, dtype=float).reshape(-1))
+
+    def _update(self, cmd: np.ndarray, direction: np.ndarray, y: np.ndarray) -> None:
         if y.shape != cmd.shape or not np.all(np.isfinite(y)):
             return  # a damaged ack teaches nothing
         phi = np.stack([cmd, np.ones_like(cmd), direction], axis=1)  # (n, 3)
@@ -210,7 +210,7 @@ def play_movie(
     display: TactileDisplay,
     movie_um: np.ndarray,
     *,
-    rate_hz: float | None = None,
+    rate_hz: float = 700.0,
     closed_loop: bool = True,
     corrector: ContactorCorrector | None = None,
     force=None,
@@ -220,7 +220,10 @@ def play_movie(
     settle_frames: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> PlaybackResult:
-    """Play a (T, 10, 10) movie in micrometres; return what was commanded and measured.
+    """Play a (T, 10, 10) movie in micrometres at ``rate_hz``; return what was commanded and measured.
+
+    Frames are streamed by :func:`drivers.display.playback.stream_movie` (deadline-paced, pipelined acks); the
+    per-frame callback feeds every new ack to the corrector, checks the force and returns the corrected command.
 
     Parameters
     ----------
@@ -228,8 +231,8 @@ def play_movie(
         An opened display; it is armed here and disarmed (contactors at rest) at the end, whatever happens.
     movie_um : ndarray (T, 10, 10)
         Target contactor positions per frame.
-    rate_hz : float, optional
-        Frame rate; None plays as fast as the display acknowledges (the simulator paces itself).
+    rate_hz : float
+        Frame rate, 1..700 Hz (the STReSS refresh rate, seed 2.1).
     closed_loop : bool
         Correct each contactor from the measured positions (:class:`ContactorCorrector`) or send targets as is.
     force : optional
@@ -238,135 +241,121 @@ def play_movie(
         Normal force above which the movie stops and the contactors return to rest (safety).
     path : path-like, optional
         Session file recording target, command, measured positions and force (streams ``display_target``,
-        ``display_command``, ``display_measured``, ``force``).
+        ``display_command``, ``display_measured``, ``force``), written after the movie so the deadline path
+        never waits on the disk.
     settle_frames : int
         Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
     """
+    from drivers.display.playback import stream_movie  # noqa: PLC0415
+
     movie = np.asarray(movie_um, dtype=float)
     if movie.ndim != 3 or movie.shape[1:] != SHAPE or movie.shape[0] < 1:
         raise InvalidInputError(f"movie_um must have shape (T, 10, 10) with T >= 1, got {movie.shape}")
     if not np.all(np.isfinite(movie)):
         raise InvalidInputError("movie_um holds NaN or inf; fill or reset those contactors first (seed 5.4)")
-    if rate_hz is not None and not (0 < rate_hz <= 2000):
-        raise InvalidInputError(f"rate_hz must be in (0, 2000], got {rate_hz!r}")
+    if not (np.isfinite(rate_hz) and 1 <= rate_hz <= 700):
+        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
     if not (0 < force_ceiling_n <= 100):
         raise InvalidInputError(f"force_ceiling_n must be in (0, 100] N, got {force_ceiling_n!r}")
     n = movie.shape[0]
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
-    lag = corrector.ack_lag_frames if corrector is not None else 1
-    target = movie
-    command = np.full_like(movie, np.nan)
-    measured = np.full_like(movie, np.nan)
-    forces = np.full(n, np.nan)
-    recorder = None
-    if path is not None:
-        mode = CAMERA_MODES["full"]
-        recorder = Recorder(
-            path,
-            camera_mode=mode,
-            calibration=Calibration(px_per_mm=mode.width / 10.3),
-            metadata={"kind": "playback", "closed_loop": closed_loop, "frames": n, "rate_hz": rate_hz,
-                      "force_ceiling_n": force_ceiling_n, **dict(metadata or {})},
-            streams={
-                "display_target": (SHAPE, "f4"),
-                "display_command": (SHAPE, "f4"),
-                "display_measured": (SHAPE, "f4"),
-                "force": ((6,), "f8"),
-            },
-        ).start()
-    # Rows are queued to the recorder's writer thread in blocks: one HDF5 append per frame and stream would cost
-    # more than a 700 Hz frame period.
-    block: dict[str, list] = {"t": [], "target": [], "command": [], "measured": [], "ft": [], "ft_t": []}
+    forces = np.full((n, 6), np.nan)
+    host_t = np.full(n, np.nan)
+    seen = [len(display.acks)]
 
-    def flush_block() -> None:
-        if recorder is None or not block["t"]:
-            return
-        t = np.array(block["t"])
-        recorder.put_samples("display_target", t, np.array(block["target"], np.float32))
-        recorder.put_samples("display_command", t, np.array(block["command"], np.float32))
-        recorder.put_samples("display_measured", t, np.array(block["measured"], np.float32))
-        if block["ft"]:
-            recorder.put_samples("force", np.array(block["ft_t"]), np.array(block["ft"], float))
-        for v in block.values():
-            v.clear()
+    def callback(k: int, command: np.ndarray, latest) -> np.ndarray | None:
+        host_t[k] = time.time()
+        if force is not None:
+            wrench = force.latest()
+            if wrench is not None:
+                forces[k] = wrench
+                fz = abs(float(wrench[2]))
+                if fz > force_ceiling_n:
+                    raise SafetyStop(f"normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N")
+        if corrector is None:
+            return None
+        acks = display.acks
+        for ack in acks[seen[0]:]:
+            corrector.observe_ack(ack)
+        seen[0] = len(acks)
+        return corrector.command(command)
 
-    stopped = ""
-    played = 0
-    late = 0
     t0 = time.perf_counter()
-    try:
-        display.arm()
-        period = None if rate_hz is None else 1.0 / rate_hz
-        for k in range(n):
-            if period is not None:
-                due = t0 + k * period
-                now = time.perf_counter()
-                if now < due:
-                    time.sleep(due - now)
-                elif now - due > period:
-                    late += 1
-            wrench = force.latest() if force is not None else None
-            fz = math.nan if wrench is None else float(abs(wrench[2]))
-            forces[k] = fz
-            if math.isfinite(fz) and fz > force_ceiling_n:
-                stopped = f"safety stop: normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N"
-                break
-            want = corrector.command(target[k]) if corrector is not None else target[k]
-            try:
-                ack = display.send_frame(want)
-            except DeviceError as exc:
-                stopped = f"safety stop: display link failed ({type(exc).__name__}: {exc})"
-                break
-            command[k] = ack.command_um
-            if corrector is not None:
-                corrector.sent(ack.command_um)
-                corrector.observe(ack.measured_um)
-            # The ack of frame k shows where the contactors got under frame k - lag: file it under that frame.
-            if k - lag >= 0:
-                measured[k - lag] = ack.measured_um
-            played = k + 1
-            if recorder is not None:
-                t = time.time()
-                block["t"].append(t)
-                block["target"].append(target[k])
-                block["command"].append(ack.command_um)
-                block["measured"].append(ack.measured_um)
-                if wrench is not None:
-                    block["ft_t"].append(t)
-                    block["ft"].append(np.asarray(wrench, float))
-                if len(block["t"]) >= 32:
-                    flush_block()
-            if progress is not None and (k + 1) % 500 == 0:
-                progress(f"  playback: {k + 1}/{n} frames")
-    except DeviceError as exc:  # arm() failed: nothing moved
-        stopped = f"display could not start: {type(exc).__name__}: {exc}"
-    finally:
-        rested = _to_rest(display)
-        duration = time.perf_counter() - t0
-        if recorder is not None:
-            flush_block()
-            recorder.finish(failed_reason=stopped or None)
+    # A wider spin window leaves the callback (about 0.2 ms) inside the period instead of making frames late.
+    report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
+                          settle_frames=0)
+    rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
+    rested = report.rested and rested_now
+    duration = time.perf_counter() - t0
+    sent = report.frames_sent
+    stopped = ""
+    if report.outcome == "safety_stop":
+        stopped = f"safety stop: {report.error}"
+    elif report.outcome == "link_failure":
+        stopped = f"safety stop: display link failed ({report.error})"
+    # measured[k] is the response to frame k - 1: file it under the frame whose target it answers.
+    measured = np.full((sent, *SHAPE), np.nan)
+    if sent > 1:
+        measured[:-1] = np.where(report.acked[1:, None, None], report.measured_um[1:], np.nan)
     result = PlaybackResult(
         closed_loop=closed_loop,
         frames_total=n,
-        frames_played=played,
-        target_um=target[:played],
-        command_um=command[:played],
-        measured_um=measured[:played],
-        force_n=forces[:played],
+        frames_played=sent,
+        target_um=movie[:sent],
+        command_um=report.commands_um,
+        measured_um=measured,
+        force_n=np.abs(forces[:sent, 2]),
         stopped=stopped,
         rested=rested,
-        late_frames=late,
+        late_frames=report.missed_deadlines,
         duration_s=duration,
         path=Path(path) if path is not None else None,
-        extra={"settle": min(settle_frames, max(played - 1, 0))},
+        extra={"settle": min(settle_frames, max(sent - 1, 0)), "lost_acks": report.lost_acks,
+               "period_jitter_p99_s": report.period_jitter_p99_s, "rate_hz": float(rate_hz)},
     )
+    if path is not None:
+        _record_playback(path, result, host_t[:sent], forces[:sent], metadata=metadata, force_ceiling_n=force_ceiling_n)
     if progress is not None:
         progress(
-            f"  playback ({'closed' if closed_loop else 'open'} loop): {played}/{n} frames, "
-            f"RMS error {result.rms_error_um:.2f} um" + (f", STOPPED: {stopped}" if stopped else "")
+            f"  playback ({'closed' if closed_loop else 'open'} loop): {sent}/{n} frames at {rate_hz:g} Hz, "
+            f"RMS error {result.rms_error_um:.2f} um, {result.late_frames} late"
+            + (f", STOPPED: {stopped}" if stopped else "")
         )
     return result
+
+
+def _record_playback(path, result: PlaybackResult, t: np.ndarray, forces: np.ndarray, *, metadata, force_ceiling_n):
+    mode = CAMERA_MODES["full"]
+    writer = SessionWriter(
+        path,
+        camera_mode=mode,
+        calibration=Calibration(px_per_mm=mode.width / 10.3),
+        metadata={"kind": "playback", "closed_loop": result.closed_loop, "frames": result.frames_total,
+                  "rate_hz": result.extra.get("rate_hz"), "force_ceiling_n": force_ceiling_n,
+                  "rms_error_um": result.rms_error_um, **dict(metadata or {})},
+        streams={
+            "display_target": (SHAPE, "f4"),
+            "display_command": (SHAPE, "f4"),
+            "display_measured": (SHAPE, "f4"),
+            "force": ((6,), "f8"),
+        },
+    )
+    try:
+        k = result.frames_played
+        if k:
+            writer.append_samples("display_target", t, result.target_um.astype(np.float32))
+            writer.append_samples("display_command", t, result.command_um.astype(np.float32))
+            writer.append_samples("display_measured", t, result.measured_um.astype(np.float32))
+            ok = np.all(np.isfinite(forces), axis=1)
+            if np.any(ok):
+                writer.append_samples("force", t[ok], forces[ok])
+    except BaseException as exc:
+        writer.fail(f"{type(exc).__name__}: {exc}")
+        raise
+    if result.stopped:
+        writer.fail(result.stopped)
+    else:
+        writer.close()
 
 
 def _to_rest(display: TactileDisplay) -> bool:
@@ -392,18 +381,19 @@ def load_movie(source: str | os.PathLike) -> tuple[np.ndarray, float | None]:
     p = Path(source)
     if not p.exists():
         raise SessionFileError(f"{p}: no such movie file or results directory")
-    if p.is_dir():
+    if p.is_dir() or (p.suffix == ".h5" and _is_results(p)):
+        from experiments.results_file import read_results  # noqa: PLC0415
+
+        results = read_results(p)
+        if results.tactile_positions_um is None:
+            raise SessionFileError(f"{p}: the analysis produced no tactile movie (see its summary for why)")
+        rate = None
         try:
-            from experiments.results_file import read_movie  # noqa: PLC0415 - optional reader of results
-        except ImportError:
-            read_movie = None
-        if read_movie is not None:
-            movie, rate = read_movie(p)
-            return _check_movie(np.asarray(movie, float), p), rate
-        for name in ("movie.npy", "tactile_movie.npy"):
-            if (p / name).exists():
-                return _check_movie(np.load(p / name), p), None
-        raise SessionFileError(f"{p}: results directory holds no tactile movie")
+            with open_session(results.session_path) as s:
+                rate = float(s.camera_mode.fps)  # one movie frame per camera frame (seed 5.4)
+        except SessionFileError:
+            pass
+        return _check_movie(results.tactile_positions_um, p), rate
     if p.suffix == ".npy":
         try:
             return _check_movie(np.load(p, allow_pickle=False), p), None
@@ -422,6 +412,34 @@ def load_movie(source: str | os.PathLike) -> tuple[np.ndarray, float | None]:
             raise SessionFileError(f"{p}: HDF5 file cannot be read ({exc})") from None
         raise SessionFileError(f"{p}: HDF5 file has no 'movie' dataset")
     raise SessionFileError(f"{p}: a movie is a .npy or .h5 file or a results directory")
+
+
+def _is_results(p: Path) -> bool:
+    import h5py  # noqa: PLC0415
+
+    try:
+        with h5py.File(p, "r") as f:
+            fmt = f.attrs.get("format")
+            return (fmt.decode() if isinstance(fmt, bytes) else fmt) == "skinstretch-results"
+    except OSError:
+        return False
+
+
+def resample_movie(movie_um: np.ndarray, *, from_hz: float, to_hz: float) -> np.ndarray:
+    """Linear interpolation of a movie to the display's frame rate (e.g. 60 Hz camera -> 700 Hz display)."""
+    movie = np.asarray(movie_um, float)
+    if not (from_hz > 0 and to_hz > 0):
+        raise InvalidInputError(f"rates must be positive, got from_hz={from_hz!r} to_hz={to_hz!r}")
+    n = movie.shape[0]
+    if n < 2 or from_hz == to_hz:
+        return movie.copy()
+    t_src = np.arange(n) / from_hz
+    t_dst = np.arange(int(np.floor(t_src[-1] * to_hz)) + 1) / to_hz
+    flat = movie.reshape(n, -1)
+    out = np.empty((t_dst.size, flat.shape[1]))
+    for j in range(flat.shape[1]):
+        out[:, j] = np.interp(t_dst, t_src, flat[:, j])
+    return out.reshape(t_dst.size, *movie.shape[1:])
 
 
 def _check_movie(movie: np.ndarray, source: Path) -> np.ndarray:
@@ -448,6 +466,9 @@ def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=
         movie_path = Path(source)
     movie, rate = load_movie(movie_path)
     movie = movie * spec.gain
+    display_rate = float(spec.rate_hz or 700.0)
+    if rate is not None and rate != display_rate:
+        movie = resample_movie(movie, from_hz=rate, to_hz=display_rate)
     out = sdir / "playback"
     out.mkdir(exist_ok=True)
     k = 1
@@ -458,7 +479,8 @@ def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=
     return play_movie(
         devices.display_device(),
         movie,
-        rate_hz=spec.rate_hz or rate,
+        rate_hz=display_rate,
+        settle_frames=min(100, movie.shape[0] // 5),
         closed_loop=spec.closed_loop,
         force=devices.force,
         force_ceiling_n=spec.force_ceiling_n,

@@ -92,7 +92,7 @@ class FixedForce:
         return np.array([0.0, 0.0, v, 0.0, 0.0, 0.0])
 
 
-def _movie(n=1500, seed=1):
+def _movie(n=1000, seed=1):
     t = np.arange(n) / 700.0
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, (10, 10))
@@ -102,18 +102,18 @@ def _movie(n=1500, seed=1):
 
 def test_closed_loop_cuts_rms_error_at_least_five_times(tmp_path):
     movie = _movie()
-    open_ = play_movie(PlantDisplay(), movie, closed_loop=False, settle_frames=300)
-    closed = play_movie(PlantDisplay(), movie, closed_loop=True, settle_frames=300, path=tmp_path / "pb.h5")
+    open_ = play_movie(PlantDisplay(), movie, closed_loop=False, settle_frames=250)
+    closed = play_movie(PlantDisplay(), movie, closed_loop=True, settle_frames=250, path=tmp_path / "pb.h5")
     assert open_.complete and closed.complete and closed.rested
     assert open_.rms_error_um > 2.0
     assert closed.rms_error_um * 5 <= open_.rms_error_um, (open_.rms_error_um, closed.rms_error_um)
     with open_session(tmp_path / "pb.h5") as s:
         assert s.complete and s.metadata["closed_loop"] is True
         t, measured = s.read_stream("display_measured")
-        assert measured.shape == (1500, 10, 10)
+        assert measured.shape == (1000, 10, 10)
         _, cmd = s.read_stream("display_command")
         # the corrections stay bounded
-        assert np.max(np.abs(cmd - movie.astype(np.float32))[300:]) <= ContactorCorrector().max_correction_um + 0.5
+        assert np.max(np.abs(cmd - movie.astype(np.float32))[250:]) <= ContactorCorrector().max_correction_um + 0.5
 
 
 def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
@@ -140,7 +140,7 @@ def test_link_failure_stops_movie_and_reports_it():
 def test_corrector_learns_gain_offset_and_backlash():
     display = PlantDisplay(seed=3)
     corrector = ContactorCorrector()
-    play_movie(display, _movie(2000), corrector=corrector)
+    play_movie(display, _movie(1000), corrector=corrector)
     np.testing.assert_allclose(corrector.gain, display.gain, atol=0.05)
     np.testing.assert_allclose(corrector.offset_um, display.offset, atol=1.0)
     assert np.median(np.abs(corrector.backlash_um + display.half_band)) < 0.7
