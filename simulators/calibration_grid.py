@@ -4,7 +4,7 @@ The seed prints dots 0.5 mm apart on transparency film and presses it on the con
 the dots touch the glass and stop the reflection, so they are DARK on the bright surface. The sheet follows the
 ruled surface without stretching (it is developable), so the dots form a square lattice in the *unrolled* surface
 coordinates (u, s) of :mod:`simulators.optics`. This module renders that picture through any :class:`Optics`
-(typically :class:`simulators.prism_optics.PrismOptics` with a flat, ridge or valley profile) with the defects the
+(typically :class:`simulators.prism_optics.PrismOptics` with a flat, ridge or valley surface) with the defects the
 seed reports (seed 7.2.1): missing dots (bubbles in the oil), spurious dark specks (dust), darker illumination on
 the slopes, blur and noise. The ground truth is every dot's lattice index, surface position and projected centre.
 """
@@ -94,7 +94,7 @@ def render_calibration_grid(
     Parameters
     ----------
     optics : Optics
-        Maps surface (u, s) mm to image px; a ``profile`` attribute (``slope(v)``), when present, darkens the slopes.
+        Maps surface (u, s) mm to image px; a ``surface`` attribute (``slope(v)``), when present, darkens the slopes.
     spacing_mm : float
         Dot pitch on the sheet (seed 3.4: 0.5 mm).
     dot_diameter_mm : float
@@ -192,10 +192,10 @@ def render_calibration_grid(
 
     # Illumination: slopes darker (seed 6.3.2), smooth vignetting.
     illum = np.ones((h, w))
-    profile = getattr(optics, "profile", None)
-    if profile is not None and hasattr(profile, "slope") and hasattr(optics, "surface_points_3d"):
+    surface = getattr(optics, "surface", None)
+    if surface is not None and hasattr(surface, "slope") and hasattr(optics, "surface_points_3d"):
         v = optics.surface_points_3d(us)[..., 1]
-        illum *= np.clip(1.0 - slope_darkening * np.abs(profile.slope(v)), 0.05, 1.0)
+        illum *= np.clip(1.0 - slope_darkening * np.abs(surface.slope(v)), 0.05, 1.0)
     rr = ((xx - (w - 1) / 2) / (w / 2)) ** 2 + ((yy - (h - 1) / 2) / (h / 2)) ** 2
     illum *= 1.0 - vignetting * rr / 2.0
     img = illum * (bright_level * (1.0 - coverage) + dark_level * coverage)

@@ -35,76 +35,17 @@ import numpy as np
 
 from processing.errors import InvalidInputError
 from simulators.optics import Optics
-
-#: The seed's contact surfaces (seed 3.3): Gaussian ridge and valley, 0.5 mm high, 3 mm wide.
-SEED_SHAPE_HEIGHT_MM = 0.5
-SEED_SHAPE_WIDTH_MM = 3.0
-#: The "width" of a Gaussian shape is taken as 4 sigma (+/- 2 sigma, 95 % of the profile's area): sigma = 0.75 mm,
-#: steepest slope 0.40, inside the gradient bounds of seed appendix A (-0.43..0.43 at worst) that the machined
-#: surfaces were made to meet (seed 3.3). A 3 mm FWHM would give sigma = 1.27 mm and a gentler 0.24 slope.
-WIDTH_SIGMAS = 4.0
-
-
-@dataclass(frozen=True)
-class GaussianProfile:
-    """Height profile ``h(v) = amplitude * exp(-(v - center)^2 / (2 sigma^2))`` of a ruled ridge (amplitude > 0),
-    valley (amplitude < 0) or flat surface (amplitude 0), all in mm."""
-
-    amplitude_mm: float = 0.0
-    sigma_mm: float = SEED_SHAPE_WIDTH_MM / WIDTH_SIGMAS
-    center_mm: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("amplitude_mm", "sigma_mm", "center_mm"):
-            if not math.isfinite(getattr(self, name)):
-                raise InvalidInputError(f"{name} must be finite, got {getattr(self, name)!r}")
-        if not self.sigma_mm > 0:
-            raise InvalidInputError(f"sigma_mm must be positive, got {self.sigma_mm!r}")
-        # The camera must see the whole slope (no self-occlusion at 45 degrees): |h'| < 1 (seed appendix A allows
-        # far less: about 0.6).
-        if self.max_slope >= 0.95:
-            raise InvalidInputError(
-                f"profile too steep: max slope {self.max_slope:.2f} (amplitude {self.amplitude_mm} mm, "
-                f"sigma {self.sigma_mm} mm); the 45-degree view needs |slope| < 1"
-            )
-
-    @classmethod
-    def seed_shape(cls, kind: str, *, center_mm: float = 0.0, height_mm: float = SEED_SHAPE_HEIGHT_MM,
-                   width_mm: float = SEED_SHAPE_WIDTH_MM) -> "GaussianProfile":
-        """The seed's ``"flat"``, ``"ridge"`` or ``"valley"`` surface (width = 4 sigma, see ``WIDTH_SIGMAS``)."""
-        if kind not in ("flat", "ridge", "valley"):
-            raise InvalidInputError(f"kind must be 'flat', 'ridge' or 'valley', got {kind!r}")
-        if not width_mm > 0 or not height_mm >= 0:
-            raise InvalidInputError(f"width_mm and height_mm must be positive, got {width_mm!r}, {height_mm!r}")
-        amplitude = {"flat": 0.0, "ridge": height_mm, "valley": -height_mm}[kind]
-        return cls(amplitude_mm=amplitude, sigma_mm=width_mm / WIDTH_SIGMAS, center_mm=center_mm)
-
-    @property
-    def is_flat(self) -> bool:
-        return self.amplitude_mm == 0.0
-
-    @property
-    def max_slope(self) -> float:
-        return abs(self.amplitude_mm) / self.sigma_mm * math.exp(-0.5)
-
-    def height(self, v_mm: np.ndarray) -> np.ndarray:
-        z = (np.asarray(v_mm, dtype=np.float64) - self.center_mm) / self.sigma_mm
-        return self.amplitude_mm * np.exp(-0.5 * z * z)
-
-    def slope(self, v_mm: np.ndarray) -> np.ndarray:
-        z = (np.asarray(v_mm, dtype=np.float64) - self.center_mm) / self.sigma_mm
-        return -self.amplitude_mm * z / self.sigma_mm * np.exp(-0.5 * z * z)
-
+from simulators.surfaces import RuledSurface
 
 class _ArcLength:
     """Arc length ``s(v)`` of a profile from ``v = 0`` and its inverse, tabulated finely (linear interpolation error
     below 1e-6 mm) and extended linearly where the profile is flat."""
 
-    def __init__(self, profile: GaussianProfile, *, half_range_mm: float = 40.0, step_mm: float = 0.002) -> None:
-        self.flat = profile.is_flat
+    def __init__(self, profile: RuledSurface, *, half_range_mm: float = 40.0, step_mm: float = 0.002) -> None:
+        self.flat = profile.max_slope == 0.0
         if self.flat:
             return
-        lo = min(-half_range_mm, profile.center_mm - 12 * profile.sigma_mm)
+        lo = min(-half_range_mm, profile.center_mm - 12 * profile.sigma_mm)  # flat beyond 12 sigma
         hi = max(half_range_mm, profile.center_mm + 12 * profile.sigma_mm)
         n = int(math.ceil((hi - lo) / step_mm)) + 1
         v = np.linspace(lo, hi, n)
@@ -142,8 +83,9 @@ class PrismOptics(Optics):
     ----------
     width, height : int
         Image size in pixels (default: the full camera mode, 640 x 484).
-    profile : GaussianProfile
-        Height profile of the contact surface (default flat).
+    surface : RuledSurface
+        The contact surface (:mod:`simulators.surfaces`: flat, or the seed's Gaussian ridge or valley, whose 3 mm
+        width is read as 4 sigma there). Default flat.
     field_width_mm : float
         Width of flat surface seen across the image width at the field centre (seed 6.3.2: ~10.3 mm).
     working_distance_mm : float
@@ -161,7 +103,7 @@ class PrismOptics(Optics):
 
     Examples
     --------
-    >>> optics = PrismOptics(profile=GaussianProfile.seed_shape("ridge"))
+    >>> optics = PrismOptics(surface=RuledSurface(kind="ridge"))
     >>> xy = optics.surface_to_image(np.array([[1.0, -0.5]]))
     >>> bool(np.allclose(optics.image_to_surface(xy), [[1.0, -0.5]], atol=1e-9))
     True
@@ -169,7 +111,7 @@ class PrismOptics(Optics):
 
     width: int = 640
     height: int = 484
-    profile: GaussianProfile = field(default_factory=GaussianProfile)
+    surface: RuledSurface = field(default_factory=RuledSurface)
     field_width_mm: float = 10.3
     working_distance_mm: float = 150.0
     view_angle_deg: float = 45.0
@@ -194,14 +136,15 @@ class PrismOptics(Optics):
         for name in ("k1", "k2", "p1", "p2", "roll_deg"):
             if not math.isfinite(getattr(self, name)):
                 raise InvalidInputError(f"{name} must be finite, got {getattr(self, name)!r}")
-        if not isinstance(self.profile, GaussianProfile):
-            raise InvalidInputError(f"profile must be a GaussianProfile, got {type(self.profile).__name__}")
+        if not isinstance(self.surface, RuledSurface):
+            raise InvalidInputError(f"surface must be a RuledSurface, got {type(self.surface).__name__}")
         t = math.radians(self.view_angle_deg)
-        if self.profile.max_slope * math.tan(t) >= 0.95:
+        # The view must never graze the surface (|h'| tan(angle) < 1), or a ray would meet it twice.
+        if self.surface.max_slope * math.tan(t) >= 0.95:
             raise InvalidInputError(
-                f"the camera at {self.view_angle_deg} deg cannot see slopes of {self.profile.max_slope:.2f}"
+                f"the camera at {self.view_angle_deg} deg cannot see slopes of {self.surface.max_slope:.2f}"
             )
-        object.__setattr__(self, "_arc", _ArcLength(self.profile))
+        object.__setattr__(self, "_arc", _ArcLength(self.surface))
         # Camera frame in surface-frame components (U, V, N): axis d, image axes ex (along U) and ey.
         d = np.array([0.0, math.sin(t), math.cos(t)])
         ex = np.array([1.0, 0.0, 0.0])
@@ -227,7 +170,7 @@ class PrismOptics(Optics):
         """3-D positions (U, V, N components, mm) of unrolled surface points (u, s)."""
         us = np.asarray(us_mm, dtype=np.float64)
         v = self._arc.v_of_s(us[..., 1])
-        return np.stack([us[..., 0], v, self.profile.height(v)], axis=-1)
+        return np.stack([us[..., 0], v, self.surface.height(v)], axis=-1)
 
     def _distort(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r2 = a * a + b * b
@@ -286,10 +229,10 @@ class PrismOptics(Optics):
         # Point on the ray at flat-plane coordinate v: N(v) = c_N + (v - c_V) rN / rV; solve N(v) = h(v).
         k = ray[..., 2] / ray[..., 1]
         v = c[1] + (0.0 - c[2]) / k  # intersection with the flat plane
-        if not self.profile.is_flat:
+        if not self._arc.flat:
             for _ in range(30):
-                g = c[2] + (v - c[1]) * k - self.profile.height(v)
-                step = g / (k - self.profile.slope(v))
+                g = c[2] + (v - c[1]) * k - self.surface.height(v)
+                step = g / (k - self.surface.slope(v))
                 v = v - step
                 if np.max(np.abs(step), initial=0.0) < 1e-13:
                     break
@@ -306,3 +249,25 @@ class PrismOptics(Optics):
             e[k] = step_mm
             cols.append((self.surface_to_image(us + e) - self.surface_to_image(us - e)) / (2 * step_mm))
         return np.stack(cols, axis=-1)
+
+
+def prism_optics_for_scene(scene, **overrides) -> PrismOptics:
+    """PrismOptics seeing a scene's contact surface with its camera mode and field of view.
+
+    ``scene`` is a :class:`simulators.scene.Scene`; ``overrides`` set any other PrismOptics parameter (distortion,
+    working distance...). Pass the result as ``optics=`` to ``SceneRenderer`` / ``render_session`` to render the
+    fingertip through the prism rather than the ideal flat view.
+    """
+    from drivers.camera_modes import camera_mode
+
+    mode = camera_mode(scene.camera.mode)
+    surface = RuledSurface(
+        kind=scene.surface.kind,
+        width_mm=scene.surface.width_mm,
+        height_mm=scene.surface.height_mm,
+        center_mm=scene.surface.center_mm,
+    )
+    params = {"width": mode.width, "height": mode.height, "surface": surface,
+              "field_width_mm": scene.camera.field_of_view_mm}
+    params.update(overrides)
+    return PrismOptics(**params)
