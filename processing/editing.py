@@ -343,7 +343,7 @@ def feature_density_mask(x: np.ndarray, y: np.ndarray, kind: np.ndarray, *, radi
 
 
 def border_mask(background: np.ndarray, *, dilation_px: int) -> np.ndarray:
-    """Deletion mask of seed 4.8.6: the background plus a 1-pixel image border, dilated by ``dilation_px``."""
+    """Deletion mask of seed 4.8.6: the background plus a 1-pixel image border, dilated (square) by ``dilation_px``."""
     if background.ndim != 2:
         raise InvalidInputError(f"background must be 2-D, got shape {background.shape}")
     if dilation_px < 0:
@@ -353,7 +353,7 @@ def border_mask(background: np.ndarray, *, dilation_px: int) -> np.ndarray:
     m[:, 0] = m[:, -1] = 1
     if dilation_px > 0:
         d = 2 * int(dilation_px) + 1
-        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d)))
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_RECT, (d, d)))
     return m.astype(bool)
 
 

@@ -66,6 +66,9 @@ class ExtractionParams:
     background_min_mean: float = 150.0
     background_max_std: float = 25.0
     background_dilation_mm: float = 0.1
+    # The background statistics use a smaller window than 4.2 (still more than a ridge period, 0.43 mm) so the
+    # mask reaches the fingertip's edge instead of stopping half a 2 mm window short of it.
+    background_window_mm: float = 0.6
     # 4.4 binarization threshold = scale x local average.
     binarization_scale: float = 1.0
     # 4.5 blob pores below 0.25 mm across; smaller blobs than min diameter are noise.
@@ -118,7 +121,7 @@ class ExtractionParams:
             if v < 0:
                 raise InvalidInputError(f"ExtractionParams.{f.name} must be >= 0, got {v!r}")
         positive = [
-            "smoothing_sigma_mm", "local_average_mm", "pore_max_diameter_mm", "orientation_distance_mm",
+            "smoothing_sigma_mm", "local_average_mm", "background_window_mm", "pore_max_diameter_mm", "orientation_distance_mm",
             "short_valley_max_mm", "heal_max_distance_mm", "heal_max_angle_deg", "spur_max_mm", "bridge_max_mm",
             "density_radius_mm", "binarization_scale", "background_max_std",
         ]  # fmt: skip
@@ -191,6 +194,7 @@ class _Plan:
     sigma: float
     kernel: int
     window: int
+    bg_window: int
     bg_dilation: int
     pore_max: float
     pore_min_area: int
@@ -204,7 +208,7 @@ class _Plan:
     bridge_max: float
     density_radius: float
     border_dilation: int
-    minutia_radius: float
+    minutia_reach: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -213,6 +217,7 @@ class _Plan:
             sigma=max(cal.px(p.smoothing_sigma_mm), 0.3),
             kernel=cal.odd_px(p.smoothing_kernel_mm, minimum=3) if p.smoothing_kernel_mm > 0 else 3,
             window=cal.odd_px(p.local_average_mm, minimum=3),
+            bg_window=cal.odd_px(p.background_window_mm, minimum=3),
             bg_dilation=cal.px_int(p.background_dilation_mm),
             pore_max=cal.px(p.pore_max_diameter_mm),
             pore_min_area=max(int(math.floor(math.pi / 4 * pore_min * pore_min)), 1),
@@ -226,7 +231,8 @@ class _Plan:
             bridge_max=cal.px(p.bridge_max_mm),
             density_radius=cal.px(p.density_radius_mm),
             border_dilation=cal.px_int(p.border_dilation_mm),
-            minutia_radius=max(cal.px(0.1), 2.0),
+            # A quarter ridge period (~0.11 mm) covers the skeleton-to-minutia offsets of thinning.
+            minutia_reach=max(cal.px(0.15), 3.0),
         )
 
 
@@ -234,8 +240,22 @@ def _counts(kinds: np.ndarray) -> dict[str, int]:
     return {KIND_NAMES[k.value]: int(np.count_nonzero(kinds == k.value)) for k in FeatureKind}
 
 
+def _graph_counts(g: SkeletonGraph) -> dict[str, int]:
+    ends = bifs = 0
+    for n, alive in enumerate(g.node_alive):
+        if alive:
+            d = len(g.node_edges[n])
+            ends += d == 1
+            bifs += d >= 3
+    return {
+        KIND_NAMES[FeatureKind.VALLEY_ENDING]: ends,
+        KIND_NAMES[FeatureKind.VALLEY_BIFURCATION]: bifs,
+        KIND_NAMES[FeatureKind.PORE]: int(sum(g.pore_alive)),
+    }
+
+
 def _graph_features(g: SkeletonGraph, orient_n: int):
-    xs, ys, ks, os_ = [], [], [], []
+    xs, ys, ks, os_, sz = [], [], [], [], []
     for n in g.alive_nodes():
         d = g.degree(n)
         if d == 2 or d == 0:
@@ -244,17 +264,20 @@ def _graph_features(g: SkeletonGraph, orient_n: int):
         ys.append(g.node_y[n])
         ks.append(int(FeatureKind.VALLEY_ENDING) if d == 1 else int(FeatureKind.VALLEY_BIFURCATION))
         os_.append(node_orientation(g, n, n_px=orient_n))
+        sz.append(0.0)
     for k, alive in enumerate(g.pore_alive):
         if alive:
             xs.append(g.pore_x[k])
             ys.append(g.pore_y[k])
             ks.append(int(FeatureKind.PORE))
             os_.append(math.nan)
+            sz.append(g.pore_size[k])
     return (
         np.asarray(xs, dtype=np.float64),
         np.asarray(ys, dtype=np.float64),
         np.asarray(ks, dtype=np.int8),
         np.asarray(os_, dtype=np.float64),
+        np.asarray(sz, dtype=np.float64),
     )
 
 
@@ -318,14 +341,14 @@ class FeatureExtractor:
         if self.illumination is not None:
             frame = compensate_illumination(frame, illumination=self.illumination)
         s = smooth(frame, sigma_px=q.sigma, kernel_px=q.kernel)  # 4.1
-        avg = local_mean(s, window_px=q.window)  # 4.2
+        # 4.2: a 2 mm mean is blind to the 1-px smoothing, so it is taken on the raw uint8 frame (faster).
+        avg = local_mean(frame, window_px=q.window)
         background = detect_background(  # 4.3
-            s,
-            window_px=q.window,
+            frame,
+            window_px=q.bg_window,
             min_mean=p.background_min_mean,
             max_std=p.background_max_std,
             dilation_px=q.bg_dilation,
-            mean=avg,
         )
         if np.count_nonzero(background) > p.no_finger_fraction * background.size:
             return self._empty(frame.shape, {"no_finger"}, background=background)
@@ -336,25 +359,25 @@ class FeatureExtractor:
                 binary, grey=cv2.subtract(s, thr), max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
             )
             valleys = blobs.binary_without_pores
-            pore_x, pore_y = blobs.x, blobs.y
+            pore_x, pore_y, pore_d = blobs.x, blobs.y, blobs.diameter_px
         else:
             valleys = binary
-            pore_x = pore_y = np.zeros(0)
+            pore_x = pore_y = pore_d = np.zeros(0)
         skeleton = thin(valleys)  # 4.6
         g = trace_skeleton(skeleton)  # 4.7
-        for x, y in zip(pore_x.tolist(), pore_y.tolist()):
-            g.add_pore(x, y)
+        for x, y, d in zip(pore_x.tolist(), pore_y.tolist(), pore_d.tolist()):
+            g.add_pore(x, y, size=d)
 
         counts: OrderedDict[str, dict[str, int]] = OrderedDict()
-        counts["initial"] = _counts(_graph_features(g, q.orient_n)[2])
+        counts["initial"] = _graph_counts(g)
         if p.remove_short_valleys:  # 4.8.1
             g = remove_short_valleys(g, max_length_px=q.short_valley)
-            counts["short_valleys"] = _counts(_graph_features(g, q.orient_n)[2])
+            counts["short_valleys"] = _graph_counts(g)
         if p.heal_broken_valleys:  # 4.8.2
             g = heal_broken_valleys(
                 g, max_distance_px=q.heal_dist, max_angle_deg=p.heal_max_angle_deg, orientation_px=q.orient_n
             )
-            counts["healing"] = _counts(_graph_features(g, q.orient_n)[2])
+            counts["healing"] = _graph_counts(g)
         if p.remove_short_spurs:  # 4.8.3
             g = remove_short_spurs(
                 g,
@@ -363,7 +386,7 @@ class FeatureExtractor:
                 max_deviation_deg=p.spur_max_deviation_deg,
                 orientation_px=q.orient_n,
             )
-            counts["short_spurs"] = _counts(_graph_features(g, q.orient_n)[2])
+            counts["short_spurs"] = _graph_counts(g)
         if p.remove_bridges:  # 4.8.4
             g = remove_bridges(
                 g,
@@ -372,8 +395,8 @@ class FeatureExtractor:
                 max_deviation_deg=p.bridge_max_deviation_deg,
                 orientation_px=q.orient_n,
             )
-            counts["bridges"] = _counts(_graph_features(g, q.orient_n)[2])
-        x, y, kind, orient = _graph_features(g, q.orient_n)
+            counts["bridges"] = _graph_counts(g)
+        x, y, kind, orient, size = _graph_features(g, q.orient_n)
         keep = np.ones(x.size, dtype=bool)
         if p.filter_feature_density:  # 4.8.5
             keep &= feature_density_mask(x, y, kind, radius_px=q.density_radius, max_count=int(p.density_max_count))
@@ -381,9 +404,9 @@ class FeatureExtractor:
         if p.remove_border_features:  # 4.8.6
             keep &= outside_border(x, y, border_mask(background, dilation_px=q.border_dilation))
             counts["border"] = _counts(kind[keep])
-        x, y, kind, orient = x[keep], y[keep], kind[keep], orient[keep]
+        x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
-            x, y = self._refine(s, thr, x, y, kind)
+            x, y = self._refine(s, thr, x, y, kind, orient, size)
         n = x.size
         features = make_features(
             x,
@@ -403,14 +426,28 @@ class FeatureExtractor:
             flags=set(),
         )
 
-    def _refine(self, s, thr, x, y, kind):
+    def _refine(self, s, thr, x, y, kind, orient, size):
         q = self._plan
         x = x.copy()
         y = y.copy()
         pores = kind == FeatureKind.PORE
         if pores.any():
-            rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=q.pore_radius)
+            # Window: the blob's own radius plus 1.5 px of edge, never more than half the largest pore, so the
+            # neighbouring (bright) valleys stay out of it.
+            radius = np.clip(size[pores] / 2 + 1.5, 2.0, q.pore_radius)
+            rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=radius)
             x[pores], y[pores] = rx, ry
+        minutiae = ~pores
+        if minutiae.any():
+            rx, ry, _ = refine_minutiae(
+                cv2.subtract(s, thr),
+                x=x[minutiae],
+                y=y[minutiae],
+                direction_deg=orient[minutiae],
+                is_ending=kind[minutiae] == FeatureKind.VALLEY_ENDING,
+                reach_px=q.minutia_reach,
+            )
+            x[minutiae], y[minutiae] = rx, ry
         return x, y
 
     def _empty(self, shape, flags, background=None) -> ExtractionResult:

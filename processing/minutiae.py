@@ -198,6 +198,8 @@ class SkeletonGraph:
     edge_alive : list of bool
     pore_x, pore_y : list of float
     pore_alive : list of bool
+    pore_size : list of float
+        Blob diameter in pixels (0 for pores found on the skeleton or by editing).
     skeleton : (H, W) uint8
         The skeleton raster, kept in step with the graph (healing draws into it, spur/bridge removal erase).
     """
@@ -215,7 +217,7 @@ class SkeletonGraph:
     pore_y: list
     pore_alive: list
     skeleton: np.ndarray
-    pore_quality: list = field(default_factory=list)
+    pore_size: list = field(default_factory=list)
 
     def copy(self) -> "SkeletonGraph":
         return SkeletonGraph(
@@ -232,7 +234,7 @@ class SkeletonGraph:
             pore_y=list(self.pore_y),
             pore_alive=list(self.pore_alive),
             skeleton=self.skeleton.copy(),
-            pore_quality=list(self.pore_quality),
+            pore_size=list(self.pore_size),
         )
 
     # -- queries ----------------------------------------------------------------------------------------------
@@ -254,11 +256,12 @@ class SkeletonGraph:
         return [e for e, a in enumerate(self.edge_alive) if a]
 
     # -- edits ------------------------------------------------------------------------------------------------
-    def add_pore(self, x: float, y: float, quality: float = 1.0) -> None:
+    def add_pore(self, x: float, y: float, size: float = 0.0) -> None:
+        """Add a pore at (x, y); ``size`` is its blob diameter in pixels (0 when it comes from the skeleton)."""
         self.pore_x.append(float(x))
         self.pore_y.append(float(y))
         self.pore_alive.append(True)
-        self.pore_quality.append(float(quality))
+        self.pore_size.append(float(size))
 
     def add_node(self, x: float, y: float) -> int:
         self.node_x.append(float(x))
@@ -362,7 +365,7 @@ def trace_skeleton(skeleton: np.ndarray) -> SkeletonGraph:
         pore_y=(iso // w).astype(float).tolist(),
         pore_alive=[True] * len(iso),
         skeleton=sk,
-        pore_quality=[1.0] * len(iso),
+        pore_size=[0.0] * len(iso),
     )
     for a, b, s0, n, length in zip(e_a.tolist(), e_b.tolist(), e_start.tolist(), e_len.tolist(), e_length.tolist()):
         if a == b and length < 4:

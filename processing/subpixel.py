@@ -5,10 +5,8 @@ binarization threshold* in a small window, iterated so the window re-centres on 
 removes the bias the seed's eq. 4.3 has when the blob sits on a brightness gradient (the plain grey-level centre of
 a blob is pulled toward the brighter side of the window).
 
-Minutiae: a valley ending or bifurcation is located on the skeleton, whose position depends on binarization and
-thinning. The refinement moves it to the centre of mass of the valley excess intensity in a small disc around it
-(the valley's medial axis across; along the valley the disc is symmetric only at its tip), which removes the
-pixel quantisation and most of the thinning jitter. See :func:`refine_minutiae`.
+Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds where the
+valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`refine_minutiae`.
 """
 
 from __future__ import annotations
@@ -28,9 +26,9 @@ def _excess_centroids(img, thr, xs, ys, radius, iterations):  # pragma: no cover
     ox = xs.copy()
     oy = ys.copy()
     ok = np.ones(n, np.bool_)
-    r = int(np.ceil(radius))
-    r2 = radius * radius
     for k in range(n):
+        r = int(np.ceil(radius[k]))
+        r2 = radius[k] * radius[k]
         cx = xs[k]
         cy = ys[k]
         for _ in range(iterations):
@@ -67,10 +65,10 @@ def _excess_centroids(img, thr, xs, ys, radius, iterations):  # pragma: no cover
     return ox, oy, ok
 
 
-def _check(image: np.ndarray, threshold: np.ndarray, x, y, radius_px: float):
+def _check(image: np.ndarray, threshold: np.ndarray, x, y, radius_px):
     if image.ndim != 2 or threshold.shape != image.shape:
         raise InvalidInputError(f"image {image.shape} and threshold {threshold.shape} must be equal 2-D shapes")
-    if not radius_px > 0:
+    if not np.all(np.asarray(radius_px) > 0):
         raise InvalidInputError(f"radius_px must be positive, got {radius_px!r}")
     x = np.ascontiguousarray(x, dtype=np.float64)
     y = np.ascontiguousarray(y, dtype=np.float64)
@@ -85,7 +83,7 @@ def refine_pores(
     threshold: np.ndarray,
     x: np.ndarray,
     y: np.ndarray,
-    radius_px: float,
+    radius_px,
     iterations: int = 3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel pore centres: centre of mass of ``max(image - threshold, 0)`` in a disc of ``radius_px``.
@@ -98,8 +96,9 @@ def refine_pores(
         The binarization threshold map (scaled local average).
     x, y : (P,) float
         Initial positions (pixels).
-    radius_px : float
-        Disc radius, about half the largest pore diameter.
+    radius_px : float or (P,) float
+        Disc radius per pore: a little more than the blob's radius, so that the window does not reach the
+        neighbouring valleys (they are bright too and would pull the centre).
     iterations : int
         Re-centring iterations.
 
@@ -123,21 +122,203 @@ def refine_pores(
     img, thr, x, y = _check(image, threshold, x, y, radius_px)
     if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
         raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
-    return _excess_centroids(img, thr, x, y, float(radius_px), int(iterations))
+    radius = np.ascontiguousarray(np.broadcast_to(np.asarray(radius_px, dtype=np.float64), x.shape))
+    return _excess_centroids(img, thr, x, y, radius, int(iterations))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bilinear(img, x, y):  # pragma: no cover - compiled
+    h, w = img.shape
+    if x < 0 or y < 0 or x > w - 1.001 or y > h - 1.001:
+        return np.nan
+    c = int(x)
+    r = int(y)
+    fx = x - c
+    fy = y - r
+    return (
+        (1 - fy) * ((1 - fx) * img[r, c] + fx * img[r, c + 1])
+        + fy * ((1 - fx) * img[r + 1, c] + fx * img[r + 1, c + 1])
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _crossing(img, x0, y0, ux, uy, t_lo, t_hi, step):  # pragma: no cover - compiled
+    """Parameter t of the bright-to-dark zero crossing of ``img`` along (x0, y0) + t (ux, uy) nearest to t = 0."""
+    n = int((t_hi - t_lo) / step) + 1
+    best = np.nan
+    prev_t = t_lo
+    prev_v = _bilinear(img, x0 + t_lo * ux, y0 + t_lo * uy)
+    for k in range(1, n):
+        t = t_lo + k * step
+        v = _bilinear(img, x0 + t * ux, y0 + t * uy)
+        if prev_v > 0 and v <= 0:
+            tc = prev_t + step * prev_v / (prev_v - v)
+            if np.isnan(best) or abs(tc) < abs(best):
+                best = tc
+        prev_t = t
+        prev_v = v
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
+def _centre_across(img, x0, y0, vx, vy, half, step, sign):  # pragma: no cover - compiled
+    """Offset along (vx, vy) of the middle of the region where ``sign * img > 0`` that contains t = 0."""
+    if not sign * _bilinear(img, x0, y0) > 0:
+        return np.nan
+    lo = np.nan
+    hi = np.nan
+    n = int(half / step)
+    prev_v = sign * _bilinear(img, x0, y0)
+    for k in range(1, n + 1):
+        t = k * step
+        v = sign * _bilinear(img, x0 + t * vx, y0 + t * vy)
+        if not v > 0:
+            hi = t - step + step * prev_v / (prev_v - v) if v == v else np.nan
+            break
+        prev_v = v
+    prev_v = sign * _bilinear(img, x0, y0)
+    for k in range(1, n + 1):
+        t = -k * step
+        v = sign * _bilinear(img, x0 + t * vx, y0 + t * vy)
+        if not v > 0:
+            lo = t + step - step * prev_v / (prev_v - v) if v == v else np.nan
+            break
+        prev_v = v
+    return 0.5 * (lo + hi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _apex(img, x0, y0, wx, wy, sign, t0, t_max, half, step):  # pragma: no cover - compiled
+    """Apex of the region ``sign * img > 0`` in direction (wx, wy): for lateral offsets d in [-half, half], walk
+    from (x0, y0) + t0 w + d v along w to the region's edge; the apex is the farthest edge point (parabola-refined
+    across). Returns (x, y, found)."""
+    vx = -wy
+    vy = wx
+    n_d = int(half / step)
+    best_t = -1e9
+    best_k = 0
+    ts = np.full(2 * n_d + 1, np.nan)
+    for kd in range(-n_d, n_d + 1):
+        d = kd * step
+        sx = x0 + t0 * wx + d * vx
+        sy = y0 + t0 * wy + d * vy
+        prev = sign * _bilinear(img, sx, sy)
+        if not prev > 0:
+            continue
+        n_t = int((t_max - t0) / step)
+        for k in range(1, n_t + 1):
+            t = t0 + k * step
+            v = sign * _bilinear(img, x0 + t * wx + d * vx, y0 + t * wy + d * vy)
+            if not v == v:
+                break
+            if v <= 0:
+                tc = t - step + step * prev / (prev - v)
+                ts[kd + n_d] = tc
+                if tc > best_t:
+                    best_t = tc
+                    best_k = kd
+                break
+            prev = v
+    if best_t < -1e8:
+        return x0, y0, False
+    # Parabola through the best lateral sample and its neighbours, when both exist.
+    d_best = best_k * step
+    i = best_k + n_d
+    if 0 < i < 2 * n_d and ts[i - 1] == ts[i - 1] and ts[i + 1] == ts[i + 1]:
+        a = ts[i - 1]
+        b = ts[i]
+        c = ts[i + 1]
+        den = a - 2 * b + c
+        if den < 0:
+            off = 0.5 * (a - c) / den
+            if abs(off) <= 1:
+                d_best += off * step
+                best_t = b - 0.25 * (a - c) * off
+    return x0 + best_t * wx + d_best * vx, y0 + best_t * wy + d_best * vy, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_minutiae(img, xs, ys, ux, uy, is_end, back, reach, half):  # pragma: no cover - compiled
+    n = xs.size
+    ox = xs.copy()
+    oy = ys.copy()
+    ok = np.zeros(n, np.bool_)
+    step = 0.25
+    for k in range(n):
+        if is_end[k]:
+            # The bright valley narrows to its tip: start inside the valley, walk toward the tip.
+            x, y, found = _apex(img, xs[k], ys[k], ux[k], uy[k], 1.0, -back, reach, half, step)
+        else:
+            # The dark ridge between the fork's arms narrows to its tip: start inside that ridge, walk back
+            # toward the fork.
+            x, y, found = _apex(img, xs[k], ys[k], -ux[k], -uy[k], -1.0, -2.0 * reach, reach, half, step)
+        if found:
+            ox[k] = x
+            oy[k] = y
+            ok[k] = True
+    return ox, oy, ok
 
 
 def refine_minutiae(
-    image: np.ndarray,
+    excess: np.ndarray,
     *,
-    threshold: np.ndarray,
     x: np.ndarray,
     y: np.ndarray,
-    radius_px: float,
+    direction_deg: np.ndarray,
+    is_ending: np.ndarray,
+    reach_px: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel minutia positions: one-step centre of mass of the valley excess intensity in a disc.
+    """Sub-pixel minutia positions where the valley (or ridge) actually ends in the grey image.
 
-    A single step (no re-centring) so the point stays at the minutia instead of sliding down the valley; see the
-    module docstring. Returns refined x, y and a mask of the refined entries (the others are unchanged).
+    The skeleton places an ending where thinning stopped eroding and a bifurcation where the thinned branches
+    meet; both depend on the valley width and are off the true minutia by a few pixels. In the grey image a
+    minutia is where the valley's bright centre line ends (ending) or where the dark ridge between the two
+    arms of a fork ends (bifurcation). So:
+
+    Near a minutia every iso-intensity line of the print runs into the minutia point (it is a phase
+    singularity), so the valley's bright region (ending) or the ridge's dark region between the arms
+    (bifurcation) is a wedge whose apex is the minutia. The refinement finds that apex: from inside the region,
+    rays parallel to the minutia axis at lateral offsets every 1/4 px are walked (bilinear interpolation, 1/4 px
+    steps) to the threshold crossing (``excess = 0``, linear interpolation); the farthest crossing is the apex,
+    refined across by a parabola through its neighbours.
+
+    Parameters
+    ----------
+    excess : (H, W) float32
+        Smoothed frame minus the binarization threshold (positive on valleys and pores).
+    x, y : (M,) float
+        Skeleton positions.
+    direction_deg : (M,) float
+        Feature-table orientation (degrees, y up). Endings point into their valley; bifurcations bisect their
+        smallest angle, i.e. point between the two arms toward the ridge that ends there.
+    is_ending : (M,) bool
+    reach_px : float
+        How far along the axis (both ways) the crossing is searched.
+
+    Returns
+    -------
+    x, y : (M,) float64
+        Refined positions (unchanged where not refined).
+    refined : (M,) bool
+        False where the orientation is unknown or no crossing was found.
     """
-    img, thr, x, y = _check(image, threshold, x, y, radius_px)
-    return _excess_centroids(img, thr, x, y, float(radius_px), 1)
+    img, _, x, y = _check(excess, excess, x, y, reach_px)
+    direction = np.asarray(direction_deg, dtype=np.float64)
+    is_ending = np.asarray(is_ending, dtype=np.bool_)
+    if direction.shape != x.shape or is_ending.shape != x.shape:
+        raise InvalidInputError(f"direction_deg and is_ending must have the shape of x {x.shape}")
+    known = np.isfinite(direction)
+    a = np.radians(np.where(known, direction, 0.0))
+    # Feature-table angles have y up; image rows go down.
+    ux, uy = np.cos(a), -np.sin(a)
+    # Endings point into their valley: the tip is the other way.
+    ux = np.where(is_ending, -ux, ux)
+    uy = np.where(is_ending, -uy, uy)
+    back = max(reach_px / 3.0, 1.5)
+    rx, ry, ok = _refine_minutiae(
+        img, x, y, np.ascontiguousarray(ux), np.ascontiguousarray(uy), is_ending, back, float(reach_px), float(reach_px)
+    )
+    ok &= known
+    rx = np.where(ok, rx, x)
+    ry = np.where(ok, ry, y)
+    return rx, ry, ok
