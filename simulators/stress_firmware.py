@@ -484,7 +484,7 @@ class PacedLink:
             while self._tx and len(out) < max_bytes:
                 chunk = self._tx[0]
                 t0, data, done = chunk
-                ready = min(len(data), int((now - t0) / self.byte_time_s) + 1) if now >= t0 else 0
+                ready = min(len(data), int((now - t0) / self.byte_time_s + 1e-6) + 1) if now >= t0 - 1e-9 else 0
                 if ready < len(data):
                     break
                 take = min(ready - done, max_bytes - len(out))
@@ -527,18 +527,18 @@ class PacedLink:
         while self._rx:
             chunk = self._rx[0]
             t_first, pos, data, fed = chunk
-            if now < t_first:
+            if now < t_first - 1e-9:
                 break
-            ready = min(len(data), int((now - t_first) / self.byte_time_s) + 1)
+            ready = min(len(data), int((now - t_first) / self.byte_time_s + 1e-6) + 1)
             if ready > fed:
                 base = self._decoder.position
                 for packet in self._decoder.feed(data[fed:ready]):
                     # the packet is complete when its last byte has arrived
                     t_packet = t_first + (fed + (packet.end - base) - 1) * self.byte_time_s
-                    self.firmware.note_crc_errors(self._decoder.counters.crc_errors)
+                    self.firmware.note_crc_errors(self._decoder.counters.bad_packets)
                     self._on_packet(packet, t_packet)
                 chunk[3] = ready
-                self.firmware.note_crc_errors(self._decoder.counters.crc_errors)
+                self.firmware.note_crc_errors(self._decoder.counters.bad_packets)
             if ready < len(data):
                 break
             self._rx.popleft()

@@ -130,8 +130,12 @@ class DecoderCounters:
     """What the decoder had to throw away, for diagnostics (never silently lost: the counts are kept)."""
 
     skipped_bytes: int = 0
-    crc_errors: int = 0
-    bad_lengths: int = 0
+    crc_errors: int = 0  # complete packets whose CRC failed
+    resyncs: int = 0  # announced packets abandoned because a valid packet was found inside them
+
+    @property
+    def bad_packets(self) -> int:
+        return self.crc_errors + self.resyncs
 
 
 class StreamDecoder:
@@ -207,6 +211,7 @@ class StreamDecoder:
                 later = self._complete_packet_after(0)
                 if later is None:
                     break
+                self.counters.resyncs += 1
                 self._drop(later, skipped=True)
                 continue
             body = bytes(buf[2:HEADER_SIZE + length])

@@ -1,0 +1,168 @@
+"""Faults on the wire and bad firmware: each ends with a clear error in bounded time, data acquired so far is
+kept, and the contactors go to rest (driver rest when the link allows, firmware watchdog otherwise)."""
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from drivers.display import stress_protocol as sp
+from drivers.display.playback import stream_movie
+from drivers.display.stress import StressDisplay
+from drivers.display.transports import SerialTransport, UsbTransport
+from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, SafetyStop
+from simulators import stresssim
+from simulators.stress_firmware import LinkFaults, ManualClock, PacedLink, StressFirmware
+
+_names = itertools.count()
+
+
+def _movie(n=120, amplitude=20.0):
+    t = np.arange(n) / 700
+    return amplitude * np.sin(2 * np.pi * 10 * t)[:, None, None] * np.ones((1, 10, 10))
+
+
+def _url_display(link, **kw):
+    stresssim.register_url_handler()
+    return StressDisplay(SerialTransport(stresssim.attach(f"faults{next(_names)}", link)), **kw)
+
+
+def _assert_firmware_rests(link, wait):
+    wait(0.12)  # watchdog 50 ms + soft rest ramp
+    link.advance()
+    fw = link.firmware
+    assert not fw.armed
+    assert np.all(np.abs(fw.benders.deflection_um()) < 1.0)
+
+
+def test_vanished_url_link_mid_movie_stops_keeps_data_and_watchdog_rests():
+    link = stresssim.make_link(faults="vanish_after:40", seed=5)
+    display = _url_display(link)
+    report = stream_movie(display, _movie())
+    assert report.outcome == "link_failure" and "lost" in report.error
+    assert 40 <= report.frames_sent < 120 and report.acked.sum() >= 30
+    assert not report.rested  # the link was gone: the firmware watchdog did it
+    _assert_firmware_rests(link, time.sleep)
+    assert link.firmware.watchdog_trips == 1
+
+
+def test_vanished_pty_mid_movie():
+    link = stresssim.make_link(faults="vanish_after:40", seed=5)
+    server = stresssim.start_pty_firmware(link)
+    try:
+        display = StressDisplay(SerialTransport(server.port))
+        report = stream_movie(display, _movie())
+        assert report.outcome == "link_failure"
+        assert report.frames_sent >= 40 and report.acked.sum() >= 30
+        _assert_firmware_rests(link, time.sleep)
+        display.close()
+    finally:
+        server.stop()
+
+
+def test_vanished_usb_device_mid_movie():
+    link = PacedLink.usb_high_speed(StressFirmware(seed=5, t0=time.perf_counter()), clock=stresssim.RealClock(),
+                                    faults=LinkFaults(vanish_after_frames=40))
+    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)))
+    report = stream_movie(display, _movie())
+    assert report.outcome == "link_failure" and "usb" in report.error
+    assert report.frames_sent >= 40
+    _assert_firmware_rests(link, time.sleep)
+    with pytest.raises(DeviceError, match="no USB device"):
+        UsbTransport(backend=stresssim.StressUsbBackend(link))
+
+
+def test_stalled_link_is_detected_within_the_outstanding_window():
+    link = stresssim.make_link(faults="stall_after:30", seed=2)
+    display = _url_display(link)
+    t0 = time.perf_counter()
+    report = stream_movie(display, _movie(300), max_outstanding=16)
+    elapsed = time.perf_counter() - t0
+    assert report.outcome == "link_failure" and "unacknowledged" in report.error
+    assert report.frames_sent < 60 and elapsed < 2.0  # bounded, no hang
+    assert report.acked[:25].all()
+    _assert_firmware_rests(link, time.sleep)
+
+
+def test_corrupted_and_dropped_bytes_are_survived_and_counted():
+    link = stresssim.make_link(faults="corrupt:0.002,drop:0.001", seed=11)
+    display = _url_display(link)
+    report = stream_movie(display, _movie(300))
+    assert report.outcome == "completed" and report.frames_sent == 300
+    fw = link.firmware
+    assert fw.crc_errors + fw.sequence_gaps > 0
+    assert report.lost_acks > 0 and report.acked.sum() + report.lost_acks >= 295
+    assert display.decoder_counters.crc_errors + display.decoder_counters.skipped_bytes > 0
+    assert fw.clamped_frames == 0
+
+
+def test_firmware_that_stops_answering_gives_a_timeout():
+    clock = ManualClock()
+    link = stresssim.make_link(clock=clock)
+    display = _url_display(link, clock=clock.now)
+    display.identify()
+    link.stall()
+    t0 = clock.now()
+    with pytest.raises(DeviceTimeoutError, match="no reply to IDENTIFY"):
+        display.identify()
+    assert clock.now() - t0 <= 2 * display.reply_timeout_s + 0.01
+
+
+def test_garbled_and_truncated_requests_are_skipped_by_the_firmware():
+    clock = ManualClock()
+    link = stresssim.make_link(clock=clock)
+    display = _url_display(link, clock=clock.now)
+    frame = sp.encode_packet(seq=200, command=sp.Command.FRAME, payload=bytes(100))
+    bad = bytearray(frame)
+    bad[30] ^= 0x40
+    link.host_write(b"\xa5\x5a\xff garbage " + frame[:50] + bytes(bad) + b"\xa5")
+    clock.advance(0.01)
+    info = display.identify()
+    assert info.rows == 10
+    link.advance()
+    assert link.firmware.crc_errors >= 1 and link.firmware.frames_received == 0
+    assert display.read_status().crc_errors >= 1
+
+
+def test_lost_ack_raises_for_that_frame_only():
+    clock = ManualClock()
+    link = stresssim.make_link(clock=clock)
+    display = _url_display(link, clock=clock.now, watchdog_s=1.0)
+    display.arm()
+    display.send_frame(np.zeros((10, 10)))
+    link.faults = LinkFaults(drop_rate=1.0)  # every byte of the next exchange is lost
+    with pytest.raises(DeviceTimeoutError):
+        display.send_frame(np.ones((10, 10)))
+    link.faults = LinkFaults()
+    ack = display.send_frame(np.ones((10, 10)))
+    assert ack.status & sp.Status.ARMED
+    assert display.read_status().sequence_gaps >= 1
+
+
+def test_callback_safety_stop_rests_the_display():
+    link = stresssim.make_link(seed=4)
+    display = _url_display(link)
+
+    def ceiling(index, command, ack):
+        if index == 50:
+            raise SafetyStop("normal force 6.1 N above the 5 N ceiling")
+        return command + 1.0
+
+    report = stream_movie(display, _movie(), callback=ceiling)
+    assert report.outcome == "safety_stop" and "ceiling" in report.error and report.rested
+    assert report.frames_sent == 50
+    assert np.allclose(report.commands_um[10:20], np.clip(_movie()[10:20] + 1.0, -50, 50), atol=0.25)
+    time.sleep(0.05)
+    link.advance()
+    assert np.all(np.abs(link.firmware.benders.deflection_um()) < 1.0)
+
+
+def test_unknown_url_options_and_fault_specs_are_refused():
+    stresssim.register_url_handler()
+    with pytest.raises(DeviceError, match="unknown stresssim URL options"):
+        SerialTransport("stresssim://?speed=9")
+    with pytest.raises(InvalidInputError, match="faults item"):
+        LinkFaults.parse("explode:1")
+    with pytest.raises(DeviceError, match="cannot open"):
+        SerialTransport("/dev/does-not-exist-stress")

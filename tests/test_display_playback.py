@@ -1,0 +1,89 @@
+"""Real-time movie streaming on the simulated display (functional checks only; speed is in the bench)."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from drivers.display.playback import stream_movie
+from drivers.display.stress import StressDisplay
+from drivers.display.transports import SerialTransport
+from processing.errors import InvalidInputError
+from simulators import stresssim
+
+_names = itertools.count()
+
+
+@pytest.fixture
+def sim():
+    stresssim.register_url_handler()
+    link = stresssim.make_link(seed=7)
+    name = f"playback{next(_names)}"
+    display = StressDisplay(SerialTransport(stresssim.attach(name, link)))
+    yield display, link
+    display.close()
+    stresssim.detach(name)
+
+
+def test_movie_is_played_acked_and_position_error_reported(sim):
+    display, link = sim
+    display.zero()
+    n = 140
+    movie = 25 * np.sin(2 * np.pi * 5 * np.arange(n) / 700)[:, None, None] * np.linspace(0.2, 1, 100).reshape(10, 10)
+    report = stream_movie(display, movie, rate_hz=700)
+    assert report.outcome == "completed" and report.rested
+    assert report.frames_sent == n and report.acked.sum() >= n - 2
+    assert np.allclose(report.commands_um, np.rint(movie * 2) / 2)
+    assert np.array_equal(np.array(link.firmware.commands_um)[-n:], report.commands_um)
+    rms = report.position_rms_error_um()
+    assert rms.shape == (10, 10) and np.all(np.isfinite(rms))
+    # lag, hysteresis, gain spread and 0.5 um quantisation: about a micrometre, never tens
+    assert 0.05 < rms.mean() < 3.0
+    assert report.period_jitter_p99_s >= 0 and report.missed_deadlines <= n
+    assert np.all(np.diff(report.deadlines_s) > 0)
+
+
+def test_callback_sees_acks_and_corrects_commands(sim):
+    display, _ = sim
+    seen = []
+
+    def offset_by_two(index, command, ack):
+        seen.append(ack is not None)
+        return command + 2.0
+
+    report = stream_movie(display, np.zeros((60, 10, 10)), callback=offset_by_two)
+    assert report.completed
+    assert np.all(report.commands_um == 2.0) and any(seen[10:])
+
+
+def test_unsafe_movie_is_limited_not_refused(sim):
+    display, link = sim
+    movie = np.full((30, 10, 10), 500.0)
+    movie[5] = np.nan
+    report = stream_movie(display, movie)
+    assert report.completed
+    assert np.abs(report.commands_um).max() <= 50
+    assert np.abs(np.diff(report.commands_um, axis=0)).max() <= display.max_step_um
+    assert link.firmware.clamped_frames == 0
+
+
+@pytest.mark.parametrize("kwargs, name", [(dict(rate_hz=900), "rate_hz"), (dict(rate_hz=700, spin_s=0.01), "spin_s"),
+                                          (dict(max_outstanding=0), "max_outstanding"),
+                                          (dict(settle_frames=-1), "settle_frames")])
+def test_bad_options_are_refused_by_name(sim, kwargs, name):
+    with pytest.raises(InvalidInputError, match=name):
+        stream_movie(sim[0], np.zeros((5, 10, 10)), **kwargs)
+
+
+def test_bad_movie_shape_is_refused(sim):
+    with pytest.raises(InvalidInputError, match="movie_um"):
+        stream_movie(sim[0], np.zeros((5, 10)))
+
+
+def test_no_ack_means_no_error_figure_not_nan(sim):
+    display, link = sim
+    link.stall()
+    report = stream_movie(display, np.zeros((3, 10, 10)), final_ack_timeout_s=0.01)
+    assert not report.acked.any()
+    with pytest.raises(InvalidInputError, match="no acknowledged frame"):
+        report.position_rms_error_um()
