@@ -8,6 +8,7 @@ every frame is exact, with no interpolation error.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from processing.feature_table import make_features
 
@@ -23,9 +24,9 @@ def pattern(x: np.ndarray, y: np.ndarray, *, period: float = 27.0, seed: int = 0
         phi += rng.choice([-1, 1]) * np.arctan2(y - cy, x - cx)
     img = 125 + 85 * np.cos(phi)
     # pores: small bright blobs along ridges, fixed to the skin
-    px, py = rng.uniform(0, 640, 300), rng.uniform(0, 480, 300)
-    for cx, cy in zip(px, py):
-        img += 60 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 2.0**2))
+    pores = np.column_stack([rng.uniform(-20, 660, 320), rng.uniform(-20, 500, 320)])
+    dist, _ = cKDTree(pores).query(np.column_stack([x.ravel(), y.ravel()]))
+    img += 60 * np.exp(-(dist.reshape(x.shape) ** 2) / (2 * 2.0**2))
     return img
 
 
