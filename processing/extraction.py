@@ -101,8 +101,9 @@ class ExtractionParams:
     # 4.8.6
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
-    # Beyond the seed (7.2.2): sub-pixel positions of pores and minutiae.
+    # Beyond the seed (7.2.2): sub-pixel positions of pores (and of valley endings, see FeatureExtractor._refine).
     subpixel: bool = True
+    subpixel_endings: bool = True
     # Frame checks: below black_level everywhere = all black; more than saturated_fraction at 255 = saturated;
     # more than no_finger_fraction background = no finger in view.
     black_level: float = 20.0
@@ -437,8 +438,12 @@ class FeatureExtractor:
             radius = np.clip(size[pores] / 2 + 1.5, 2.0, q.pore_radius)
             rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=radius)
             x[pores], y[pores] = rx, ry
-        minutiae = ~pores
-        if minutiae.any():
+        # Only valley endings are refined: on the simulator's scenes the apex of the bright valley is ~0.3 px
+        # repeatable (skeleton end: ~1.2 px) at a constant offset of ~3 px beyond the true minutia, which tracking
+        # does not see. The dark-ridge apex of a fork is ~10 px from the true bifurcation, so bifurcations keep
+        # the centre of their skeleton pixel group (seed 4.7). Measured in experiments/bench/features.py.
+        minutiae = kind == FeatureKind.VALLEY_ENDING
+        if self.params.subpixel_endings and minutiae.any():
             rx, ry, _ = refine_minutiae(
                 cv2.subtract(s, thr),
                 x=x[minutiae],

@@ -322,3 +322,4 @@ def refine_minutiae(
     rx = np.where(ok, rx, x)
     ry = np.where(ok, ry, y)
     return rx, ry, ok
+
