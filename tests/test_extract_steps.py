@@ -1,0 +1,303 @@
+"""Feature extraction steps (seed 4.1-4.8) on small hand-made images."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from processing.calibration import Calibration
+from processing.editing import feature_density_mask, heal_broken_valleys, line_pixels, remove_short_valleys
+from processing.errors import InvalidInputError
+from processing.extraction import ExtractionParams, FeatureExtractor, extract_features
+from processing.feature_table import FEATURE_DTYPE, FeatureKind
+from processing.illumination import compensate_illumination, illumination_map
+from processing.minutiae import node_kind, node_orientation, trace_skeleton
+from processing.pores import detect_blob_pores
+from processing.preprocess import binarize, detect_background, local_mean
+from processing.subpixel import refine_pores
+from processing.thinning import thin
+
+PPM = 62.0
+CAL = Calibration(px_per_mm=PPM)
+
+
+def _kinds(graph):
+    return sorted(node_kind(graph, n) for n in graph.alive_nodes())
+
+
+def test_single_valley_gives_two_endings():
+    b = np.zeros((40, 80), np.uint8)
+    b[17:24, 10:70] = 255
+    g = trace_skeleton(thin(b))
+    assert _kinds(g) == [FeatureKind.VALLEY_ENDING] * 2
+    xs = sorted(g.node_x[n] for n in g.alive_nodes())
+    assert xs[0] < 15 and xs[1] > 64
+    # Endings point into their valley (seed Figure 30(a)): the left one along +x (0 deg), the right one 180 deg.
+    orient = {round(g.node_x[n]): node_orientation(g, n, n_px=10) for n in g.alive_nodes()}
+    left, right = orient[min(orient)], orient[max(orient)]
+    assert left == pytest.approx(0.0, abs=1e-6) and right == pytest.approx(180.0, abs=1e-6)
+
+
+def test_y_gives_one_bifurcation():
+    sk = np.zeros((60, 60), np.uint8)
+    sk[30, 5:30] = 1
+    for i in range(1, 22):
+        sk[30 - i, 29 + i] = 1
+        sk[30 + i, 29 + i] = 1
+    g = trace_skeleton(sk)
+    kinds = _kinds(g)
+    assert kinds.count(FeatureKind.VALLEY_BIFURCATION) == 1 and kinds.count(FeatureKind.VALLEY_ENDING) == 3
+    bif = next(n for n in g.alive_nodes() if node_kind(g, n) == FeatureKind.VALLEY_BIFURCATION)
+    assert abs(g.node_x[bif] - 29.3) < 1.5 and abs(g.node_y[bif] - 30) < 1.0
+    # Bisector of the smallest angle (the two arms) points along +x.
+    assert node_orientation(g, bif, n_px=10) == pytest.approx(0.0, abs=1.0)
+
+
+def test_thick_y_through_thinning_gives_one_bifurcation():
+    b = np.zeros((80, 100), np.uint8)
+    import cv2
+
+    cv2.line(b, (5, 40), (50, 40), 255, 7)
+    cv2.line(b, (50, 40), (95, 10), 255, 7)
+    cv2.line(b, (50, 40), (95, 70), 255, 7)
+    g = trace_skeleton(thin(b))
+    assert _kinds(g).count(FeatureKind.VALLEY_BIFURCATION) == 1
+
+
+@pytest.mark.parametrize("diameter_mm, is_pore", [(0.15, True), (0.2, True), (0.35, False)])
+def test_bright_disc_is_a_pore_below_quarter_mm(diameter_mm, is_pore):
+    import cv2
+
+    img = np.full((80, 80), 40, np.uint8)
+    r = CAL.px(diameter_mm) / 2
+    cv2.circle(img, (40, 41), int(round(r - 0.5)), 220, -1)
+    b = (img > 128).astype(np.uint8) * 255
+    pores = detect_blob_pores(b, grey=img.astype(np.float32), max_diameter_px=CAL.px(0.25))
+    assert (pores.x.size == 1) == is_pore
+    if is_pore:
+        assert pores.x[0] == pytest.approx(40, abs=1e-9) and pores.y[0] == pytest.approx(41, abs=1e-9)
+        assert not pores.binary_without_pores.any()
+    else:
+        assert pores.binary_without_pores.any()
+
+
+def test_pore_refinement_is_subpixel():
+    yy, xx = np.mgrid[0:40, 0:40]
+    img = (40 + 180 * np.exp(-((xx - 20.37) ** 2 + (yy - 18.81) ** 2) / (2 * 2.0**2))).astype(np.float32)
+    rx, ry, ok = refine_pores(img, threshold=np.full_like(img, 100.0), x=np.array([20.0]), y=np.array([19.0]), radius_px=5)
+    assert ok[0] and abs(rx[0] - 20.37) < 0.02 and abs(ry[0] - 18.81) < 0.02
+
+
+def _two_endings_graph(gap_px, third_valley=False):
+    sk = np.zeros((60, 120), np.uint8)
+    sk[30, 5:55] = 1
+    sk[30, 55 + gap_px : 115] = 1
+    if third_valley:
+        sk[10:50, 55 + gap_px // 2] = 1
+    return trace_skeleton(sk)
+
+
+def test_healing_joins_two_aligned_endings():
+    g = _two_endings_graph(20)
+    g.add_pore(64.0, 31.0)  # in the 8-neighbourhood of the bridging line: part of the healed valley
+    g.add_pore(64.0, 40.0)  # far from it: stays
+    healed = heal_broken_valleys(g, max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10)
+    assert _kinds(healed) == [FeatureKind.VALLEY_ENDING] * 2
+    xs = sorted(healed.node_x[n] for n in healed.alive_nodes())
+    assert xs == [5.0, 114.0]
+    assert healed.skeleton[30, 55:75].all()
+    assert [a for a in healed.pore_alive] == [False, True]
+    # The input graph is not modified.
+    assert len(_kinds(g)) == 4
+
+
+def test_healing_never_crosses_a_third_valley():
+    g = _two_endings_graph(20, third_valley=True)
+    before = _kinds(g)
+    healed = heal_broken_valleys(g, max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10)
+    assert _kinds(healed) == before
+    assert not healed.skeleton[30, 56:64].any()
+
+
+def test_healing_rejects_gaps_above_distance_or_angle():
+    g = _two_endings_graph(45)  # 0.74 mm > 0.6 mm
+    assert len(heal_broken_valleys(g, max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10).alive_nodes()) == 4
+    sk = np.zeros((80, 120), np.uint8)
+    sk[30, 5:55] = 1
+    sk[50, 65:115] = 1  # offset by 20 px over a 10 px gap: ~63 deg
+    g = trace_skeleton(sk)
+    assert len(heal_broken_valleys(g, max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10).alive_nodes()) == 4
+
+
+def test_short_valley_becomes_pore():
+    sk = np.zeros((30, 60), np.uint8)
+    sk[15, 20:28] = 1  # 7 px < 0.2 mm (12.4 px)
+    g = remove_short_valleys(trace_skeleton(sk), max_length_px=CAL.px(0.2))
+    assert not g.alive_nodes() and g.pore_alive == [True]
+    assert g.pore_x[0] == pytest.approx(23.5) and g.pore_y[0] == pytest.approx(15.0)
+
+
+def test_density_filter_deletes_crowded_features_per_kind():
+    x = np.array([10, 12, 14, 16, 100, 10, 12.0])
+    y = np.array([10, 10, 10, 10, 100, 11, 11.0])
+    kind = np.array([2, 2, 2, 2, 2, 0, 0])
+    keep = feature_density_mask(x, y, kind, radius_px=15.5, max_count=3)
+    assert keep.tolist() == [False, False, False, False, True, True, True]
+
+
+def test_background_and_binarization():
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:200, 0:300]
+    img = 128 + 90 * np.cos(2 * np.pi * xx / 27.0)
+    img[:, 200:] = 235  # uncovered prism: bright, flat
+    img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    bg = detect_background(img, window_px=37, min_mean=150, max_std=25, dilation_px=0)
+    assert bg[:, 230:].all() and not bg[:, :170].any()
+    avg = local_mean(img, window_px=125)
+    binary = binarize(img.astype(np.float32), local_average=avg, background=bg)
+    assert binary[:, 230:].max() == 0
+    assert binary[100, 0] == 255 and binary[100, 13] == 0  # valley bright, ridge dark
+
+
+def test_illumination_compensation_flattens_the_valleys():
+    yy, xx = np.mgrid[0:120, 0:160]
+    gain = 0.6 + 0.4 * xx / 159.0
+    frames = [np.clip(gain * (128 + 100 * np.cos(2 * np.pi * (xx + 3 * k) / 27.0)), 0, 255).astype(np.uint8) for k in range(9)]
+    imap = illumination_map(frames, calibration=Calibration(px_per_mm=62.0), lowpass_sigma_mm=0.3)
+    out = compensate_illumination(frames[0], illumination=imap)
+    left, right = out[:, 10:40].max(), out[:, 120:150].max()
+    assert abs(int(left) - int(right)) <= 8 and right >= 245
+
+
+def test_line_pixels_are_8_connected():
+    p = line_pixels(0, 0, 7, 3)
+    assert p[0].tolist() == [0, 0] and p[-1].tolist() == [7, 3]
+    assert np.all(np.max(np.abs(np.diff(p, axis=0)), axis=1) == 1)
+
+
+# ----------------------------------------------------------------------------------------- whole chain
+
+
+def _print(shape=(220, 260), shift=(0, 0), seed=0):
+    """A small synthetic print: straight ridges with one ending (a spiral point) and a few pores."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x = xx - shift[0]
+    y = yy - shift[1]
+    phase = 2 * np.pi * y / 27.0 + np.arctan2(y - 110.3, x - 120.6)
+    img = 0.5 + 0.5 * np.cos(phase)
+    for px, py in [(60.2, 67.5 - 13.5 + 27), (180.4, 94.5 + 27 * 2), (70.7, 175.5)]:
+        img = np.maximum(img, 0.95 * np.exp(-((x - px) ** 2 + (y - py) ** 2) / (2 * 2.2**2)))
+    rng = np.random.default_rng(seed)
+    return np.clip(40 + 190 * img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_extract_features_on_a_small_print():
+    res = extract_features(_print(), calibration=CAL, frame_index=7)
+    assert res.ok and not res.flags
+    f = res.features
+    assert f.dtype == FEATURE_DTYPE and np.all(f["frame"] == 7)
+    assert np.all(f["id"] // 1_000_000 == 7) and len(np.unique(f["id"])) == f.size
+    assert list(res.step_counts) == ["initial", "short_valleys", "healing", "short_spurs", "bridges", "density", "border"]
+    minutiae = f[f["kind"] != FeatureKind.PORE]
+    d = np.hypot(minutiae["x"] - 120.6, minutiae["y"] - 110.3)
+    assert d.size >= 1 and d.min() < 6  # the spiral point is found
+    assert np.count_nonzero(f["kind"] == FeatureKind.PORE) >= 2
+    assert np.all(np.isfinite(f["x"])) and np.all(f["quality"] >= 0)
+
+
+def test_editing_steps_are_switchable():
+    params = ExtractionParams(
+        remove_short_valleys=False,
+        heal_broken_valleys=False,
+        remove_short_spurs=False,
+        remove_bridges=False,
+        filter_feature_density=False,
+        remove_border_features=False,
+    )
+    res = extract_features(_print(), calibration=CAL, params=params)
+    assert list(res.step_counts) == ["initial"]
+    assert res.features.size >= extract_features(_print(), calibration=CAL).features.size
+
+
+@settings(max_examples=6, deadline=None)
+@given(dx=st.integers(-12, 12), dy=st.integers(-12, 12))
+def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
+    """Whole-pixel shift of the scene => every feature far from the image border shifts by exactly that."""
+    ex = FeatureExtractor(calibration=CAL, params=ExtractionParams(remove_border_features=False))
+    a = ex.extract(_print(shape=(260, 300), seed=1)).features
+    b = ex.extract(_print(shape=(260, 300), shift=(dx, dy), seed=1)).features
+    # Noise is drawn per pixel, not per skin point: compare on noise-free renderings instead.
+    assert a.size and b.size
+    a0 = ex.extract(_noise_free(0, 0)).features
+    b0 = ex.extract(_noise_free(dx, dy)).features
+    core = lambda t, sx, sy: t[(t["x"] - sx > 90) & (t["x"] - sx < 210) & (t["y"] - sy > 90) & (t["y"] - sy < 170)]
+    ca, cb = core(a0, 0, 0), core(b0, dx, dy)
+    assert ca.size == cb.size and ca.size > 0
+    ia = np.lexsort((ca["y"], ca["x"], ca["kind"]))
+    ib = np.lexsort((cb["y"] - dy, cb["x"] - dx, cb["kind"]))
+    assert np.array_equal(ca["kind"][ia], cb["kind"][ib])
+    np.testing.assert_allclose(cb["x"][ib] - dx, ca["x"][ia], atol=1e-3)
+    np.testing.assert_allclose(cb["y"][ib] - dy, ca["y"][ia], atol=1e-3)
+
+
+def _noise_free(dx, dy):
+    img = _print(shape=(300, 340), shift=(dx + 20, dy + 20), seed=0).astype(np.float64)
+    h, w = 300, 340
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x = xx - dx - 20
+    y = yy - dy - 20
+    phase = 2 * np.pi * y / 27.0 + np.arctan2(y - 110.3, x - 120.6)
+    img = 0.5 + 0.5 * np.cos(phase)
+    for px, py in [(60.2, 81.0), (180.4, 148.5), (70.7, 175.5)]:
+        img = np.maximum(img, 0.95 * np.exp(-((x - px) ** 2 + (y - py) ** 2) / (2 * 2.2**2)))
+    return np.clip(40 + 190 * img, 0, 255).round().astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [np.zeros((200, 200), np.float32), np.zeros((200, 200, 3), np.uint8), np.zeros((50, 300), np.uint8), "frame"],
+)
+def test_bad_frames_raise_invalid_input(frame):
+    with pytest.raises(InvalidInputError, match="frame"):
+        extract_features(frame, calibration=CAL)
+
+
+@pytest.mark.parametrize(
+    "frame, flag",
+    [
+        (np.zeros((200, 200), np.uint8), "all_black"),
+        (np.full((200, 200), 255, np.uint8), "saturated"),
+        (np.full((200, 200), 230, np.uint8), "no_finger"),
+    ],
+)
+def test_degenerate_frames_give_empty_flagged_results(frame, flag):
+    res = extract_features(frame, calibration=CAL)
+    assert not res.ok and res.flags == {flag} and res.features.size == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"pore_max_diameter_mm": -1.0}, "pore_max_diameter_mm"),
+        ({"heal_max_angle_deg": 120.0}, "heal_max_angle_deg"),
+        ({"spur_min_mm": 2.0}, "spur_min_mm"),
+        ({"heal_broken_valleys": 1}, "heal_broken_valleys"),
+        ({"local_average_mm": float("nan")}, "local_average_mm"),
+    ],
+)
+def test_bad_parameters_are_named(kwargs, name):
+    with pytest.raises(InvalidInputError, match=name):
+        ExtractionParams(**kwargs)
+
+
+def test_extract_many_matches_single_frames():
+    ex = FeatureExtractor(calibration=CAL)
+    frames = [_print(seed=s) for s in range(3)]
+    many = ex.extract_many(frames, frame_indices=[4, 5, 6], workers=2)
+    for k, (f, r) in enumerate(zip(frames, many)):
+        single = ex.extract(f, frame_index=4 + k).features
+        assert single.tobytes() == r.features.tobytes()  # bit-identical (NaN orientations included)
