@@ -146,10 +146,11 @@ def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[
 
     Imports :mod:`experiments.analysis` here, in the worker, so the recording process never pays for it.
     """
-    from experiments.analysis import analyze_session  # noqa: PLC0415 - worker-side import on purpose
+    from experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - worker-side import
 
     t0 = time.perf_counter()
-    result = analyze_session(session_path, outdir, method=method, **dict(options))
+    params = AnalysisParams(**dict(options)) if options else None
+    result = analyze_session(session_path, outdir, method=method, params=params)
     return {"results": str(result), "seconds": time.perf_counter() - t0}
 
 

@@ -227,7 +227,8 @@ def trajectory_length_figure(lengths: np.ndarray, *, n_frames: int | None = None
 
 
 def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]], *, true_profiles: Mapping[str,
-                           tuple[np.ndarray, np.ndarray]] | None = None, units: str = "mm", title: str = "",
+                           tuple[np.ndarray, np.ndarray]] | None = None,
+                           xlabel: str = "position along the sliding direction (mm)", title: str = "",
                            band: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Figure:
     """Seed Figure 94: relative change in horizontal stretch with position, averaged over a sequence.
 
@@ -254,7 +255,7 @@ def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]]
             ax.plot(np.asarray(tx, float), np.asarray(tch, float) * 100, "--", color="k", label="true")
             ax.legend(fontsize=7)
         ax.set_title(f"({chr(97 + k)}) {label}", fontsize=9)
-        ax.set_xlabel(f"x ({units})")
+        ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("stretch change (%)")
     for ax in axes[n:]:
         ax.set_axis_off()
