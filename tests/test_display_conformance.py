@@ -50,10 +50,10 @@ def rig(request):
         server.stop()
         assert server.error is None
     else:
-        clock = ManualClock()
-        link = PacedLink.usb_high_speed(StressFirmware(seed=3, t0=0.0), clock=clock)
-        display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), clock=clock.now)
-        yield Rig(display, link, clock.advance)
+        # real time: the transport's reader thread keeps a bulk read pending, as libusb would
+        link = PacedLink.usb_high_speed(StressFirmware(seed=3, t0=time.perf_counter()), clock=stresssim.RealClock())
+        display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), reply_timeout_s=0.5)
+        yield Rig(display, link, time.sleep)
         display.close()
 
 

@@ -10,6 +10,7 @@ import abc
 import errno
 import math
 import select
+import threading
 
 from processing.errors import DeviceError, InvalidInputError
 
@@ -123,6 +124,10 @@ class SerialTransport(Transport):
 class UsbTransport(Transport):
     """A pair of USB bulk endpoints, found with :func:`usb.core.find` (``backend`` pluggable, e.g. a simulator).
 
+    pyusb waits in whole milliseconds, too coarse for a 1.43 ms frame period, so a reader thread keeps one bulk
+    IN read pending (as libusb's asynchronous transfers would) and :meth:`read` waits on its buffer with any
+    timeout.
+
     Parameters
     ----------
     vendor_id, product_id : int, keyword-only
@@ -153,6 +158,11 @@ class UsbTransport(Transport):
         self._read_size = read_size
         self._name = f"usb {vendor_id:04x}:{product_id:04x}"
         self._closed = False
+        self._buffer = bytearray()
+        self._error: Exception | None = None
+        self._ready = threading.Condition()
+        self._reader = threading.Thread(target=self._read_loop, name="usb-bulk-in", daemon=True)
+        self._reader.start()
 
     @property
     def description(self) -> str:
@@ -160,6 +170,25 @@ class UsbTransport(Transport):
 
     def _lost(self, exc: Exception, doing: str) -> DeviceError:
         return DeviceError(f"{self._name} lost while {doing}: {exc}")
+
+    def _read_loop(self) -> None:
+        timeout = self._usb.core.USBTimeoutError
+        while not self._closed:
+            try:
+                data = self._device.read(self._ep_in, self._read_size, timeout=20)
+            except timeout:
+                continue
+            except (self._usb.core.USBError, OSError) as exc:
+                if getattr(exc, "errno", None) == errno.ETIMEDOUT:
+                    continue
+                with self._ready:
+                    self._error = exc
+                    self._ready.notify_all()
+                return
+            if data:
+                with self._ready:
+                    self._buffer += bytes(data)
+                    self._ready.notify_all()
 
     def write(self, data: bytes) -> None:
         if self._closed:
@@ -175,26 +204,27 @@ class UsbTransport(Transport):
 
     def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
         timeout_s = _check_timeout(timeout_s)
-        if self._closed:
-            raise DeviceError(f"{self._name} is closed")
-        # pyusb: timeout 0 means "forever", so the shortest poll is 1 ms
-        timeout_ms = max(1, round(timeout_s * 1000))
-        try:
-            data = self._device.read(self._ep_in, max(self._read_size, max_bytes), timeout=timeout_ms)
-        except self._usb.core.USBTimeoutError:
+        with self._ready:
+            if not self._buffer and self._error is None and not self._closed and timeout_s > 0:
+                self._ready.wait_for(lambda: self._buffer or self._error is not None or self._closed, timeout_s)
+            if self._buffer:
+                out = bytes(self._buffer[:max_bytes])
+                del self._buffer[:max_bytes]
+                return out
+            if self._error is not None:
+                raise self._lost(self._error, "reading")
+            if self._closed:
+                raise DeviceError(f"{self._name} is closed")
             return b""
-        except (self._usb.core.USBError, OSError) as exc:
-            if getattr(exc, "errno", None) == errno.ETIMEDOUT:
-                return b""
-            raise self._lost(exc, "reading") from exc
-        return bytes(data)
 
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
+        with self._ready:
+            self._ready.notify_all()
+        self._reader.join(1.0)
         try:
             self._usb.util.dispose_resources(self._device)
         except (self._usb.core.USBError, OSError):
             pass  # the device is gone already
-
