@@ -125,24 +125,36 @@ def detect_dots(
     expected_area = math.pi / 4 * dot_px * dot_px * math.cos(math.radians(45.0))
     h, w = img.shape
     xs, areas, darks = [], [], []
-    weight_floor = 0.5 * threshold
+    pad = 5
     for lab in range(1, n):
         x0, y0, bw, bh, area = stats[lab]
         if not (min_area_factor * expected_area <= area <= max_area_factor * expected_area):
             continue
         if x0 == 0 or y0 == 0 or x0 + bw >= w or y0 + bh >= h:
             continue
-        # Darkness-weighted centroid over the component grown by 2 px (the blurred rim carries position too).
-        xa, xb = max(x0 - 2, 0), min(x0 + bw + 2, w)
-        ya, yb = max(y0 - 2, 0), min(y0 + bh + 2, h)
-        comp = (labels[ya:yb, xa:xb] == lab).astype(np.uint8)
+        xa, xb = max(x0 - pad, 0), min(x0 + bw + pad, w)
+        ya, yb = max(y0 - pad, 0), min(y0 + bh + pad, h)
+        lab_win = labels[ya:yb, xa:xb]
+        comp = (lab_win == lab).astype(np.uint8)
         grown = cv2.dilate(comp, np.ones((5, 5), np.uint8)).astype(bool)
-        other = (labels[ya:yb, xa:xb] != lab) & (labels[ya:yb, xa:xb] != 0)
-        wgt = np.clip(dark[ya:yb, xa:xb] - weight_floor, 0.0, None) * (grown & ~other)
+        others = cv2.dilate(((lab_win != lab) & (lab_win != 0)).astype(np.uint8), np.ones((5, 5), np.uint8))
+        ring = cv2.dilate(comp, np.ones((9, 9), np.uint8)).astype(bool) & ~grown & ~others.astype(bool)
+        gy, gx = np.mgrid[ya:yb, xa:xb]
+        win = img[ya:yb, xa:xb]
+        # Local background: a plane fitted to a ring around the dot. The slopes of a ridge or valley darken the
+        # light (seed 6.3.2) with a gradient across a dot; relative darkness 1 - I / plane is then the dot's
+        # coverage whatever the illumination, so its centroid is the dot's area centroid (blur preserves it).
+        if ring.sum() >= 8:
+            design = np.column_stack([np.ones(ring.sum()), gx[ring] - x0, gy[ring] - y0])
+            coef, *_ = np.linalg.lstsq(design, win[ring].astype(np.float64), rcond=None)
+            plane = coef[0] + coef[1] * (gx - x0) + coef[2] * (gy - y0)
+        else:
+            plane = background[ya:yb, xa:xb]
+        rel = 1.0 - win / np.maximum(plane, 1.0)
+        wgt = np.clip(rel, 0.0, None) * (grown & ~others.astype(bool))
         total = float(wgt.sum())
         if total <= 0:
             continue
-        gy, gx = np.mgrid[ya:yb, xa:xb]
         xs.append((float((wgt * gx).sum() / total), float((wgt * gy).sum() / total)))
         areas.append(float(area))
         darks.append(float(dark[ya:yb, xa:xb][comp.astype(bool)].mean()))
@@ -638,6 +650,24 @@ def _grid_to_surface(ij: np.ndarray, pose: tuple[float, float, float], spacing: 
     return (ij * spacing) @ _rot2(phi).T + np.array([tu, ts])
 
 
+def _dot_image_offset(model: _Rig, pose, ij: np.ndarray, spacing: float, radius: float, n: int = 48) -> np.ndarray:
+    """Area centroid of each dot's image minus the image of its centre, px (K, 2).
+
+    The dot is a disc on the unrolled surface; its image outline is projected through the rig and the centroid of
+    that polygon taken (Green's theorem)."""
+    centre = _grid_to_surface(ij.astype(np.float64), pose, spacing)
+    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    ring = centre[:, None, :] + radius * np.stack([np.cos(t), np.sin(t)], axis=-1)[None]
+    poly = model.project(ring)
+    x, y = poly[..., 0], poly[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * yn - xn * y
+    area = 0.5 * cross.sum(axis=1)
+    cx = ((x + xn) * cross).sum(axis=1) / (6.0 * area)
+    cy = ((y + yn) * cross).sum(axis=1) / (6.0 * area)
+    return np.stack([cx, cy], axis=-1) - model.project(centre)
+
+
 def _residuals(p, views, curved, principal, spacing):
     try:
         model, poses = _unpack(p, len(views), curved, principal, spacing)
@@ -727,6 +757,7 @@ def fit_grid_mapping(
     max_rms_px: float = 0.5,
     min_dots: int = 40,
     outlier_px: float = 1.0,
+    dot_diameter_mm: float | None = 0.2,
     n_detected: int | None = None,
 ) -> tuple[GridMapping, CalibrationReport]:
     """Fit the rig model to indexed dots of one or more grid images (the grid may move between images).
@@ -751,6 +782,9 @@ def fit_grid_mapping(
         Fewer indexed dots (all images together) raise CalibrationError.
     outlier_px : float
         Dots whose residual exceeds max(outlier_px, 5 x robust sigma) after the robust fit are dropped.
+    dot_diameter_mm : float or None
+        Dot diameter; the offset between a dot's image centroid and the image of its centre is then predicted with
+        the fitted rig and removed (None: detected centroids are taken as the dot centres).
     n_detected : int, optional
         Number of dots detected (for the report only).
 
@@ -847,10 +881,30 @@ def fit_grid_mapping(
         cost = float(np.sqrt(np.mean(res.fun**2)))
         if best is None or cost < best[0]:
             best = (cost, kind, res.x, keep)
+        if best[0] < 0.1:  # the guessed model already fits to noise level: no need to try the others
+            break
     if best is None:
         raise CalibrationError("grid not found: too many dots disagree with any rig model")
     _, kind, p, keep = best
     curved = kind != "flat"
+    detected_views = gviews
+    if dot_diameter_mm is not None:
+        # The image of a round dot is not centred on the image of its centre (perspective, and the surface's
+        # curvature across the dot: ~0.04 px on a ridge's slopes, ~1 um). Predict that offset with the fitted rig,
+        # remove it from the detected centres and fit again (twice: the offset hardly depends on the fit).
+        for _ in range(2):
+            model, poses = _unpack(p, len(gviews), curved, principal, spacing_mm)
+            gviews = [
+                _GridView(ij=v.ij, xy=v.xy - _dot_image_offset(model, pose, v.ij, spacing_mm, 0.5 * dot_diameter_mm))
+                for v, pose in zip(detected_views, poses)
+            ]
+            kept_views, start = [], 0
+            for view in gviews:
+                sel = keep[start : start + len(view.ij)]
+                kept_views.append(_GridView(ij=view.ij[sel], xy=view.xy[sel]))
+                start += len(view.ij)
+            p = _fit(kept_views, curved=curved, principal=principal, spacing=spacing_mm, p0=p, loss="linear",
+                     f_scale=1.0).x
     model, poses = _unpack(p, len(gviews), curved, principal, spacing_mm)
 
     # Residuals over every indexed dot (outliers included, flagged).
@@ -901,7 +955,7 @@ def fit_grid_mapping(
         surface=kind,
         image=image_no,
         ij=np.concatenate([v.ij for v in gviews]),
-        xy=np.concatenate([v.xy for v in gviews]),
+        xy=np.concatenate([v.xy for v in detected_views]),
         residual_px=r_all,
         used=keep,
     )
@@ -979,6 +1033,7 @@ def calibrate_grid_images(
         working_distance_mm=working_distance_mm,
         max_rms_px=max_rms_px,
         min_dots=min_dots,
+        dot_diameter_mm=dot_diameter_mm,
         n_detected=n_detected,
     )
 
