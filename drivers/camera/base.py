@@ -428,12 +428,15 @@ class Camera(ABC):
                         with self._lock:
                             self._overflow += 1
                 else:
-                    while not stop.is_set():
+                    while True:
                         try:
                             self._queue.put(frame, timeout=0.05)
                             break
                         except queue.Full:
-                            continue
+                            if stop.is_set():  # stopped while the reader lagged: the frame is counted lost
+                                with self._lock:
+                                    self._overflow += 1
+                                break
         except BaseException as exc:  # handed to the reader, after the frames acquired before it
             if not isinstance(exc, DeviceError):
                 wrapped = DeviceError(f"{self!r}: acquisition failed: {type(exc).__name__}: {exc}")
