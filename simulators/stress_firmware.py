@@ -34,7 +34,7 @@ from typing import Protocol
 import numpy as np
 
 from drivers.display import stress_protocol as sp
-from processing.errors import InvalidInputError
+from processing.errors import InvalidInputError, ProtocolError
 
 FIRMWARE_NAME = "stresssim 1.0"
 
@@ -261,7 +261,7 @@ class StressFirmware:
             return self._nak(packet, sp.NakCode.BAD_LENGTH)
         try:
             self.config = sp.WatchdogConfig.decode(packet.payload)
-        except Exception:  # noqa: BLE001 - ProtocolError: a value out of range is refused, not fatal
+        except ProtocolError:  # a value out of range is refused, not fatal
             return self._nak(packet, sp.NakCode.BAD_VALUE)
         if self.armed:
             self.watchdog_deadline = t + self.config.watchdog_s

@@ -22,6 +22,7 @@ from drivers.display.playback import PlaybackReport, stream_movie
 from drivers.display.stress import StressDisplay
 from drivers.display.transports import SerialTransport, UsbTransport
 from experiments.bench import BenchOptions, BenchTable
+from processing.errors import InvalidInputError
 from simulators import stresssim
 from simulators.stress_firmware import PacedLink, RealClock, StressFirmware
 
@@ -83,7 +84,7 @@ def _row(name: str, report: PlaybackReport, firmware_times: np.ndarray, fifo: bo
         rms = report.position_rms_error_um()
         bias = report.position_mean_error_um()
         rms_mean, rms_worst, bias_mean = float(rms.mean()), float(rms.max()), float(np.abs(bias).mean())
-    except Exception:  # noqa: BLE001 - no acks: the table shows n/a
+    except InvalidInputError:  # no acks: the table shows n/a
         rms_mean = rms_worst = bias_mean = float("nan")
     late = report.lateness_s
     met = report.completed and report.missed_deadlines == 0 and fw_p99 <= JITTER_TARGET_S
@@ -153,7 +154,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     for name, report in grids.items():
         try:
             rms = report.position_rms_error_um()
-        except Exception:  # noqa: BLE001
+        except InvalidInputError:
             continue
         tables.append(BenchTable(
             title=f"display: open-loop RMS position error per contactor (um), {name}",
