@@ -263,9 +263,14 @@ class DenseFlow:
             def box(img):
                 return cv2.boxFilter(img, -1, k, normalize=False)[rr, cc].astype(np.float64)
 
-            gxx, gxy, gyy = box(ix * ix), box(ix * iy), box(iy * iy)
-            bx, by = box(ix * it), box(iy * it)
-            lam = self.params.smoothness * float(np.median((gxx + gyy)[contact]))
+            # Nodes whose window leaves the second image compare against border padding: no data term there
+            # (they follow their neighbours and are flagged invalid at the end).
+            half = self._win // 2
+            tx, ty = gx[None, :] + field[..., 0], gy[:, None] + field[..., 1]
+            inb = ((tx >= half) & (tx <= w - 1 - half) & (ty >= half) & (ty <= h - 1 - half)).astype(np.float64)
+            gxx, gxy, gyy = box(ix * ix) * inb, box(ix * iy) * inb, box(iy * iy) * inb
+            bx, by = box(ix * it) * inb, box(iy * it) * inb
+            lam = self.params.smoothness * float(np.median((gxx + gyy)[contact & (inb > 0)] if (inb > 0).any() else 1.0))
             u0 = field.copy()
             # right-hand side of the linearised data term: G u0 - b
             rx = gxx * u0[..., 0] + gxy * u0[..., 1] - bx

@@ -1,0 +1,67 @@
+"""The dense method (processing.flow) on exact synthetic fingerprints."""
+
+import numpy as np
+import pytest
+
+from processing.calibration import Calibration
+from processing.errors import InvalidInputError
+from processing.flow import DenseFlow, FlowParams, grid_strain, sample_dense_flow
+from processing.stretch import triangulation_strain
+from tests.test_track_support import affine_field, render
+
+CAL = Calibration(px_per_mm=62.0)
+SHAPE = (240, 320)
+
+
+@pytest.fixture(scope="module")
+def strained_pair():
+    f0 = render(affine_field(0, 0), shape=SHAPE, noise=2.0)
+    field = affine_field(3.4, -1.2, exx=0.01, eyy=-0.005)
+    f1 = render(field, shape=SHAPE, noise=2.0, rng=np.random.default_rng(3))
+    return f0, f1, field
+
+
+def test_flow_measures_displacement_and_strain(strained_pair):
+    f0, f1, field = strained_pair
+    flow = DenseFlow(calibration=CAL).compute(f0, f1, frame_a=4, frame_b=5)
+    assert flow.status == "ok" and (flow.frame_a, flow.frame_b) == (4, 5)
+    assert flow.valid.mean() > 0.8
+    X, Y = np.meshgrid(flow.grid_x, flow.grid_y)
+    u, v = field(X, Y)
+    err = np.hypot(flow.displacement[..., 0] - u, flow.displacement[..., 1] - v)[flow.valid]
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    assert np.all(np.isnan(flow.displacement[~flow.valid]))
+    strain, ok = grid_strain(flow)
+    assert np.median(strain[ok][:, 0]) == pytest.approx(0.01, abs=0.002)
+    assert np.median(strain[ok][:, 1]) == pytest.approx(-0.005, abs=0.002)
+    tri = triangulation_strain(flow.motion(stride=3))
+    assert np.median(tri.area_change) == pytest.approx(1.01 * 0.995 - 1, abs=0.003)
+    pts = np.array([[160.0, 120.0], [100.0, 80.0]])
+    d, dok = flow.sample(pts)
+    assert dok.all() and np.abs(d - np.column_stack(field(pts[:, 0], pts[:, 1]))).max() < 0.1
+
+
+def test_no_contact_and_partial_contact_are_flagged(strained_pair):
+    f0, f1, _ = strained_pair
+    flat = np.full(SHAPE, 230, np.uint8)
+    none = DenseFlow(calibration=CAL).compute(flat, flat)
+    assert none.status == "no contact" and not none.valid.any()
+    assert len(none.motion()) == 0
+    half0, half1 = f0.copy(), f1.copy()
+    half0[:, 160:] = 230  # contact lost over the right half
+    half1[:, 160:] = 230
+    part = DenseFlow(calibration=CAL).compute(half0, half1)
+    right = part.grid_x > 190
+    assert not part.valid[:, right].any() and part.valid[:, part.grid_x < 130].mean() > 0.8
+
+
+def test_dense_sampler_and_bad_inputs():
+    flow = np.zeros((10, 12, 2), np.float32)
+    flow[..., 0] = np.arange(12)[None, :]
+    np.testing.assert_allclose(sample_dense_flow(flow, np.array([[2.5, 3.0]])), [[2.5, 0.0]])
+    with pytest.raises(InvalidInputError, match="flow"):
+        sample_dense_flow(np.zeros((3, 3)), np.zeros((1, 2)))
+    with pytest.raises(InvalidInputError, match="grid_step_mm"):
+        FlowParams(grid_step_mm=0)
+    with pytest.raises(InvalidInputError, match="differ in shape"):
+        DenseFlow(calibration=CAL).compute(np.zeros((50, 60), np.uint8), np.zeros((50, 61), np.uint8))
