@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from processing.errors import InvalidInputError
@@ -72,6 +73,21 @@ class CameraModel:
         if self.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), sigmaX=self.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
         if self.noise_sigma > 0 or self.shot_noise_gain > 0:
-            var = self.noise_sigma**2 + self.shot_noise_gain * np.maximum(img, 0.0)
-            img = img + np.sqrt(var) * rng.standard_normal(img.shape, dtype=np.float32)
+            normals = rng.standard_normal(img.shape, dtype=np.float32)
+            return _noise_and_quantise(np.ascontiguousarray(img), normals, np.float32(self.noise_sigma**2),
+                                       np.float32(self.shot_noise_gain))
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@numba.njit(cache=True, nogil=True)
+def _noise_and_quantise(img, normals, read_var, shot_gain):  # pragma: no cover - compiled
+    """uint8(clip(rint(img + sqrt(read_var + shot_gain * max(img, 0)) * normals))) in one pass."""
+    h, w = img.shape
+    out = np.empty((h, w), dtype=np.uint8)
+    for i in numba.prange(h):
+        for j in range(w):
+            v = img[i, j]
+            var = read_var + shot_gain * (v if v > 0 else np.float32(0.0))
+            q = np.rint(v + np.sqrt(var) * normals[i, j])
+            out[i, j] = 0 if q < 0 else (255 if q > 255 else np.uint8(q))
+    return out

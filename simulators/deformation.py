@@ -282,7 +282,7 @@ class FrameDeformation:
         return X
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, mech_sig, iterations):  # pragma: no cover
     n = x.shape[0]
     out = np.empty_like(x)
@@ -290,7 +290,7 @@ def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, m
     rmean = 0.5 * (a + b)
     se = np.sqrt(np.e)
     d00, d01, d10, d11 = rb[0, 0] - ra[0, 0], rb[0, 1] - ra[0, 1], rb[1, 0] - ra[1, 0], rb[1, 1] - ra[1, 1]
-    for p in range(n):
+    for p in numba.prange(n):
         x0, x1 = x[p, 0], x[p, 1]
         ys = x1
         if mech_a != 0.0:

@@ -250,9 +250,8 @@ class Fingerprint:
         kernel = np.ones((3, 3))
         for i in range(m):
             pu, ps = self.spiral_xy[i]
-            U, S = np.meshgrid(pu + offs, ps + offs)
-            phi, _ = self.phase_and_gradient(np.column_stack([U.ravel(), S.ravel()]), with_gradient=False)
-            valley = (np.cos(phi) < 0).reshape(n, n)
+            valley, _ = self._cos_phase_grid(u0=pu + offs[0], s0=ps + offs[0], step_mm=step, shape=(n, n))
+            valley = valley < 0
             sk = skeletonize(valley)
             nb = convolve(sk.astype(np.int32), kernel.astype(np.int32), mode="constant") - 1
             want = (nb == 1) if self.minutia_kind[i] == FeatureKind.VALLEY_ENDING else (nb >= 3)
@@ -386,22 +385,7 @@ class Fingerprint:
         ny, nx = shape
         su = u0 + step_mm * np.arange(nx)
         sv = s0 + step_mm * np.arange(ny)
-        ns, nu = self.phase_grid.shape
-        wu = _catmull_rom_matrix(self.grid_u0, _GRID_MM, nu, su)
-        ws = _catmull_rom_matrix(self.grid_s0, _GRID_MM, ns, sv)
-        # Separable Catmull-Rom in float64 (cv2.remap would quantise positions to 1/32 px, too coarse for phase).
-        phic = np.ascontiguousarray((wu @ (ws @ self.phase_grid).T).T)
-        contrast = (wu @ (ws @ self.contrast_grid.astype(np.float64)).T).T.astype(np.float32)
-        cosphi = _spiral_cosine(
-            phic,
-            float(u0),
-            float(step_mm),
-            float(s0),
-            float(step_mm),
-            self.spiral_xy[:, 0].copy(),
-            self.spiral_xy[:, 1].copy(),
-            self.minutia_polarity.astype(np.int64),
-        )
+        cosphi, contrast = self._cos_phase_grid(u0=u0, s0=s0, step_mm=step_mm, shape=shape, with_contrast=True)
         g = self.params.ridge_sharpness
         ridge = 0.5 + 0.5 * np.tanh(g * cosphi) / np.tanh(g)  # 1 at ridge centres, 0 at valley centres
         img = 1.0 - ridge * contrast
@@ -421,6 +405,29 @@ class Fingerprint:
             disc = (0.5 - 0.5 * np.tanh((d - r) / edge)).astype(np.float32)
             np.maximum(img[i0:i1, j0:j1], disc * 0.95, out=img[i0:i1, j0:j1])
         return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+    def _cos_phase_grid(self, *, u0, s0, step_mm, shape, with_contrast=False):
+        """cos(phi) (float32) on a regular skin grid, and optionally the ridge contrast there."""
+        ny, nx = shape
+        ns, nu = self.phase_grid.shape
+        wu = _catmull_rom_matrix(self.grid_u0, _GRID_MM, nu, u0 + step_mm * np.arange(nx))
+        ws = _catmull_rom_matrix(self.grid_s0, _GRID_MM, ns, s0 + step_mm * np.arange(ny))
+        # Separable Catmull-Rom in float64 (cv2.remap would quantise positions to 1/32 px, too coarse for phase).
+        phic = np.ascontiguousarray((wu @ (ws @ self.phase_grid).T).T)
+        contrast = None
+        if with_contrast:
+            contrast = (wu @ (ws @ self.contrast_grid.astype(np.float64)).T).T.astype(np.float32)
+        cosphi = _spiral_cosine(
+            phic,
+            float(u0),
+            float(step_mm),
+            float(s0),
+            float(step_mm),
+            self.spiral_xy[:, 0].copy(),
+            self.spiral_xy[:, 1].copy(),
+            self.minutia_polarity.astype(np.int64),
+        )
+        return cosphi, contrast
 
     # ------------------------------------------------------------------ truth
     def features(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -35,19 +35,24 @@ def test_minutiae_sit_on_skeleton_endings_and_junctions(flat_frame0):
     _, kinds, _ = r.fingerprint.features()
     h, w = rad.shape
     checked = {0: 0, 1: 0}
+    dists = []
     for (x, y), v, k in zip(xy, vis, kinds):
         if k == FeatureKind.PORE or not v or not (15 < x < w - 15 and 15 < y < h - 15):
             continue
         d_end = np.min(np.hypot(ends[:, 1] - x, ends[:, 0] - y))
         d_junc = np.min(np.hypot(juncs[:, 1] - x, juncs[:, 0] - y))
         if k == FeatureKind.VALLEY_ENDING:
-            assert d_end <= 1.5, f"valley ending at ({x:.1f}, {y:.1f}): nearest skeleton end {d_end:.2f} px"
+            # A thinned valley end moves by a pixel with the pixel grid; the junction is steadier.
+            assert d_end <= 2.0, f"valley ending at ({x:.1f}, {y:.1f}): nearest skeleton end {d_end:.2f} px"
+            dists.append(d_end)
             assert d_junc > 5, "a valley ending must not sit on a junction"
         else:
             assert d_junc <= 1.5, f"valley bifurcation at ({x:.1f}, {y:.1f}): nearest junction {d_junc:.2f} px"
+            dists.append(d_junc)
             assert d_end > 5, "a valley bifurcation must not sit on a skeleton end"
         checked[int(k)] += 1
     assert checked[0] >= 2 and checked[1] >= 2, checked
+    assert np.mean(dists) < 1.0
 
 
 def test_pores_are_bright_maxima_inside_dark_ridges(flat_frame0):
