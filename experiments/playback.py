@@ -39,6 +39,7 @@ __all__ = [
     "rms_tracking_error",
     "play_protocol_movie",
     "resample_movie",
+    "fit_movie",
 ]
 
 SHAPE = (10, 10)
@@ -282,8 +283,10 @@ def play_movie(
 
     t0 = time.perf_counter()
     # A wider spin window leaves the callback (about 0.2 ms) inside the period instead of making frames late.
+    # max_outstanding 64 (91 ms at 700 Hz) rides out a busy host; the firmware's watchdog still rests the
+    # contactors after 50 ms without frames, whatever the host does.
     report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
-                          settle_frames=0)
+                          settle_frames=0, max_outstanding=64)
     rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
     rested = report.rested and rested_now
     duration = time.perf_counter() - t0
@@ -425,6 +428,20 @@ def _is_results(p: Path) -> bool:
         return False
 
 
+def fit_movie(movie_um: np.ndarray, *, peak_um: float = 30.0) -> tuple[np.ndarray, float]:
+    """Scale a movie down (never up) so its largest excursion is ``peak_um``; returns (movie, scale).
+
+    The display's contactors reach +/-50 um unloaded but less under the finger (bender and skin in series), and
+    the closed loop needs headroom to correct: a target beyond reach is an error no controller can remove.
+    """
+    movie = np.asarray(movie_um, float)
+    if not (np.isfinite(peak_um) and peak_um > 0):
+        raise InvalidInputError(f"peak_um must be positive, got {peak_um!r}")
+    peak = float(np.max(np.abs(movie))) if movie.size else 0.0
+    scale = 1.0 if peak <= peak_um else peak_um / peak
+    return movie * scale, scale
+
+
 def resample_movie(movie_um: np.ndarray, *, from_hz: float, to_hz: float) -> np.ndarray:
     """Linear interpolation of a movie to the display's frame rate (e.g. 60 Hz camera -> 700 Hz display)."""
     movie = np.asarray(movie_um, float)
@@ -465,7 +482,7 @@ def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=
     else:
         movie_path = Path(source)
     movie, rate = load_movie(movie_path)
-    movie = movie * spec.gain
+    movie, _ = fit_movie(movie * spec.gain)
     display_rate = float(spec.rate_hz or 700.0)
     if rate is not None and rate != display_rate:
         movie = resample_movie(movie, from_hz=rate, to_hz=display_rate)

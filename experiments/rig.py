@@ -81,6 +81,8 @@ class ForceSource:
 
     def begin(self) -> None:
         if not self._running:
+            if not getattr(self.sensor, "is_open", True):
+                self.sensor.open()
             self.sensor.start()
             self._running = True
 
@@ -91,8 +93,8 @@ class ForceSource:
 
     def read_block(self, *, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Samples that arrived (t (k,), wrench (k, 6)); may be empty after ``timeout_s``."""
-        if hasattr(self.sensor, "read_block"):
-            t, data = self.sensor.read_block(timeout_s=timeout_s)
+        if hasattr(self.sensor, "drain"):
+            t, data = _read_drain(self.sensor, timeout_s)
         else:
             t, data = _read_samples(self.sensor, timeout_s)
         t = np.asarray(t, dtype=np.float64).reshape(-1)
@@ -138,6 +140,20 @@ class ForceSource:
             close = getattr(self.sensor, "close", None)
             if close is not None:
                 close()
+
+
+def _read_drain(sensor: Any, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """A :class:`drivers.forcesensor.base.ForceSensor`: wait for one sample, then take all that are queued."""
+    from processing.errors import DeviceTimeoutError  # noqa: PLC0415
+
+    try:
+        first = sensor.read(timeout_s=timeout_s)
+    except DeviceTimeoutError:
+        return np.zeros(0), np.zeros((0, 6))
+    rest = sensor.drain()
+    t = np.concatenate([[first.host_timestamp_s], rest["t"]])
+    ft = np.concatenate([np.asarray(first.ft, float).reshape(1, 6), rest["ft"].reshape(-1, 6)])
+    return t, ft
 
 
 def _read_samples(sensor: Any, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -373,9 +389,15 @@ class RigDevices:
         from drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
 
         if spec.kind == "sim":
-            from simulators.netft import NetFTSimulator  # noqa: PLC0415
+            from simulators.netft import NetFTSimulator, normal_force_wrench  # noqa: PLC0415
 
-            server = NetFTSimulator(seed=spec.seed, **spec.options)
+            opts = dict(spec.options)
+            force_n = float(opts.pop("normal_force_n", 1.5))  # a fingertip pressing lightly (seed 6.3.3)
+            opts.setdefault("noise_n", 0.02)
+            # 250 Hz is plenty for a force ceiling and keeps the in-process twin light (it shares the GIL with
+            # the display stream).
+            opts.setdefault("rate_hz", 250.0)
+            server = NetFTSimulator(seed=spec.seed, wrench=normal_force_wrench(lambda t: force_n), **opts)
             server.start()
             self._sim_servers.append(server)
             host, port = server.address
@@ -416,7 +438,7 @@ class RigDevices:
             (lambda: self._display.close()) if self._display is not None else None,
             (lambda: self._aravis.close()) if self._aravis is not None else None,
             (lambda: self._render_pool.shutdown(wait=True, cancel_futures=True)) if self._render_pool else None,
-            *[(lambda s=s: s.stop()) for s in self._sim_servers],
+            *[(lambda s=s: s.close()) for s in self._sim_servers],
         ):
             if closer is None:
                 continue

@@ -154,9 +154,11 @@ def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[
     return {"results": str(result), "seconds": time.perf_counter() - t0}
 
 
-def _spawn_pool() -> cf.ProcessPoolExecutor:
+def _spawn_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
     # spawn, not fork: the recording process runs threads (writer, force reader) that fork would copy mid-state.
-    return cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    if not (isinstance(workers, int) and workers >= 1):
+        raise InvalidInputError(f"analysis_workers must be a positive int, got {workers!r}")
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
 
 
 # ------------------------------------------------------------------------------------------------- trials
@@ -390,6 +392,7 @@ def run_protocol(
     rig_text: str | None = None,
     devices=None,
     writer_factory=None,
+    analysis_workers: int = 1,
 ) -> SessionRun:
     """Run every trial of ``protocol`` on ``rig`` into ``datadir`` (see module docstring for the layout).
 
@@ -410,6 +413,8 @@ def run_protocol(
         Pre-built devices (:class:`experiments.rig.RigDevices`); default: built from ``rig``.
     writer_factory : callable, optional
         Passed to every :class:`Recorder` (fault injection in tests).
+    analysis_workers : int, optional
+        Processes analysing finished trials while the next ones record.
     """
     sdir = session_dir(protocol, datadir)
     log_path = sdir / EVENT_LOG
@@ -430,7 +435,7 @@ def run_protocol(
         from experiments.rig import RigDevices  # noqa: PLC0415 - rig imports the device modules
 
         devices = RigDevices(rig)
-    pool = _spawn_pool() if do_analysis else None
+    pool = _spawn_pool(analysis_workers) if do_analysis else None
     pending: list[tuple[TrialResult, cf.Future, str]] = []
     results: list[TrialResult] = []
     plan = protocol.planned_trials()
