@@ -38,7 +38,7 @@ from processing.illumination import compensate_illumination, illumination_map
 from processing.minutiae import SkeletonGraph, node_orientation, trace_skeleton
 from processing.pores import detect_blob_pores
 from processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
-from processing.subpixel import refine_minutiae, refine_pores
+from processing.subpixel import refine_bifurcations, refine_minutiae, refine_pores
 from processing.thinning import thin
 
 __all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
@@ -87,7 +87,7 @@ class ExtractionParams:
     # 4.8.3
     remove_short_spurs: bool = True
     spur_min_mm: float = 0.1
-    spur_max_mm: float = 1.0
+    spur_max_mm: float = 0.3
     spur_max_deviation_deg: float = 60.0
     # 4.8.4
     remove_bridges: bool = True
@@ -101,9 +101,11 @@ class ExtractionParams:
     # 4.8.6
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
-    # Beyond the seed (7.2.2): sub-pixel positions of pores (and of valley endings, see FeatureExtractor._refine).
+    # Beyond the seed (7.2.2): sub-pixel positions of pores (subpixel) and of minutiae (subpixel_minutiae, which
+    # needs subpixel too); fork_radius_mm is the mean-shift disc of bifurcations (about half a ridge period).
     subpixel: bool = True
-    subpixel_endings: bool = True
+    subpixel_minutiae: bool = True
+    fork_radius_mm: float = 0.21
     # Frame checks: below black_level everywhere = all black; more than saturated_fraction at 255 = saturated;
     # more than no_finger_fraction background = no finger in view.
     black_level: float = 20.0
@@ -124,7 +126,7 @@ class ExtractionParams:
         positive = [
             "smoothing_sigma_mm", "local_average_mm", "background_window_mm", "pore_max_diameter_mm", "orientation_distance_mm",
             "short_valley_max_mm", "heal_max_distance_mm", "heal_max_angle_deg", "spur_max_mm", "bridge_max_mm",
-            "density_radius_mm", "binarization_scale", "background_max_std",
+            "density_radius_mm", "binarization_scale", "background_max_std", "fork_radius_mm",
         ]  # fmt: skip
         for name in positive:
             if getattr(self, name) <= 0:
@@ -210,6 +212,7 @@ class _Plan:
     density_radius: float
     border_dilation: int
     minutia_reach: float
+    fork_radius: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -234,6 +237,7 @@ class _Plan:
             border_dilation=cal.px_int(p.border_dilation_mm),
             # A quarter ridge period (~0.11 mm) covers the skeleton-to-minutia offsets of thinning.
             minutia_reach=max(cal.px(0.15), 3.0),
+            fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
         )
 
 
@@ -438,21 +442,24 @@ class FeatureExtractor:
             radius = np.clip(size[pores] / 2 + 1.5, 2.0, q.pore_radius)
             rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=radius)
             x[pores], y[pores] = rx, ry
-        # Only valley endings are refined: on the simulator's scenes the apex of the bright valley is ~0.3 px
-        # repeatable (skeleton end: ~1.2 px) at a constant offset of ~3 px beyond the true minutia, which tracking
-        # does not see. The dark-ridge apex of a fork is ~10 px from the true bifurcation, so bifurcations keep
-        # the centre of their skeleton pixel group (seed 4.7). Measured in experiments/bench/features.py.
-        minutiae = kind == FeatureKind.VALLEY_ENDING
-        if self.params.subpixel_endings and minutiae.any():
+        # Valley endings: the apex of the bright valley (on flatL ~0.2 px repeatable, against ~1.5 px for the
+        # skeleton end, at a constant offset of ~3 px beyond the true minutia, which tracking does not see).
+        ends = kind == FeatureKind.VALLEY_ENDING
+        if self.params.subpixel_minutiae and ends.any():
             rx, ry, _ = refine_minutiae(
                 cv2.subtract(s, thr),
-                x=x[minutiae],
-                y=y[minutiae],
-                direction_deg=orient[minutiae],
-                is_ending=kind[minutiae] == FeatureKind.VALLEY_ENDING,
+                x=x[ends],
+                y=y[ends],
+                direction_deg=orient[ends],
+                is_ending=np.ones(int(ends.sum()), dtype=bool),
                 reach_px=q.minutia_reach,
             )
-            x[minutiae], y[minutiae] = rx, ry
+            x[ends], y[ends] = rx, ry
+        # Valley bifurcations: mean shift on the valley excess from the skeleton fork (see refine_bifurcations).
+        bifs = kind == FeatureKind.VALLEY_BIFURCATION
+        if self.params.subpixel_minutiae and bifs.any():
+            rx, ry, _ = refine_bifurcations(s, threshold=thr, x=x[bifs], y=y[bifs], radius_px=q.fork_radius)
+            x[bifs], y[bifs] = rx, ry
         return x, y
 
     def _empty(self, shape, flags, background=None) -> ExtractionResult:
