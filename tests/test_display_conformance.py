@@ -16,6 +16,8 @@ from simulators import stresssim
 from simulators.stress_firmware import ManualClock, PacedLink, StressFirmware
 
 _names = itertools.count()
+# long enough that a test process starved by a busy CI machine does not trip it by accident
+WATCHDOG_S = 0.3
 
 
 @dataclass
@@ -37,14 +39,14 @@ def rig(request):
         clock = ManualClock()
         link = stresssim.make_link(clock=clock, seed=3)
         name = f"conformance{next(_names)}"
-        display = StressDisplay(SerialTransport(stresssim.attach(name, link)), clock=clock.now)
+        display = StressDisplay(SerialTransport(stresssim.attach(name, link)), clock=clock.now, watchdog_s=WATCHDOG_S)
         yield Rig(display, link, clock.advance)
         display.close()
         stresssim.detach(name)
     elif kind == "pty":
         link = stresssim.make_link(seed=3)
         server = stresssim.start_pty_firmware(link)
-        display = StressDisplay(SerialTransport(server.port), reply_timeout_s=0.5)
+        display = StressDisplay(SerialTransport(server.port), reply_timeout_s=0.5, watchdog_s=WATCHDOG_S)
         yield Rig(display, link, time.sleep)
         display.close()
         server.stop()
@@ -52,7 +54,8 @@ def rig(request):
     else:
         # real time: the transport's reader thread keeps a bulk read pending, as libusb would
         link = PacedLink.usb_high_speed(StressFirmware(seed=3, t0=time.perf_counter()), clock=stresssim.RealClock())
-        display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), reply_timeout_s=0.5)
+        display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), reply_timeout_s=0.5,
+                                watchdog_s=WATCHDOG_S)
         yield Rig(display, link, time.sleep)
         display.close()
 
@@ -142,7 +145,7 @@ def test_watchdog_sends_contactors_to_rest_and_disarms(rig):
     d.arm()
     for _ in range(4):
         d.send_frame(np.full((10, 10), 20.0))
-    rig.wait(0.15)  # watchdog 50 ms + rest ramp
+    rig.wait(WATCHDOG_S + 0.1)  # watchdog + rest ramp
     report = d.read_status()
     assert report.watchdog_trips == 1
     assert report.status & sp.Status.WATCHDOG_TRIPPED and not report.status & sp.Status.ARMED

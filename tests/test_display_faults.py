@@ -28,8 +28,12 @@ def _url_display(link, **kw):
     return StressDisplay(SerialTransport(stresssim.attach(f"faults{next(_names)}", link)), **kw)
 
 
+# a test process starved on a busy machine must not trip the watchdog before the fault under test
+WATCHDOG_S = 0.2
+
+
 def _assert_firmware_rests(link, wait):
-    wait(0.12)  # watchdog 50 ms + soft rest ramp
+    wait(WATCHDOG_S + 0.1)  # watchdog + soft rest ramp
     link.advance()
     fw = link.firmware
     assert not fw.armed
@@ -38,7 +42,7 @@ def _assert_firmware_rests(link, wait):
 
 def test_vanished_url_link_mid_movie_stops_keeps_data_and_watchdog_rests():
     link = stresssim.make_link(faults="vanish_after:40", seed=5)
-    display = _url_display(link)
+    display = _url_display(link, watchdog_s=WATCHDOG_S)
     report = stream_movie(display, _movie())
     assert report.outcome == "link_failure" and "lost" in report.error
     assert 40 <= report.frames_sent < 120 and report.acked.sum() >= 30
@@ -51,7 +55,7 @@ def test_vanished_pty_mid_movie():
     link = stresssim.make_link(faults="vanish_after:40", seed=5)
     server = stresssim.start_pty_firmware(link)
     try:
-        display = StressDisplay(SerialTransport(server.port))
+        display = StressDisplay(SerialTransport(server.port), watchdog_s=WATCHDOG_S)
         report = stream_movie(display, _movie())
         assert report.outcome == "link_failure"
         assert report.frames_sent >= 40 and report.acked.sum() >= 30
@@ -64,7 +68,7 @@ def test_vanished_pty_mid_movie():
 def test_vanished_usb_device_mid_movie():
     link = PacedLink.usb_high_speed(StressFirmware(seed=5, t0=time.perf_counter()), clock=stresssim.RealClock(),
                                     faults=LinkFaults(vanish_after_frames=40))
-    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)))
+    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), watchdog_s=WATCHDOG_S)
     report = stream_movie(display, _movie())
     assert report.outcome == "link_failure" and "usb" in report.error
     assert report.frames_sent >= 40
@@ -75,7 +79,7 @@ def test_vanished_usb_device_mid_movie():
 
 def test_stalled_link_is_detected_within_the_outstanding_window():
     link = stresssim.make_link(faults="stall_after:30", seed=2)
-    display = _url_display(link)
+    display = _url_display(link, watchdog_s=WATCHDOG_S)
     t0 = time.perf_counter()
     report = stream_movie(display, _movie(300), max_outstanding=16)
     elapsed = time.perf_counter() - t0
@@ -87,7 +91,7 @@ def test_stalled_link_is_detected_within_the_outstanding_window():
 
 def test_corrupted_and_dropped_bytes_are_survived_and_counted():
     link = stresssim.make_link(faults="corrupt:0.002,drop:0.001", seed=11)
-    display = _url_display(link)
+    display = _url_display(link, watchdog_s=WATCHDOG_S)
     report = stream_movie(display, _movie(300))
     assert report.outcome == "completed" and report.frames_sent == 300
     fw = link.firmware
@@ -142,7 +146,7 @@ def test_lost_ack_raises_for_that_frame_only():
 
 def test_callback_safety_stop_rests_the_display():
     link = stresssim.make_link(seed=4)
-    display = _url_display(link)
+    display = _url_display(link, watchdog_s=WATCHDOG_S)
 
     def ceiling(index, command, ack):
         if index == 50:

@@ -19,7 +19,7 @@ def sim():
     stresssim.register_url_handler()
     link = stresssim.make_link(seed=7)
     name = f"playback{next(_names)}"
-    display = StressDisplay(SerialTransport(stresssim.attach(name, link)))
+    display = StressDisplay(SerialTransport(stresssim.attach(name, link)), watchdog_s=0.3)
     yield display, link
     display.close()
     stresssim.detach(name)

@@ -186,6 +186,9 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
             commands[k] = display.last_command_um
             frame_of_seq[seq] = k
             sent = k + 1
+            if display.outstanding > max_outstanding // 2:
+                # behind schedule the wait above is skipped: collect what has arrived without waiting
+                file_acks(display.collect_acks(timeout_s=0.0))
             if display.outstanding > max_outstanding:
                 raise DeviceTimeoutError(f"{display.outstanding} frames unacknowledged "
                                          f"({display.outstanding * period * 1000:.0f} ms of movie)")
