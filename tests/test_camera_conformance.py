@@ -68,7 +68,14 @@ def _ramp_source(k: int) -> np.ndarray:
     return image
 
 
-@pytest.fixture(params=["simulated", "aravis-fake", "aravis-gv-loopback", "replay-session"])
+@pytest.fixture(
+    params=[
+        "simulated",
+        pytest.param("aravis-fake", marks=pytest.mark.aravis),
+        pytest.param("aravis-gv-loopback", marks=pytest.mark.aravis),
+        "replay-session",
+    ]
+)
 def camera(request, tmp_path) -> Camera:
     kind = request.param
     if kind == "simulated":
