@@ -67,6 +67,7 @@ class FingerprintParams:
     pore_minutia_clearance_mm: float = 0.3
     ridge_sharpness: float = 1.5
     ridge_contrast_variation: float = 0.15
+    ridge_texture: float = 0.12
 
     def __post_init__(self) -> None:
         if not 0.2 <= self.ridge_period_mm <= 1.0:
@@ -82,6 +83,8 @@ class FingerprintParams:
             raise InvalidInputError("spacings must be positive")
         if self.ridge_sharpness <= 0 or not 0 <= self.ridge_contrast_variation < 1:
             raise InvalidInputError("ridge_sharpness must be positive and ridge_contrast_variation in [0, 1)")
+        if not 0 <= self.ridge_texture + self.ridge_contrast_variation < 1:
+            raise InvalidInputError("ridge_texture + ridge_contrast_variation must be in [0, 1)")
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray:
@@ -181,8 +184,10 @@ class Fingerprint:
         ss = gs0 + _GRID_MM * np.arange(ns)
         U, S = np.meshgrid(uu, ss)
         phase = _integrate_phase(params, U, S, rng, centre=((u_min + u_max) / 2, (s_min + s_max) / 2))
+        # Ridge darkness varies: slowly (pressure, moisture) and finely (the mottled contact of real FTIR ridges).
         contrast = _smooth_noise(rng, U.shape, sigma_px=0.25 / _GRID_MM)
-        contrast = 1.0 - params.ridge_contrast_variation * (0.5 + 0.5 * contrast)
+        texture = _smooth_noise(rng, U.shape, sigma_px=0.05 / _GRID_MM)
+        contrast = 1.0 - params.ridge_contrast_variation * (0.5 + 0.5 * contrast) - params.ridge_texture * (0.5 + 0.5 * texture)
         fp = cls(
             params=params,
             bounds_mm=(u_min, u_max, s_min, s_max),

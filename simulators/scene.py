@@ -95,6 +95,7 @@ class FingerprintSpec(_Model):
     pore_minutia_clearance_mm: float = Field(0.3, ge=0.0)
     ridge_sharpness: float = Field(1.5, gt=0.0, le=20.0)
     ridge_contrast_variation: float = Field(0.15, ge=0.0, lt=1.0)
+    ridge_texture: float = Field(0.12, ge=0.0, lt=0.5, description="fine mottling of the ridge darkness")
 
     @field_validator("pore_diameter_mm")
     @classmethod
@@ -419,6 +420,7 @@ class SceneRenderer:
             pore_minutia_clearance_mm=fpspec.pore_minutia_clearance_mm,
             ridge_sharpness=fpspec.ridge_sharpness,
             ridge_contrast_variation=fpspec.ridge_contrast_variation,
+            ridge_texture=fpspec.ridge_texture,
         )
         self.fingerprint = Fingerprint.generate(params, bounds_mm=bounds, rng=np.random.default_rng(print_seq))
         self._master_step = 1.0 / (self.calibration.px_per_mm * cam.oversample)
@@ -633,7 +635,7 @@ def render_session(
     noise: float | None = None,
     optics: Optics | None = None,
     progress: bool = False,
-    workers: int = 2,
+    workers: int = 1,
 ) -> RenderedSession:
     """Render a whole scene (a :class:`Scene`, a built-in name or a YAML path) in memory, with its truth.
 
@@ -689,9 +691,11 @@ def simulate_to_file(
     optics: Optics | None = None,
     progress: bool = False,
     overwrite: bool = False,
+    workers: int = 1,
 ) -> Path:
     """Render a scene and write it as a session file (with its truth); returns the path."""
-    s = render_session(scene, n_frames=n_frames, seed=seed, noise=noise, optics=optics, progress=progress)
+    s = render_session(scene, n_frames=n_frames, seed=seed, noise=noise, optics=optics, progress=progress,
+                       workers=workers)
     return write_session(
         path,
         s.frames,
