@@ -134,8 +134,9 @@ class SimulatedCamera(Camera):
 
         Parameters
         ----------
-        scene : str or scene object
-            A scene name for ``simulators.scene.load_scene`` or an already loaded scene.
+        scene : str, scene object or SceneRenderer
+            A scene name for ``simulators.scene.load_scene``, an already loaded scene, or a ready renderer
+            (anything with ``render_frame``, ``camera_mode`` and ``n_frames``; its own seed then applies).
         seed : int
             Seed of the renderer (and of the random drops).
         prerender : bool, optional
@@ -144,11 +145,14 @@ class SimulatedCamera(Camera):
         **kwargs
             Passed to the constructor (clock, faults, loop, queue_size).
         """
-        from simulators import scene as scene_module  # the scene simulator is optional for this module
+        if all(hasattr(scene, a) for a in ("render_frame", "camera_mode", "n_frames")):
+            renderer = scene
+        else:
+            from simulators import scene as scene_module  # imported here: only this constructor needs it
 
-        if isinstance(scene, str):
-            scene = scene_module.load_scene(scene)
-        renderer = scene_module.SceneRenderer(scene, seed=seed)
+            if isinstance(scene, str):
+                scene = scene_module.load_scene(scene)
+            renderer = scene_module.SceneRenderer(scene, seed=seed)
         mode = renderer.camera_mode
         n = int(renderer.n_frames)
         t = time.perf_counter()

@@ -174,11 +174,12 @@ def test_frame_id_unwrapper_handles_gige_wrap_and_gaps():
 
 
 def test_from_scene_streams_the_scene_renderer():
+    """The scene renderer's frames, in order, looped (renderer built once: it takes seconds to set up)."""
     scene_module = pytest.importorskip("simulators.scene")
     scene = scene_module.load_scene("flatL").model_copy(update={"n_frames": 3})
     renderer = scene_module.SceneRenderer(scene, seed=0)
     clock = ManualClock()
-    with SimulatedCamera.from_scene(scene, seed=0, clock=clock, prerender=True) as cam:
+    with SimulatedCamera.from_scene(renderer, clock=clock, prerender=True) as cam:
         assert cam.mode == renderer.camera_mode
         cam.start()
         clock.advance(3.5 * cam.mode.period_s)

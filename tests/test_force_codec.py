@@ -21,6 +21,7 @@ from drivers.forcesensor.netft import (
     encode_record,
     encode_request,
     ft_to_counts,
+    parse_calibration,
 )
 from processing.errors import InvalidInputError, ProtocolError
 
@@ -117,3 +118,17 @@ def test_tracker_never_loses_count(sequence_steps):
     assert verdicts.count("duplicate") == t.duplicates
     assert verdicts.count("late") == t.reordered
     assert t.lost >= 0
+
+
+NETFTAPI2 = b"""<?xml version="1.0"?>
+<netft><setserial>FT12345</setserial><cfgcpf>1000000</cfgcpf><cfgcpt>1000</cfgcpt><scfgfu>2</scfgfu></netft>"""
+
+
+def test_calibration_is_read_from_netftapi2_xml():
+    assert parse_calibration(NETFTAPI2) == (1_000_000.0, 1000.0)
+    with pytest.raises(ProtocolError, match="cfgcpt"):
+        parse_calibration(b"<netft><cfgcpf>1000000</cfgcpf></netft>")
+    with pytest.raises(ProtocolError, match="cfgcpf"):
+        parse_calibration(b"<netft><cfgcpf>-3</cfgcpf><cfgcpt>1</cfgcpt></netft>")
+    with pytest.raises(ProtocolError, match="well-formed"):
+        parse_calibration(b"<netft><cfgcpf>")

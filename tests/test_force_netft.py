@@ -123,3 +123,40 @@ def test_arguments_are_checked():
         NetFTSimulator(rate_hz=8000)
     with pytest.raises(InvalidInputError, match="loss_probability"):
         NetFTFaults(loss_probability=1.0)
+
+
+def test_from_box_reads_the_calibration_over_http():
+    import http.server
+    import threading
+
+    xml = b"<netft><cfgcpf>2000000</cfgcpf><cfgcpt>4000</cfgcpt></netft>"
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 - http.server's naming
+            body = xml if self.path == "/netftapi2.xml" else b""
+            self.send_response(200 if body else 404)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        with NetFTSimulator(rate_hz=500.0, wrench=lambda t: (1, 0, 0, 0.5, 0, 0),
+                            counts_per_force=2_000_000, counts_per_torque=4000) as sim:
+            host, port = sim.address
+            with NetFTSensor.from_box(host, port=port, http_port=server.server_address[1]) as sensor:
+                sensor.start()
+                sample = sensor.read(2.0)
+                sensor.stop()
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(timeout=5)
+    np.testing.assert_allclose(sample.ft, [1, 0, 0, 0.5, 0, 0], atol=1e-6)
+    with pytest.raises(DeviceError, match="calibration cannot be read"):
+        NetFTSensor.from_box("127.0.0.1", http_port=port, timeout_s=0.5)  # a UDP port: nothing speaks HTTP

@@ -20,6 +20,9 @@ import math
 import socket
 import struct
 import time
+import urllib.error
+import urllib.request
+import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Sequence
@@ -44,7 +47,9 @@ __all__ = [
     "decode_request",
     "encode_record",
     "encode_request",
+    "fetch_calibration",
     "ft_to_counts",
+    "parse_calibration",
 ]
 
 RDT_PORT = 49152
@@ -152,6 +157,41 @@ def ft_to_counts(ft: Sequence[float], *, counts_per_force: float, counts_per_tor
     return tuple(int(v) for v in np.clip(np.rint(scaled), _I32_MIN, _I32_MAX))
 
 
+def parse_calibration(xml_text: str | bytes) -> tuple[float, float]:
+    """(counts per N, counts per N m) from the box's ``netftapi2.xml`` (elements ``cfgcpf`` and ``cfgcpt``).
+
+    ProtocolError if the document is not XML or lacks a positive value for either.
+    """
+    try:
+        root = ElementTree.fromstring(xml_text)
+    except ElementTree.ParseError as exc:
+        raise ProtocolError(f"netftapi2.xml is not well-formed XML ({exc})") from None
+    values = []
+    for tag in ("cfgcpf", "cfgcpt"):
+        node = root if root.tag == tag else root.find(f".//{tag}")
+        try:
+            value = float(node.text) if node is not None and node.text else math.nan
+        except ValueError:
+            value = math.nan
+        if not (value > 0 and math.isfinite(value)):
+            raise ProtocolError(f"netftapi2.xml has no positive <{tag}> (got {None if node is None else node.text!r})")
+        values.append(value)
+    return values[0], values[1]
+
+
+def fetch_calibration(host: str, *, http_port: int = 80, timeout_s: float = 2.0) -> tuple[float, float]:
+    """Read (counts per N, counts per N m) from the box's web server (``http://host/netftapi2.xml``)."""
+    if not (timeout_s > 0 and math.isfinite(timeout_s)):
+        raise InvalidInputError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
+    url = f"http://{host}:{int(http_port)}/netftapi2.xml"
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as reply:
+            text = reply.read()
+    except (urllib.error.URLError, OSError) as exc:
+        raise DeviceError(f"Net F/T calibration cannot be read from {url} ({exc})") from None
+    return parse_calibration(text)
+
+
 class SequenceTracker:
     """Follow a 32-bit wrapping sequence number: count gaps (lost), late arrivals (reordered) and duplicates.
 
@@ -252,6 +292,12 @@ class NetFTSensor(ForceSensor):
         self._scale = np.array([1 / self._cpf] * 3 + [1 / self._cpt] * 3)
         self._sock: socket.socket | None = None
         self._tracker = SequenceTracker()
+
+    @classmethod
+    def from_box(cls, host: str, *, http_port: int = 80, timeout_s: float = 2.0, **kwargs) -> "NetFTSensor":
+        """A sensor scaled with the calibration the box itself reports (:func:`fetch_calibration`)."""
+        cpf, cpt = fetch_calibration(host, http_port=http_port, timeout_s=timeout_s)
+        return cls(host, counts_per_force=cpf, counts_per_torque=cpt, **kwargs)
 
     def _do_open(self) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
