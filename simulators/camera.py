@@ -84,6 +84,19 @@ class SimulatedCamera(Camera):
         Seed of the random drops.
     queue_size : int
         Frames held between the acquisition thread and :meth:`read`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from drivers.camera import ManualClock
+    >>> from drivers.camera_modes import CAMERA_MODES
+    >>> clock = ManualClock()
+    >>> source = lambda k: np.full((100, 640), k, np.uint8)
+    >>> with SimulatedCamera(source, CAMERA_MODES["strip"], clock=clock) as cam:
+    ...     cam.start()
+    ...     clock.advance(2.5 / 220)  # frames 0, 1 and 2 fall due
+    ...     [f.frame_id for f in cam.frames(3)]
+    [0, 1, 2]
     """
 
     def __init__(

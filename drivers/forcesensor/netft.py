@@ -263,6 +263,20 @@ class NetFTSensor(ForceSensor):
         Receive buffer asked of the kernel (bursts at 7 kHz must not overflow it).
     queue_size : int
         Samples held between the receive thread and :meth:`read`.
+
+    Examples
+    --------
+    Against the simulated box (:mod:`simulators.netft`):
+
+    >>> from simulators.netft import NetFTSimulator, normal_force_wrench
+    >>> with NetFTSimulator(rate_hz=1000, wrench=normal_force_wrench(lambda t: 2.0)) as box:
+    ...     host, port = box.address
+    ...     with NetFTSensor(host, port=port) as sensor:
+    ...         sensor.start()
+    ...         sample = sensor.read(timeout_s=2.0)
+    ...         sensor.stop()
+    >>> round(float(sample.force_n[2]), 6)
+    2.0
     """
 
     def __init__(
