@@ -240,7 +240,8 @@ class Fingerprint:
         The seed locates minutiae on the skeleton of the binarised print (seed 4.6). A valley ending's skeleton
         stops short of the spiral point, and a valley fork's junction lies behind the ridge tip (about 0.15 mm for
         the default period). Each minutia's true position is therefore taken from the skeleton of a local rendering
-        at 4 um per pixel, binarised at the ridge/valley mid-level (cos phi = 0) and thinned
+        at 4 um per pixel (the same brightness profile as :meth:`render`, without pores), binarised at the ridge/valley
+        mid-level and thinned
         (skimage ``skeletonize``). ``minutia_skeleton_found`` is False where the expected skeleton point was not
         found within 0.3 mm; the spiral point is used then.
         """
@@ -255,8 +256,10 @@ class Fingerprint:
         kernel = np.ones((3, 3))
         for i in range(m):
             pu, ps = self.spiral_xy[i]
-            valley, _ = self._cos_phase_grid(u0=pu + offs[0], s0=ps + offs[0], step_mm=step, shape=(n, n))
-            valley = valley < 0
+            cosphi, contrast = self._cos_phase_grid(
+                u0=pu + offs[0], s0=ps + offs[0], step_mm=step, shape=(n, n), with_contrast=True
+            )
+            valley = self._brightness(cosphi, contrast) > 0.5
             sk = skeletonize(valley)
             nb = convolve(sk.astype(np.int32), kernel.astype(np.int32), mode="constant") - 1
             want = (nb == 1) if self.minutia_kind[i] == FeatureKind.VALLEY_ENDING else (nb >= 3)
@@ -391,9 +394,7 @@ class Fingerprint:
         su = u0 + step_mm * np.arange(nx)
         sv = s0 + step_mm * np.arange(ny)
         cosphi, contrast = self._cos_phase_grid(u0=u0, s0=s0, step_mm=step_mm, shape=shape, with_contrast=True)
-        g = self.params.ridge_sharpness
-        ridge = 0.5 + 0.5 * np.tanh(g * cosphi) / np.tanh(g)  # 1 at ridge centres, 0 at valley centres
-        img = 1.0 - ridge * contrast
+        img = self._brightness(cosphi, contrast)
         # Pores: bright discs with a soft (one 15 um) edge, drawn over the ridge.
         edge = 0.015
         for (pu, ps), r in zip(self.pore_xy, self.pore_radius_mm):
@@ -410,6 +411,12 @@ class Fingerprint:
             disc = (0.5 - 0.5 * np.tanh((d - r) / edge)).astype(np.float32)
             np.maximum(img[i0:i1, j0:j1], disc * 0.95, out=img[i0:i1, j0:j1])
         return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+    def _brightness(self, cosphi: np.ndarray, contrast: np.ndarray) -> np.ndarray:
+        """Bright-valley profile: 0 at a full-contrast ridge centre, 1 at a valley centre."""
+        g = self.params.ridge_sharpness
+        ridge = 0.5 + 0.5 * np.tanh(g * cosphi) / np.tanh(g)  # 1 at ridge centres, 0 at valley centres
+        return 1.0 - ridge * contrast
 
     def _cos_phase_grid(self, *, u0, s0, step_mm, shape, with_contrast=False):
         """cos(phi) (float32) on a regular skin grid, and optionally the ridge contrast there."""
