@@ -32,6 +32,7 @@ centre (flat surfaces); ``s`` increasing with the image row.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -381,6 +382,12 @@ class _Profile:
         return np.where(v > self.v[-1], self.s[-1] + (v - self.v[-1]), out)
 
 
+@functools.lru_cache(maxsize=32)
+def _cached_profile(amplitude: float, sigma: float, center: float) -> _Profile:
+    # A finite-difference Jacobian perturbs one parameter at a time: most evaluations reuse the same profile.
+    return _Profile(amplitude, sigma, center)
+
+
 @dataclass
 class _Rig:
     """Camera + ruled surface: surface frame (u, s) mm <-> image px."""
@@ -397,7 +404,7 @@ class _Rig:
 
     def __post_init__(self) -> None:
         self.R = _rotation_matrix(np.asarray(self.rotvec, dtype=np.float64))
-        self.profile = _Profile(self.amplitude, self.sigma, self.center)
+        self.profile = _cached_profile(float(self.amplitude), float(self.sigma), float(self.center))
 
     def project(self, us: np.ndarray) -> np.ndarray:
         v = self.profile.v_of_s(us[..., 1])
@@ -650,6 +657,16 @@ def _grid_to_surface(ij: np.ndarray, pose: tuple[float, float, float], spacing: 
     return (ij * spacing) @ _rot2(phi).T + np.array([tu, ts])
 
 
+def _select(views: list[_GridView], keep: np.ndarray) -> list[_GridView]:
+    """The views restricted to the dots flagged in ``keep`` (one flag per dot, all views concatenated)."""
+    out, start = [], 0
+    for view in views:
+        sel = keep[start : start + len(view.ij)]
+        out.append(_GridView(ij=view.ij[sel], xy=view.xy[sel]))
+        start += len(view.ij)
+    return out
+
+
 def _dot_image_offset(model: _Rig, pose, ij: np.ndarray, spacing: float, radius: float, n: int = 48) -> np.ndarray:
     """Area centroid of each dot's image minus the image of its centre, px (K, 2).
 
@@ -843,6 +860,8 @@ def fit_grid_mapping(
                        loss="linear", f_scale=1.0, max_nfev=60)
             if fit0 is None or res.cost < fit0.cost:
                 fit0 = res
+            if np.sqrt(2 * fit0.cost / len(fit0.fun)) < 0.5:  # converged near the noise: no other start needed
+                break
         fit0 = _fit(gviews[:1], curved=curved, principal=principal, spacing=spacing_mm, p0=fit0.x,
                     loss="soft_l1", f_scale=0.3)
         p = fit0.x
@@ -869,11 +888,7 @@ def fit_grid_mapping(
         rn = np.linalg.norm(r, axis=1)
         sigma = 1.4826 * np.median(rn) / 1.1774  # Rayleigh median -> per-axis sigma
         keep = rn <= max(outlier_px, 5.0 * sigma)
-        kept_views, start = [], 0
-        for view in gviews:
-            sel = keep[start : start + len(view.ij)]
-            kept_views.append(_GridView(ij=view.ij[sel], xy=view.xy[sel]))
-            start += len(view.ij)
+        kept_views = _select(gviews, keep)
         if sum(len(v.ij) for v in kept_views) < min_dots:
             continue
         res = _fit(kept_views, curved=curved, principal=principal, spacing=spacing_mm, p0=p, loss="linear",
@@ -891,20 +906,14 @@ def fit_grid_mapping(
     if dot_diameter_mm is not None:
         # The image of a round dot is not centred on the image of its centre (perspective, and the surface's
         # curvature across the dot: ~0.04 px on a ridge's slopes, ~1 um). Predict that offset with the fitted rig,
-        # remove it from the detected centres and fit again (twice: the offset hardly depends on the fit).
-        for _ in range(2):
-            model, poses = _unpack(p, len(gviews), curved, principal, spacing_mm)
-            gviews = [
-                _GridView(ij=v.ij, xy=v.xy - _dot_image_offset(model, pose, v.ij, spacing_mm, 0.5 * dot_diameter_mm))
-                for v, pose in zip(detected_views, poses)
-            ]
-            kept_views, start = [], 0
-            for view in gviews:
-                sel = keep[start : start + len(view.ij)]
-                kept_views.append(_GridView(ij=view.ij[sel], xy=view.xy[sel]))
-                start += len(view.ij)
-            p = _fit(kept_views, curved=curved, principal=principal, spacing=spacing_mm, p0=p, loss="linear",
-                     f_scale=1.0).x
+        # remove it from the detected centres and fit again (once: the offset hardly depends on the fit).
+        model, poses = _unpack(p, len(gviews), curved, principal, spacing_mm)
+        gviews = [
+            _GridView(ij=v.ij, xy=v.xy - _dot_image_offset(model, pose, v.ij, spacing_mm, 0.5 * dot_diameter_mm))
+            for v, pose in zip(detected_views, poses)
+        ]
+        p = _fit(_select(gviews, keep), curved=curved, principal=principal, spacing=spacing_mm, p0=p,
+                 loss="linear", f_scale=1.0).x
     model, poses = _unpack(p, len(gviews), curved, principal, spacing_mm)
 
     # Residuals over every indexed dot (outliers included, flagged).
