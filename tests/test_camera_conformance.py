@@ -105,7 +105,7 @@ def camera(request, tmp_path) -> Camera:
     cam.close()
 
 
-def test_streams_frames_of_the_mode(camera):
+def test_streams_frames_of_the_mode(camera, request):
     with camera:
         assert camera.is_open
         camera.set_mode(STRIP)
@@ -122,7 +122,11 @@ def test_streams_frames_of_the_mode(camera):
     host = np.array([f.host_timestamp_s for f in frames])
     assert np.all(np.diff(host) >= 0) and abs(host[0] - time.time()) < 600
     assert stats.completed >= 30 and stats.delivered == 30
-    assert stats.dropped == 0 and stats.failed == 0
+    if request.node.callspec.params["camera"] == "aravis-gv-loopback":
+        # Real UDP: a CPU-starved machine can lose a frame; it must then be counted, never hidden.
+        assert stats.dropped + stats.failed >= int(np.sum(np.diff(ids) - 1))
+    else:
+        assert stats.dropped == 0 and stats.failed == 0
 
 
 def test_frames_survive_stop_then_reads_fail_cleanly(camera):
