@@ -254,7 +254,7 @@ class _TrialCamera:
 
     @property
     def stats(self):
-        return self.camera.stats()
+        return self.camera.stats
 
 
 # -------------------------------------------------------------------------------------------------------- rig
