@@ -28,6 +28,7 @@ from scipy.sparse.linalg import spsolve
 from processing.calibration import Calibration
 from processing.errors import InvalidInputError
 from processing.robust_tracking import GlobalMotionEstimator
+from processing.subpixel_displacement import local_normalize
 from processing.tracking import MotionSample
 
 
@@ -60,6 +61,7 @@ class FlowParams:
     jacobi_sweeps: int = 20
     max_residual_ratio: float = 3.0
     clg_levels: int = 1
+    normalize_sigma_mm: float | None = 0.15
 
     def __post_init__(self) -> None:
         for name in ("grid_step_mm", "window_mm", "outlier_mm"):
@@ -173,6 +175,7 @@ class DenseFlow:
         b = _gray(image_b, "image_b")
         if a.shape != b.shape:
             raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
+        raw_a = a
         gx, gy = self.grid(a.shape)
         if gx.size < 2 or gy.size < 2:
             raise InvalidInputError(f"images of shape {a.shape} are too small for a {self._win} px window grid")
@@ -182,7 +185,7 @@ class DenseFlow:
         else:
             shift = np.asarray(initial_shift, dtype=np.float64).reshape(2)
         # Contact: local grey-level spread over the window at each node (FTIR: no contact -> no ridges).
-        af = a.astype(np.float32)
+        af = raw_a.astype(np.float32)
         k = (self._win, self._win)
         mean = cv2.boxFilter(af, -1, k)
         sq = cv2.boxFilter(af * af, -1, k)
@@ -193,7 +196,12 @@ class DenseFlow:
         if not np.any(contact):
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
                              shift, 0, "no contact")
-        pa, pb = [af], [b.astype(np.float32)]
+        if self.params.normalize_sigma_mm is not None:
+            # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
+            sigma = self.calibration.px(self.params.normalize_sigma_mm)
+            a = local_normalize(a, sigma_px=sigma)
+            b = local_normalize(b, sigma_px=sigma)
+        pa, pb = [a.astype(np.float32)], [b.astype(np.float32)]
         for _ in range(int(self.params.pyramid_levels)):
             pa.append(cv2.pyrDown(pa[-1]))
             pb.append(cv2.pyrDown(pb[-1]))

@@ -32,11 +32,15 @@ class SubpixelParams:
         rejected (flagged) and the matched displacement is kept.
     pyramid_levels : int
         Pyramid levels above full resolution used by the registration.
+    normalize_sigma_mm : float or None
+        Scale of the local contrast normalisation applied to both images before registration (see
+        :func:`local_normalize`); None registers the raw images.
     """
 
     window_mm: float = 0.5
     max_correction_mm: float = 0.05
     pyramid_levels: int = 1
+    normalize_sigma_mm: float | None = 0.15
 
     def __post_init__(self) -> None:
         if not self.window_mm > 0:
@@ -45,6 +49,25 @@ class SubpixelParams:
             raise InvalidInputError(f"max_correction_mm must be positive, got {self.max_correction_mm!r}")
         if not 0 <= int(self.pyramid_levels) <= 5:
             raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
+        if self.normalize_sigma_mm is not None and not self.normalize_sigma_mm > 0:
+            raise InvalidInputError(f"normalize_sigma_mm must be positive or None, got {self.normalize_sigma_mm!r}")
+
+
+def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
+    """Local contrast normalisation ``(I - mean) / std`` over a Gaussian window, back to uint8 around 128.
+
+    FTIR illumination is fixed to the prism, not to the skin (seed 3.5: darker light on the slopes of a ridge or
+    valley, uneven lighting): as the finger slides, a skin point's brightness and contrast change, which biases
+    any brightness-constancy registration. Removing the local mean and dividing by the local spread cancels
+    smooth additive and multiplicative illumination changes.
+    """
+    if not sigma_px > 0:
+        raise InvalidInputError(f"sigma_px must be positive, got {sigma_px!r}")
+    f = np.asarray(image, dtype=np.float32)
+    mean = cv2.GaussianBlur(f, (0, 0), sigma_px)
+    d = f - mean
+    std = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px)) + 2.0
+    return np.clip(128.0 + 40.0 * d / std, 0, 255).astype(np.uint8)
 
 
 @dataclass(frozen=True)
@@ -91,6 +114,13 @@ class SubpixelRefiner:
     def window_px(self) -> int:
         return self._win
 
+    def prepare(self, image: np.ndarray) -> np.ndarray:
+        """The image as :meth:`refine` wants it (normalised when ``normalize_sigma_mm`` is set); call once per frame."""
+        image = _as_gray(image, "image")
+        if self.params.normalize_sigma_mm is None:
+            return image
+        return local_normalize(image, sigma_px=self.calibration.px(self.params.normalize_sigma_mm))
+
     def refine(
         self,
         prev_image: np.ndarray,
@@ -99,6 +129,8 @@ class SubpixelRefiner:
         initial_displacement: np.ndarray,
     ) -> RefinedDisplacements:
         """Refine the displacement of ``points`` (frame ``prev_image``, (n, 2) x, y px) into ``curr_image``.
+
+        The images should come from :meth:`prepare` (raw images work, without illumination normalisation).
 
         Points whose window leaves the image, whose registration fails to converge, or whose correction exceeds
         ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.

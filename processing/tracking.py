@@ -321,6 +321,7 @@ class FeatureTracker:
         self._n_features = 0
         self._prev: _Cols | None = None
         self._prev_image: np.ndarray | None = None
+        self._prev_prepared: np.ndarray | None = None
         self._prev_tracks = np.zeros(0, np.int64)
         self._prev_disp = np.zeros((0, 2))
         # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
@@ -341,6 +342,7 @@ class FeatureTracker:
             raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
         cols = _columns(features)
         n = cols.xy.shape[0]
+        prepared = self.refiner.prepare(image) if self.refiner is not None else None
         disp = np.full((n, 2), np.nan)
         refined = np.zeros(n, bool)
         tracks = np.full(n, -1, np.int64)
@@ -362,8 +364,8 @@ class FeatureTracker:
                 matches = _match(prev, cols, pred2, self._radius)
             pi, ci = matches.prev_index, matches.curr_index
             d = cols.xy[ci] - prev.xy[pi]
-            if self.refiner is not None and self._prev_image is not None and pi.size:
-                r = self.refiner.refine(self._prev_image, image, prev.xy[pi], d)
+            if self.refiner is not None and self._prev_prepared is not None and pi.size:
+                r = self.refiner.refine(self._prev_prepared, prepared, prev.xy[pi], d)
                 d = r.displacement
                 refined[ci] = r.refined
             disp[ci] = d
@@ -397,6 +399,7 @@ class FeatureTracker:
         self._prev_tracks = tracks
         self._prev_disp = disp
         self._prev_image = None if image is None else np.asarray(image)
+        self._prev_prepared = prepared
         return matches
 
     def _prediction_shift(self, known: np.ndarray, image: np.ndarray | None) -> np.ndarray:
