@@ -43,7 +43,9 @@ class BlobPores:
 
 
 @numba.njit(cache=True, nogil=True)
-def _blob_moments(labels, weights, is_pore, n_labels):  # pragma: no cover - compiled
+def _blob_moments(labels, weights, is_pore, remove, out):  # pragma: no cover - compiled
+    """Weighted moments of the pore blobs, and ``out`` (a copy of the binary image) cleared on removed blobs."""
+    n_labels = is_pore.size
     sw = np.zeros(n_labels)
     sx = np.zeros(n_labels)
     sy = np.zeros(n_labels)
@@ -51,11 +53,13 @@ def _blob_moments(labels, weights, is_pore, n_labels):  # pragma: no cover - com
     for r in range(h):
         for c in range(w):
             lab = labels[r, c]
-            if lab > 0 and is_pore[lab]:
-                v = weights[r, c]
-                sw[lab] += v
-                sx[lab] += v * c
-                sy[lab] += v * r
+            if lab > 0 and remove[lab]:
+                out[r, c] = 0
+                if is_pore[lab]:
+                    v = weights[r, c]
+                    sw[lab] += v
+                    sx[lab] += v * c
+                    sy[lab] += v * r
     return sw, sx, sy
 
 
@@ -98,7 +102,7 @@ def detect_blob_pores(
         raise InvalidInputError(f"grey shape {grey.shape} differs from binary shape {binary.shape}")
     if not max_diameter_px > 0:
         raise InvalidInputError(f"max_diameter_px must be positive, got {max_diameter_px!r}")
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4, ltype=cv2.CV_32S)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4, ltype=cv2.CV_32S)
     wh = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
     area = stats[:, cv2.CC_STAT_AREA]
     small = wh < max_diameter_px
@@ -106,7 +110,8 @@ def detect_blob_pores(
     noise = small & (area < min_area_px)
     is_pore = small & ~noise
     weights = grey.astype(np.float32, copy=False)
-    sw, sx, sy = _blob_moments(labels, weights, is_pore, n)
+    without = binary.copy()
+    sw, sx, sy = _blob_moments(labels, weights, is_pore, small, without)
     idx = np.flatnonzero(is_pore)
     sw_p = sw[idx]
     good = sw_p > 0
@@ -116,9 +121,6 @@ def detect_blob_pores(
     safe = np.where(good, sw_p, 1.0)
     x = np.where(good, sx[idx] / safe, bx)
     y = np.where(good, sy[idx] / safe, by)
-    remove = small.astype(np.uint8)[labels]
-    without = binary.copy()
-    without[remove.astype(bool)] = 0
     return BlobPores(
         x=x.astype(np.float64),
         y=y.astype(np.float64),
