@@ -1,0 +1,71 @@
+"""evaluate_features: one-to-one matching, visibility / mask rules, repeatability."""
+
+import numpy as np
+import pytest
+
+from drivers.session_file import SessionTruth
+from experiments.evaluation.features import evaluate_features
+from processing.errors import InvalidInputError
+from processing.feature_table import FeatureKind, make_features
+
+
+def _truth(x, y, kind, visible):
+    n, f = x.shape
+    return SessionTruth(
+        feature_id=np.arange(f, dtype=np.int64),
+        feature_kind=np.asarray(kind, dtype=np.int8),
+        feature_x=x,
+        feature_y=y,
+        feature_visible=visible,
+        grid_x=np.array([0.0]),
+        grid_y=np.array([0.0]),
+        displacement=np.zeros((n, 1, 1, 2), np.float32),
+        displacement_valid=np.ones((n, 1, 1), bool),
+        rigid=np.zeros((n, 3)),
+        rigid_center=np.zeros(2),
+        strain=np.zeros((n, 1, 1, 3), np.float32),
+    )
+
+
+def test_counts_matching_and_repeatability():
+    # Three true features moving +1 px per frame in x: ending, bifurcation, pore; the pore is invisible in frame 1.
+    k = np.arange(3)[:, None]
+    x = np.array([[50.0, 80.0, 120.0]]) + k
+    y = np.tile([[50.0, 60.0, 70.0]], (3, 1))
+    visible = np.ones((3, 3), bool)
+    visible[1, 2] = False
+    truth = _truth(x, y, [0, 1, 2], visible)
+    rows = []
+    for f in range(3):
+        jitter = 0.1 if f == 1 else 0.0
+        rows.append(make_features([x[f, 0] + 0.5 + jitter, x[f, 1], x[f, 2], 150.0], [50, 60, 70, 20],
+                                  [FeatureKind.VALLEY_ENDING, FeatureKind.VALLEY_ENDING, FeatureKind.PORE, FeatureKind.PORE],
+                                  frame=f))
+    feats = np.concatenate(rows)
+    feats["id"] = np.arange(feats.size)
+    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(200, 200))
+    # The bifurcation was reported as an ending: wrong for the per-kind scores, right for "minutiae".
+    assert ev["valley_ending"]["n_matched"] == 3 and ev["valley_ending"]["precision"] == pytest.approx(0.5)
+    assert ev["valley_bifurcation"]["recall"] == 0.0 and ev["valley_bifurcation"]["precision"] is None
+    assert ev["minutiae"]["recall"] == 1.0 and ev["minutiae"]["precision"] == 1.0
+    # Pore: the detection at the invisible pore in frame 1 is "don't care"; the one at (150, 20) is false.
+    assert ev["pore"]["n_truth"] == 2 and ev["pore"]["n_matched"] == 2
+    assert ev["pore"]["n_detected"] == 5 and ev["pore"]["precision"] == pytest.approx(2 / 5)
+    # A constant 0.5 px offset is not jitter; the 0.1 px excursion in frame 1 is (twice).
+    assert ev["valley_ending"]["loc_rmse_px"] == pytest.approx(np.sqrt((0.25 * 2 + 0.36) / 3), rel=1e-6)
+    assert ev["minutiae"]["repeatability_px"] == pytest.approx(np.sqrt((0.01 + 0.01) / 4), rel=1e-6)
+
+
+def test_exclusion_mask_and_radius():
+    x = np.array([[10.0, 100.0]])
+    y = np.array([[10.0, 100.0]])
+    truth = _truth(x, y, [2, 2], np.ones((1, 2), bool))
+    feats = make_features([10.0, 104.0], [10.0, 100.0], [2, 2])
+    mask = np.zeros((200, 200), bool)
+    mask[:20, :20] = True
+    ev = evaluate_features(feats, truth, match_radius_px=3.0, exclusion_masks={0: mask})
+    assert ev["pore"]["n_truth"] == 1 and ev["pore"]["n_matched"] == 0 and ev["pore"]["n_detected"] == 1
+    ev = evaluate_features(feats, truth, px_per_mm=62.0, exclusion_masks={0: mask})  # radius 6.2 px
+    assert ev["match_radius_px"] == pytest.approx(6.2) and ev["pore"]["recall"] == 1.0
+    with pytest.raises(InvalidInputError, match="match_radius_px"):
+        evaluate_features(feats, truth, image_shape=(200, 200))
