@@ -20,19 +20,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from drivers.forcesensor.netft import (
-    RdtCommand,
-    RdtRecord,
-    decode_request,
-    encode_record,
-    ft_to_counts,
-)
+from drivers.forcesensor.netft import RdtCommand, RdtRecord, decode_request, encode_record
 from processing.errors import DeviceError, InvalidInputError, ProtocolError
 
 __all__ = ["NetFTFaults", "NetFTSimulator", "SimulatorStats", "normal_force_wrench"]
 
 Wrench = Callable[[float], Sequence[float]]
 INTERNAL_RATE_HZ = 7000.0  # the box samples at 7 kHz; ft_sequence counts those samples
+_I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
 
 
 def normal_force_wrench(normal_force_n: Callable[[float], float]) -> Wrench:
@@ -155,7 +150,7 @@ class NetFTSimulator:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._stats = dict.fromkeys(SimulatorStats.__dataclass_fields__, 0)
-        self._bias = np.zeros(6, dtype=np.int64)
+        self._bias = [0] * 6
         self._boot = time.monotonic()
         self._error: BaseException | None = None
         # streaming state (simulator thread only)
@@ -282,20 +277,26 @@ class NetFTSimulator:
                 self._held = None
             elif command == RdtCommand.SET_SOFTWARE_BIAS:
                 t = time.monotonic() - self._t_start if self._dest is not None else 0.0
-                self._bias = np.asarray(self._raw_counts(t), dtype=np.int64)
+                self._bias = self._raw_counts(t)
 
-    def _raw_counts(self, t: float) -> tuple[int, ...]:
-        ft = self.load_at(t)
+    def _raw_counts(self, t: float) -> list[int]:
+        # Plain Python floats: this runs up to 7000 times a second, where numpy's per-call overhead dominates.
+        w = [float(v) for v in self._wrench(t)]
+        if len(w) != 6 or not all(math.isfinite(v) for v in w):
+            raise InvalidInputError(f"wrench({t:g}) must return 6 finite values, got {w!r}")
         if self._noise > 0:
-            ft = ft + self._rng.normal(0.0, 1.0, 6) * np.array([1, 1, 1, 0.01, 0.01, 0.01]) * self._noise
-        return ft_to_counts(ft, counts_per_force=self._cpf, counts_per_torque=self._cpt)
+            n = self._rng.normal(0.0, self._noise, 6)
+            w = [w[i] + float(n[i]) * (1.0 if i < 3 else 0.01) for i in range(6)]
+        cpf, cpt = self._cpf, self._cpt
+        return [round(w[i] * (cpf if i < 3 else cpt)) for i in range(6)]
 
     def _record(self, t: float) -> bytes:
         self._rdt_sequence = (self._rdt_sequence + 1) % (1 << 32)
-        counts = np.asarray(self._raw_counts(t), dtype=np.int64) - self._bias
-        counts = np.clip(counts, -(1 << 31), (1 << 31) - 1)
+        raw = self._raw_counts(t)
+        bias = self._bias
+        counts = tuple(min(max(raw[i] - bias[i], _I32_MIN), _I32_MAX) for i in range(6))  # the ADC saturates
         ft_sequence = int((time.monotonic() - self._boot) * INTERNAL_RATE_HZ) % (1 << 32)
-        return encode_record(RdtRecord(self._rdt_sequence, ft_sequence, 0, tuple(int(c) for c in counts)))
+        return encode_record(RdtRecord(self._rdt_sequence, ft_sequence, 0, counts))
 
     def _send_due(self, now: float) -> None:
         # Catch up on every packet due, so a briefly starved simulator still keeps the sequence and the rate,
