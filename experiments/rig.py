@@ -335,8 +335,8 @@ class RigDevices:
     def prepare(self, *, protocol, trials) -> None:
         """Start rendering the simulated camera's frames of ``trials`` in worker processes (no-op for a real
         camera), so that rendering — slower than the camera rate — overlaps the recording of earlier trials."""
-        if self.rig.camera.kind != "sim" or not trials:
-            return
+        if self.rig.camera.kind != "sim" or len(trials) < 2:
+            return  # one trial: nothing to overlap, and starting worker processes costs seconds
         import concurrent.futures as cf  # noqa: PLC0415
         import multiprocessing  # noqa: PLC0415
 
