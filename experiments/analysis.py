@@ -151,7 +151,7 @@ def measure_features(
         calibration=calibration,
         params=params.tracking,
         refiner=SubpixelRefiner(calibration=calibration, params=params.subpixel) if params.subpixel else None,
-        motion_estimator=GlobalMotionEstimator() if params.robust_matching else None,
+        motion_estimator=GlobalMotionEstimator(downsample=4) if params.robust_matching else None,
     )
     tables, flags = [], []
     t_extract = t_track = 0.0

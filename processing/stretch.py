@@ -72,7 +72,11 @@ def _signed_area(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def triangulation_strain(
-    sample: MotionSample, *, max_edge_px: float | None = None, min_area_px2: float = 1.0
+    sample: MotionSample,
+    *,
+    max_edge_px: float | None = None,
+    min_area_px2: float = 1.0,
+    min_quality: float = 0.1,
 ) -> TriangulationStrain:
     """Relative edge-length and triangle-area change of the Delaunay triangulation of ``sample.points``.
 
@@ -85,6 +89,9 @@ def triangulation_strain(
         no features between them).
     min_area_px2 : float
         Triangles smaller than this in frame a are degenerate and left out.
+    min_quality : float
+        Slivers are left out: shape quality ``4 sqrt(3) A / (a^2 + b^2 + c^2)`` (1 equilateral, 0 flat) below
+        this. A sliver's relative area change divides by a near-zero area: a pixel of noise becomes tens of %.
 
     Raises
     ------
@@ -129,9 +136,11 @@ def triangulation_strain(
     tri[neg] = tri[neg][:, [0, 2, 1]]
     area_a = np.abs(area_a)
     keep = area_a >= min_area_px2
+    ea = np.stack([np.hypot(*(pa[tri[:, i]] - pa[tri[:, (i + 1) % 3]]).T) for i in range(3)], axis=1)
     if max_edge_px is not None:
-        ea = np.stack([np.hypot(*(pa[tri[:, i]] - pa[tri[:, (i + 1) % 3]]).T) for i in range(3)], axis=1)
         keep &= ea.max(axis=1) <= max_edge_px
+    if min_quality > 0:
+        keep &= 4.0 * np.sqrt(3.0) * area_a >= min_quality * np.sum(ea**2, axis=1)
     n_dropped += int((~keep).sum())
     tri, area_a = tri[keep], area_a[keep]
     if tri.shape[0] == 0:
