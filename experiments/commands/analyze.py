@@ -17,7 +17,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Analyse SESSION.h5 into OUTDIR/results.h5 and OUTDIR/summary.json (docs/results-format.md): "
         "features (seed chapters 4-5, refined to sub-pixel) or the dense flow method.",
     )
-    p.add_argument("session", type=Path, help="session file (HDF5) recorded or simulated by skinstretch")
+    p.add_argument("session", type=Path, nargs="+",
+                   help="session file (HDF5) recorded or simulated by skinstretch; several files or a directory "
+                   "run a batch on Dask (experiments.batch.analyze_many)")
+    p.add_argument("--scheduler", default=None,
+                   help="batch: address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("-o", "--output", dest="outdir", type=Path, required=True, help="output directory")
     p.add_argument("--method", choices=("features", "flow"), default="features", help="measurement method")
     p.add_argument("--span", default="1,11", help="comma-separated frame spans of the strain (default 1,11)")
@@ -41,6 +45,13 @@ def run(args: argparse.Namespace) -> int:
 
     from experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - keeps --help fast
 
+    if len(args.session) > 1 or args.session[0].is_dir():
+        from experiments.batch import analyze_many  # noqa: PLC0415
+
+        options = {"spans": parse_spans(args.span)}
+        result = analyze_many(args.session, args.outdir, scheduler=args.scheduler, method=args.method, options=options)
+        return 0 if not result.failed else 1
+    args.session = args.session[0]
     params = AnalysisParams(spans=parse_spans(args.span))
     if args.min_track is not None:
         if args.min_track < 1:
