@@ -25,6 +25,7 @@ import math
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from processing.errors import InvalidInputError
 from processing.minutiae import SkeletonGraph, branch_direction
@@ -328,17 +329,17 @@ def feature_density_mask(x: np.ndarray, y: np.ndarray, kind: np.ndarray, *, radi
     y = np.asarray(y, dtype=np.float64)
     kind = np.asarray(kind)
     keep = np.ones(x.size, dtype=bool)
-    r2 = radius_px * radius_px
     for k in np.unique(kind):
         idx = np.flatnonzero(kind == k)
         if idx.size <= max_count:
             continue
-        dx = x[idx, None] - x[None, idx]
-        dy = y[idx, None] - y[None, idx]
-        near = dx * dx + dy * dy <= r2
-        crowded = near.sum(axis=1) > max_count
-        if crowded.any():
-            keep[idx[near[crowded].any(axis=0)]] = False
+        pts = np.stack([x[idx], y[idx]], axis=1)
+        tree = cKDTree(pts)
+        counts = tree.query_ball_point(pts, radius_px, return_length=True)
+        crowded = np.flatnonzero(counts > max_count)
+        if crowded.size:
+            hit = tree.query_ball_point(pts[crowded], radius_px)
+            keep[idx[np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hit]))]] = False
     return keep
 
 

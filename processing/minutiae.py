@@ -51,7 +51,7 @@ def _trace(f, h, w):  # pragma: no cover - compiled
                     c += 1
             deg[i] = c
     # Nodes: endings (1 neighbour) and 8-connected groups of bifurcation pixels (3+ neighbours).
-    node_of = np.full(n, -1, np.int64)
+    node_of = np.full(n, -1, np.int32)
     node_sx = np.zeros(n_sk)
     node_sy = np.zeros(n_sk)
     node_np = np.zeros(n_sk, np.int64)
