@@ -950,7 +950,10 @@ def fit_grid_mapping(
     }
     frame = {"angle_rad": angle, "origin_mm": centre_us[0].tolist()}
     mapping = GridMapping(width=int(w), height=int(h), surface=kind, rig=rig, frame=frame)
-    scale = mapping.px_per_mm
+    # Residuals on the surface: each used dot's residual vector mapped through the local scale of the fit.
+    xy_fit = np.concatenate([v.xy for v in gviews])[keep]
+    d_mm = mapping.image_to_surface(xy_fit + used_r) - mapping.image_to_surface(xy_fit)
+    rms_um = float(np.sqrt(np.mean(np.sum(d_mm**2, axis=1))) * 1000.0)
     image_no = np.concatenate([np.full(len(v.ij), k) for k, v in enumerate(gviews)])
     report = CalibrationReport(
         n_detected=int(n_detected if n_detected is not None else n_indexed),
@@ -959,8 +962,7 @@ def fit_grid_mapping(
         n_outliers=int((~keep).sum()),
         rms_px=rms,
         max_px=mx,
-        # Residuals are mostly along the compressed rows as much as along x: convert with the mean scale.
-        rms_um=float(rms / (scale * (1 + 2**-0.5) / 2) * 1000.0),
+        rms_um=rms_um,
         surface=kind,
         image=image_no,
         ij=np.concatenate([v.ij for v in gviews]),
