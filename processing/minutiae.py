@@ -24,8 +24,6 @@ from processing.feature_table import FeatureKind
 
 __all__ = ["SkeletonGraph", "trace_skeleton", "node_kind", "branch_direction", "node_orientation"]
 
-_DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1], dtype=np.int64)
-_DC = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -142,52 +142,6 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _crossing(img, x0, y0, ux, uy, t_lo, t_hi, step):  # pragma: no cover - compiled
-    """Parameter t of the bright-to-dark zero crossing of ``img`` along (x0, y0) + t (ux, uy) nearest to t = 0."""
-    n = int((t_hi - t_lo) / step) + 1
-    best = np.nan
-    prev_t = t_lo
-    prev_v = _bilinear(img, x0 + t_lo * ux, y0 + t_lo * uy)
-    for k in range(1, n):
-        t = t_lo + k * step
-        v = _bilinear(img, x0 + t * ux, y0 + t * uy)
-        if prev_v > 0 and v <= 0:
-            tc = prev_t + step * prev_v / (prev_v - v)
-            if np.isnan(best) or abs(tc) < abs(best):
-                best = tc
-        prev_t = t
-        prev_v = v
-    return best
-
-
-@numba.njit(cache=True, nogil=True)
-def _centre_across(img, x0, y0, vx, vy, half, step, sign):  # pragma: no cover - compiled
-    """Offset along (vx, vy) of the middle of the region where ``sign * img > 0`` that contains t = 0."""
-    if not sign * _bilinear(img, x0, y0) > 0:
-        return np.nan
-    lo = np.nan
-    hi = np.nan
-    n = int(half / step)
-    prev_v = sign * _bilinear(img, x0, y0)
-    for k in range(1, n + 1):
-        t = k * step
-        v = sign * _bilinear(img, x0 + t * vx, y0 + t * vy)
-        if not v > 0:
-            hi = t - step + step * prev_v / (prev_v - v) if v == v else np.nan
-            break
-        prev_v = v
-    prev_v = sign * _bilinear(img, x0, y0)
-    for k in range(1, n + 1):
-        t = -k * step
-        v = sign * _bilinear(img, x0 + t * vx, y0 + t * vy)
-        if not v > 0:
-            lo = t + step - step * prev_v / (prev_v - v) if v == v else np.nan
-            break
-        prev_v = v
-    return 0.5 * (lo + hi)
-
-
-@numba.njit(cache=True, nogil=True)
 def _apex(img, x0, y0, wx, wy, sign, t0, t_max, half, step):  # pragma: no cover - compiled
     """Apex of the region ``sign * img > 0`` in direction (wx, wy): for lateral offsets d in [-half, half], walk
     from (x0, y0) + t0 w + d v along w to the region's edge; the apex is the farthest edge point (parabola-refined

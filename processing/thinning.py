@@ -21,9 +21,6 @@ from processing.errors import InvalidInputError
 
 __all__ = ["thin", "zhang_suen_tables", "staircase_table", "neighbour_code"]
 
-# (row, col) offsets of p1..p8.
-_DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1], dtype=np.int64)
-_DC = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 
 
 def _bits(code: int) -> list[int]:
