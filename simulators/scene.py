@@ -374,8 +374,7 @@ class SceneRenderer:
         )
         self.deformation = _deformation_model(scene, self.surface)
         self._frame_cache: dict[int, FrameDeformation] = {}
-        seq = np.random.SeedSequence(self.seed)
-        print_seq, self._noise_seq = seq.spawn(2)
+        print_seq = np.random.SeedSequence(self.seed, spawn_key=(0,))
 
         # 1. Constant per-pixel geometry: node grid (every 4 px) and full-resolution glass-fixed factors.
         # Nodes sit at 4 j - 0.5 so that cv2.resize (which samples source (x' + 0.5) / 4 - 0.5) interpolates them
@@ -520,7 +519,8 @@ class SceneRenderer:
 
     def render_frame(self, k: int) -> np.ndarray:
         """Frame k as the camera delivers it: uint8 (H, W). Deterministic for (scene, seed, noise, k)."""
-        rng = np.random.default_rng([self._noise_seq.entropy, 7919, int(k)])
+        # Noise stream of frame k: its own child of the seed, so any frame renders alone, in any order.
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(1, int(k))))
         return self.camera.apply(self.radiance(k), rng)
 
     def _check_frame(self, k: int) -> None:

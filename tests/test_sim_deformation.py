@@ -121,3 +121,18 @@ def test_surface_profile_and_arc_length():
     assert RuledSurface(kind="valley").height(0.0) == pytest.approx(-0.5)
     with pytest.raises(InvalidInputError, match="kind"):
         RuledSurface(kind="bump")
+
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+_mm = st.floats(-8.0, 8.0, allow_nan=False)
+
+
+@settings(max_examples=40, deadline=None)
+@given(du=_mm, ds=_mm, t=st.floats(0.0, 3.0), u=_mm, s=_mm)
+def test_any_rigid_translation_gives_exactly_zero_strain(du, ds, t, u, s):
+    motion = MotionProfile.from_keyframes([(0, 0, 0, 0), (3.0, du, ds, 0.0)])
+    d, h = DeformationModel(motion=motion).at(t).displacement(np.array([[u, s]]), with_gradient=True)
+    assert np.all(green_lagrange(h) == 0.0)
+    assert np.all(d == d[0])
