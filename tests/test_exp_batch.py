@@ -1,0 +1,98 @@
+"""Batch analysis: every session analysed, a broken one reported without stopping the others, the summary
+table and the per-surface Figure 94 written; profile averaging on a common grid."""
+
+import json
+
+import numpy as np
+import pytest
+
+from drivers.session_file import write_session
+from experiments.batch import analyze_many, average_profiles, find_sessions
+from processing.errors import InvalidInputError
+
+
+@pytest.fixture
+def batch_dir(tmp_path, rng):
+    from drivers.camera_modes import CameraMode
+    from processing.calibration import Calibration
+
+    d = tmp_path / "in"
+    (d / "s01").mkdir(parents=True)
+    md = {"subject": {"id": "s01"}, "surface": {"kind": "flat"}, "scene": "flatL"}
+    write_session(d / "s01" / "a.h5", rng.integers(0, 255, (8, 48, 64), dtype=np.uint8),
+                  timestamps=np.arange(8) / 60, camera_mode=CameraMode("tiny", 64, 48, 60.0),
+                  calibration=Calibration(px_per_mm=62.0), metadata=md)
+    (d / "s01" / "broken.h5").write_bytes(b"not a session")
+    return d
+
+
+def _fake_analyse_trial(session_path, outdir, method, options):
+    """Stands in for the (slow, JIT-compiled) analysis: a valid results file with a known profile."""
+    from pathlib import Path
+
+    from drivers.session_file import open_session
+    from experiments.results_file import MOTION_DTYPE, PAIR_DTYPE, Results, write_results
+
+    with open_session(session_path) as s:  # a broken session fails here, as the real analysis would
+        n, h, w = s.shape
+        px = s.calibration.px_per_mm
+    x = np.arange(0, w, 16.0)
+    r = Results(
+        method=method, session_path=str(session_path), n_frames=n, image_shape=(h, w), px_per_mm=px,
+        coordinates="image", frame_flags=[""] * n, motion_pairs=np.zeros(0, PAIR_DTYPE),
+        motion=np.zeros(0, MOTION_DTYPE), fingertip_displacement=np.zeros((n - 1, 2)),
+        fingertip_valid=np.ones(n - 1, bool), fingertip_position=np.zeros((n, 2)), window={"status": "none"},
+        window_centers=None, strain={}, profile_axis=0, profile_position=x, profile_change=1e-4 * x,
+        profile_valid=np.ones(x.size, bool), tactile_positions_um=None, tactile_reset=None, tactile_clipped=None,
+        tactile_stretch_change=None, timing={}, params={}, versions={},
+    )
+    Path(outdir).mkdir(parents=True, exist_ok=True)
+    return {"results": str(write_results(Path(outdir) / "results.h5", r)), "seconds": 0.01}
+
+
+def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch):
+    import experiments.runner
+
+    monkeypatch.setattr(experiments.runner, "analyse_trial", _fake_analyse_trial)
+    msgs = []
+    result = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", options={"spans": (1,)},
+                          progress=msgs.append)
+    rows = {r.session.rsplit("/", 1)[-1]: r for r in result.rows}
+    assert rows["broken.h5"].status == "failed" and "not an HDF5 file" in rows["broken.h5"].error
+    good = rows["a.h5"]
+    assert good.status == "ok", good.error
+    assert good.subject == "s01" and good.surface == "flat" and good.n_frames == 8
+    assert (tmp_path / "out" / "s01" / "a" / "results.h5").exists()
+    table = json.loads(result.table_json.read_text())
+    assert len(table) == 2 and {r["status"] for r in table} == {"ok", "failed"}
+    assert result.table_csv.read_text().count("\n") == 3
+    x, mean, _, n = result.profiles["flat"]
+    np.testing.assert_allclose(mean, 1e-4 * x * good_px_per_mm(batch_dir), rtol=1e-6)
+    assert result.figure is not None and result.figure.exists()
+    assert any("FAILED" in m for m in msgs)
+
+
+def good_px_per_mm(batch_dir):
+    from drivers.session_file import open_session
+
+    with open_session(batch_dir / "s01" / "a.h5") as s:
+        return s.calibration.px_per_mm
+
+
+def test_average_profiles_on_common_grid():
+    x1 = np.linspace(0, 4, 17)
+    x2 = np.linspace(1, 5, 17)
+    grid, mean, std, n = average_profiles([(x1, 0.01 * x1), (x2, 0.01 * x2 + 0.02)], step_mm=0.5)
+    assert grid[0] == 0 and grid[-1] == 5
+    inside = (grid >= 1) & (grid <= 4)
+    np.testing.assert_allclose(mean[inside], 0.01 * grid[inside] + 0.01)
+    assert np.all(n[inside] == 2) and n[0] == 1 and n[-1] == 1
+    with pytest.raises(InvalidInputError, match="profiles"):
+        average_profiles([])
+
+
+def test_find_sessions_errors(tmp_path):
+    with pytest.raises(InvalidInputError, match="does not exist"):
+        find_sessions([tmp_path / "nope"])
+    with pytest.raises(InvalidInputError, match="no session file"):
+        find_sessions([tmp_path])
