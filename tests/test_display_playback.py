@@ -19,7 +19,7 @@ def sim():
     stresssim.register_url_handler()
     link = stresssim.make_link(seed=7)
     name = f"playback{next(_names)}"
-    display = StressDisplay(SerialTransport(stresssim.attach(name, link)), watchdog_s=0.3)
+    display = StressDisplay(SerialTransport(stresssim.attach(name, link)), watchdog_s=0.3, ack_timeout_s=0.5)
     yield display, link
     display.close()
     stresssim.detach(name)
@@ -30,11 +30,14 @@ def test_movie_is_played_acked_and_position_error_reported(sim):
     display.zero()
     n = 140
     movie = 25 * np.sin(2 * np.pi * 5 * np.arange(n) / 700)[:, None, None] * np.linspace(0.2, 1, 100).reshape(10, 10)
-    report = stream_movie(display, movie, rate_hz=700)
+    report = stream_movie(display, movie, rate_hz=700, max_outstanding=100)
     assert report.outcome == "completed" and report.rested
-    assert report.frames_sent == n and report.acked.sum() >= n - 2
-    assert np.allclose(report.commands_um, np.rint(movie * 2) / 2)
-    assert np.array_equal(np.array(link.firmware.commands_um)[-n:], report.commands_um)
+    sent = ~report.skipped  # frames are skipped only when the host is starved for a whole period
+    assert report.frames_played == n and report.acked.sum() >= sent.sum() - 2
+    # after a skip the movie may jump further than the slew limit allows: compare frames following a sent one
+    steady = sent & np.concatenate([[True], sent[:-1]])
+    assert np.allclose(report.commands_um[steady], np.rint(movie * 2)[steady] / 2)
+    assert np.array_equal(np.array(link.firmware.commands_um)[-sent.sum():], report.commands_um[sent])
     rms = report.position_rms_error_um()
     assert rms.shape == (10, 10) and np.all(np.isfinite(rms))
     # lag, hysteresis, gain spread and 0.5 um quantisation: about a micrometre, never tens
@@ -53,7 +56,7 @@ def test_callback_sees_acks_and_corrects_commands(sim):
 
     report = stream_movie(display, np.zeros((60, 10, 10)), callback=offset_by_two)
     assert report.completed
-    assert np.all(report.commands_um == 2.0) and any(seen[10:])
+    assert np.all(report.commands_um[~report.skipped] == 2.0) and any(seen[10:])
 
 
 def test_unsafe_movie_is_limited_not_refused(sim):

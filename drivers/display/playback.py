@@ -32,6 +32,7 @@ FrameCallback = Callable[[int, np.ndarray, Optional[FrameAck]], Optional[np.ndar
 class PlaybackReport:
     """What happened during a playback. Arrays cover the frames sent; ``acked`` flags frames with an ack.
 
+    ``commands_um[k]`` is the command in force after frame k (for a skipped frame: the previous one).
     ``measured_um[k]`` is what the contactors read when frame k arrived (the response to frame k - 1); where
     no ack came back it is NaN *and* ``acked[k]`` is False. Position errors compare ``measured_um[k]`` with the
     command of frame k - 1 (``settle_frames`` excluded).
@@ -42,13 +43,14 @@ class PlaybackReport:
     rested: bool
     rate_hz: float
     frames_total: int
-    frames_sent: int
+    frames_played: int  # frames whose slot has come: sent, or skipped because the host was starved
     commands_um: np.ndarray = field(repr=False)
     measured_um: np.ndarray = field(repr=False)
     acked: np.ndarray = field(repr=False)
     deadlines_s: np.ndarray = field(repr=False)  # relative to the first deadline
-    send_times_s: np.ndarray = field(repr=False)  # relative to the first deadline
-    missed_deadlines: int
+    send_times_s: np.ndarray = field(repr=False)  # relative to the first deadline (decision time if skipped)
+    skipped: np.ndarray = field(repr=False)  # frames not sent because their whole slot had passed
+    missed_deadlines: int  # late frames + skipped frames
     miss_tolerance_s: float
     lost_acks: int
     settle_frames: int
@@ -58,12 +60,18 @@ class PlaybackReport:
         return self.outcome == "completed"
 
     @property
+    def frames_skipped(self) -> int:
+        return int(self.skipped.sum())
+
+    @property
     def lateness_s(self) -> np.ndarray:
-        return self.send_times_s - self.deadlines_s
+        """Send time - deadline of the frames actually sent."""
+        return (self.send_times_s - self.deadlines_s)[~self.skipped]
 
     @property
     def periods_s(self) -> np.ndarray:
-        return np.diff(self.send_times_s)
+        """Intervals between consecutive frames actually sent."""
+        return np.diff(self.send_times_s[~self.skipped])
 
     @property
     def period_jitter_p99_s(self) -> float:
@@ -73,7 +81,7 @@ class PlaybackReport:
 
     def _errors(self) -> np.ndarray:
         """(n, 10, 10) measured - previous command over acked frames after the settle time."""
-        k = np.arange(max(1, self.settle_frames), self.frames_sent)
+        k = np.arange(max(1, self.settle_frames), self.frames_played)
         k = k[self.acked[k]]
         if k.size == 0:
             return np.empty((0, ROWS, COLS))
@@ -148,6 +156,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     acked = np.zeros(n, dtype=bool)
     deadlines = np.arange(n) * period
     send_times = np.zeros(n)
+    skipped = np.zeros(n, dtype=bool)
     frame_of_seq: dict[int, int] = {}
     latest: list[FrameAck | None] = [None]
     lost_before = getattr(display, "lost_acks", 0)
@@ -167,6 +176,15 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         t0 = clock() + 2 * period  # a little lead so frame 0 is not late by construction
         for k in range(n):
             deadline = t0 + k * period
+            now = clock()
+            if now > deadline + period:
+                # this frame's whole slot has passed (the host was starved): a burst of stale frames would only
+                # overrun the line, so skip it; the next frame is limited against what the contactors last got
+                skipped[k] = True
+                send_times[k] = now - t0
+                commands[k] = display.last_command_um
+                sent = k + 1
+                continue
             while True:
                 remaining = deadline - clock() - spin_s
                 if remaining <= 0:
@@ -207,10 +225,10 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         except DeviceError as exc:
             rested = False  # the firmware watchdog returns the contactors to rest
             error = error or f"rest failed: {exc}"
-    lateness = send_times[:sent] - deadlines[:sent]
+    lateness = (send_times[:sent] - deadlines[:sent])[~skipped[:sent]]
     return PlaybackReport(
-        outcome=outcome, error=error, rested=rested, rate_hz=float(rate_hz), frames_total=n, frames_sent=sent,
+        outcome=outcome, error=error, rested=rested, rate_hz=float(rate_hz), frames_total=n, frames_played=sent,
         commands_um=commands[:sent], measured_um=measured[:sent], acked=acked[:sent],
-        deadlines_s=deadlines[:sent], send_times_s=send_times[:sent],
-        missed_deadlines=int(np.sum(lateness > tolerance)), miss_tolerance_s=tolerance,
+        deadlines_s=deadlines[:sent], send_times_s=send_times[:sent], skipped=skipped[:sent],
+        missed_deadlines=int(np.sum(lateness > tolerance) + skipped[:sent].sum()), miss_tolerance_s=tolerance,
         lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames)

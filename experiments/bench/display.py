@@ -88,7 +88,7 @@ def _row(name: str, report: PlaybackReport, firmware_times: np.ndarray, fifo: bo
         rms_mean = rms_worst = bias_mean = float("nan")
     late = report.lateness_s
     met = report.completed and report.missed_deadlines == 0 and fw_p99 <= JITTER_TARGET_S
-    return [name, fifo, report.frames_sent, report.missed_deadlines,
+    return [name, fifo, report.frames_played, report.missed_deadlines,
             float(np.percentile(late, 99) * 1e3) if late.size else float("nan"),
             report.period_jitter_p99_s * 1e3, fw_p99 * 1e3, fw_max * 1e3, report.lost_acks,
             rms_mean, rms_worst, bias_mean, met, report.outcome]
