@@ -91,3 +91,18 @@ def test_no_ack_means_no_error_figure_not_nan(sim):
     assert not report.acked.any()
     with pytest.raises(InvalidInputError, match="no acknowledged frame"):
         report.position_rms_error_um()
+
+
+def test_a_failing_callback_still_rests_the_display_then_raises(sim):
+    display, link = sim
+
+    def broken(index, command, ack):
+        if index == 20:
+            return np.zeros((3, 3))  # a bug in the caller's controller
+        return command + 5.0
+
+    with pytest.raises(InvalidInputError, match="requested_um"):
+        stream_movie(display, np.zeros((40, 10, 10)), rate_hz=200, callback=broken)
+    assert np.all(display.last_command_um == 0)
+    link.advance()
+    assert link.firmware.benders.resting

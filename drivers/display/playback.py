@@ -218,6 +218,13 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         outcome, error = "safety_stop", str(exc)
     except DeviceError as exc:
         outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
+    except BaseException:
+        # a bug in a callback, a bad corrected command, Ctrl-C: still leave the skin at rest, then re-raise
+        try:
+            display.rest()
+        except DeviceError:
+            pass  # the firmware watchdog does it
+        raise
     rested = True
     if outcome != "completed" or rest_at_end:
         try:
