@@ -225,10 +225,7 @@ def test_editing_steps_are_switchable():
 def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
     """Whole-pixel shift of the scene => every feature far from the image border shifts by exactly that."""
     ex = FeatureExtractor(calibration=CAL, params=ExtractionParams(remove_border_features=False))
-    a = ex.extract(_print(shape=(260, 300), seed=1)).features
-    b = ex.extract(_print(shape=(260, 300), shift=(dx, dy), seed=1)).features
-    # Noise is drawn per pixel, not per skin point: compare on noise-free renderings instead.
-    assert a.size and b.size
+    # Noise is drawn per pixel, not per skin point, so the invariant is checked on noise-free renderings.
     a0 = ex.extract(_noise_free(0, 0)).features
     b0 = ex.extract(_noise_free(dx, dy)).features
     core = lambda t, sx, sy: t[(t["x"] - sx > 90) & (t["x"] - sx < 210) & (t["y"] - sy > 90) & (t["y"] - sy < 170)]
@@ -242,7 +239,6 @@ def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
 
 
 def _noise_free(dx, dy):
-    img = _print(shape=(300, 340), shift=(dx + 20, dy + 20), seed=0).astype(np.float64)
     h, w = 300, 340
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     x = xx - dx - 20
