@@ -1,0 +1,40 @@
+"""The record and report commands from the command line, on the simulated rig (analysis off to stay fast)."""
+
+from experiments.cli import main
+
+PROTOCOL = """\
+name: cli
+subject: {id: s03}
+camera_mode: strip
+trials:
+  - {name: flat, duration_s: 0.05}
+analysis: {enabled: false}
+"""
+
+
+def test_record_then_report(tmp_path, capsys):
+    proto = tmp_path / "p.yaml"
+    proto.write_text(PROTOCOL)
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("name: camera-only\ncamera: {kind: sim}\nforce: {kind: none}\ndisplay: {kind: none}\n")
+    assert main(["record", str(proto), "--rig", str(rig), "-o", str(tmp_path / "data")]) == 0
+    out = capsys.readouterr().out
+    sdir = tmp_path / "data" / "s03" / "cli"
+    assert f"session: {sdir}" in out and "000-flat-r1: complete" in out
+    assert (sdir / "000-flat-r1" / "session.h5").exists() and (sdir / "protocol.yaml").read_text() == PROTOCOL
+    assert "camera-only" in (sdir / "rig.yaml").read_text()
+    # a second run without --resume refuses to overwrite; with it, nothing is redone
+    assert main(["record", str(proto), "-o", str(tmp_path / "data")]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["record", str(proto), "--rig", str(rig), "-o", str(tmp_path / "data"), "--resume"]) == 0
+    assert "already complete, skipped" in capsys.readouterr().out
+    assert main(["report", str(sdir)]) == 0
+    html = (sdir / "report.html").read_text()
+    assert "000-flat-r1" in html and "No analysis results" in html and "<h2>Parameters and versions" in html
+
+
+def test_bad_protocol_names_line(tmp_path, capsys):
+    proto = tmp_path / "bad.yaml"
+    proto.write_text(PROTOCOL.replace("duration_s: 0.05", "duration_s: 0"))
+    assert main(["record", str(proto), "-o", str(tmp_path / "d")]) == 2
+    assert "bad.yaml:5: trials[0].duration_s" in capsys.readouterr().err
