@@ -297,3 +297,17 @@ def test_extract_many_matches_single_frames():
     for k, (f, r) in enumerate(zip(frames, many)):
         single = ex.extract(f, frame_index=4 + k).features
         assert single.tobytes() == r.features.tobytes()  # bit-identical (NaN orientations included)
+
+
+def test_extractor_applies_a_fitted_illumination_map():
+    frames = [_print(seed=s) for s in range(3)]
+    dimmed = [(f * np.linspace(0.6, 1.0, f.shape[1])[None, :]).astype(np.uint8) for f in frames]
+    ex = FeatureExtractor(calibration=CAL)
+    imap = ex.fit_illumination(dimmed)
+    assert imap.shape == frames[0].shape and ex.illumination is imap
+    res = ex.extract(dimmed[0])
+    assert res.ok and np.any(res.features["kind"] == FeatureKind.PORE)
+    with pytest.raises(InvalidInputError, match="illumination"):
+        ex.extract(np.zeros((200, 200), np.uint8) + 100)
+    with pytest.raises(InvalidInputError, match="illumination"):
+        ex.illumination = np.zeros((10, 10))

@@ -46,9 +46,10 @@ def _scene_row(name: str, n_frames: int) -> list:
     ex.fit_illumination(frames)
     illum_ms = (time.perf_counter() - t0) * 1000
     ex.extract(frames[0])  # compile / warm caches outside the timing
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ex.extract_many(frames, workers=1)
     fps1 = len(frames) / (time.perf_counter() - t0)
+    cpu_ms = (time.process_time() - c0) / len(frames) * 1000
     t0 = time.perf_counter()
     results = ex.extract_many(frames, workers=2)
     fps2 = len(frames) / (time.perf_counter() - t0)
@@ -64,6 +65,7 @@ def _scene_row(name: str, n_frames: int) -> list:
         name,
         f"{w}x{h}",
         n_frames,
+        cpu_ms,
         fps1,
         fps2,
         val(m, "recall"),
@@ -90,6 +92,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "scene",
             "size",
             "frames",
+            "cpu ms/frame",
             "fps 1 thr",
             "fps 2 thr",
             "min recall",
@@ -109,7 +112,8 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "min = minutiae (valley endings + bifurcations pooled); matching one-to-one within 0.1 mm, visible truth "
             "outside the border deletion mask only (experiments/evaluation/features.py).",
             "illumination compensation (seed 3.5) fitted on each sequence first (its time: last column, once per "
-            "sequence); fps: extraction + editing + sub-pixel per frame, after a warm-up frame.",
+            "sequence); fps: extraction + editing + sub-pixel per frame, after a warm-up frame; cpu ms/frame: process "
+            "CPU time of the single-thread run (less sensitive than fps to other loads on the machine).",
             "rep = RMS frame-to-frame change of a matched feature's localisation error (jitter vs true motion).",
             "targets: " + ", ".join(f"{k} {'>=' if 'recall' in k or 'prec' in k or 'frames' in k else '<='} {v}"
                                     for k, v in TARGETS.items()),
