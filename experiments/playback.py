@@ -174,6 +174,11 @@ class PlaybackResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def frames_sent(self) -> int:
+        """Frames that left the host (played minus those skipped because their slot had passed)."""
+        return self.frames_played - int(self.extra.get("skipped_frames", 0))
+
+    @property
     def complete(self) -> bool:
         return not self.stopped and self.frames_played == self.frames_total
 
@@ -290,7 +295,7 @@ def play_movie(
     rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
     rested = report.rested and rested_now
     duration = time.perf_counter() - t0
-    sent = report.frames_sent
+    sent = report.frames_played  # frames whose slot has come (sent, or skipped on a starved host)
     stopped = ""
     if report.outcome == "safety_stop":
         stopped = f"safety stop: {report.error}"
@@ -314,6 +319,7 @@ def play_movie(
         duration_s=duration,
         path=Path(path) if path is not None else None,
         extra={"settle": min(settle_frames, max(sent - 1, 0)), "lost_acks": report.lost_acks,
+               "skipped_frames": report.frames_skipped,
                "period_jitter_p99_s": report.period_jitter_p99_s, "rate_hz": float(rate_hz)},
     )
     if path is not None:
