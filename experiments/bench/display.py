@@ -31,6 +31,11 @@ DESCRIPTION = "STReSS playback at 700 Hz: missed deadlines, period jitter (host 
 
 RATE_HZ = 700.0
 JITTER_TARGET_S = 0.3e-3
+# A benchmark on a shared machine measures stalls rather than aborting on them: the watchdog and the
+# unacknowledged-frame window are widened (the safety defaults are 50 ms and 32 frames; tests cover them).
+BENCH_WATCHDOG_S = 0.5
+MAX_OUTSTANDING = 200
+DRIVER_OPTIONS = {"watchdog_s": BENCH_WATCHDOG_S, "ack_timeout_s": 0.2}
 SPIN_S = 0.0007  # busy-wait before each deadline: covers the p99 wake-up overshoot measured here (~0.45 ms)
 
 
@@ -73,9 +78,13 @@ def _play(display: StressDisplay, movie: np.ndarray) -> PlaybackReport:
     display.identify()
     display.zero()
     display.arm()
-    report = stream_movie(display, movie, rate_hz=RATE_HZ, settle_frames=20, spin_s=SPIN_S)
+    report = stream_movie(display, movie, rate_hz=RATE_HZ, settle_frames=20, spin_s=SPIN_S,
+                          max_outstanding=MAX_OUTSTANDING)
     display.close()
     return report
+
+
+_errors: list[str] = []
 
 
 def _row(name: str, report: PlaybackReport, firmware_times: np.ndarray, fifo: bool) -> list:
@@ -86,6 +95,8 @@ def _row(name: str, report: PlaybackReport, firmware_times: np.ndarray, fifo: bo
         rms_mean, rms_worst, bias_mean = float(rms.mean()), float(rms.max()), float(np.abs(bias).mean())
     except InvalidInputError:  # no acks: the table shows n/a
         rms_mean = rms_worst = bias_mean = float("nan")
+    if report.error:
+        _errors.append(f"{name}: {report.outcome}: {report.error}")
     late = report.lateness_s
     met = report.completed and report.missed_deadlines == 0 and fw_p99 <= JITTER_TARGET_S
     return [name, fifo, report.frames_played, report.missed_deadlines,
@@ -105,7 +116,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     with _RealtimePriority() as priority:
         # 1. pyserial URL: the firmware runs on the host's calls; its clock is the modelled line
         link = stresssim.make_link(seed=1)
-        report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_url", link))), movie)
+        report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_url", link)), **DRIVER_OPTIONS), movie)
         rows.append(_row("stresssim:// (in process)", report, np.asarray(link.firmware.frame_times),
                          priority.granted))
         grids["stresssim://"] = report
@@ -116,7 +127,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         load = np.zeros((sp.ROWS, sp.COLS))
         load[3:7, 3:7] = 0.25
         link.firmware.benders.set_load(load)
-        report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_load", link))), movie)
+        report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_load", link)), **DRIVER_OPTIONS), movie)
         rows.append(_row("stresssim:// + finger load", report, np.asarray(link.firmware.frame_times),
                          priority.granted))
         grids["stresssim:// + load 0.25 N/mm on rows/cols 3-6"] = report
@@ -125,20 +136,24 @@ def run(options: BenchOptions) -> list[BenchTable]:
         # 3. a real pty to the firmware in its own process (kernel tty path, two schedulers)
         record = workdir / f"display-firmware-{os.getpid()}.npz"
         with stresssim.FirmwareProcess(record_path=record, seed=1) as firmware:
-            report = _play(StressDisplay(SerialTransport(firmware.port)), movie)
+            report = _play(StressDisplay(SerialTransport(firmware.port), **DRIVER_OPTIONS), movie)
         fw_times = firmware.records()["frame_times"]
         record.unlink(missing_ok=True)
         rows.append(_row("pty + firmware process", report, fw_times, priority.granted))
 
         # 4. pyusb bulk endpoints (high-speed USB model: 125 us microframe latency)
         link = PacedLink.usb_high_speed(StressFirmware(seed=1, t0=time.perf_counter()), clock=RealClock())
-        report = _play(StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link))), movie)
+        report = _play(StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), **DRIVER_OPTIONS), movie)
         rows.append(_row("USB bulk (pyusb backend)", report, np.asarray(link.firmware.frame_times),
                          priority.granted))
 
+    notes.extend(_errors)
+    _errors.clear()
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     notes.append(f"{seconds:.0f} s at {RATE_HZ:.0f} Hz per row ({len(movie)} frames), travelling wave 20 um / 8 Hz; "
                  f"2 Mbaud 8N1 link model; machine load average {load1:.1f} on {os.cpu_count()} cores.")
+    notes.append(f"bench settings: watchdog {BENCH_WATCHDOG_S} s, window {MAX_OUTSTANDING} frames, "
+                 f"spin {SPIN_S * 1e3:.1f} ms before each deadline (defaults 50 ms / 32 frames / 0.4 ms).")
     notes.append("missed = sent more than a quarter period after its deadline; jitter = |period - 1/700 s|; "
                  f"target: 0 missed and firmware jitter p99 <= {JITTER_TARGET_S * 1e3:.1f} ms.")
     notes.append("position error = measured (ack of frame k) - command of frame k-1, first 20 frames excluded; "
