@@ -47,6 +47,8 @@ from processing.errors import CalibrationError, InvalidInputError
 MAPPING_KIND = "skinstretch-grid-mapping"
 MAPPING_VERSION = 1
 SURFACE_KINDS = ("flat", "ridge", "valley")
+#: A ridge or valley profile needs this many rows of dots (4.5 mm at 0.5 mm pitch) across it to be fitted.
+MIN_ROWS_CURVED = 9
 #: Index given by :func:`index_grid` to dots that are not on the lattice.
 INDEX_NONE = np.iinfo(np.int64).min
 
@@ -167,7 +169,16 @@ def detect_dots(
 
 
 def _seed_lattice(xy: np.ndarray, tree: cKDTree, center: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | None:
-    """A dot near the centre whose four lattice neighbours are where a regular lattice puts them."""
+    """A dot near the centre whose four lattice neighbours are where a regular lattice puts them (strictly first;
+    a ridge's slopes can leave no strictly regular dot in a narrow strip, so then more loosely)."""
+    for tol in (0.15, 0.3):
+        found = _seed_lattice_within(xy, tree, center, tol)
+        if found is not None:
+            return found
+    return None
+
+
+def _seed_lattice_within(xy, tree, center, tol) -> tuple[int, np.ndarray, np.ndarray] | None:
     k = min(7, len(xy))
     order = np.argsort(np.linalg.norm(xy - center, axis=1))
     for idx in order[: min(len(order), 60)]:
@@ -185,7 +196,7 @@ def _seed_lattice(xy: np.ndarray, tree: cKDTree, center: np.ndarray) -> tuple[in
         ok = True
         for vec in (a1, -a1, a2, -a2):
             d, _ = tree.query(xy[idx] + vec)
-            if d > 0.15 * np.linalg.norm(vec):
+            if d > tol * np.linalg.norm(vec):
                 ok = False
                 break
         if not ok or np.linalg.norm(a2) > 2.5 * np.linalg.norm(a1):
@@ -520,6 +531,24 @@ class GridMapping:
         d = self.image_to_surface(c + [[0.5, 0.0]]) - self.image_to_surface(c - [[0.5, 0.0]])
         return float(1.0 / np.linalg.norm(d))
 
+    def for_window(self, *, x0: int, y0: int, width: int, height: int) -> "GridMapping":
+        """The same mapping for a sub-window of the sensor (the camera's half and strip modes, seed 3.3).
+
+        A strip 100 rows high holds too few grid rows to fit a ridge's profile: calibrate on a full frame, then
+        take the window whose top-left pixel is (``x0``, ``y0``) of the full frame. The surface frame is kept.
+        """
+        for name, value in (("x0", x0), ("y0", y0)):
+            if int(value) < 0:
+                raise InvalidInputError(f"{name} must be >= 0, got {value!r}")
+        if int(width) <= 0 or int(height) <= 0 or x0 + width > self.width or y0 + height > self.height:
+            raise InvalidInputError(
+                f"window {width}x{height} at ({x0}, {y0}) does not fit in the {self.width}x{self.height} calibration"
+            )
+        rig = dict(self.rig)
+        rig["principal"] = (np.asarray(self.rig["principal"], dtype=np.float64) - [x0, y0]).tolist()
+        return GridMapping(width=int(width), height=int(height), surface=self.surface, rig=rig,
+                           frame=dict(self.frame), report=dict(self.report, window=[int(x0), int(y0)]))
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable description (plain floats, lists, strings)."""
         def plain(value: Any) -> Any:
@@ -838,6 +867,16 @@ def fit_grid_mapping(
 
     guess_kind, guess_center = _shape_guess(gviews[0], spacing_mm)
     kinds = [surface] if surface != "auto" else (["flat"] if guess_kind == "flat" else [guess_kind, "flat"])
+    rows = len(np.unique(np.concatenate([v.ij[:, 1] for v in gviews])))
+    if surface in ("ridge", "valley") and rows < MIN_ROWS_CURVED:
+        raise CalibrationError(
+            f"the grid spans only {rows} rows of dots: too few to fit a {surface}'s profile (need "
+            f"{MIN_ROWS_CURVED}); calibrate on a full frame and use GridMapping.for_window for smaller modes"
+        )
+    if rows < MIN_ROWS_CURVED:
+        kinds = ["flat"]
+    if rows < 3:
+        raise CalibrationError(f"the grid spans only {rows} rows of dots (need at least 3)")
     rig0 = _initial_rig(gviews[0], principal, spacing_mm, working_distance_mm)
 
     best = None
@@ -894,9 +933,12 @@ def fit_grid_mapping(
         res = _fit(kept_views, curved=curved, principal=principal, spacing=spacing_mm, p0=p, loss="linear",
                    f_scale=1.0)
         cost = float(np.sqrt(np.mean(res.fun**2)))
-        if best is None or cost < best[0]:
+        if kind == "flat" and best is not None and cost <= 1.2 * best[0]:
+            best = (cost, kind, res.x, keep)  # a curved model that does not fit clearly better is not kept
+        elif best is None or cost < best[0]:
             best = (cost, kind, res.x, keep)
-        if best[0] < 0.1:  # the guessed model already fits to noise level: no need to try the others
+        if best[0] < 0.1 and (kind == "flat" or abs(res.x[9]) >= 0.05):
+            # The guessed model fits to noise level with a real shape: no need to try a flat one.
             break
     if best is None:
         raise CalibrationError("grid not found: too many dots disagree with any rig model")
@@ -972,9 +1014,13 @@ def fit_grid_mapping(
     )
     mapping.report = report.summary()
     if rms > max_rms_px:
+        hint = (
+            f"; {rows} rows of dots cannot resolve a ridge or valley: calibrate on a full frame and use "
+            "GridMapping.for_window" if rows < MIN_ROWS_CURVED else ""
+        )
         raise CalibrationError(
             f"calibration residuals too large: RMS {rms:.3f} px > {max_rms_px} px over {keep.sum()} dots "
-            f"({kind} surface model)"
+            f"({kind} surface model){hint}"
         )
     return mapping, report
 
@@ -1032,8 +1078,12 @@ def calibrate_grid_images(
         ij = index_grid(dots.xy, image_shape=shape)
         ok = ij[:, 0] != INDEX_NONE
         if ok.sum() < min_indexed_fraction * len(dots) or ok.sum() < 10:
+            hint = (
+                "; in a narrow strip over a ridge or valley no row spacing is regular: calibrate on a full frame "
+                "and use GridMapping.for_window" if shape[0] < 0.5 * shape[1] else ""
+            )
             raise CalibrationError(
-                f"image {k}: grid not found ({ok.sum()} of {len(dots)} detected dots form a lattice)"
+                f"image {k}: grid not found ({ok.sum()} of {len(dots)} detected dots form a lattice){hint}"
             )
         views.append((ij[ok], dots.xy[ok]))
     return fit_grid_mapping(

@@ -104,9 +104,9 @@ def test_json_round_trip(fitted):
 
 def test_moving_grid_fit_is_at_least_as_good_on_a_ridge(fitted):
     optics, _, single, _ = fitted["ridge"]
-    images = [_grid(optics, k).image for k in range(3)]
+    images = [_grid(optics, k).image for k in range(2)]
     multi, report = calibrate_grid_images(images, px_per_mm=optics.px_per_mm)
-    assert report.n_used > 3 * 300 and set(report.image.tolist()) == {0, 1, 2}
+    assert report.n_used > 2 * 300 and set(report.image.tolist()) == {0, 1}
     xy = _field(optics)
     truth = optics.image_to_surface(xy)
     e_multi = np.sqrt(np.mean(_error_um(multi.image_to_surface(xy), truth) ** 2))
@@ -189,3 +189,28 @@ def test_calibrate_cli_writes_a_file_and_applies_it(fitted, tmp_path, capsys):
     cv2.imwrite(str(blank), np.full((484, 640), 200, np.uint8))
     assert cli_main(["calibrate", str(blank), "-o", str(tmp_path / "x.json")]) == 2
     assert "grid not found" in capsys.readouterr().err
+
+
+def test_window_of_a_full_frame_calibration_serves_the_strip_mode(fitted):
+    optics, _, mapping, _ = fitted["ridge"]
+    strip = PrismOptics(height=100, surface=optics.surface)  # the 640x100 mode: the sensor's central rows
+    window = mapping.for_window(x0=0, y0=192, width=640, height=100)
+    xy = _field(strip, step=8)
+    err = _error_um(window.image_to_surface(xy), strip.image_to_surface(xy))
+    assert np.sqrt(np.mean(err**2)) < 2.0
+    assert mapping_from_dict(window.to_dict()).height == 100
+    with pytest.raises(InvalidInputError, match="does not fit"):
+        mapping.for_window(x0=0, y0=400, width=640, height=100)
+    # Calibrating the strip itself cannot resolve the ridge, and says what to do instead.
+    g = render_calibration_grid(strip, seed=2)
+    with pytest.raises(CalibrationError, match="for_window"):
+        calibrate_grid_image(g.image, px_per_mm=strip.px_per_mm)
+
+
+def test_a_rotated_grid_on_a_flat_surface_is_fitted_as_flat():
+    optics = PrismOptics()
+    g = render_calibration_grid(optics, rotation_deg=20.0, missing_fraction=0.1, n_spurious=3, seed=5)
+    mapping, _ = calibrate_grid_image(g.image, px_per_mm=optics.px_per_mm)
+    assert mapping.surface == "flat"
+    xy = _field(optics)
+    assert np.sqrt(np.mean(_error_um(mapping.image_to_surface(xy), optics.image_to_surface(xy)) ** 2)) < 1.0
