@@ -214,3 +214,19 @@ def test_a_rotated_grid_on_a_flat_surface_is_fitted_as_flat():
     assert mapping.surface == "flat"
     xy = _field(optics)
     assert np.sqrt(np.mean(_error_um(mapping.image_to_surface(xy), optics.image_to_surface(xy)) ** 2)) < 1.0
+
+
+def test_calibrate_cli_windows_a_full_frame_calibration_for_a_strip_session(fitted, tmp_path):
+    optics, g, _, _ = fitted["ridge"]
+    image = tmp_path / "grid.png"
+    cv2.imwrite(str(image), g.image)
+    session = tmp_path / "strip.h5"
+    write_session(session, np.full((1, 100, 640), 200, np.uint8), timestamps=np.zeros(1),
+                  camera_mode=CAMERA_MODES["strip"], calibration=Calibration(62.1))
+    assert cli_main(["calibrate", str(image), "-o", str(tmp_path / "c.json"), "--apply-to", str(session)]) == 0
+    strip = PrismOptics(height=100, surface=optics.surface)
+    with open_session(session) as s:
+        mapping = s.calibration.mapping
+        assert (mapping.width, mapping.height) == (640, 100)
+        xy = _field(strip, step=8)
+        assert np.sqrt(np.mean(_error_um(mapping.image_to_surface(xy), strip.image_to_surface(xy)) ** 2)) < 2.0

@@ -32,7 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("source", type=Path, help="grid image (PNG/TIFF...) or session file (.h5) showing the grid")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration JSON to write")
-    p.add_argument("--apply-to", type=Path, default=None, help="also store the calibration in this session file")
+    p.add_argument("--apply-to", type=Path, default=None,
+                   help="also store the calibration in this session file (a half/strip-mode session gets the "
+                        "central window of a full-frame calibration)")
     p.add_argument("--surface", choices=("auto",) + SURFACE_KINDS, default="auto", help="surface model")
     p.add_argument("--field-width-mm", type=float, default=FIELD_OF_VIEW_MM["full"],
                    help="nominal field of view across the image width (sets the expected dot size; default 10.3)")
@@ -89,6 +91,20 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if args.apply_to is not None:
+        with open_session(args.apply_to) as session:
+            _, height, width = session.shape
+        if (width, height) != (mapping.width, mapping.height):
+            # A half or strip mode reads the sensor's central rows (seed 3.3): use that window of the full-frame
+            # calibration (a strip holds too few grid rows to be calibrated by itself).
+            if width > mapping.width or height > mapping.height:
+                raise InvalidInputError(
+                    f"{args.apply_to} has {width}x{height} frames, larger than the {mapping.width}x{mapping.height} "
+                    "calibration images"
+                )
+            x0, y0 = (mapping.width - width) // 2, (mapping.height - height) // 2
+            mapping = mapping.for_window(x0=x0, y0=y0, width=width, height=height)
+            print(f"using the central {width}x{height} window (from x {x0}, y {y0}) for {args.apply_to}",
+                  file=sys.stderr)
         write_calibration(args.apply_to, Calibration(px_per_mm=mapping.px_per_mm, mapping=mapping))
         print(f"stored the calibration in {args.apply_to}", file=sys.stderr)
     return 0
