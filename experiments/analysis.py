@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import platform
+from concurrent.futures import ThreadPoolExecutor
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -50,7 +51,7 @@ class AnalysisParams:
     ``spans`` are the frame spans of the triangulation strain (seed 6.3.2: 1 and 11). ``max_edge_mm`` drops long
     hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
     profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the
-    feature triangulation's ~48 px, seed 6.3.3).
+    feature triangulation's ~48 px, seed 6.3.3). ``workers`` threads extract features ahead of the tracker.
     """
 
     tracking: TrackingParams = field(default_factory=lambda: TrackingParams(smoothing_radius_frames=0, max_gap_frames=3))
@@ -63,6 +64,7 @@ class AnalysisParams:
     profile_strip_mm: float = 1.0
     profile_step_mm: float = 0.25
     flow_stride: int = 4
+    workers: int = 2
     extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
 
     def __post_init__(self) -> None:
@@ -155,18 +157,31 @@ def measure_features(
     )
     tables, flags = [], []
     t_extract = t_track = 0.0
-    for k in _progress(range(n), progress, "features"):
-        frame = np.asarray(frames[k])
-        t0 = time.perf_counter()
-        res = extractor.extract(frame, frame_index=k)
-        t1 = time.perf_counter()
-        feats = res.features if res.ok else res.features[:0]
-        tracker.add_frame(feats, image=frame)
-        t2 = time.perf_counter()
-        t_extract += t1 - t0
-        t_track += t2 - t1
-        tables.append(feats)
-        flags.append(",".join(sorted(res.flags)))
+    workers = max(1, int(params.workers))
+    # Extraction of the next frames runs on worker threads (OpenCV releases the GIL) while this thread matches
+    # and refines: frames are consumed strictly in order, at most 2 * workers ahead.
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: dict[int, Any] = {}
+
+        def timed_extract(k: int):
+            t0 = time.perf_counter()
+            res = extractor.extract(np.asarray(frames[k]), frame_index=k)
+            return res, time.perf_counter() - t0
+
+        ahead = 2 * workers
+        for k in range(min(ahead, n)):
+            pending[k] = pool.submit(timed_extract, k)
+        for k in _progress(range(n), progress, "features"):
+            res, dt = pending.pop(k).result()
+            if k + ahead < n:
+                pending[k + ahead] = pool.submit(timed_extract, k + ahead)
+            t1 = time.perf_counter()
+            feats = res.features if res.ok else res.features[:0]
+            tracker.add_frame(feats, image=np.asarray(frames[k]))
+            t_track += time.perf_counter() - t1
+            t_extract += dt
+            tables.append(feats)
+            flags.append(",".join(sorted(res.flags)))
     t0 = time.perf_counter()
     tr = tracker.finish()
     if mapping is not None:

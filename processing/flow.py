@@ -191,7 +191,9 @@ class DenseFlow:
         sq = cv2.boxFilter(af * af, -1, k)
         contrast = np.sqrt(np.maximum(sq - mean * mean, 0.0))
         rr, cc = np.meshgrid(gy.astype(int), gx.astype(int), indexing="ij")
-        contact = contrast[rr, cc] >= self.params.min_contrast
+        # A node is in contact when (almost) all of its window shows ridges.
+        low = cv2.boxFilter((contrast < self.params.min_contrast).astype(np.float32), -1, k)
+        contact = low[rr, cc] <= 0.05
         gyn, gxn = gy.size, gx.size
         if not np.any(contact):
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),

@@ -35,12 +35,18 @@ class SubpixelParams:
     normalize_sigma_mm : float or None
         Scale of the local contrast normalisation applied to both images before registration (see
         :func:`local_normalize`); None registers the raw images.
+    min_contrast : float
+        Local grey-level standard deviation below which a pixel counts as out of contact (no ridges).
+    max_no_contact_fraction : float
+        Largest fraction of a registration window that may be out of contact, in either frame.
     """
 
     window_mm: float = 0.5
     max_correction_mm: float = 0.05
     pyramid_levels: int = 1
     normalize_sigma_mm: float | None = 0.15
+    min_contrast: float = 8.0
+    max_no_contact_fraction: float = 0.05
 
     def __post_init__(self) -> None:
         if not self.window_mm > 0:
@@ -122,27 +128,41 @@ class SubpixelRefiner:
     def window_px(self) -> int:
         return self._win
 
-    def prepare(self, image: np.ndarray) -> np.ndarray:
-        """The image as :meth:`refine` wants it (normalised when ``normalize_sigma_mm`` is set); call once per frame."""
+    def prepare(self, image: np.ndarray) -> "PreparedImage":
+        """The image as :meth:`refine` wants it: normalised (when ``normalize_sigma_mm`` is set) and with its
+        out-of-contact map. Call once per frame."""
         image = _as_gray(image, "image")
+        sigma = self.calibration.px(self.params.normalize_sigma_mm or 0.15)
+        f = image.astype(np.float32)
+        mean = _smooth(f, sigma)
+        d = f - mean
+        std = np.sqrt(_smooth(d * d, sigma))
+        # FTIR: skin out of contact shows no ridges, a flat bright field (seed 3.1).
+        low = (std < self.params.min_contrast).astype(np.float64)
+        integral = cv2.integral(low)
         if self.params.normalize_sigma_mm is None:
-            return image
-        return local_normalize(image, sigma_px=self.calibration.px(self.params.normalize_sigma_mm))
+            return PreparedImage(image, integral)
+        return PreparedImage(np.clip(128.0 + 40.0 * d / (std + 2.0), 0, 255).astype(np.uint8), integral)
 
     def refine(
         self,
-        prev_image: np.ndarray,
-        curr_image: np.ndarray,
+        prev_image,
+        curr_image,
         points: np.ndarray,
         initial_displacement: np.ndarray,
     ) -> RefinedDisplacements:
         """Refine the displacement of ``points`` (frame ``prev_image``, (n, 2) x, y px) into ``curr_image``.
 
-        The images should come from :meth:`prepare` (raw images work, without illumination normalisation).
-
-        Points whose window leaves the image, whose registration fails to converge, or whose correction exceeds
-        ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
+        The images should come from :meth:`prepare` (raw arrays work too: no normalisation, no contact test).
+        Points whose window leaves the image or overlaps skin out of contact (by more than
+        ``max_no_contact_fraction``) in either frame, whose registration fails to converge, or whose correction
+        exceeds ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
         """
+        prev_nc = curr_nc = None
+        if isinstance(prev_image, PreparedImage):
+            prev_image, prev_nc = prev_image.image, prev_image.no_contact_integral
+        if isinstance(curr_image, PreparedImage):
+            curr_image, curr_nc = curr_image.image, curr_image.no_contact_integral
         prev_image = _as_gray(prev_image, "prev_image")
         curr_image = _as_gray(curr_image, "curr_image")
         if prev_image.shape != curr_image.shape:
@@ -177,10 +197,37 @@ class SubpixelRefiner:
             & (points[:, 1] >= half)
             & (points[:, 1] <= h - 1 - half)
         )
+        q = points + np.where(np.isfinite(d), d, init)
+        inside &= (q[:, 0] >= half) & (q[:, 0] <= w - 1 - half) & (q[:, 1] >= half) & (q[:, 1] <= h - 1 - half)
         ok &= inside
+        # A window overlapping skin out of contact sees the prism's fixed, flat field there: biased toward zero.
+        limit = self.params.max_no_contact_fraction
+        for integral, where in ((prev_nc, points), (curr_nc, q)):
+            if integral is not None:
+                ok &= _window_fraction(integral, where, half) <= limit
         disp = np.where(ok[:, None], d, init)
         residual = np.where(ok, err.reshape(-1).astype(np.float64), np.nan)
         return RefinedDisplacements(disp, ok, residual)
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """A frame ready for :meth:`SubpixelRefiner.refine`: registration image and integral of its no-contact mask."""
+
+    image: np.ndarray
+    no_contact_integral: np.ndarray
+
+
+def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
+    """Fraction of the (2 half + 1)^2 window around each point that is set in the mask of ``integral``."""
+    h, w = integral.shape[0] - 1, integral.shape[1] - 1
+    c = np.clip(np.round(points[:, 0]).astype(np.int64), 0, w - 1)
+    r = np.clip(np.round(points[:, 1]).astype(np.int64), 0, h - 1)
+    r0, r1 = np.clip(r - half, 0, h), np.clip(r + half + 1, 0, h)
+    c0, c1 = np.clip(c - half, 0, w), np.clip(c + half + 1, 0, w)
+    total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+    area = np.maximum((r1 - r0) * (c1 - c0), 1)
+    return total / area
 
 
 def _as_gray(image: np.ndarray, name: str) -> np.ndarray:
