@@ -56,9 +56,9 @@ class FlowParams:
     pyramid_levels: int = 2
     min_contrast: float = 8.0
     outlier_mm: float = 0.01
-    smoothness: float = 0.05
+    smoothness: float = 0.2
     refine_iterations: int = 3
-    jacobi_sweeps: int = 20
+    jacobi_sweeps: int = 50
     max_residual_ratio: float = 3.0
     clg_levels: int = 1
     normalize_sigma_mm: float | None = 0.15
@@ -263,7 +263,14 @@ class DenseFlow:
         rr = np.clip(np.round(gy).astype(int), 0, h - 1)[:, None]
         cc = np.clip(np.round(gx).astype(int), 0, w - 1)[None, :]
         cmask = contact.astype(np.float64)
+        gxx_, gyy_ = np.meshgrid(gx, gy)
+        design = np.column_stack([gxx_[contact], gyy_[contact], np.ones(int(contact.sum()))])
+        full = np.stack([gxx_, gyy_, np.ones_like(gxx_)], axis=-1)
         for _ in range(int(self.params.refine_iterations)):
+            # Re-fit the affine prior to the current field: Jacobi sweeps move the smooth (affine) part of the
+            # field slowly, so a biased start would otherwise persist under a strong smoothness term.
+            coef, *_ = np.linalg.lstsq(design, field[contact], rcond=None)
+            prior = full @ coef
             bw = self._warp(b, gx, gy, field)
             avg = 0.5 * (a + bw)
             ix = cv2.Sobel(avg, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
