@@ -124,7 +124,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         k_mid = n_frames // 2
         map_max, map_rms = _map_error(r, k_mid)
         inv = _inverse_error(r, k_mid)
-        warp = _warp_residual(scene, min(n_frames - 1, 15 if options.quick else 60)) if scene.surface.kind == "flat" else float("nan")
+        warp = _warp_residual(scene, n_frames - 1) if scene.surface.kind == "flat" else float("nan")
         n_vis = int(truth.feature_visible[k_mid].sum())
         valid = truth.displacement_valid
         max_strain = float(np.max(np.abs(truth.strain[valid]))) if valid.any() else float("nan")
