@@ -70,7 +70,8 @@ def test_vanished_pty_mid_movie():
 def test_vanished_usb_device_mid_movie():
     link = PacedLink.usb_high_speed(StressFirmware(seed=5, t0=time.perf_counter()), clock=stresssim.RealClock(),
                                     faults=LinkFaults(vanish_after_frames=40))
-    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
+    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), watchdog_s=WATCHDOG_S,
+                            ack_timeout_s=0.5)
     report = stream_movie(display, _movie(), rate_hz=RATE_HZ)
     assert report.outcome == "link_failure" and "usb" in report.error
     assert report.frames_played >= 40

@@ -13,6 +13,7 @@ movie by raising :class:`processing.errors.SafetyStop` (force ceiling): ``outcom
 
 from __future__ import annotations
 
+import gc
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -170,6 +171,9 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
             latest[0] = ack
 
     outcome, error, sent = "completed", "", 0
+    # a full garbage collection over thousands of acks takes milliseconds: none during the movie
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
     try:
         if not display.armed:
             display.arm()
@@ -225,6 +229,9 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         except DeviceError:
             pass  # the firmware watchdog does it
         raise
+    finally:
+        if gc_was_enabled:
+            gc.enable()
     rested = True
     if outcome != "completed" or rest_at_end:
         try:
