@@ -3,13 +3,16 @@
 
 Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on fingerprint texture:
 
-1. The coarse global motion between the frames comes from phase correlation of the whole images
-   (:class:`processing.robust_tracking.GlobalMotionEstimator`). Local window methods started at zero lock onto a
-   neighbouring ridge; started from the global motion they are within a fraction of a ridge period.
-2. Pyramidal Lucas-Kanade registration of a ~0.5 mm window at every node of a regular grid (default 0.2 mm)
-   inside the contact region (where the local grey-level spread shows ridges), started from the global motion.
-3. Outliers (a node disagreeing with the median of its neighbours by more than ``outlier_mm``) are registered
-   again from that median at full resolution; nodes still disagreeing are flagged invalid, never silently kept.
+1. Both frames are contrast-normalised locally (illumination is fixed to the prism, not to the skin).
+2. Coarse global motion by phase correlation of the whole images, then an affine motion by ECC on the top
+   pyramid level started from it. Local window methods started at zero lock onto a neighbouring ridge; started
+   from the affine motion they are within a fraction of a ridge period.
+3. Coarse to fine, every node of a regular grid (0.2 mm) in the contact region is registered with a ~0.5 mm
+   window (Lucas-Kanade data term), coupled to its neighbours by a membrane term on the deviation from the
+   (re-fitted) affine motion, solved by Jacobi sweeps. The coupling supplies the along-ridge component a single
+   window cannot see (aperture problem); acting on the deviation from an affine, it does not bias uniform strain.
+4. Nodes out of contact (a flat window), whose window leaves the second image, or whose residual is far above
+   the median are flagged invalid, never silently kept.
 
 Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
 :func:`processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
@@ -21,9 +24,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import sparse
 from scipy.ndimage import map_coordinates
-from scipy.sparse.linalg import spsolve
 
 from processing.calibration import Calibration
 from processing.errors import InvalidInputError
@@ -47,15 +48,22 @@ class FlowParams:
     min_contrast : float
         Minimum local grey-level standard deviation for a node to count as in contact (FTIR: no contact = no
         ridges = flat bright image).
-    outlier_mm : float
-        Disagreement with the neighbours' median beyond which a node is registered again, then flagged.
+    smoothness : float
+        Weight of the coupling between neighbouring nodes, relative to the median data weight.
+    refine_iterations, jacobi_sweeps : int
+        Gauss-Newton iterations per pyramid level, and Jacobi sweeps per iteration.
+    max_residual_ratio : float
+        A node whose registration residual exceeds this multiple of the median is flagged invalid.
+    clg_levels : int
+        Pyramid levels (from full resolution) on which the coupled registration runs after the affine start.
+    normalize_sigma_mm : float or None
+        Local contrast normalisation scale (see :func:`processing.subpixel_displacement.local_normalize`).
     """
 
     grid_step_mm: float = 0.2
     window_mm: float = 0.5
     pyramid_levels: int = 2
     min_contrast: float = 8.0
-    outlier_mm: float = 0.01
     smoothness: float = 0.2
     refine_iterations: int = 3
     jacobi_sweeps: int = 50
@@ -64,7 +72,7 @@ class FlowParams:
     normalize_sigma_mm: float | None = 0.15
 
     def __post_init__(self) -> None:
-        for name in ("grid_step_mm", "window_mm", "outlier_mm"):
+        for name in ("grid_step_mm", "window_mm"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InvalidInputError(f"{name} must be positive, got {v!r}")
@@ -88,7 +96,7 @@ class FlowField:
     displacement: np.ndarray  # (GY, GX, 2) px
     valid: np.ndarray  # (GY, GX) bool
     global_shift: np.ndarray  # (2,) px
-    n_outliers: int
+    n_outliers: int  # nodes in contact flagged invalid (residual too high or window out of the image)
     status: str = "ok"
 
     def motion(self, *, stride: int = 1) -> MotionSample:
@@ -124,7 +132,7 @@ class FlowField:
 
 
 class DenseFlow:
-    """Grid displacement between two frames: global phase correlation, then pyramidal LK, then outlier repair.
+    """Grid displacement between two frames: phase correlation, affine ECC start, coupled coarse-to-fine registration.
 
     Parameters
     ----------
@@ -150,9 +158,7 @@ class DenseFlow:
         self.calibration = calibration
         self._step = max(2, calibration.px_int(self.params.grid_step_mm))
         self._win = calibration.odd_px(self.params.window_mm, minimum=7)
-        self._outlier = calibration.px(self.params.outlier_mm)
         self._estimator = GlobalMotionEstimator()
-        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
 
     def grid(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Grid node coordinates (x, y) for images of ``shape``: nodes whose window fits in the image."""
@@ -315,34 +321,6 @@ class DenseFlow:
         cc = np.clip(np.round(gx).astype(int), 0, w - 1)[None, :]
         return cv2.boxFilter(np.abs(bw - a), -1, (self._win, self._win))[rr, cc].astype(np.float64)
 
-    def _lk(self, a, b, pts, init, levels) -> tuple[np.ndarray, np.ndarray]:
-        p0 = pts.reshape(-1, 1, 2).astype(np.float32)
-        p1 = (pts + init).reshape(-1, 1, 2).astype(np.float32)
-        out, status, _ = cv2.calcOpticalFlowPyrLK(
-            a, b, p0, p1, winSize=(self._win, self._win), maxLevel=levels, criteria=self._criteria,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        d = out.reshape(-1, 2).astype(np.float64) - pts.astype(np.float64)
-        ok = status.reshape(-1).astype(bool) & np.all(np.isfinite(d), axis=1)
-        return d, ok
-
-
-def _neighbour_median(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Median of the valid 8-neighbours of every node (NaN where fewer than 3)."""
-    gy, gx, _ = disp.shape
-    pad = np.pad(np.where(valid[..., None], disp, np.nan), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
-    stack = np.stack(
-        [pad[1 + dy : 1 + dy + gy, 1 + dx : 1 + dx + gx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    )
-    n = np.sum(np.isfinite(stack[..., 0]), axis=0)
-    out = np.full((gy, gx, 2), np.nan)
-    enough = n >= 3
-    if np.any(enough):
-        med = np.nanmedian(stack[:, enough], axis=0) if stack[:, enough].size else None
-        out[enough] = med
-    return out
-
-
 def _affine_init(a: np.ndarray, b: np.ndarray, shift: np.ndarray) -> np.ndarray | None:
     """Affine motion between two (downsampled) images by ECC, started from a translation; None if it fails.
 
@@ -374,12 +352,6 @@ def _neighbour_sum(u: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
     s[:, :-1] += um[:, 1:]
     n[:, :-1] += mask[:, 1:]
     return s, n
-
-
-def _fill_invalid(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Invalid nodes take the mean of the valid ones (only to warp the image smoothly; they stay invalid)."""
-    fill = np.nanmean(disp[valid], axis=0) if valid.any() else np.zeros(2)
-    return np.broadcast_to(fill, disp.shape)
 
 
 def grid_strain(field: FlowField) -> tuple[np.ndarray, np.ndarray]:
