@@ -383,6 +383,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     raise sim.error
         except KeyboardInterrupt:
             pass
+        stats = sim.stats
+    print(" ".join(f"{k}={v}" for k, v in stats.__dict__.items()), flush=True)  # what the box did, for benches
     return 0
 
 

@@ -27,6 +27,15 @@ COLUMNS = ["box", "rate Hz", "seconds", "samples", "expected", "achieved Hz", "l
 FORCE_N = 2.5
 
 
+def _udp_receive_buffer_errors() -> int | None:
+    """The kernel's count of UDP datagrams dropped because a socket's receive buffer was full (all sockets)."""
+    try:
+        lines = [line.split() for line in open("/proc/net/snmp").read().splitlines() if line.startswith("Udp:")]
+        return int(dict(zip(lines[0], lines[1]))["RcvbufErrors"])
+    except (OSError, IndexError, KeyError, ValueError):
+        return None
+
+
 def _stream(sensor: NetFTSensor, seconds: float, truth) -> tuple[list, float]:
     wall0, cpu0 = time.perf_counter(), time.process_time()
     blocks = []
@@ -62,13 +71,13 @@ def _subprocess_row(rate_hz: float, seconds: float) -> list:
     finally:
         proc.terminate()
         try:
-            proc.wait(timeout=5)
+            tail, _ = proc.communicate(timeout=5)  # the simulator prints what it sent and failed to send
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.wait(timeout=5)
-        proc.stdout.close()
+            tail, _ = proc.communicate(timeout=5)
+    box = dict(kv.split("=") for kv in (tail or "").split() if "=" in kv)
     values[1] = int(round(seconds * rate_hz))
-    return ["simulator process", rate_hz, seconds, *values]
+    return [f"simulator process (send failures {box.get('lost', '?')})", rate_hz, seconds, *values]
 
 
 def _faulty_row(seconds: float) -> list:
@@ -95,11 +104,16 @@ def _faulty_row(seconds: float) -> list:
 
 def run(options: BenchOptions) -> list[BenchTable]:
     seconds = options.seconds if options.seconds else (3.0 if options.quick else 60.0)
-    rows = [_subprocess_row(1000.0, seconds), _subprocess_row(7000.0, seconds), _faulty_row(min(seconds, 3.0))]
+    before = _udp_receive_buffer_errors()
+    rows = [_subprocess_row(1000.0, seconds), _subprocess_row(7000.0, seconds)]
+    after = _udp_receive_buffer_errors()
+    rows.append(_faulty_row(min(seconds, 3.0)))
     notes = [
         "lost = rdt_sequence gaps not made good by a late arrival (garbled datagrams also leave a gap); target 0",
         "F error: every sample's 6 components against the load the simulator applied at that sequence number",
         "CPU % = this process's CPU time / wall time (driver receive thread + draining); the box is another process",
+        "send failures: datagrams the simulator could not send; kernel UDP receive-buffer drops during the two "
+        f"loopback runs (whole machine): {after - before if before is not None and after is not None else 'n/a'}",
     ]
     return [BenchTable(title=f"Net F/T RDT streaming over loopback ({seconds:g} s per run)", columns=COLUMNS,
                        rows=rows, notes=notes)]
