@@ -146,6 +146,8 @@ class Recorder:
         self._t0 = time.monotonic()
         self._started = False
         self._finished: RecorderStats | None = None
+        self._pending: tuple | None = None
+        self._shapes = {name: tuple(int(v) for v in spec[0]) for name, spec in (streams or {}).items()}
 
     # -- producer side
     @property
@@ -212,10 +214,13 @@ class Recorder:
         dirty = False
         last_flush = time.monotonic()
         while True:
-            try:
-                item = self._queue.get(timeout=self._flush_interval)
-            except queue.Empty:
-                item = None
+            if self._pending is not None:
+                item, self._pending = self._pending, None
+            else:
+                try:
+                    item = self._queue.get(timeout=self._flush_interval)
+                except queue.Empty:
+                    item = None
             if item is _STOP:
                 break
             if self._failure is not None:
@@ -228,8 +233,11 @@ class Recorder:
                         self._frames += 1
                     else:
                         _, stream, t, data = item
+                        t, data, item = self._coalesce(stream, t, data)
                         self._writer.append_samples(stream, t, data)
                         self._samples[stream] += int(np.atleast_1d(t).shape[0])
+                        if item is not None:  # the item that ended the run of samples is written next
+                            self._pending = item
                     dirty = True
                 now = time.monotonic()
                 # SessionWriter flushes after appends; this also flushes when the producers pause.
@@ -244,6 +252,28 @@ class Recorder:
                 self._writer.close(status=self._final_status, reason=self._final_reason)
             except Exception as exc:
                 self._fail(describe_os_error(exc))
+
+    def _coalesce(self, stream: str, t: np.ndarray, data: np.ndarray):
+        """Join the samples of ``stream`` already queued behind this block into one append: an HDF5 append costs
+        the same for 1 or 100 rows, and a sensor at kHz rates must not starve the frames. Returns the next,
+        different item taken off the queue (or None)."""
+        ts, ds = [np.atleast_1d(t)], [np.asarray(data)]
+        nxt = None
+        for _ in range(256):
+            try:
+                cand = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if cand is not _STOP and cand[0] == "samples" and cand[1] == stream:
+                ts.append(np.atleast_1d(cand[2]))
+                ds.append(np.asarray(cand[3]))
+                continue
+            nxt = cand
+            break
+        if len(ts) == 1:
+            return t, data, nxt
+        shape = self._shapes[stream]
+        return np.concatenate(ts), np.concatenate([d.reshape(-1, *shape) for d in ds]), nxt
 
     # -- ending
     def finish(self, *, failed_reason: str | None = None, timeout_s: float = 30.0) -> RecorderStats:

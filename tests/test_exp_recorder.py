@@ -85,3 +85,23 @@ def test_invalid_arguments_name_the_parameter(tmp_path):
     with pytest.raises(InvalidInputError, match="stream 'force'"):
         rec.put_samples("force", 0.0, np.zeros(6))
     assert rec.finish().status == "complete"
+
+
+def test_queued_sample_blocks_are_coalesced_in_order(tmp_path):
+    rec = Recorder(tmp_path / "s.h5", camera_mode=MODE, calibration=CAL, streams={"force": ((6,), "f8")})
+    # queue everything before the writer starts, so the writer finds runs of sample blocks to join
+    rec._started = True
+    for k in range(10):
+        rec.put_samples("force", [2 * k, 2 * k + 1], np.full((2, 6), k, float))
+        rec.put_samples("force", 2 * k + 1.5, np.full(6, k, float))  # a single sample
+        if k % 3 == 0:
+            rec.put_frame(_frame(k), timestamp=k, frame_id=k)
+    rec._started = False
+    rec.start()
+    stats = rec.finish()
+    assert stats.samples_written == {"force": 30} and stats.frames_written == 4
+    with open_session(tmp_path / "s.h5") as s:
+        t, f = s.read_stream("force")
+        assert np.all(np.diff(t) > 0) and t.shape == (30,)
+        np.testing.assert_array_equal(f[:, 0], np.repeat(np.arange(10), 3))
+        np.testing.assert_array_equal(s.frame_ids, [0, 3, 6, 9])
