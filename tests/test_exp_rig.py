@@ -46,13 +46,15 @@ def test_simulated_rig_records_frames_truth_force_and_display(tmp_path):
 
 
 def test_closed_loop_beats_open_loop_five_times_on_the_twin():
-    movie = _movie(700)
+    # 350 Hz rather than the display's 700 Hz: a starved CI host must not turn this into a link-failure test
+    # (the bench section `playback` measures 700 Hz).
+    movie = _movie(700)[::2]
     rms = {}
     for closed in (False, True):
         display = make_display(sim_display_url(seed=3, load_n_per_mm=0.15))
         try:
             display.zero()
-            r = play_movie(display, movie, closed_loop=closed, settle_frames=200)
+            r = play_movie(display, movie, rate_hz=350.0, closed_loop=closed, settle_frames=100)
         finally:
             display.close()
         assert r.complete and r.rested
