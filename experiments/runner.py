@@ -309,7 +309,12 @@ def record_trial(
             if pump is not None and pump.error:
                 failure = pump.error
                 break
-            frame = camera.read(timeout_s=timeout)
+            try:
+                frame = camera.read(timeout_s=timeout)
+            except DeviceError as exc:
+                if type(exc).__name__ == "EndOfStreamError":
+                    break  # a finite source (replay, simulation) ran out: the trial ends with what it gave
+                raise
             recorder.put_frame(
                 frame.image,
                 timestamp=frame.host_timestamp_s,
