@@ -229,9 +229,20 @@ class Recorder:
             try:
                 if item is not None:
                     if item[0] == "frame":
-                        _, image, ts, fid, dts = item
-                        self._writer.append_frame(image, timestamp=ts, frame_id=fid, device_timestamp=dts)
-                        self._frames += 1
+                        run, nxt = self._frame_run(item)
+                        if len(run) == 1:
+                            _, image, ts, fid, dts = item
+                            self._writer.append_frame(image, timestamp=ts, frame_id=fid, device_timestamp=dts)
+                        else:
+                            self._writer.append_frames(
+                                np.stack([r[1] for r in run]),
+                                timestamps=np.array([r[2] for r in run]),
+                                frame_ids=np.array([r[3] for r in run], dtype=np.int64),
+                                device_timestamps=np.array([r[4] for r in run]),
+                            )
+                        self._frames += len(run)
+                        if nxt is not None:
+                            self._pending = nxt
                     else:
                         _, stream, t, data = item
                         t, data, item = self._coalesce(stream, t, data)
@@ -253,6 +264,21 @@ class Recorder:
                 self._writer.close(status=self._final_status, reason=self._final_reason)
             except Exception as exc:
                 self._fail(describe_os_error(exc))
+
+    def _frame_run(self, first: tuple) -> tuple[list, tuple | None]:
+        """Frames already queued behind ``first`` (up to 32), written in one append when the writer fell behind:
+        a busy host then catches up instead of dropping. Returns them and the next, different item."""
+        run = [first]
+        for _ in range(31):
+            try:
+                cand = self._queue.get_nowait()
+            except queue.Empty:
+                return run, None
+            if cand is not _STOP and cand[0] == "frame" and cand[1].shape == first[1].shape:
+                run.append(cand)
+                continue
+            return run, cand
+        return run, None
 
     def _coalesce(self, stream: str, t: np.ndarray, data: np.ndarray):
         """Join the samples of ``stream`` already queued behind this block into one append: an HDF5 append costs

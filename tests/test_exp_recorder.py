@@ -25,6 +25,10 @@ class DiskFullWriter(SessionWriter):
             raise OSError(errno.ENOSPC, "No space left on device")
         super().append_frame(frame, **kw)
 
+    def append_frames(self, frames, *, timestamps, frame_ids, device_timestamps):
+        for f, t, i, d in zip(frames, timestamps, frame_ids, device_timestamps):  # the same fault, frame by frame
+            self.append_frame(f, timestamp=t, frame_id=i, device_timestamp=d)
+
 
 def _frame(k):
     return np.full((MODE.height, MODE.width), k % 256, np.uint8)
@@ -105,3 +109,17 @@ def test_queued_sample_blocks_are_coalesced_in_order(tmp_path):
         assert np.all(np.diff(t) > 0) and t.shape == (30,)
         np.testing.assert_array_equal(f[:, 0], np.repeat(np.arange(10), 3))
         np.testing.assert_array_equal(s.frame_ids, [0, 3, 6, 9])
+
+
+def test_frames_queued_behind_each_other_are_written_in_one_append(tmp_path):
+    rec = Recorder(tmp_path / "s.h5", camera_mode=MODE, calibration=CAL, queue_size=64)
+    rec._started = True  # queue a backlog before the writer runs, as on a host that starved the writer
+    for k in range(40):
+        rec.put_frame(_frame(k), timestamp=k / 100, frame_id=k, device_timestamp=k / 100 + 1)
+    rec._started = False
+    stats = rec.start().finish()
+    assert stats.frames_written == 40 and stats.frames_dropped == 0
+    with open_session(tmp_path / "s.h5") as s:
+        np.testing.assert_array_equal(s.frame_ids, np.arange(40))
+        np.testing.assert_allclose(s.device_timestamps, np.arange(40) / 100 + 1)
+        assert [int(s.frame(k)[0, 0]) for k in (0, 31, 32, 39)] == [0, 31, 32, 39]

@@ -164,6 +164,10 @@ def test_disk_full_fails_one_trial_and_the_next_carries_on(tmp_path):
                 raise OSError(errno.ENOSPC, "No space left on device")
             super().append_frame(frame, **kw)
 
+        def append_frames(self, frames, *, timestamps, frame_ids, device_timestamps):
+            for f, t, i, d in zip(frames, timestamps, frame_ids, device_timestamps):  # the same fault, frame by frame
+                self.append_frame(f, timestamp=t, frame_id=i, device_timestamp=d)
+
     protocol, devices, result, _ = _run(tmp_path, writer_factory=FullAfterFive)
     flat, ridge, valley = result.trials
     assert flat.status == valley.status == "complete"
