@@ -39,6 +39,7 @@ from typing import Any, Sequence
 
 import cv2
 import numpy as np
+from scipy.interpolate import BSpline
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
@@ -350,16 +351,40 @@ def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * (kx @ kx)
 
 
-class _Profile:
-    """Gaussian height profile and its tabulated arc length (origin at v = 0)."""
+@dataclass(frozen=True)
+class _SplineBasis:
+    """Cubic B-spline correction to a Gaussian profile: uniform knots, zero (with its first two derivatives)
+    outside them, so the surface stays flat away from the shape."""
 
-    def __init__(self, amplitude: float, sigma: float, center: float, *, half_range: float = 20.0,
+    knots: tuple[float, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.knots) - 4
+
+    @classmethod
+    def around(cls, center: float, sigma: float, *, step: float = 0.3, extent_sigmas: float = 5.0) -> "_SplineBasis":
+        n_int = max(4, int(math.ceil(2 * extent_sigmas * sigma / step)))
+        lo = center - 0.5 * n_int * step
+        return cls(knots=tuple(float(lo + k * step) for k in range(n_int + 1)))
+
+
+class _Profile:
+    """Height profile (Gaussian, optionally plus a B-spline correction) and its tabulated arc length from v = 0."""
+
+    def __init__(self, amplitude: float, sigma: float, center: float, knots: tuple = (), coefs: tuple = (), *,
                  step: float = 0.01) -> None:
         self.amplitude, self.sigma, self.center = float(amplitude), float(sigma), float(center)
-        self.flat = self.amplitude == 0.0
+        self.spline = BSpline(np.asarray(knots), np.asarray(coefs), 3, extrapolate=False) if len(coefs) else None
+        self.dspline = self.spline.derivative() if self.spline is not None else None
+        self.flat = self.amplitude == 0.0 and self.spline is None
         if self.flat:
             return
-        lo, hi = min(-half_range, center - 12 * sigma), max(half_range, center + 12 * sigma)
+        # Tabulate where the surface is not flat (Gaussian beyond 8 sigma < 1e-13 mm; the spline has compact
+        # support) and through v = 0, the arc length's origin; outside, s - v is constant.
+        lo, hi = min(center - 8 * sigma, -0.5), max(center + 8 * sigma, 0.5)
+        if len(knots):
+            lo, hi = min(lo, knots[0]), max(hi, knots[-1])
         v = np.linspace(lo, hi, int(math.ceil((hi - lo) / step)) + 1)
         g = np.sqrt(1.0 + self.slope(v) ** 2)
         gm = np.sqrt(1.0 + self.slope(0.5 * (v[1:] + v[:-1])) ** 2)
@@ -370,13 +395,19 @@ class _Profile:
         if self.flat:
             return np.zeros_like(v)
         z = (v - self.center) / self.sigma
-        return self.amplitude * np.exp(-0.5 * z * z)
+        h = self.amplitude * np.exp(-0.5 * z * z)
+        if self.spline is not None:
+            h = h + np.nan_to_num(self.spline(v), nan=0.0)
+        return h
 
     def slope(self, v: np.ndarray) -> np.ndarray:
         if self.flat:
             return np.zeros_like(v)
         z = (v - self.center) / self.sigma
-        return -self.amplitude * z / self.sigma * np.exp(-0.5 * z * z)
+        d = -self.amplitude * z / self.sigma * np.exp(-0.5 * z * z)
+        if self.dspline is not None:
+            d = d + np.nan_to_num(self.dspline(v), nan=0.0)
+        return d
 
     def v_of_s(self, s: np.ndarray) -> np.ndarray:
         if self.flat:
@@ -394,9 +425,9 @@ class _Profile:
 
 
 @functools.lru_cache(maxsize=32)
-def _cached_profile(amplitude: float, sigma: float, center: float) -> _Profile:
+def _cached_profile(amplitude: float, sigma: float, center: float, knots: tuple, coefs: tuple) -> _Profile:
     # A finite-difference Jacobian perturbs one parameter at a time: most evaluations reuse the same profile.
-    return _Profile(amplitude, sigma, center)
+    return _Profile(amplitude, sigma, center, knots, coefs)
 
 
 @dataclass
@@ -412,10 +443,15 @@ class _Rig:
     amplitude: float
     sigma: float
     center: float
+    knots: tuple = ()
+    coefs: tuple = ()
 
     def __post_init__(self) -> None:
         self.R = _rotation_matrix(np.asarray(self.rotvec, dtype=np.float64))
-        self.profile = _cached_profile(float(self.amplitude), float(self.sigma), float(self.center))
+        self.profile = _cached_profile(
+            float(self.amplitude), float(self.sigma), float(self.center),
+            tuple(float(k) for k in self.knots), tuple(float(c) for c in self.coefs),
+        )
 
     def project(self, us: np.ndarray) -> np.ndarray:
         v = self.profile.v_of_s(us[..., 1])
@@ -497,7 +533,11 @@ class GridMapping:
                 amplitude=float(r["amplitude_mm"]),
                 sigma=float(r["sigma_mm"]),
                 center=float(r["center_mm"]),
+                knots=tuple(float(k) for k in r.get("spline_knots", ())),
+                coefs=tuple(float(c) for c in r.get("spline_coefs", ())),
             )
+            if len(self._rig.coefs) and len(self._rig.knots) != len(self._rig.coefs) + 4:
+                raise ValueError("spline_knots must have 4 more entries than spline_coefs")
             self._frame_rot = _rot2(float(self.frame["angle_rad"]))
             self._frame_origin = np.asarray(self.frame["origin_mm"], dtype=np.float64).reshape(2)
         except (KeyError, TypeError, ValueError) as exc:
@@ -654,7 +694,13 @@ class _GridView:
 _RIG_NAMES = ("r0", "r1", "r2", "t0", "t1", "t2", "focal", "k1", "k2")
 
 
-def _unpack(p: np.ndarray, n_images: int, curved: bool, principal: np.ndarray, spacing: float):
+def _unpack(p: np.ndarray, n_images: int, curved, principal: np.ndarray, spacing: float):
+    """Rig and grid placements from the parameter vector; ``curved`` is False (flat), True (Gaussian profile) or a
+    _SplineBasis (Gaussian plus spline, whose coefficients close the vector)."""
+    knots, coefs = (), ()
+    if isinstance(curved, _SplineBasis):
+        knots, coefs = curved.knots, tuple(p[len(p) - curved.n :])
+        p = p[: len(p) - curved.n]
     rig = dict(zip(_RIG_NAMES, p[:9]))
     k = 9
     amplitude = sigma = center = 0.0
@@ -677,6 +723,8 @@ def _unpack(p: np.ndarray, n_images: int, curved: bool, principal: np.ndarray, s
         amplitude=amplitude,
         sigma=sigma,
         center=center,
+        knots=knots,
+        coefs=coefs,
     )
     return model, poses
 
@@ -725,6 +773,23 @@ def _residuals(p, views, curved, principal, spacing):
         out.append((pred - view.xy).ravel())
     r = np.concatenate(out)
     return np.where(np.isfinite(r), r, 1e6)
+
+
+#: Regularisation of a spline profile correction, px-equivalent per mm: its second differences (smoothness where
+#: the 0.5 mm grid leaves gaps) and, weakly, its size (the Gaussian stays the prior shape).
+SPLINE_SMOOTHNESS = 5.0
+SPLINE_SIZE = 0.5
+#: Median residual (px) of the Gaussian-profile fit above which the profile gets a spline correction (the noise
+#: level of the dot centres is ~0.02 px).
+SPLINE_TRIGGER_PX = 0.05
+
+
+def _objective(p, views, curved, principal, spacing):
+    r = _residuals(p, views, curved, principal, spacing)
+    if isinstance(curved, _SplineBasis):
+        c = p[len(p) - curved.n :]
+        r = np.concatenate([r, SPLINE_SMOOTHNESS * np.diff(c, 2), SPLINE_SIZE * c])
+    return r
 
 
 def _initial_rig(view: _GridView, principal: np.ndarray, spacing: float, working_distance_mm: float) -> np.ndarray:
@@ -786,8 +851,9 @@ def _fit(views, *, curved, principal, spacing, p0, loss, f_scale, max_nfev=400):
         ub[9:12] = (3.0, math.log(10.0), 25.0)
     p0 = np.minimum(np.maximum(p0, np.where(np.isfinite(lb), lb + 1e-6, lb)), np.where(np.isfinite(ub), ub - 1e-6, ub))
     return least_squares(
-        _residuals, p0, args=(views, curved, principal, spacing), loss=loss, f_scale=f_scale, x_scale="jac",
-        method="trf", bounds=(lb, ub), max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+        _objective, p0, args=(views, curved, principal, spacing), loss=loss, f_scale=f_scale, x_scale="jac",
+        method="trf", bounds=(lb, ub), max_nfev=max_nfev if not isinstance(curved, _SplineBasis) else min(max_nfev, 80),
+        xtol=1e-10, ftol=1e-10, gtol=1e-10,
     )
 
 
@@ -804,6 +870,7 @@ def fit_grid_mapping(
     min_dots: int = 40,
     outlier_px: float = 1.0,
     dot_diameter_mm: float | None = 0.2,
+    spline_profile: bool = True,
     n_detected: int | None = None,
 ) -> tuple[GridMapping, CalibrationReport]:
     """Fit the rig model to indexed dots of one or more grid images (the grid may move between images).
@@ -831,6 +898,9 @@ def fit_grid_mapping(
     dot_diameter_mm : float or None
         Dot diameter; the offset between a dot's image centroid and the image of its centre is then predicted with
         the fitted rig and removed (None: detected centroids are taken as the dot centres).
+    spline_profile : bool
+        When the Gaussian profile leaves systematic residuals (median above ``SPLINE_TRIGGER_PX``), add a smooth
+        cubic-spline correction to the ridge or valley profile.
     n_detected : int, optional
         Number of dots detected (for the report only).
 
@@ -922,6 +992,15 @@ def fit_grid_mapping(
             p = np.concatenate([p, extra])
             p = _fit(gviews, curved=curved, principal=principal, spacing=spacing_mm, p0=p, loss="soft_l1",
                      f_scale=0.3).x
+        if curved and spline_profile:
+            r = _residuals(p, gviews, curved, principal, spacing_mm).reshape(-1, 2)
+            if np.median(np.linalg.norm(r, axis=1)) > SPLINE_TRIGGER_PX:
+                # The shape is not quite Gaussian (a machined surface never is): let a smooth spline correct the
+                # profile, knots every 0.3 mm over the shape (seed 7.2.1's "model of the surface").
+                model, _ = _unpack(p, len(gviews), curved, principal, spacing_mm)
+                curved = _SplineBasis.around(model.center, model.sigma)
+                p = _fit(gviews, curved=curved, principal=principal, spacing=spacing_mm,
+                         p0=np.concatenate([p, np.zeros(curved.n)]), loss="soft_l1", f_scale=0.3).x
         # Drop outliers (wrong indices, spurious dots), then a plain least-squares fit.
         r = _residuals(p, gviews, curved, principal, spacing_mm).reshape(-1, 2)
         rn = np.linalg.norm(r, axis=1)
@@ -934,16 +1013,15 @@ def fit_grid_mapping(
                    f_scale=1.0)
         cost = float(np.sqrt(np.mean(res.fun**2)))
         if kind == "flat" and best is not None and cost <= 1.2 * best[0]:
-            best = (cost, kind, res.x, keep)  # a curved model that does not fit clearly better is not kept
+            best = (cost, kind, res.x, keep, curved)  # a curved model that does not fit clearly better is dropped
         elif best is None or cost < best[0]:
-            best = (cost, kind, res.x, keep)
+            best = (cost, kind, res.x, keep, curved)
         if best[0] < 0.1 and (kind == "flat" or abs(res.x[9]) >= 0.05):
             # The guessed model fits to noise level with a real shape: no need to try a flat one.
             break
     if best is None:
         raise CalibrationError("grid not found: too many dots disagree with any rig model")
-    _, kind, p, keep = best
-    curved = kind != "flat"
+    _, kind, p, keep, curved = best
     detected_views = gviews
     if dot_diameter_mm is not None:
         # The image of a round dot is not centred on the image of its centre (perspective, and the surface's
@@ -989,6 +1067,9 @@ def fit_grid_mapping(
         "amplitude_mm": float(model.amplitude),
         "sigma_mm": float(model.sigma) if curved else 1.0,
         "center_mm": float(model.center),
+        # Spline correction of the profile (empty when the Gaussian fits): cubic B-spline knots and coefficients.
+        "spline_knots": [float(k) for k in model.knots],
+        "spline_coefs": [float(c) for c in model.coefs],
     }
     frame = {"angle_rad": angle, "origin_mm": centre_us[0].tolist()}
     mapping = GridMapping(width=int(w), height=int(h), surface=kind, rig=rig, frame=frame)

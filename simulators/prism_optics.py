@@ -37,6 +37,37 @@ from processing.errors import InvalidInputError
 from simulators.optics import Optics
 from simulators.surfaces import RuledSurface
 
+@dataclass(frozen=True)
+class SkewedRidgeSurface(RuledSurface):
+    """A ruled ridge or valley whose profile is *not* Gaussian: a Gaussian with a different sigma on each side of
+    the crest, as a machined surface might come out. It tests calibrations that assume the Gaussian shape.
+
+    ``width_mm`` still sets the nominal sigma (width / 4); the rising side uses ``sigma * skew_before`` and the
+    falling side ``sigma * skew_after``.
+    """
+
+    skew_before: float = 0.8
+    skew_after: float = 1.2
+
+    def _sigmas(self, z: np.ndarray) -> np.ndarray:
+        return np.where(z < 0, self.sigma_mm * self.skew_before, self.sigma_mm * self.skew_after)
+
+    def height(self, z_mm):
+        z = np.asarray(z_mm, dtype=np.float64) - self.center_mm
+        return self.sign * self.height_mm * np.exp(-0.5 * (z / self._sigmas(z)) ** 2)
+
+    def slope(self, z_mm):
+        z = np.asarray(z_mm, dtype=np.float64) - self.center_mm
+        sig = self._sigmas(z)
+        return -z / sig**2 * self.sign * self.height_mm * np.exp(-0.5 * (z / sig) ** 2)
+
+    @property
+    def max_slope(self) -> float:
+        return abs(self.sign) * self.height_mm / (self.sigma_mm * min(self.skew_before, self.skew_after)) * math.exp(
+            -0.5
+        )
+
+
 class _ArcLength:
     """Arc length ``s(v)`` of a profile from ``v = 0`` and its inverse, tabulated finely (linear interpolation error
     below 1e-6 mm) and extended linearly where the profile is flat."""
