@@ -225,6 +225,7 @@ def play_movie(
     metadata: Mapping[str, Any] | None = None,
     settle_frames: int = 0,
     progress: Callable[[str], None] | None = None,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> PlaybackResult:
     """Play a (T, 10, 10) movie in micrometres at ``rate_hz``; return what was commanded and measured.
 
@@ -251,6 +252,8 @@ def play_movie(
         never waits on the disk.
     settle_frames : int
         Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
+    clock : callable
+        The deadline clock, which must be the display driver's (``time.perf_counter``); replaceable in tests.
     """
     from drivers.display.playback import stream_movie  # noqa: PLC0415
 
@@ -291,7 +294,7 @@ def play_movie(
     # max_outstanding 64 (91 ms at 700 Hz) rides out a busy host; the firmware's watchdog still rests the
     # contactors after 50 ms without frames, whatever the host does.
     report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
-                          settle_frames=0, max_outstanding=64)
+                          settle_frames=0, max_outstanding=64, clock=clock)
     rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
     rested = report.rested and rested_now
     duration = time.perf_counter() - t0
@@ -303,8 +306,11 @@ def play_movie(
         stopped = f"safety stop: display link failed ({report.error})"
     # measured[k] is the response to frame k - 1: file it under the frame whose target it answers.
     measured = np.full((sent, *SHAPE), np.nan)
-    if sent > 1:
-        measured[:-1] = np.where(report.acked[1:, None, None], report.measured_um[1:], np.nan)
+    # The ack of a sent frame reports the response to the previous *sent* frame (skipped frames never left).
+    sent_idx = np.nonzero(~np.asarray(report.skipped[:sent], bool))[0]
+    for prev, nxt in zip(sent_idx[:-1], sent_idx[1:]):
+        if report.acked[nxt]:
+            measured[prev] = report.measured_um[nxt]
     result = PlaybackResult(
         closed_loop=closed_loop,
         frames_total=n,

@@ -81,6 +81,22 @@ class PlantDisplay(TactileDisplay):
         pass
 
 
+class StepClock:
+    """Deterministic deadline clock: every reading advances 50 us, so the stream never falls behind a starved
+    host's wall clock (the fake display answers at once)."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        self.t += 5e-5
+        return self.t
+
+
+def _play(display, movie, **kw):
+    return play_movie(display, movie, clock=StepClock(), **kw)
+
+
 class FixedForce:
     def __init__(self, values):
         self.values = list(values)
@@ -102,8 +118,8 @@ def _movie(n=1000, seed=1):
 
 def test_closed_loop_cuts_rms_error_at_least_five_times(tmp_path):
     movie = _movie()
-    open_ = play_movie(PlantDisplay(), movie, closed_loop=False, settle_frames=250)
-    closed = play_movie(PlantDisplay(), movie, closed_loop=True, settle_frames=250, path=tmp_path / "pb.h5")
+    open_ = _play(PlantDisplay(), movie, closed_loop=False, settle_frames=250)
+    closed = _play(PlantDisplay(), movie, closed_loop=True, settle_frames=250, path=tmp_path / "pb.h5")
     assert open_.complete and closed.complete and closed.rested
     assert open_.rms_error_um > 2.0
     assert closed.rms_error_um * 5 <= open_.rms_error_um, (open_.rms_error_um, closed.rms_error_um)
@@ -119,7 +135,7 @@ def test_closed_loop_cuts_rms_error_at_least_five_times(tmp_path):
 def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
     display = PlantDisplay()
     force = FixedForce([1.0] * 100 + [6.0])
-    result = play_movie(display, _movie(400), force=force, force_ceiling_n=5.0, path=tmp_path / "pb.h5")
+    result = _play(display, _movie(400), force=force, force_ceiling_n=5.0, path=tmp_path / "pb.h5")
     assert result.stopped.startswith("safety stop: normal force 6.00 N")
     assert result.frames_sent == 100 and not result.complete  # frames skipped on a starved host aside
     assert display.rested and not display.armed and result.rested
@@ -131,7 +147,7 @@ def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
 
 def test_link_failure_stops_movie_and_reports_it():
     display = PlantDisplay(fail_after=50)
-    result = play_movie(display, _movie(200))
+    result = _play(display, _movie(200))
     assert result.frames_sent == 50 and "display link failed" in result.stopped
     assert not result.rested  # the link is gone: the host could not confirm; the firmware watchdog rests it
     assert not display.armed
@@ -140,7 +156,7 @@ def test_link_failure_stops_movie_and_reports_it():
 def test_corrector_learns_gain_offset_and_backlash():
     display = PlantDisplay(seed=3)
     corrector = ContactorCorrector()
-    play_movie(display, _movie(1000), corrector=corrector)
+    _play(display, _movie(1000), corrector=corrector)
     np.testing.assert_allclose(corrector.gain, display.gain, atol=0.05)
     np.testing.assert_allclose(corrector.offset_um, display.offset, atol=1.0)
     assert np.median(np.abs(corrector.backlash_um + display.half_band)) < 0.7
@@ -148,9 +164,9 @@ def test_corrector_learns_gain_offset_and_backlash():
 
 def test_bad_inputs_are_named():
     with pytest.raises(InvalidInputError, match="movie_um"):
-        play_movie(PlantDisplay(), np.zeros((5, 8, 8)))
+        _play(PlantDisplay(), np.zeros((5, 8, 8)))
     with pytest.raises(InvalidInputError, match="NaN"):
-        play_movie(PlantDisplay(), np.full((5, 10, 10), np.nan))
+        _play(PlantDisplay(), np.full((5, 10, 10), np.nan))
     with pytest.raises(InvalidInputError, match="max_correction_um"):
         ContactorCorrector(max_correction_um=-1)
 
