@@ -51,13 +51,18 @@ def test_closed_loop_beats_open_loop_five_times_on_the_twin():
     movie = _movie(700)[::2]
     rms = {}
     for closed in (False, True):
-        display = make_display(sim_display_url(seed=3, load_n_per_mm=0.15))
-        try:
-            display.zero()
-            r = play_movie(display, movie, rate_hz=350.0, closed_loop=closed, settle_frames=100)
-        finally:
-            display.close()
-        assert r.complete and r.rested
+        # The twin runs in this process: a host starved for > 0.2 s (a loaded CI machine) makes the driver declare
+        # the link dead, which is right but not what this test is about, so such a run is repeated (at most 3).
+        for _attempt in range(3):
+            display = make_display(sim_display_url(seed=3, load_n_per_mm=0.15))
+            try:
+                display.zero()
+                r = play_movie(display, movie, rate_hz=350.0, closed_loop=closed, settle_frames=100)
+            finally:
+                display.close()
+            if "link failed" not in r.stopped:
+                break
+        assert r.complete and r.rested, r.stopped
         rms[closed] = r.rms_error_um
     assert rms[True] * 5 <= rms[False], rms
 
