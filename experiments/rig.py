@@ -417,6 +417,9 @@ class RigDevices:
                     opts = dict(spec.options)
                     url = sim_display_url(seed=spec.seed, load_n_per_mm=float(opts.pop("load_n_per_mm", 0.15)),
                                           faults=str(opts.pop("faults", "")))
+                    # The twin shares this process (and a busy machine's cores): a 0.25 s watchdog instead of the
+                    # hardware's 50 ms keeps a starved host from tripping it; a real display keeps its own value.
+                    opts.setdefault("watchdog_s", 0.25)
                     device = make_display(url, **opts)
                     device.zero()  # the twin's sensors have offsets, removed by ZERO like the real display's
                 else:

@@ -121,12 +121,21 @@ def run_demo(outdir: str | Path, *, progress: Callable[[str], None] = print, ana
                 for closed in (False, True):
                     label = "closed" if closed else "open"
                     progress(f"[demo] playing the {movie_trial.trial} movie on the simulated STReSS, {label} loop")
-                    playbacks.append(play_movie(
-                        display, movie, rate_hz=700.0, closed_loop=closed, force=devices.force,
-                        force_ceiling_n=spec.force_ceiling_n if spec else 5.0, path=pdir / f"playback-{label}.h5",
-                        metadata={"movie": str(movie_trial.analysis), "loop": label},
-                        settle_frames=min(150, movie.shape[0] // 4), progress=progress,
-                    ))
+                    for attempt in range(2):
+                        path_pb = pdir / f"playback-{label}{'' if attempt == 0 else '-retry'}.h5"
+                        pb = play_movie(
+                            display, movie, rate_hz=700.0, closed_loop=closed, force=devices.force,
+                            force_ceiling_n=spec.force_ceiling_n if spec else 5.0, path=path_pb,
+                            metadata={"movie": str(movie_trial.analysis), "loop": label},
+                            settle_frames=min(150, movie.shape[0] // 4), progress=progress,
+                        )
+                        # A link failure here is the host starving the in-process twin: play once more.
+                        if "link failed" not in pb.stopped:
+                            break
+                        progress(f"[demo] {label}-loop playback stopped ({pb.stopped}); playing it again")
+                    if pb.stopped:
+                        problems.append(f"{label}-loop playback stopped: {pb.stopped}")
+                    playbacks.append(pb)
             except (SkinstretchError, OSError) as exc:
                 problems.append(f"playback: {type(exc).__name__}: {exc}")
         # -- one frame of ridgeL with its true features
@@ -170,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     ok = [t for t in result.run.trials if t.status == "complete"]
     print(f"[demo] {len(ok)}/{len(result.run.trials)} trials recorded, "
           f"{sum(1 for t in result.run.trials if t.analysis)} analysed")
-    if len(result.playbacks) == 2:
+    if len(result.playbacks) == 2 and all(p.complete for p in result.playbacks):
         o, c = result.playbacks
         ratio = o.rms_error_um / c.rms_error_um if c.rms_error_um > 0 else float("inf")
         print(f"[demo] playback RMS position error: open loop {o.rms_error_um:.2f} um, closed loop "
