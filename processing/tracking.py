@@ -46,6 +46,10 @@ class TrackingParams:
     max_gap_frames : int
         A feature lost for at most this many frames is re-linked to its trajectory (0 = the seed's behaviour:
         "no attempt is made to keep track of features through discontinuities").
+    max_local_deviation_mm : float
+        With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
+        refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
+        the ~0.5 mm between neighbours moves them apart by far less).
     """
 
     search_radius_mm: float = 0.3
@@ -53,6 +57,7 @@ class TrackingParams:
     smoothing_radius_frames: int = 1
     smoothing_sigma_frames: float = 1.0
     max_gap_frames: int = 0
+    max_local_deviation_mm: float = 0.008
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.search_radius_mm) and self.search_radius_mm > 0):
@@ -316,6 +321,7 @@ class FeatureTracker:
         self.refiner = refiner
         self.motion_estimator = motion_estimator
         self._radius = calibration.px(self.params.search_radius_mm)
+        self._max_deviation = calibration.px(self.params.max_local_deviation_mm)
         self._n_frames = 0
         self._n_tracks = 0
         self._n_features = 0
@@ -367,7 +373,13 @@ class FeatureTracker:
             if self.refiner is not None and self._prev_prepared is not None and pi.size:
                 r = self.refiner.refine(self._prev_prepared, prepared, prev.xy[pi], d)
                 d = r.displacement
-                refined[ci] = r.refined
+                ok = r.refined.copy()
+                if ok.sum() >= 7:
+                    # Local consistency: skin moves smoothly, so a refined displacement far from the median of
+                    # its nearest refined neighbours is a registration failure (contact edge, lost texture).
+                    med = local_predictions(prev.xy[pi], prev.xy[pi][ok], d[ok], neighbours=7)
+                    ok &= np.hypot(*(d - med).T) <= self._max_deviation
+                refined[ci] = ok
             disp[ci] = d
             tracks[ci] = self._prev_tracks[pi]
             self.global_shifts.append(shift)
