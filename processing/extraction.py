@@ -34,11 +34,11 @@ from processing.editing import (
 )
 from processing.errors import InvalidInputError
 from processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
-from processing.illumination import compensate_illumination, illumination_map
+from processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
 from processing.minutiae import SkeletonGraph, node_orientation, trace_skeleton
 from processing.pores import detect_blob_pores
 from processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
-from processing.subpixel import refine_bifurcations, refine_minutiae, refine_pores
+from processing.subpixel import locate_minutiae_tips, refine_bifurcations, refine_pores
 from processing.thinning import thin
 
 __all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
@@ -221,6 +221,7 @@ class _Plan:
     density_radius: float
     border_dilation: int
     minutia_reach: float
+    tip_axis: int
     fork_radius: float
 
     @classmethod
@@ -246,6 +247,10 @@ class _Plan:
             border_dilation=cal.px_int(p.border_dilation_mm),
             # A quarter ridge period (~0.11 mm) covers the skeleton-to-minutia offsets of thinning.
             minutia_reach=max(cal.px(0.15), 3.0),
+            # Centre-line length behind a valley ending (one lateral profile per px): 0.3 mm, about two thirds
+            # of a ridge period; shorter lines leave the tip's lateral position noisier (flatL ending jitter:
+            # 5 px 0.19, 9 px 0.13, 15 px 0.11, 21 px 0.106 px), longer ones follow curved valleys less well.
+            tip_axis=max(cal.px_int(0.3), 2),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
         )
 
@@ -344,11 +349,14 @@ class FeatureExtractor:
     def illumination(self, value) -> None:
         if value is None:
             self._illumination = None
+            self._gain = None
             return
         value = np.asarray(value, dtype=np.float32)
         if value.ndim != 2 or not np.all(np.isfinite(value)) or value.min() <= 0:
             raise InvalidInputError("illumination must be a 2-D map, finite and positive everywhere")
         self._illumination = value
+        # The gain 255 / IM of eq. 3.7 is computed once here, not per frame.
+        self._gain = illumination_gain(value)
 
     # -- seed 3.5 ---------------------------------------------------------------------------------------------
     def fit_illumination(self, frames: Iterable[np.ndarray], *, lowpass_sigma_mm: float = 0.5) -> np.ndarray:
@@ -374,7 +382,7 @@ class FeatureExtractor:
                 )
             # Seed eq. 3.7 verbatim, clip at 255 included: the clip makes the background uniformly white, which
             # the variance test of 4.3 relies on (without it valleyL's minutiae precision fell from 0.94 to 0.40).
-            frame = compensate_illumination(frame, illumination=self._illumination)
+            frame = apply_illumination_gain(frame, gain=self._gain)
         s = smooth(frame, sigma_px=q.sigma, kernel_px=q.kernel)  # 4.1
         # 4.2: a 2 mm mean is blind to the 1-px smoothing, so it is taken on the uint8 frame (faster).
         avg = local_mean(frame, window_px=q.window)
@@ -389,9 +397,11 @@ class FeatureExtractor:
             return self._empty(frame.shape, {"no_finger"}, background=background)
         thr = avg if p.binarization_scale == 1.0 else cv2.multiply(avg, float(p.binarization_scale))
         binary = binarize(s, local_average=thr, background=background)  # 4.4
+        # The excess over the threshold weighs pore centres (4.5) and locates minutiae; computed once.
+        excess = cv2.subtract(s, thr)
         if p.detect_pores_by_blob:  # 4.5
             blobs = detect_blob_pores(
-                binary, grey=cv2.subtract(s, thr), max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
+                binary, grey=excess, max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
             )
             valleys = blobs.binary_without_pores
             pore_x, pore_y, pore_d = blobs.x, blobs.y, blobs.diameter_px
@@ -441,7 +451,7 @@ class FeatureExtractor:
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
-            x, y = self._refine(s, thr, x, y, kind, orient, size)
+            x, y = self._refine(s, thr, excess, x, y, kind, orient, size)
         n = x.size
         features = make_features(
             x,
@@ -461,7 +471,7 @@ class FeatureExtractor:
             flags=set(),
         )
 
-    def _refine(self, s, thr, x, y, kind, orient, size):
+    def _refine(self, s, thr, excess, x, y, kind, orient, size):
         q = self._plan
         x = x.copy()
         y = y.copy()
@@ -472,17 +482,19 @@ class FeatureExtractor:
             radius = np.clip(size[pores] / 2 + 1.5, 2.0, q.pore_radius)
             rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=radius)
             x[pores], y[pores] = rx, ry
-        # Valley endings: the apex of the bright valley (on flatL ~0.2 px repeatable, against ~1.5 px for the
-        # skeleton end, at a constant offset of ~3 px beyond the true minutia, which tracking does not see).
+        # Valley endings: where the bright valley's centre line falls to the local mean (locate_minutiae_tips; on
+        # flatL ~0.11 px repeatable, against ~0.26 px for the apex of the region and ~1.5 px for the skeleton end,
+        # at a constant offset of ~3 px beyond the true minutia, which tracking does not see).
         ends = kind == FeatureKind.VALLEY_ENDING
         if self.params.subpixel_minutiae and ends.any():
-            rx, ry, _ = refine_minutiae(
-                cv2.subtract(s, thr),
+            rx, ry, _ = locate_minutiae_tips(
+                excess,
                 x=x[ends],
                 y=y[ends],
                 direction_deg=orient[ends],
                 is_ending=np.ones(int(ends.sum()), dtype=bool),
                 reach_px=q.minutia_reach,
+                n_centres=q.tip_axis,
             )
             x[ends], y[ends] = rx, ry
         # Valley bifurcations: mean shift on the valley excess from the skeleton fork (see refine_bifurcations).

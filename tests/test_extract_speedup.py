@@ -1,0 +1,81 @@
+"""Faster illumination compensation and grey-level minutia tips (issue 3: speed and repeatability)."""
+
+import numpy as np
+import pytest
+
+from processing.errors import InvalidInputError
+from processing.illumination import apply_illumination_gain, compensate_illumination, illumination_gain
+from processing.subpixel import locate_minutiae_tips
+
+
+def test_gain_matches_eq_3_7_up_to_rounding():
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, size=(60, 80), dtype=np.uint8)
+    illum = rng.uniform(40.0, 255.0, size=(60, 80)).astype(np.float32)
+    ref = compensate_illumination(frame, illumination=illum)
+    out = apply_illumination_gain(frame, gain=illumination_gain(illum))
+    assert out.dtype == np.uint8
+    assert np.abs(out.astype(int) - ref).max() <= 1
+    assert np.count_nonzero(out != ref) <= 3  # only exact half-way values may round the other way
+    assert out.max() == 255  # clipped, not wrapped
+
+
+def test_gain_rejects_bad_maps():
+    with pytest.raises(InvalidInputError, match="positive"):
+        illumination_gain(np.zeros((4, 4), np.float32))
+    with pytest.raises(InvalidInputError, match="gain"):
+        apply_illumination_gain(np.zeros((4, 4), np.uint8), gain=np.ones((4, 5), np.float32))
+
+
+def _valley_ending(tip_x, centre_y, shape=(50, 90)):
+    """Excess image of a bright Gaussian valley along x that fades out smoothly at ``tip_x`` (minus local mean)."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    across = np.exp(-((yy - centre_y) ** 2) / (2 * 3.0**2))
+    along = 1.0 / (1.0 + np.exp((xx - tip_x) / 1.5))
+    return (40.0 * across * along - 10.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.25, 0.5, 0.8])
+def test_tip_follows_subpixel_motion_of_the_grey_image(shift):
+    # The skeleton position stays on the same pixel; the located tip must move with the image, not the pixel.
+    base = _valley_ending(50.0, 24.0)
+    moved = _valley_ending(50.0 + shift, 24.0 + shift / 2)
+    kw = dict(x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([180.0]), is_ending=np.array([True]),
+              reach_px=9.0)
+    x0, y0, ok0 = locate_minutiae_tips(base, **kw)
+    x1, y1, ok1 = locate_minutiae_tips(moved, **kw)
+    assert ok0[0] and ok1[0]
+    assert x1[0] - x0[0] == pytest.approx(shift, abs=0.03)
+    assert y1[0] - y0[0] == pytest.approx(shift / 2, abs=0.03)
+    assert y0[0] == pytest.approx(24.0, abs=0.02)
+
+
+def test_tip_is_independent_of_the_skeleton_start_point():
+    img = _valley_ending(50.3, 24.4)
+    xs = np.array([46.0, 47.0, 48.0, 47.0])
+    ys = np.array([24.0, 25.0, 23.0, 24.0])
+    dirs = np.array([180.0, 175.0, 185.0, 190.0])
+    rx, ry, ok = locate_minutiae_tips(img, x=xs, y=ys, direction_deg=dirs, is_ending=np.ones(4, bool), reach_px=9.0)
+    assert ok.all()
+    assert np.ptp(rx) < 0.05 and np.ptp(ry) < 0.05
+
+
+def test_tip_leaves_unknown_orientation_and_missing_valleys_alone():
+    img = _valley_ending(50.0, 24.0)
+    flat = np.full_like(img, -5.0)  # no valley at all: nothing above the local mean
+    rx, ry, ok = locate_minutiae_tips(img, x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([np.nan]),
+                                      is_ending=np.array([True]), reach_px=9.0)
+    assert not ok[0] and (rx[0], ry[0]) == (47.0, 24.0)
+    rx, ry, ok = locate_minutiae_tips(flat, x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([180.0]),
+                                      is_ending=np.array([True]), reach_px=9.0)
+    assert not ok[0] and (rx[0], ry[0]) == (47.0, 24.0)
+
+
+def test_tip_rejects_bad_inputs():
+    img = _valley_ending(50.0, 24.0)
+    with pytest.raises(InvalidInputError, match="n_centres"):
+        locate_minutiae_tips(img, x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([180.0]),
+                             is_ending=np.array([True]), reach_px=9.0, n_centres=1)
+    with pytest.raises(InvalidInputError, match="direction_deg"):
+        locate_minutiae_tips(img, x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([180.0, 0.0]),
+                             is_ending=np.array([True]), reach_px=9.0)
