@@ -69,3 +69,19 @@ def test_exclusion_mask_and_radius():
     assert ev["match_radius_px"] == pytest.approx(6.2) and ev["pore"]["recall"] == 1.0
     with pytest.raises(InvalidInputError, match="match_radius_px"):
         evaluate_features(feats, truth, image_shape=(200, 200))
+
+
+def test_bias_and_debiased_rmse_split_the_raw_rmse():
+    # One ending seen 4 times, always 2 px right of the truth plus a +-0.1 px wobble in y.
+    x = np.full((4, 1), 50.0)
+    y = np.full((4, 1), 40.0)
+    truth = _truth(x, y, [0], np.ones((4, 1), bool))
+    wobble = [0.1, -0.1, 0.1, -0.1]
+    feats = np.concatenate(
+        [make_features([52.0], [40.0 + wobble[f]], [FeatureKind.VALLEY_ENDING], frame=f) for f in range(4)]
+    )
+    feats["id"] = np.arange(feats.size)
+    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(100, 100))["valley_ending"]
+    assert ev["loc_bias_px"] == pytest.approx(2.0, rel=1e-9)
+    assert ev["loc_rmse_debiased_px"] == pytest.approx(0.1, rel=1e-9)
+    assert ev["loc_rmse_px"] ** 2 == pytest.approx(ev["loc_bias_px"] ** 2 + ev["loc_rmse_debiased_px"] ** 2)
