@@ -279,6 +279,49 @@ def refine_minutiae(
 
 
 
+@numba.njit(cache=True, nogil=True)
+def _gaussian_mean_shift(img, thr, xs, ys, sigma, iterations):  # pragma: no cover - compiled
+    """Mean shift of ``max(img - thr, 0)`` under a Gaussian window (cut at 3 sigma) from each start point."""
+    h, w = img.shape
+    n = xs.size
+    ox = xs.copy()
+    oy = ys.copy()
+    ok = np.ones(n, np.bool_)
+    r = int(np.ceil(3.0 * sigma))
+    inv = 1.0 / (2.0 * sigma * sigma)
+    for k in range(n):
+        cx = xs[k]
+        cy = ys[k]
+        for _ in range(iterations):
+            ic = int(np.rint(cx))
+            ir = int(np.rint(cy))
+            sw = 0.0
+            sx = 0.0
+            sy = 0.0
+            for rr in range(max(ir - r, 0), min(ir + r + 1, h)):
+                dy = rr - cy
+                for cc in range(max(ic - r, 0), min(ic + r + 1, w)):
+                    v = img[rr, cc] - thr[rr, cc]
+                    if v > 0:
+                        dx = cc - cx
+                        g = v * np.exp(-(dx * dx + dy * dy) * inv)
+                        sw += g
+                        sx += g * cc
+                        sy += g * rr
+            if sw <= 0:
+                ok[k] = False
+                break
+            cx = sx / sw
+            cy = sy / sw
+            if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > 9.0 * sigma * sigma:
+                ok[k] = False
+                break
+        if ok[k]:
+            ox[k] = cx
+            oy[k] = cy
+    return ox, oy, ok
+
+
 def refine_bifurcations(
     image: np.ndarray,
     *,
@@ -290,13 +333,27 @@ def refine_bifurcations(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel valley bifurcations: a few mean-shift steps on the valley excess intensity from the skeleton fork.
 
-    The centre of mass of ``max(image - threshold, 0)`` in a disc of ``radius_px`` (about half a ridge period)
-    around the fork is recomputed ``iterations`` times. The bright mass of the three valleys meeting there pulls
-    the point to the same place in every frame, which removes the pixel quantisation and thinning jitter of the
-    skeleton fork (on flatL: frame-to-frame jitter 0.60 -> ~0.17 px, bias 3.8 -> ~1.3 px). More iterations let
-    the point creep along the widest valley, so the count is kept small.
+    The centre of mass of ``max(image - threshold, 0)`` under a Gaussian window of standard deviation
+    ``radius_px / 2`` (cut at 3 sigma; ``radius_px`` is about half a ridge period) around the fork is recomputed
+    ``iterations`` times. The bright mass of the three valleys meeting there pulls the point to the same place in
+    every frame, which removes the pixel quantisation and thinning jitter of the skeleton fork. The Gaussian
+    window, unlike a hard disc, does not let pixels enter or leave the window's rim as the point moves, so the
+    position is a smooth function of the image (flatL jitter: skeleton 0.60, disc 0.17, Gaussian 0.15 px;
+    sigma radius/1.5 or radius/3 and 20 iterations were worse).
+    More iterations let the point creep along the widest valley, so the count is kept small.
+
+    Returns
+    -------
+    x, y : (M,) float64
+        Refined positions (unchanged where not refined).
+    refined : (M,) bool
+        False where there was no excess intensity or the point drifted more than 1.5 ``radius_px`` away.
     """
-    return refine_pores(image, threshold=threshold, x=x, y=y, radius_px=radius_px, iterations=iterations)
+    img, thr, x, y = _check(image, threshold, x, y, radius_px)
+    if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
+        raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
+    rx, ry, ok = _gaussian_mean_shift(img, thr, x, y, float(radius_px) / 2.0, int(iterations))
+    return rx, ry, ok
 
 
 @numba.njit(cache=True, nogil=True)

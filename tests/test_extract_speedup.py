@@ -79,3 +79,28 @@ def test_tip_rejects_bad_inputs():
     with pytest.raises(InvalidInputError, match="direction_deg"):
         locate_minutiae_tips(img, x=np.array([47.0]), y=np.array([24.0]), direction_deg=np.array([180.0, 0.0]),
                              is_ending=np.array([True]), reach_px=9.0)
+
+
+def _fork(cx, cy, shape=(60, 60)):
+    """A bright Y of three Gaussian valleys meeting at (cx, cy)."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    img = np.zeros(shape)
+    for ang in (0.0, 120.0, 240.0):
+        ux, uy = np.cos(np.radians(ang)), np.sin(np.radians(ang))
+        t = np.maximum((xx - cx) * ux + (yy - cy) * uy, 0.0)
+        d2 = (xx - cx - t * ux) ** 2 + (yy - cy - t * uy) ** 2
+        img = np.maximum(img, 100.0 * np.exp(-d2 / (2 * 2.5**2)))
+    return img.astype(np.float32)
+
+
+def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
+    from processing.subpixel import refine_bifurcations
+
+    thr = np.full((60, 60), 30.0, np.float32)
+    starts_x, starts_y = np.array([29.0, 31.0, 30.0]), np.array([30.0, 29.0, 31.0])
+    x0, y0, ok0 = refine_bifurcations(_fork(30.0, 30.0), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
+    x1, y1, ok1 = refine_bifurcations(_fork(30.4, 29.7), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
+    assert ok0.all() and ok1.all()
+    assert np.ptp(x0) < 0.1 and np.ptp(y0) < 0.1  # start point (1-2 px apart) nearly forgotten after 8 steps
+    assert np.mean(x1 - x0) == pytest.approx(0.4, abs=0.05)
+    assert np.mean(y1 - y0) == pytest.approx(-0.3, abs=0.05)
