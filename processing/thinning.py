@@ -6,14 +6,12 @@ the corner pixels of staircases that would otherwise look like valley bifurcatio
 
 Both are table driven: the 8 neighbours of a pixel form an 8-bit code (bit ``i - 1`` is the seed's ``p_i``:
 p1 = N, p2 = NE, p3 = E, p4 = SE, p5 = S, p6 = SW, p7 = W, p8 = NW) and a 256-entry table says whether the pixel
-may be deleted. The compiled loop only visits contour pixels: a pixel becomes a candidate when a neighbour is
-reachable (bucketed by distance to the background), so the work is proportional to the foreground area plus the
-skeleton length times the number of iterations.
+may be deleted. The compiled loop only re-checks a pixel when its neighbourhood changed since its last check with
+the same table, so the work is proportional to the foreground's contour plus the number of deletions.
 """
 
 from __future__ import annotations
 
-import cv2
 import numba
 import numpy as np
 
@@ -106,70 +104,80 @@ def _code_flat(f, i, w):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _thin_zero_border(img, depth, first, second, stairs):  # pragma: no cover - compiled
-    """Thin ``img`` (0/1, zero outer ring) in place. ``depth`` is the chessboard distance to the background.
+def _thin_zero_border(img, first, second, stairs):  # pragma: no cover - compiled
+    """Thin ``img`` (0/1, zero outer ring) in place.
 
-    A parallel sub-iteration only deletes pixels that touch the background at its start, so it peels at most one
-    layer: a pixel at chessboard depth d cannot be deleted before sub-iteration d - 1. Pixels are therefore
-    bucketed by depth and enter the candidate list when their layer can first be reached; deleted pixels leave it.
+    Whether a pixel is deleted by a sub-iteration depends only on its neighbour code and on the sub-iteration's
+    table. So a pixel is (re)checked with a table only when its neighbourhood changed since it was last checked
+    with that table: the work list starts with the contour (an interior pixel, code 255, is never deletable) and a
+    deletion puts the deleted pixel's 8 neighbours back on it. The result is that of checking every foreground
+    pixel in every sub-iteration, at a cost proportional to the number of deletions.
     """
     h, w = img.shape
     f = img.ravel()
-    d = depth.ravel()
     n = h * w
-    counts = np.zeros(256, np.int64)
+    # pending bit 1: to check with the first table, bit 2: with the second; bit 4: on the work list.
+    pend = np.zeros(n, np.uint8)
+    n_fg = 0
     for i in range(n):
         if f[i]:
-            counts[min(d[i], 255)] += 1
-    start = np.zeros(257, np.int64)
-    for v in range(256):
-        start[v + 1] = start[v] + counts[v]
-    total = start[256]
-    order = np.empty(total, np.int32)
-    pos = start[:256].copy()
-    for i in range(n):
-        if f[i]:
-            v = min(d[i], 255)
-            order[pos[v]] = i
-            pos[v] += 1
-    cand = np.empty(total, np.int32)
-    dele = np.empty(total, np.int32)
-    n_cand = 0
-    level = 0
-    sub = 0
-    while True:
-        changed = False
-        for step in range(2):
-            while level < 256 and level <= sub + 1:
-                for k in range(start[level], start[level + 1]):
-                    cand[n_cand] = order[k]
-                    n_cand += 1
-                level += 1
-            sub += 1
-            table = first if step == 0 else second
-            n_del = 0
-            m = 0
-            for k in range(n_cand):
-                i = cand[k]
+            n_fg += 1
+    work = np.empty(n_fg, np.int32)
+    dele = np.empty(n_fg, np.int32)
+    n_work = 0
+    for i in range(w, n - w):
+        if f[i] and _code_flat(f, i, w) != 255:
+            work[n_work] = i
+            n_work += 1
+            pend[i] = 7
+    offs = np.array([-w - 1, -w, -w + 1, -1, 1, w - 1, w, w + 1])
+    step = 0
+    idle = 0
+    while n_work > 0 and idle < 2:
+        bit = 1 if step == 0 else 2
+        table = first if step == 0 else second
+        n_del = 0
+        for k in range(n_work):
+            i = work[k]
+            if pend[i] & bit:
+                pend[i] &= ~bit
                 if table[_code_flat(f, i, w)]:
                     dele[n_del] = i
                     n_del += 1
-                else:
-                    cand[m] = i
-                    m += 1
-            n_cand = m
-            for k in range(n_del):
-                f[dele[k]] = 0
-            if n_del:
-                changed = True
-        if not changed and (level >= 256 or start[level] == total):
-            break
+        for k in range(n_del):
+            f[dele[k]] = 0
+            pend[dele[k]] = 0
+        # Keep the pixels with a check still pending, then add the deleted pixels' neighbours (needing both).
+        m = 0
+        for k in range(n_work):
+            i = work[k]
+            if f[i] and pend[i] & 3:
+                work[m] = i
+                m += 1
+            else:
+                pend[i] &= 3
+        n_work = m
+        for k in range(n_del):
+            i = dele[k]
+            for j in range(8):
+                q = i + offs[j]
+                if f[q]:
+                    if pend[q] & 4 == 0:
+                        work[n_work] = q
+                        n_work += 1
+                    pend[q] = 7
+        idle = idle + 1 if n_del == 0 else 0
+        step = 1 - step
     # Staircase removal (seed Figure 27): one in-place pass per kernel over the skeleton, in raster order, so each
     # deletion is judged on the current skeleton and connectivity is preserved.
-    skel = np.sort(cand[:n_cand])
+    n_sk = 0
+    for i in range(n):
+        if f[i]:
+            dele[n_sk] = i
+            n_sk += 1
     for s in range(4):
-        for k in range(n_cand):
-            i = skel[k]
+        for k in range(n_sk):
+            i = dele[k]
             if f[i] and stairs[s, _code_flat(f, i, w)]:
                 f[i] = 0
     return img
@@ -209,6 +217,4 @@ def thin(binary: np.ndarray) -> np.ndarray:
     img[-1, :] = 0
     img[:, 0] = 0
     img[:, -1] = 0
-    depth = cv2.distanceTransform(img, cv2.DIST_C, 3)
-    depth = np.minimum(depth, 255).astype(np.uint8)
-    return _thin_zero_border(img, depth, _FIRST, _SECOND, _STAIRS)
+    return _thin_zero_border(img, _FIRST, _SECOND, _STAIRS)

@@ -104,3 +104,39 @@ def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
     assert np.ptp(x0) < 0.1 and np.ptp(y0) < 0.1  # start point (1-2 px apart) nearly forgotten after 8 steps
     assert np.mean(x1 - x0) == pytest.approx(0.4, abs=0.05)
     assert np.mean(y1 - y0) == pytest.approx(-0.3, abs=0.05)
+
+
+def _naive_thin(binary):
+    """Reference: every foreground pixel checked in every sub-iteration, then the four staircase passes."""
+    from processing.thinning import neighbour_code, staircase_table, zhang_suen_tables
+
+    first, second = zhang_suen_tables()
+    stairs = staircase_table()
+    img = (binary != 0).astype(np.uint8)
+    img[0, :] = img[-1, :] = 0
+    img[:, 0] = img[:, -1] = 0
+    changed = True
+    while changed:
+        changed = False
+        for table in (first, second):
+            rr, cc = np.nonzero(img)
+            dele = [(r, c) for r, c in zip(rr, cc) if table[neighbour_code(img, r, c)]]
+            for r, c in dele:
+                img[r, c] = 0
+            changed |= bool(dele)
+    for s in range(4):
+        rr, cc = np.nonzero(img)
+        for r, c in zip(rr, cc):
+            if img[r, c] and stairs[s, neighbour_code(img, r, c)]:
+                img[r, c] = 0
+    return img
+
+
+@pytest.mark.parametrize("density", [0.35, 0.6, 0.85])
+def test_incremental_thinning_equals_checking_every_pixel(density):
+    from processing.thinning import thin
+
+    rng = np.random.default_rng(7)
+    b = (rng.random((40, 50)) < density).astype(np.uint8)
+    b = np.kron(b[:20, :25], np.ones((2, 2), np.uint8)) | b  # some thick blobs as well as noise
+    np.testing.assert_array_equal(thin(b), _naive_thin(b))
