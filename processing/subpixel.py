@@ -289,22 +289,29 @@ def _gaussian_mean_shift(img, thr, xs, ys, sigma, iterations):  # pragma: no cov
     ok = np.ones(n, np.bool_)
     r = int(np.ceil(3.0 * sigma))
     inv = 1.0 / (2.0 * sigma * sigma)
+    gx = np.empty(2 * r + 1)
+    gy = np.empty(2 * r + 1)
     for k in range(n):
         cx = xs[k]
         cy = ys[k]
         for _ in range(iterations):
             ic = int(np.rint(cx))
             ir = int(np.rint(cy))
+            # The Gaussian is separable: one exp per row and per column, not per pixel.
+            for j in range(2 * r + 1):
+                dx = ic - r + j - cx
+                dy = ir - r + j - cy
+                gx[j] = np.exp(-dx * dx * inv)
+                gy[j] = np.exp(-dy * dy * inv)
             sw = 0.0
             sx = 0.0
             sy = 0.0
             for rr in range(max(ir - r, 0), min(ir + r + 1, h)):
-                dy = rr - cy
+                wy = gy[rr - ir + r]
                 for cc in range(max(ic - r, 0), min(ic + r + 1, w)):
                     v = img[rr, cc] - thr[rr, cc]
                     if v > 0:
-                        dx = cc - cx
-                        g = v * np.exp(-(dx * dx + dy * dy) * inv)
+                        g = v * wy * gx[cc - ic + r]
                         sw += g
                         sx += g * cc
                         sy += g * rr
