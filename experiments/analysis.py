@@ -378,7 +378,8 @@ def derive(
     )
     if win is not None:
         out["movie"] = tactile_movie(
-            m.samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape, params=params.display
+            m.samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape, params=params.display,
+            motion_axis=axis,
         )
     return out
 

@@ -155,6 +155,7 @@ def write_results(path: str | os.PathLike, r: Results) -> Path:
             t["reset"] = r.tactile_reset
             t["clipped"] = r.tactile_clipped
             t["stretch_change"] = r.tactile_stretch_change
+            t.attrs["motion_axis"] = r.profile_axis
         if r.features is not None:
             f.create_dataset("features", data=r.features, compression="gzip", compression_opts=1)
         if r.trajectories is not None:

@@ -3,9 +3,13 @@
 The display's 10 x 10 mm active area is associated with a 10 x 10 mm patch of skin centred on the visibility
 window (which follows the fingertip). The patch is divided into 10 x 10 squares; the movement of each square is
 the average movement, relative to the fingertip, of the points inside it (seed 5.3.2). A contactor's ideal
-position is the cumulated movement since the first frame (Figure 63(b)); the display moves contactors in x only,
-so the horizontal position is either the projection of the ideal vector on x (Figure 63(d)) or the vector rotated
-onto x (Figure 63(c)). A contactor whose square leaves the field of view, or holds no measured point, is reset to
+position is the cumulated movement since the first frame (Figure 63(b)). The display moves its contactors along one
+axis only, which the seed aligns with the sliding direction (its images show the finger sliding along x). Here the
+image axis the contactors follow is ``motion_axis`` (analysis passes the fingertip's sliding axis), and the
+"horizontal" position is either the projection of the ideal vector on that axis (Figure 63(d)) or the vector
+rotated onto it (Figure 63(c)). The movie is laid out in display terms: its last axis (the display's columns) always
+runs along ``motion_axis``, so when the finger slides along image y the contactor grid is the image's transpose.
+A contactor whose square leaves the field of view, or holds no measured point, is reset to
 rest (seed 5.4). Positions are in micrometres, clipped to the display's +/-50 um range.
 """
 
@@ -57,15 +61,20 @@ class TactileMovie:
     Attributes
     ----------
     positions_um : (N, C, C) float32
-        Horizontal contactor position (um, +x to the right of the image), rows top to bottom of the image.
+        Contactor position (um) along the motion axis, positive towards increasing image coordinate. Index
+        ``[frame, row, col]``: columns run along the motion axis, rows across it (for ``motion_axis=0``, image rows
+        top to bottom and columns left to right; for ``motion_axis=1`` the transpose).
     reset : (N, C, C) bool
         The contactor was reset to 0 in that frame (square out of view, or no movement measured in it).
     clipped : (N, C, C) bool
         The position reached the display's range and was clipped.
     ideal_um : (N, C, C, 2) float32
-        Cumulated 2-D movement (um) before the horizontal mapping and clipping.
+        Cumulated 2-D movement (um) before the mapping and clipping; the vector's components are (along the motion
+        axis, across it), in the same grid layout as ``positions_um``.
     stretch_change : (N, C, C-1) float32
-        Change in stretch between horizontally neighbouring contactors (fraction of the pitch, Figure 66).
+        Change in stretch between contactors neighbouring along the motion axis (fraction of the pitch, Figure 66).
+    motion_axis : int
+        The image axis (0 = x, 1 = y) the contactors move along.
     """
 
     positions_um: np.ndarray
@@ -73,6 +82,7 @@ class TactileMovie:
     clipped: np.ndarray
     ideal_um: np.ndarray
     stretch_change: np.ndarray
+    motion_axis: int = 0
 
 
 def tactile_movie(
@@ -83,8 +93,11 @@ def tactile_movie(
     calibration: Calibration,
     image_shape: tuple[int, int],
     params: DisplayMappingParams | None = None,
+    motion_axis: int = 0,
 ) -> TactileMovie:
     """Map per-pair movements (``samples[k]``: frame k -> k+1) to contactor positions for every frame.
+
+    ``motion_axis`` is the image axis (0 = x, 1 = y) the contactors' motion stands for: the sliding direction.
 
     Examples
     --------
@@ -101,6 +114,8 @@ def tactile_movie(
     ((2, 10, 10), True)
     """
     p = params or DisplayMappingParams()
+    if motion_axis not in (0, 1):
+        raise InvalidInputError(f"motion_axis must be 0 (x) or 1 (y), got {motion_axis!r}")
     n = fingertip.n_frames
     if len(samples) != n - 1:
         raise InvalidInputError(f"expected {n - 1} consecutive-pair samples, got {len(samples)}")
@@ -139,10 +154,14 @@ def tactile_movie(
         step[measured] = sums[measured] / count[measured][:, None]
         ideal[k + 1] = np.where(measured[..., None], ideal[k] + step, 0.0)
         reset[k + 1] = ~measured
+    if motion_axis == 1:
+        # Display layout: columns along the motion axis, vector components (along, across).
+        ideal = ideal.transpose(0, 2, 1, 3)[..., ::-1]
+        reset = reset.transpose(0, 2, 1)
     if p.horizontal is HorizontalMapping.PROJECTION:
         horizontal = ideal[..., 0]
     else:
-        # Rotate the ideal vector onto the x axis, keeping the side it points to.
+        # Rotate the ideal vector onto the motion axis, keeping the side it points to.
         horizontal = np.sign(ideal[..., 0]) * np.hypot(ideal[..., 0], ideal[..., 1])
     clipped = np.abs(horizontal) > p.range_um
     positions = np.clip(horizontal, -p.range_um, p.range_um)
@@ -152,6 +171,7 @@ def tactile_movie(
         positions_um=positions.astype(np.float32),
         reset=reset,
         clipped=clipped,
-        ideal_um=ideal.astype(np.float32),
+        ideal_um=np.ascontiguousarray(ideal, dtype=np.float32),
         stretch_change=stretch.astype(np.float32),
+        motion_axis=int(motion_axis),
     )

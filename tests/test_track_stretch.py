@@ -158,6 +158,27 @@ def test_tactile_movie_cumulates_resets_and_clips():
         DisplayMappingParams(range_um=0)
 
 
+def test_tactile_movie_follows_a_vertical_sliding_axis():
+    # The same 1 % stretch field, but along image y: with motion_axis=1 the movie must be the transpose of the
+    # x case (columns along the sliding axis), not a field of zeros from projecting on x.
+    samples, ft, win = _movie_inputs([0.0, 0.0], stretch=0.01)
+    along_x = tactile_movie(samples, fingertip=ft, window=win, calibration=CAL, image_shape=(400, 400))
+    swapped = [MotionSample(s.frame_a, s.frame_b, s.points[:, ::-1].copy(), s.displacement[:, ::-1].copy(), s.ids)
+               for s in samples]
+    ft_y = fingertip_motion(swapped, n_frames=len(swapped) + 1)
+    win_y = visibility_window(ft_y, image_shape=(400, 400))
+    along_y = tactile_movie(swapped, fingertip=ft_y, window=win_y, calibration=CAL, image_shape=(400, 400),
+                            motion_axis=1)
+    assert along_y.motion_axis == 1
+    np.testing.assert_allclose(along_y.positions_um, along_x.positions_um, atol=1e-3)
+    np.testing.assert_allclose(along_y.stretch_change, along_x.stretch_change, atol=1e-6)
+    np.testing.assert_array_equal(along_y.reset, along_x.reset)
+    projected_on_x = tactile_movie(swapped, fingertip=ft_y, window=win_y, calibration=CAL, image_shape=(400, 400))
+    assert np.abs(projected_on_x.positions_um).max() < 1e-3  # the wrong axis sees nothing
+    with pytest.raises(InvalidInputError, match="motion_axis"):
+        tactile_movie(samples, fingertip=ft, window=win, calibration=CAL, image_shape=(400, 400), motion_axis=2)
+
+
 def test_tactile_movie_resets_contactors_out_of_view():
     samples, ft, win = _movie_inputs([6.0, 0.0], n=6, size=400)
     # the 10 mm display (200 px here) fits; drag the window towards the edge by hand
