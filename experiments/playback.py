@@ -270,7 +270,7 @@ def play_movie(
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
     forces = np.full((n, 6), np.nan)
     host_t = np.full(n, np.nan)
-    seen = [len(display.acks)]
+    seen = [display.acks_received]
 
     def callback(k: int, command: np.ndarray, latest) -> np.ndarray | None:
         host_t[k] = time.time()
@@ -283,10 +283,12 @@ def play_movie(
                     raise SafetyStop(f"normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N")
         if corrector is None:
             return None
-        acks = display.acks
-        for ack in acks[seen[0]:]:
-            corrector.observe_ack(ack)
-        seen[0] = len(acks)
+        new = display.acks_received - seen[0]
+        if new:
+            acks = display.acks
+            for i in range(max(len(acks) - new, 0), len(acks)):  # bounded history: at most its length is new
+                corrector.observe_ack(acks[i])  # near the deque's end: O(1)
+            seen[0] = display.acks_received
         return corrector.command(command)
 
     t0 = time.perf_counter()

@@ -161,3 +161,27 @@ def test_bad_arguments_are_refused_by_name(rig):
         d.send_frame(np.zeros((3, 3)))
     with pytest.raises(InvalidInputError, match="timeout_s"):
         d.collect_acks(timeout_s=-1)
+
+
+def test_ack_history_is_bounded_and_counts_every_ack():
+    from drivers.display.base import FrameAck, TactileDisplay
+    from drivers.display.stress_protocol import Status
+
+    class _AckSource(TactileDisplay):
+        """Only the base class's ack bookkeeping is exercised: each collect returns 1000 new acks."""
+
+        _n = 0
+
+        def _do_collect_acks(self, *, wait_for, timeout_s):
+            got = [FrameAck(self._n + i, Status.ARMED, np.zeros((10, 10)), np.zeros((10, 10)), 0.0, 0.0)
+                   for i in range(1000)]
+            self._n += 1000
+            return got
+
+    _AckSource.__abstractmethods__ = frozenset()  # the device methods are never called here
+    d = _AckSource()
+    for _ in range(10):
+        d.collect_acks()
+    assert d.acks_received == 10_000
+    assert len(d.acks) == TactileDisplay.ACK_HISTORY
+    assert d.acks[-1].seq == 9_999 and d.acks[0].seq == 10_000 - TactileDisplay.ACK_HISTORY

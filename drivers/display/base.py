@@ -7,6 +7,7 @@ Every command passes :func:`drivers.display.safety.limit_command` in :meth:`Tact
 from __future__ import annotations
 
 import abc
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,7 +70,16 @@ class TactileDisplay(abc.ABC):
         Largest change of one contactor between consecutive frames.
     watchdog_s : float, keyword-only
         The firmware returns every contactor to rest when no frame arrived for this long.
+
+    Attributes
+    ----------
+    acks : deque of FrameAck
+        The most recent :data:`ACK_HISTORY` acks (bounded: a 10-minute movie at 700 Hz would otherwise hold 420 000
+        acks and their position arrays). :attr:`acks_received` counts every ack ever collected, so a consumer can
+        tell how many are new since it last looked.
     """
+
+    ACK_HISTORY = 4096
 
     def __init__(self, *, range_um: float = RANGE_UM, max_step_um: float = DEFAULT_MAX_STEP_UM,
                  watchdog_s: float = DEFAULT_WATCHDOG_S) -> None:
@@ -80,7 +90,8 @@ class TactileDisplay(abc.ABC):
         self._last_command = np.zeros((ROWS, COLS))
         self._epoch = 0  # bumped whenever _last_command changes: a prepared frame is only valid in its epoch
         self._armed = False
-        self.acks: list[FrameAck] = []
+        self.acks: deque[FrameAck] = deque(maxlen=self.ACK_HISTORY)
+        self.acks_received = 0
 
     # ---- public API ------------------------------------------------------------------------------------------
 
@@ -168,7 +179,7 @@ class TactileDisplay(abc.ABC):
         self._epoch += 1
 
     def collect_acks(self, *, wait_for: int | None = None, timeout_s: float = 0.0) -> list[FrameAck]:
-        """Acks that arrived since the last call (also appended to :attr:`acks`).
+        """Acks that arrived since the last call (also appended to the bounded :attr:`acks` history).
 
         With ``wait_for`` a sequence number, wait up to ``timeout_s`` for that ack (DeviceTimeoutError if it does
         not come); otherwise return what is there without waiting beyond ``timeout_s``.
@@ -177,6 +188,7 @@ class TactileDisplay(abc.ABC):
             raise InvalidInputError(f"timeout_s must be >= 0, got {timeout_s!r}")
         got = self._do_collect_acks(wait_for=wait_for, timeout_s=float(timeout_s))
         self.acks.extend(got)
+        self.acks_received += len(got)
         return got
 
     @property
