@@ -203,7 +203,8 @@ class PlannedTrial(_Strict):
 class DeviceSpec(_Strict):
     """One device of the rig: ``kind: sim`` (the default) or the real driver's kind, with its options.
 
-    camera: ``sim`` | ``aravis`` (``device``: Aravis id or IP, e.g. ``Fake_1``); force: ``sim`` | ``netft``
+    camera: ``sim`` | ``aravis`` (``device``: Aravis id or IP, e.g. ``Fake_1``) | ``v4l2`` (``device``: ``/dev/videoN``
+    or its index, default 0) | ``replay`` (``device``: a session file, image directory/glob or video); force: ``sim`` | ``netft``
     (``address``); display: ``sim`` | ``stress`` (``url``: a serial port or pyserial URL).
     """
 
@@ -215,7 +216,11 @@ class DeviceSpec(_Strict):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
-_KINDS = {"camera": {"sim", "aravis", "replay"}, "force": {"sim", "netft", "none"}, "display": {"sim", "stress", "none"}}
+_KINDS = {
+    "camera": {"sim", "aravis", "v4l2", "replay"},
+    "force": {"sim", "netft", "none"},
+    "display": {"sim", "stress", "none"},
+}
 
 
 class Rig(_Strict):

@@ -300,6 +300,11 @@ class RigDevices:
             from drivers.camera.replay import ReplayCamera  # noqa: PLC0415
 
             return _TrialCamera(ReplayCamera(spec.device, **spec.options), mode)
+        if spec.kind == "v4l2":
+            from drivers.camera.v4l2 import V4L2Camera  # noqa: PLC0415
+
+            device: int | str = int(spec.device) if spec.device and spec.device.isdigit() else (spec.device or 0)
+            return _TrialCamera(V4L2Camera(device, **spec.options), mode)
         raise DeviceError(f"camera kind {spec.kind!r} is not supported")
 
     def _sim_scene(self, *, trial, protocol, n_frames: int):

@@ -9,6 +9,7 @@ from experiments.playback import play_movie
 from experiments.protocol import DeviceSpec, Rig, parse_protocol
 from experiments.rig import ForceSource, RigDevices, make_display, sim_display_url
 from experiments.runner import read_events, run_protocol
+from processing.errors import DeviceError
 
 PROTOCOL = """\
 name: rigtest
@@ -103,3 +104,18 @@ def test_force_source_reads_blocks_and_latest():
         assert force.latest() is not None and abs(force.latest()[2] - 1.5) < 0.2
     finally:
         devices.close()
+
+
+def test_v4l2_camera_in_a_rig_file():
+    rig = Rig.model_validate({"camera": {"kind": "v4l2", "device": "/dev/video99"}})
+    assert rig.camera.kind == "v4l2" and not rig.all_simulated
+    proto = parse_protocol(PROTOCOL, source="<test>")
+    cam = RigDevices(rig).camera_for(trial=None, protocol=proto, n_frames=2)
+    from drivers.camera.v4l2 import V4L2Camera
+
+    assert isinstance(cam.camera, V4L2Camera)
+    # No such device here: a clear device error naming it, not a hang or a crash in OpenCV.
+    with pytest.raises(DeviceError, match="video99"):
+        cam.start()
+    with pytest.raises(ValueError, match="camera.kind"):
+        Rig.model_validate({"camera": {"kind": "webcam"}})
