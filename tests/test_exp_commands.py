@@ -1,5 +1,7 @@
 """The record and report commands from the command line, on the simulated rig (analysis off to stay fast)."""
 
+import json
+
 from experiments.cli import main
 
 PROTOCOL = """\
@@ -38,3 +40,22 @@ def test_bad_protocol_names_line(tmp_path, capsys):
     proto.write_text(PROTOCOL.replace("duration_s: 0.05", "duration_s: 0"))
     assert main(["record", str(proto), "-o", str(tmp_path / "d")]) == 2
     assert "bad.yaml:5: trials[0].duration_s" in capsys.readouterr().err
+
+
+def test_evaluate_refuses_to_score_rectified_motion_against_image_truth(tmp_path, capsys):
+    import h5py
+    import pytest
+
+    scene = pytest.importorskip("simulators.scene")
+    session = tmp_path / "flat.h5"
+    scene.simulate_to_file("flatL", session, n_frames=4, seed=2)
+    out = tmp_path / "res"
+    assert main(["analyze", str(session), "-o", str(out), "--min-track", "2", "--span", "1", "--quiet"]) == 0
+    capsys.readouterr()
+    with h5py.File(out / "results.h5", "r+") as f:  # as if the session had carried a calibration mapping
+        f.attrs["coordinates"] = "rectified"
+    assert main(["evaluate", str(out), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["tracking"] is None and result["strain"] is None and result["profile"] is None
+    assert "rectified" in result["not_evaluated"]
+    assert result["features"]["pore"]["recall"] > 0.5  # features stay in image pixels: still scored
