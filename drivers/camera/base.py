@@ -17,7 +17,6 @@ the same clock the force-sensor driver uses, so camera frames and force samples 
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
@@ -27,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.camera_modes import CameraMode, camera_mode
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
+from drivers.streaming import StreamingDevice
+from processing.errors import DeviceError, InvalidInputError
 
 __all__ = [
     "Camera",
@@ -203,7 +203,7 @@ class ManualClock(Clock):
 # --------------------------------------------------------------------------------------------------- camera
 
 
-class Camera(ABC):
+class Camera(StreamingDevice):
     """A camera: open/close (or ``with``), :meth:`set_mode`, :meth:`start`/:meth:`stop`, :meth:`read` frames.
 
     Subclasses implement the ``_do_*`` methods. ``_do_grab`` runs in the acquisition thread and returns the
@@ -218,53 +218,14 @@ class Camera(ABC):
 
     #: Whether a full queue drops the new frame (a live device) or makes the acquisition thread wait (a file).
     _drop_when_full = True
+    _device_noun = "camera"
+    _item_noun = "frame"
+    _worker_role = "acquisition"
 
     def __init__(self, *, queue_size: int = 256) -> None:
-        if not isinstance(queue_size, int) or queue_size < 1:
-            raise InvalidInputError(f"queue_size must be a positive int, got {queue_size!r}")
-        self._queue_size = queue_size
-        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
-        self._is_open = False
-        self._streaming = False
-        self._thread: threading.Thread | None = None
-        self._stop_event = threading.Event()
-        self._error: BaseException | None = None
+        super().__init__(queue_size=queue_size)
         self._mode: CameraMode | None = None
-        self._lock = threading.Lock()
         self._reset_counts()
-
-    # -- life cycle
-    def open(self) -> "Camera":
-        """Connect to the device (idempotent). Returns self."""
-        if not self._is_open:
-            self._do_open()
-            self._is_open = True
-        return self
-
-    def close(self) -> None:
-        """Stop streaming if needed and release the device (idempotent)."""
-        if not self._is_open:
-            return
-        try:
-            if self._streaming:
-                self.stop()
-        finally:
-            self._is_open = False
-            self._do_close()
-
-    def __enter__(self) -> "Camera":
-        return self.open()
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    @property
-    def is_open(self) -> bool:
-        return self._is_open
-
-    @property
-    def is_streaming(self) -> bool:
-        return self._streaming
 
     # -- configuration
     @property
@@ -298,28 +259,8 @@ class Camera(ABC):
             return
         if self._mode is None:
             raise DeviceError(f"{self!r}: set_mode() before start()")
-        self._queue = queue.Queue(maxsize=self._queue_size)
         self._reset_counts()
-        self._error = None
-        self._stop_event = threading.Event()
-        self._do_start()
-        self._streaming = True
-        self._thread = threading.Thread(target=self._acquire, name=f"{type(self).__name__}-acquisition", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop acquisition. Frames already queued stay readable with :meth:`read`."""
-        if not self._streaming:
-            return
-        self._stop_event.set()
-        thread = self._thread
-        if thread is not None:
-            thread.join(timeout=5.0)
-        self._streaming = False
-        self._thread = None
-        self._do_stop()
-        if thread is not None and thread.is_alive():
-            raise DeviceError(f"{self!r}: acquisition thread did not stop within 5 s")
+        self._begin_streaming(self._acquire)
 
     def read(self, timeout_s: float = 1.0) -> Frame:
         """Return the next frame, oldest first.
@@ -339,28 +280,11 @@ class Camera(ABC):
             The acquisition failed (raised once every frame acquired before the failure has been read), or the
             camera is neither streaming nor holding queued frames.
         """
-        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
-            raise InvalidInputError(f"timeout_s must be a positive finite number of seconds, got {timeout_s!r}")
-        try:
-            frame = self._queue.get_nowait()
-        except queue.Empty:
-            if self._error is not None:
-                raise self._error
-            if not self._streaming:
-                raise DeviceError(f"{self!r}: not streaming and no frames queued; start() first")
-            try:
-                frame = self._queue.get(timeout=timeout_s)
-            except queue.Empty:
-                if self._error is not None:
-                    raise self._error from None
-                s = self.stats
-                raise DeviceTimeoutError(
-                    f"{self!r}: no frame within {timeout_s:g} s "
-                    f"(completed {s.completed}, failed {s.failed}, dropped {s.dropped})"
-                ) from None
-        if isinstance(frame, BaseException):  # the acquisition thread's last word, queued after its frames
-            self._error = frame
-            raise frame
+        def detail() -> str:
+            st = self.stats
+            return f"completed {st.completed}, failed {st.failed}, dropped {st.dropped}"
+
+        frame = self._next_item(timeout_s, detail)
         with self._lock:
             self._delivered += 1
         return frame
@@ -405,10 +329,6 @@ class Camera(ABC):
         self._delivered = 0
         self._unwrapper = self._frame_id_unwrapper()
 
-    def _require_open(self) -> None:
-        if not self._is_open:
-            raise DeviceError(f"{self!r}: camera is not open; call open() or use it in a with-block")
-
     def _acquire(self) -> None:
         """Acquisition thread: grab, number, queue. Never blocks on the consumer for a live device."""
         stop = self._stop_event
@@ -438,36 +358,10 @@ class Camera(ABC):
                                     self._overflow += 1
                                 break
         except BaseException as exc:  # handed to the reader, after the frames acquired before it
-            if not isinstance(exc, DeviceError):
-                wrapped = DeviceError(f"{self!r}: acquisition failed: {type(exc).__name__}: {exc}")
-                wrapped.__cause__ = exc
-                exc = wrapped
-            self._put_final(exc)
-
-    def _put_final(self, exc: BaseException) -> None:
-        # The queue may be full: wait (bounded) for room rather than losing the error.
-        while not self._stop_event.is_set():
-            try:
-                self._queue.put(exc, timeout=0.05)
-                return
-            except queue.Full:
-                continue
-        self._error = exc
-
-    @abstractmethod
-    def _do_open(self) -> None: ...
-
-    @abstractmethod
-    def _do_close(self) -> None: ...
+            self._worker_failed(exc, "acquisition")
 
     @abstractmethod
     def _do_set_mode(self, mode: CameraMode) -> None: ...
-
-    @abstractmethod
-    def _do_start(self) -> None: ...
-
-    @abstractmethod
-    def _do_stop(self) -> None: ...
 
     @abstractmethod
     def _do_grab(self) -> Frame | None:

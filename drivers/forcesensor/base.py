@@ -10,15 +10,14 @@ Units: forces in newtons, torques in newton-metres, times in seconds. Host time 
 
 from __future__ import annotations
 
-import math
 import queue
-import threading
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
 
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
+from drivers.streaming import StreamingDevice
+from processing.errors import InvalidInputError
 
 __all__ = ["FORCE_SAMPLE_DTYPE", "ForceSample", "ForceSensor", "ForceStats"]
 
@@ -98,7 +97,7 @@ class ForceStats:
     status_errors: int = 0
 
 
-class ForceSensor(ABC):
+class ForceSensor(StreamingDevice):
     """A streaming force/torque sensor: open/close (or ``with``), :meth:`start`/:meth:`stop`, :meth:`read`,
     :meth:`drain`, :meth:`bias`.
 
@@ -112,49 +111,13 @@ class ForceSensor(ABC):
         Samples held between the receive thread and the reader (default 65536: over 9 s at 7 kHz).
     """
 
+    _device_noun = "sensor"
+    _item_noun = "sample"
+    _worker_role = "receive"
+
     def __init__(self, *, queue_size: int = 65536) -> None:
-        if not isinstance(queue_size, int) or queue_size < 1:
-            raise InvalidInputError(f"queue_size must be a positive int, got {queue_size!r}")
-        self._queue_size = queue_size
-        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
-        self._is_open = False
-        self._streaming = False
-        self._thread: threading.Thread | None = None
-        self._stop_event = threading.Event()
-        self._error: BaseException | None = None
-        self._lock = threading.Lock()
+        super().__init__(queue_size=queue_size)
         self._counts = dict.fromkeys(ForceStats.__dataclass_fields__, 0)
-
-    # -- life cycle
-    def open(self) -> "ForceSensor":
-        if not self._is_open:
-            self._do_open()
-            self._is_open = True
-        return self
-
-    def close(self) -> None:
-        if not self._is_open:
-            return
-        try:
-            if self._streaming:
-                self.stop()
-        finally:
-            self._is_open = False
-            self._do_close()
-
-    def __enter__(self) -> "ForceSensor":
-        return self.open()
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    @property
-    def is_open(self) -> bool:
-        return self._is_open
-
-    @property
-    def is_streaming(self) -> bool:
-        return self._streaming
 
     # -- streaming
     def start(self) -> None:
@@ -162,53 +125,18 @@ class ForceSensor(ABC):
         self._require_open()
         if self._streaming:
             return
-        self._queue = queue.Queue(maxsize=self._queue_size)
         with self._lock:
             self._counts = dict.fromkeys(ForceStats.__dataclass_fields__, 0)
-        self._error = None
-        self._stop_event = threading.Event()
-        self._do_start()
-        self._streaming = True
-        self._thread = threading.Thread(target=self._receive_loop, name=f"{type(self).__name__}-receive", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop streaming; samples already queued stay readable."""
-        if not self._streaming:
-            return
-        self._stop_event.set()
-        thread = self._thread
-        if thread is not None:
-            thread.join(timeout=5.0)
-        self._streaming = False
-        self._thread = None
-        self._do_stop()
-        if thread is not None and thread.is_alive():
-            raise DeviceError(f"{self!r}: receive thread did not stop within 5 s")
+        self._begin_streaming(self._receive_loop)
 
     def read(self, timeout_s: float = 1.0) -> ForceSample:
         """The next sample, oldest first; DeviceTimeoutError if none arrives within ``timeout_s``."""
-        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
-            raise InvalidInputError(f"timeout_s must be a positive finite number of seconds, got {timeout_s!r}")
-        try:
-            item = self._queue.get_nowait()
-        except queue.Empty:
-            if self._error is not None:
-                raise self._error
-            if not self._streaming:
-                raise DeviceError(f"{self!r}: not streaming and no samples queued; start() first")
-            try:
-                item = self._queue.get(timeout=timeout_s)
-            except queue.Empty:
-                s = self.stats
-                raise DeviceTimeoutError(
-                    f"{self!r}: no sample within {timeout_s:g} s (received {s.received}, lost {s.lost}, "
-                    f"protocol errors {s.protocol_errors})"
-                ) from None
-        if isinstance(item, BaseException):
-            self._error = item
-            raise item
-        return item
+
+        def detail() -> str:
+            st = self.stats
+            return f"received {st.received}, lost {st.lost}, protocol errors {st.protocol_errors}"
+
+        return self._next_item(timeout_s, detail)
 
     def drain(self, max_samples: int | None = None) -> np.ndarray:
         """Every queued sample (up to ``max_samples``) as a FORCE_SAMPLE_DTYPE array, without waiting."""
@@ -246,10 +174,6 @@ class ForceSensor(ABC):
         with self._lock:
             self._counts[name] += n
 
-    def _require_open(self) -> None:
-        if not self._is_open:
-            raise DeviceError(f"{self!r}: sensor is not open; call open() or use it in a with-block")
-
     def _receive_loop(self) -> None:
         stop = self._stop_event
         try:
@@ -259,30 +183,8 @@ class ForceSensor(ABC):
                         self._queue.put_nowait(sample)
                     except queue.Full:
                         self._count("dropped")
-        except BaseException as exc:
-            if not isinstance(exc, DeviceError):
-                wrapped = DeviceError(f"{self!r}: receiving failed: {type(exc).__name__}: {exc}")
-                wrapped.__cause__ = exc
-                exc = wrapped
-            while not stop.is_set():
-                try:
-                    self._queue.put(exc, timeout=0.05)
-                    return
-                except queue.Full:
-                    continue
-            self._error = exc
-
-    @abstractmethod
-    def _do_open(self) -> None: ...
-
-    @abstractmethod
-    def _do_close(self) -> None: ...
-
-    @abstractmethod
-    def _do_start(self) -> None: ...
-
-    @abstractmethod
-    def _do_stop(self) -> None: ...
+        except BaseException as exc:  # handed to the reader, after the samples received before it
+            self._worker_failed(exc, "receiving")
 
     @abstractmethod
     def _do_bias(self) -> None: ...
