@@ -7,8 +7,6 @@ GigE Vision binary are missing.
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 import time
 
 import numpy as np
@@ -20,6 +18,7 @@ from drivers.session_file import write_session
 from processing.calibration import Calibration
 from processing.errors import InvalidInputError
 from simulators.camera import SimulatedCamera
+from simulators.gige_camera import FakeGigECamera
 
 STRIP = CAMERA_MODES["strip"]
 
@@ -33,33 +32,17 @@ def _aravis_or_skip():
 
 @pytest.fixture(scope="module")
 def gv_camera_address():
-    """``arv-fake-gv-camera-0.8`` serving on loopback; killed in the finalizer."""
+    """``arv-fake-gv-camera-0.8`` serving on loopback; stopped in the finalizer."""
     _aravis_or_skip()
-    binary = shutil.which("arv-fake-gv-camera-0.8")
-    if binary is None:
-        pytest.skip("arv-fake-gv-camera-0.8 not installed (Debian package aravis-tools)")
-    from drivers.camera.aravis import load_aravis
-
-    arv = load_aravis()
-    proc = subprocess.Popen([binary, "-i", "127.0.0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = FakeGigECamera("127.0.0.1")
     try:
-        deadline = time.monotonic() + 10.0
-        while True:  # bounded wait for the fake camera to answer
-            try:
-                arv.Camera.new("127.0.0.1")
-                break
-            except Exception:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    pytest.skip("arv-fake-gv-camera-0.8 did not come up on 127.0.0.1 within 10 s")
-                time.sleep(0.1)
-        yield "127.0.0.1"
+        address = server.start()
+    except DeviceError as exc:
+        pytest.skip(str(exc))
+    try:
+        yield address
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
+        server.stop()
 
 
 def _ramp_source(k: int) -> np.ndarray:

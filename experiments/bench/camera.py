@@ -8,8 +8,6 @@ Error: frames lost (dropped + failed; the target is zero) and the spread of the 
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 import time
 
 import numpy as np
@@ -19,6 +17,7 @@ from drivers.camera_modes import CAMERA_MODES, CameraMode
 from experiments.bench import BenchOptions, BenchTable
 from processing.errors import DeviceError
 from simulators.camera import SimulatedCamera
+from simulators.gige_camera import FakeGigECamera
 
 SECTION = "camera"
 DESCRIPTION = "camera acquisition: seed modes and a 500 Hz burst, lost frames and CPU (Aravis fake, GigE loopback, sim)"
@@ -70,7 +69,7 @@ def _stream(camera: Camera, mode: CameraMode, seconds: float) -> list:
 
 
 def _aravis_rows(seconds: float, notes: list[str]) -> list[list]:
-    from drivers.camera.aravis import AravisCamera, aravis_available, load_aravis
+    from drivers.camera.aravis import AravisCamera, aravis_available
 
     if not aravis_available():
         notes.append("Aravis bindings not importable: Aravis rows skipped")
@@ -81,36 +80,21 @@ def _aravis_rows(seconds: float, notes: list[str]) -> list[list]:
             row = _stream(cam, mode, seconds)
         row[0] = "Aravis fake (in-process)"
         rows.append(row)
-    binary = shutil.which("arv-fake-gv-camera-0.8")
-    if binary is None:
-        notes.append("arv-fake-gv-camera-0.8 not installed (package aravis-tools): GigE loopback rows skipped")
-        return rows
-    arv = load_aravis()
-    proc = subprocess.Popen([binary, "-i", "127.0.0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = FakeGigECamera("127.0.0.1")
     try:
-        deadline = time.monotonic() + 10.0
-        while True:
-            try:
-                arv.Camera.new("127.0.0.1")
-                break
-            except Exception:
-                if time.monotonic() > deadline:
-                    notes.append("arv-fake-gv-camera-0.8 did not answer within 10 s: GigE loopback rows skipped")
-                    return rows
-                time.sleep(0.1)
+        address = server.start()
+    except DeviceError as exc:
+        notes.append(f"{exc}: GigE loopback rows skipped")
+        return rows
+    try:
         for mode in (CAMERA_MODES["full"], CAMERA_MODES["strip"]):
-            with AravisCamera("127.0.0.1") as cam:
+            with AravisCamera(address) as cam:
                 row = _stream(cam, mode, seconds)
             row[0] = "Aravis GigE loopback"
             rows.append(row)
         notes.append("GigE loopback: the fake camera process's own CPU is not in the CPU column")
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
+        server.stop()
     return rows
 
 
