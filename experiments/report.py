@@ -16,7 +16,6 @@ import math
 import platform
 import sys
 import time
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -194,13 +193,19 @@ def _patch_change(r, frame_a: int, frame_b: int, *, spacing_mm: float = 1.0, rad
     return centers, change
 
 
-def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) -> str:
+def _triangulated_pairs(r, span: int):
+    """The strain at ``span`` and the indices of its frame pairs that gave a triangulation."""
     s = r.strain.get(span)
     if s is None:
         raise KeyError(f"no strain at span {span}")
     ok = np.nonzero(s.pairs["status"] == b"ok")[0]
     if ok.size == 0:
         raise ValueError(f"no frame pair at span {span} gave a triangulation")
+    return s, ok
+
+
+def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) -> str:
+    s, ok = _triangulated_pairs(r, span)
     k = int(ok[ok.size // 2])
     fa, fb = int(s.pairs["frame_a"][k]), int(s.pairs["frame_b"][k])
     e = s.edges[s.edges["pair"] == k]
@@ -223,12 +228,7 @@ def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) 
 
 
 def _edge_series(r, span: int, *, limit: float) -> str:
-    s = r.strain.get(span)
-    if s is None:
-        raise KeyError(f"no strain at span {span}")
-    ok = np.nonzero(s.pairs["status"] == b"ok")[0]
-    if ok.size == 0:
-        raise ValueError(f"no frame pair at span {span} gave a triangulation")
+    s, ok = _triangulated_pairs(r, span)
     picks = ok[np.linspace(0, ok.size - 1, min(6, ok.size)).round().astype(int)]
     panels = []
     for k in dict.fromkeys(int(p) for p in picks):
