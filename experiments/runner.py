@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
-import math
 import multiprocessing
 import os
-import shutil
-import sys
 import threading
 import time
 import uuid

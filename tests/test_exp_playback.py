@@ -1,8 +1,6 @@
 """Closed-loop playback: the corrector beats open loop on a display with hysteresis and finger load, and the
 force ceiling and a link failure stop the movie with every contactor at rest."""
 
-import time
-
 import numpy as np
 import pytest
 

@@ -5,7 +5,6 @@ is exercised by the demo test). The subprocess in the SIGKILL test imports them 
 """
 
 import errno
-import json
 import os
 import signal
 import subprocess

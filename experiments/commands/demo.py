@@ -16,8 +16,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from processing.errors import SkinstretchError
 from experiments.protocol import Rig, bundled_protocol, load_protocol
 
