@@ -18,12 +18,19 @@ What is modelled
    stick-slip sawtooth: the contact centre sticks while the bulk drags it, then slips back within
    ``slip_fraction`` of each period (the seed, 6.3.3, suggests stick-slip as a source of the deformation seen
    on flat surfaces).
-3. **Ridge/valley mechanics** (seed 6.3.2, 7.1): skin approaching a ridge is compressed and skin that has passed it
-   is stretched (reversed for a valley). Modelled as a displacement along ``s`` that depends on the *current*
-   position relative to the shape (so it is advected with the finger):
-   ``w(s) = -a sigma_m sqrt(e) exp(-(s - s_c)^2 / (2 sigma_m^2))``, whose strain ``dw/ds`` peaks at ``+a`` one
-   ``sigma_m`` past the shape and ``-a`` one ``sigma_m`` before it (in the sliding direction) and integrates to
-   zero. ``a = peak_strain * tanh(v_s / v0)`` follows the sign of the sliding velocity across the shape.
+3. **Ridge/valley mechanics** (seed 6.3.2, 7.1): between consecutive frames the seed sees the skin *approaching* a
+   ridge compress and the skin that has *passed* it expand (the reverse for a valley), i.e. the skin slows down as it
+   crosses a ridge (and speeds up across a valley). Modelled as a lag along ``s`` that every skin point accumulates
+   while it travels across the glass-fixed shape: with ``y`` the skin point's position after the bulk motion and the
+   plastic distortion (``y = X`` in frame 0),
+   ``W(X) = -a (G(y_s) - G(X_s))``, ``G(s) = integral of g``, ``g(s) = exp(-(s - s_c)^2 / (2 sigma_m^2))``.
+   A step ``dy`` of the finger moves skin at the shape by ``(1 - a g) dy``: the change in stretch between two frames
+   is ``-a g'(s) dy``, negative (compression) one ``sigma_m`` before the shape in the sliding direction and positive
+   (expansion) one ``sigma_m`` past it, whichever way the finger slides; skin on the shape is compressed by ``a``
+   relative to skin that has not reached it. ``a`` (``peak_strain``) is positive for a ridge, negative for a
+   valley. ``W`` depends only on where the skin point is and where it started, so it is the same whatever the
+   frame order, and it is zero in frame 0. The lag per mm of travel does not depend on the sliding speed
+   (rate-independent friction); ``speed_scale_mm_s`` is accepted for scene files and not used.
 All time-dependent non-rigid terms are multiplied by a ramp ``smoothstep(t / ramp_s)`` so frame 0 is undeformed.
 
 What is not modelled
@@ -36,11 +43,13 @@ discontinuities of a real slip front.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 from scipy.interpolate import PchipInterpolator
+from scipy.special import erf as _erf
 
 from processing.errors import InvalidInputError
 
@@ -142,7 +151,8 @@ class PlasticDistortion:
 
 @dataclass(frozen=True)
 class RidgeMechanics:
-    """Compression before / stretch after a shape centred at arc length ``center_s_mm`` (see module doc)."""
+    """Skin slowed across a shape centred at arc length ``center_s_mm`` (see module doc): compression before it and
+    expansion after it between consecutive frames (reversed for a negative ``peak_strain``, a valley)."""
 
     peak_strain: float = 0.0
     center_s_mm: float = 0.0
@@ -199,16 +209,13 @@ class FrameDeformation:
         grad = np.stack([dbeta * du / (a * a) / safe, dbeta * ds / (b * b) / safe], axis=-1)
         return beta, grad
 
-    def _w(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mechanics displacement along s at current arc length s, and its derivative."""
-        if self.mech_a == 0.0:
-            z = np.zeros_like(s)
-            return z, z
+    def _g(self, s: np.ndarray) -> np.ndarray:
         z = (s - self.mech_center) / self.mech_sigma
-        g = np.exp(-0.5 * z * z)
-        w = -self.mech_a * self.mech_sigma * np.sqrt(np.e) * g
-        dw = self.mech_a * np.sqrt(np.e) * z * g
-        return w, dw
+        return np.exp(-0.5 * z * z)
+
+    def _G(self, s: np.ndarray) -> np.ndarray:
+        """Integral of :meth:`_g` (up to a constant, which cancels in the lag)."""
+        return self.mech_sigma * np.sqrt(0.5 * np.pi) * _erf((s - self.mech_center) / (self.mech_sigma * np.sqrt(2.0)))
 
     def _intermediate(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Displacement and displacement gradient of the rigid + plastic part (before the ridge mechanics)."""
@@ -225,17 +232,18 @@ class FrameDeformation:
         """Displacement ``d(X)`` (mm, shape of X) and optionally its gradient ``H[..., i, j] = d d_i / d X_j``."""
         X = np.asarray(X, dtype=np.float64)
         d, h = self._intermediate(X)
+        if self.mech_a == 0.0:
+            return (d, h) if with_gradient else d
         ys = X[..., 1] + d[..., 1]
-        w, dw = self._w(ys)
         d = d.copy()
-        d[..., 1] += w
+        d[..., 1] -= self.mech_a * (self._G(ys) - self._G(X[..., 1]))
         if not with_gradient:
             return d
-        if self.mech_a != 0.0:
-            h = h.copy()
-            # x_s = y_s + w(y_s): row s of the gradient picks up w' * (e_s + H_y[s, :]).
-            h[..., 1, 0] += dw * h[..., 1, 0]
-            h[..., 1, 1] += dw * (1.0 + h[..., 1, 1])
+        # dW/dX_j = -a (g(y_s) dy_s/dX_j - g(X_s) delta_sj), with dy_s/dX_j = delta_sj + H[s, j].
+        gy, g0 = self._g(ys), self._g(X[..., 1])
+        h = h.copy()
+        h[..., 1, 0] -= self.mech_a * gy * h[..., 1, 0]
+        h[..., 1, 1] -= self.mech_a * (gy * (1.0 + h[..., 1, 1]) - g0)
         return d, h
 
     def forward(self, X: np.ndarray) -> np.ndarray:
@@ -261,21 +269,15 @@ class FrameDeformation:
     def inverse_reference(self, x: np.ndarray, *, iterations: int = 4) -> np.ndarray:
         """Skin coordinates ``X`` of the skin points now at ``x`` (mm): solves ``X + d(X) = x``.
 
-        The ridge mechanics (a 1-D map along s, a contraction) is inverted by fixed-point iteration, the rest by
-        Newton's method started from the exact inverse of the bulk motion (seed-independent; converges in one step
-        inside the sticking ellipse, where the map is rigid).
+        Newton's method on the whole map (bulk, plastic distortion and the ridge lag), started from the exact inverse
+        of the bulk motion; it converges in one step inside the sticking ellipse away from a shape, where the map is
+        rigid.
         """
         x = np.asarray(x, dtype=np.float64)
-        y = x.copy()
-        if self.mech_a != 0.0:
-            ys = x[..., 1].copy()
-            for _ in range(iterations + 2):
-                ys = x[..., 1] - self._w(ys)[0]
-            y[..., 1] = ys
-        X = (y - self.t_b - self.center) @ self._rb + self.center  # R^-1 = R^T, applied to row vectors
+        X = (x - self.t_b - self.center) @ self._rb + self.center  # R^-1 = R^T, applied to row vectors
         for _ in range(iterations):
-            d, h = self._intermediate(X)
-            r = X + d - y
+            d, h = self.displacement(X, with_gradient=True)
+            r = X + d - x
             j00, j01, j10, j11 = 1.0 + h[..., 0, 0], h[..., 0, 1], h[..., 1, 0], 1.0 + h[..., 1, 1]
             det = j00 * j11 - j01 * j10
             X = X - np.stack([(j11 * r[..., 0] - j01 * r[..., 1]) / det, (-j10 * r[..., 0] + j00 * r[..., 1]) / det], -1)
@@ -288,17 +290,11 @@ def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, m
     out = np.empty_like(x)
     a, b = axes[0], axes[1]
     rmean = 0.5 * (a + b)
-    se = np.sqrt(np.e)
     d00, d01, d10, d11 = rb[0, 0] - ra[0, 0], rb[0, 1] - ra[0, 1], rb[1, 0] - ra[1, 0], rb[1, 1] - ra[1, 1]
+    sq = np.sqrt(0.5 * np.pi) * mech_sig
     for p in numba.prange(n):
         x0, x1 = x[p, 0], x[p, 1]
-        ys = x1
-        if mech_a != 0.0:
-            for _ in range(iterations + 2):
-                z = (ys - mech_c) / mech_sig
-                ys = x1 + mech_a * mech_sig * se * np.exp(-0.5 * z * z)
-        y0, y1 = x0, ys
-        q0, q1 = y0 - tb[0] - c[0], y1 - tb[1] - c[1]
+        q0, q1 = x0 - tb[0] - c[0], x1 - tb[1] - c[1]
         X0 = rb[0, 0] * q0 + rb[1, 0] * q1 + c[0]
         X1 = rb[0, 1] * q0 + rb[1, 1] * q1 + c[1]
         for _ in range(iterations):
@@ -318,12 +314,20 @@ def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, m
                 beta = 0.5 * (1.0 - np.cos(np.pi * qq))
                 db = 0.5 * np.pi / band * np.sin(np.pi * qq) * rmean / re
                 gb0, gb1 = db * du / (a * a), db * dv / (b * b)
-            f0 = X0 + da0 + beta * df0 - y0
-            f1 = X1 + da1 + beta * df1 - y1
+            f0 = X0 + da0 + beta * df0 - x0
+            f1 = X1 + da1 + beta * df1 - x1
             j00 = 1.0 + rai[0, 0] + beta * d00 + df0 * gb0
             j01 = rai[0, 1] + beta * d01 + df0 * gb1
             j10 = rai[1, 0] + beta * d10 + df1 * gb0
             j11 = 1.0 + rai[1, 1] + beta * d11 + df1 * gb1
+            if mech_a != 0.0:
+                # Ridge lag W = -a (G(y_s) - G(X_s)) on the s row (see FrameDeformation.displacement).
+                ys = X1 + da1 + beta * df1
+                zy, z0 = (ys - mech_c) / mech_sig, (X1 - mech_c) / mech_sig
+                gy, g0 = np.exp(-0.5 * zy * zy), np.exp(-0.5 * z0 * z0)
+                f1 -= mech_a * sq * (math.erf(zy / np.sqrt(2.0)) - math.erf(z0 / np.sqrt(2.0)))
+                j10 -= mech_a * gy * j10
+                j11 -= mech_a * (gy * j11 - g0)
             det = j00 * j11 - j01 * j10
             X0 -= (j11 * f0 - j01 * f1) / det
             X1 -= (-j10 * f0 + j00 * f1) / det
@@ -383,10 +387,7 @@ class DeformationModel:
         theta_a = (1.0 - p.stick) * theta_b
         t_a = (1.0 - p.stick) * m - self.lag_vector(t)
         mech = self.mechanics
-        a = 0.0
-        if mech.peak_strain != 0.0:
-            vs = self.motion.velocity(t)[1]
-            a = mech.peak_strain * float(np.tanh(vs / mech.speed_scale_mm_s)) * self._envelope(t)
+        a = float(mech.peak_strain)  # the lag is zero in frame 0 by construction: no ramp needed
         return FrameDeformation(
             theta_a=theta_a,
             theta_b=theta_b,

@@ -79,18 +79,36 @@ def test_rotation_is_counter_clockwise_on_the_image():
     np.testing.assert_allclose(x, [[0.0, -1.0]], atol=1e-12)  # right of centre -> up the image (y down)
 
 
+@pytest.mark.parametrize("direction", [1.0, -1.0])
 @pytest.mark.parametrize("sign", [1.0, -1.0])
-def test_ridge_compresses_before_and_stretches_after(sign):
+def test_ridge_compresses_before_and_expands_after_between_frames(sign, direction):
+    """Seed 6.3.2: between consecutive frames, skin approaching a ridge compresses and skin past it expands
+    (reversed for a valley), in whichever direction the finger slides."""
     surface = RuledSurface(kind="ridge" if sign > 0 else "valley")
-    motion = MotionProfile.from_keyframes([(0, 0, 0, 0), (2.0, 0.0, 2.0, 0.0)])  # sliding +s at 1 mm/s
-    model = DeformationModel(motion=motion, mechanics=RidgeMechanics(peak_strain=sign * 0.04, sigma_mm=surface.sigma_mm))
-    d = model.at(1.0)
-    # Skin points that are now one sigma before / after the shape (in the sliding direction).
-    now = np.array([[0.0, -surface.sigma_mm], [0.0, surface.sigma_mm]])
-    X = d.inverse(now)
-    _, h = d.displacement(X, with_gradient=True)
-    e_ss = green_lagrange(h)[:, 1]
-    assert sign * e_ss[0] < -0.02 and sign * e_ss[1] > 0.02
+    sig = surface.sigma_mm
+    motion = MotionProfile.from_keyframes([(0, 0, 0, 0), (4.0, 0.0, direction * 4.0, 0.0)])  # 1 mm/s along +-s
+    model = DeformationModel(motion=motion, mechanics=RidgeMechanics(peak_strain=sign * 0.04, sigma_mm=sig))
+    dt, h = 1.0 / 60.0, 1e-3
+    a, b = model.at(2.0), model.at(2.0 + dt)
+    # Glass-fixed positions one sigma before / after the shape in the sliding direction, +-h along s.
+    now = np.array([[0.0, direction * p + e] for p in (-sig, sig) for e in (-h, h)])
+    step = b.forward(a.inverse(now)) - now
+    rate = (step[1::2, 1] - step[0::2, 1]) / (2 * h)  # change in stretch along s over one frame
+    expected = 0.04 * (1.0 * dt) * np.exp(-0.5) / sig  # a v dt max|g'|
+    np.testing.assert_allclose(sign * rate, [-expected, expected], rtol=0.05)
+    # The skin now on the shape has been compressed (ridge) / stretched (valley) relative to frame 0.
+    X = a.inverse(np.array([[0.0, 0.0]]))
+    _, grad = a.displacement(X, with_gradient=True)
+    assert sign * green_lagrange(grad)[0, 1] < -0.03
+
+
+def test_ridge_lag_is_zero_in_frame_zero_and_far_from_the_shape():
+    motion = MotionProfile.from_keyframes([(0, 0, 0, 0), (2.0, 0.0, 2.0, 0.0)])
+    model = DeformationModel(motion=motion, mechanics=RidgeMechanics(peak_strain=0.04, sigma_mm=0.75))
+    pts = np.array([[0.3, -0.2], [1.0, 0.0]])
+    assert np.all(model.at(0.0).displacement(pts) == 0.0)
+    far = np.array([[0.0, -12.0]])  # never crossed the shape: moves with the bulk
+    np.testing.assert_allclose(model.at(1.5).displacement(far), [[0.0, 1.5]], atol=1e-12)
 
 
 def test_stick_keeps_the_ellipse_still_while_the_bulk_rotates():
