@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numba
 import numpy as np
 
@@ -42,25 +41,127 @@ class BlobPores:
     binary_without_pores: np.ndarray
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _root(parent, i):  # pragma: no cover - compiled
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
 @numba.njit(cache=True, nogil=True)
-def _blob_moments(labels, weights, is_pore, remove, out):  # pragma: no cover - compiled
-    """Weighted moments of the pore blobs, and ``out`` (a copy of the binary image) cleared on removed blobs."""
-    n_labels = is_pore.size
-    sw = np.zeros(n_labels)
-    sx = np.zeros(n_labels)
-    sy = np.zeros(n_labels)
-    h, w = labels.shape
+def _small_blobs(binary, weights, max_diameter, min_area):  # pragma: no cover - compiled
+    """4-connected blobs of ``binary`` narrower than ``max_diameter`` (bounding box, both axes): removed from a copy
+    of the image; those of at least ``min_area`` pixels reported with their weighted centre of mass.
+
+    Run-based labelling: the horizontal runs of each row are joined (union-find, the lower run index is the root)
+    to the runs of the row above that share a column. Blobs come out in the raster order of their first pixel (the
+    order of cv2.connectedComponents' labels) and their moments are summed in raster order.
+    """
+    h, w = binary.shape
+    # At most (w + 1) // 2 runs per row; allocated once (arrays re-bound inside the loops would cost reference
+    # counting on every iteration).
+    cap = h * ((w + 1) // 2)
+    run_r = np.empty(cap, np.int32)
+    run_a = np.empty(cap, np.int32)
+    run_b = np.empty(cap, np.int32)  # exclusive end
+    parent = np.empty(cap, np.int64)
+    n = 0
+    prev_lo = 0
+    prev_hi = 0
     for r in range(h):
-        for c in range(w):
-            lab = labels[r, c]
-            if lab > 0 and remove[lab]:
-                out[r, c] = 0
-                if is_pore[lab]:
-                    v = weights[r, c]
-                    sw[lab] += v
-                    sx[lab] += v * c
-                    sy[lab] += v * r
-    return sw, sx, sy
+        row_lo = n
+        c = 0
+        k = prev_lo
+        while c < w:
+            if binary[r, c] == 0:
+                c += 1
+                continue
+            a = c
+            while c < w and binary[r, c] != 0:
+                c += 1
+            run_r[n] = r
+            run_a[n] = a
+            run_b[n] = c
+            parent[n] = n
+            # Runs of the row above overlapping [a, c): skip those ending before a, join those starting before c.
+            while k < prev_hi and run_b[k] <= a:
+                k += 1
+            kk = k
+            while kk < prev_hi and run_a[kk] < c:
+                ra = _root(parent, kk)
+                rb = _root(parent, n)
+                if ra < rb:
+                    parent[rb] = ra
+                elif rb < ra:
+                    parent[ra] = rb
+                kk += 1
+            if kk > k:
+                k = kk - 1  # the last overlapping run may also touch the next run of this row
+            n += 1
+        prev_lo = row_lo
+        prev_hi = n
+    # Bounding box and area per root (a root is its blob's first run, so its row is the top row).
+    rmax = np.empty(n, np.int32)
+    cmin = np.empty(n, np.int32)
+    cmax = np.empty(n, np.int32)
+    area = np.zeros(n, np.int64)
+    root = np.empty(n, np.int64)
+    for i in range(n):
+        q = _root(parent, i)
+        root[i] = q
+        if q == i:
+            rmax[i] = run_r[i]
+            cmin[i] = run_a[i]
+            cmax[i] = run_b[i] - 1
+        else:
+            rmax[q] = run_r[i]
+            cmin[q] = min(cmin[q], run_a[i])
+            cmax[q] = max(cmax[q], run_b[i] - 1)
+        area[q] += run_b[i] - run_a[i]
+    out = binary.copy()
+    sw = np.zeros(n)
+    sx = np.zeros(n)
+    sy = np.zeros(n)
+    n_res = 0
+    for i in range(n):
+        q = root[i]
+        wh = max(rmax[q] - run_r[q] + 1, cmax[q] - cmin[q] + 1)
+        if wh >= max_diameter:
+            continue
+        r = run_r[i]
+        keep = area[q] >= min_area
+        for c in range(run_a[i], run_b[i]):
+            out[r, c] = 0
+            if keep:
+                v = weights[r, c]
+                sw[q] += v
+                sx[q] += v * c
+                sy[q] += v * r
+        if keep and q == i:
+            n_res += 1
+    res_x = np.empty(n_res)
+    res_y = np.empty(n_res)
+    res_d = np.empty(n_res)
+    res_a = np.empty(n_res, np.int64)
+    k = 0
+    for q in range(n):
+        if root[q] != q or area[q] < min_area:
+            continue
+        wh = max(rmax[q] - run_r[q] + 1, cmax[q] - cmin[q] + 1)
+        if wh >= max_diameter:
+            continue
+        if sw[q] > 0:
+            res_x[k] = sx[q] / sw[q]
+            res_y[k] = sy[q] / sw[q]
+        else:
+            # Weights summing to zero leave no defined centre: the bounding-box centre.
+            res_x[k] = cmin[q] + (cmax[q] - cmin[q]) / 2.0
+            res_y[k] = run_r[q] + (rmax[q] - run_r[q]) / 2.0
+        res_d[k] = wh
+        res_a[k] = area[q]
+        k += 1
+    return res_x, res_y, res_d, res_a, out
 
 
 def detect_blob_pores(
@@ -102,29 +203,8 @@ def detect_blob_pores(
         raise InvalidInputError(f"grey shape {grey.shape} differs from binary shape {binary.shape}")
     if not max_diameter_px > 0:
         raise InvalidInputError(f"max_diameter_px must be positive, got {max_diameter_px!r}")
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4, ltype=cv2.CV_32S)
-    wh = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-    area = stats[:, cv2.CC_STAT_AREA]
-    small = wh < max_diameter_px
-    small[0] = False
-    noise = small & (area < min_area_px)
-    is_pore = small & ~noise
-    weights = grey.astype(np.float32, copy=False)
-    without = binary.copy()
-    sw, sx, sy = _blob_moments(labels, weights, is_pore, small, without)
-    idx = np.flatnonzero(is_pore)
-    sw_p = sw[idx]
-    good = sw_p > 0
-    # A pore whose weights sum to zero has no defined centre: fall back to its bounding-box centre.
-    bx = stats[idx, cv2.CC_STAT_LEFT] + (stats[idx, cv2.CC_STAT_WIDTH] - 1) / 2.0
-    by = stats[idx, cv2.CC_STAT_TOP] + (stats[idx, cv2.CC_STAT_HEIGHT] - 1) / 2.0
-    safe = np.where(good, sw_p, 1.0)
-    x = np.where(good, sx[idx] / safe, bx)
-    y = np.where(good, sy[idx] / safe, by)
-    return BlobPores(
-        x=x.astype(np.float64),
-        y=y.astype(np.float64),
-        diameter_px=wh[idx].astype(np.float64),
-        area_px=area[idx].astype(np.int64),
-        binary_without_pores=without,
+    weights = np.ascontiguousarray(grey, dtype=np.float32)
+    x, y, diameter, area, without = _small_blobs(
+        np.ascontiguousarray(binary), weights, float(max_diameter_px), int(min_area_px)
     )
+    return BlobPores(x=x, y=y, diameter_px=diameter, area_px=area, binary_without_pores=without)

@@ -140,3 +140,38 @@ def test_incremental_thinning_equals_checking_every_pixel(density):
     b = (rng.random((40, 50)) < density).astype(np.uint8)
     b = np.kron(b[:20, :25], np.ones((2, 2), np.uint8)) | b  # some thick blobs as well as noise
     np.testing.assert_array_equal(thin(b), _naive_thin(b))
+
+
+def _cv2_blob_pores(binary, grey, max_diameter_px, min_area_px):
+    """Reference for detect_blob_pores: cv2 labelling, moments summed in raster order."""
+    import cv2
+
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=4, ltype=cv2.CV_32S)
+    wh = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    small = wh < max_diameter_px
+    small[0] = False
+    without = binary.copy()
+    without[small[labels]] = 0
+    xs, ys = [], []
+    for lab in np.flatnonzero(small & (stats[:, cv2.CC_STAT_AREA] >= min_area_px)):
+        rr, cc = np.nonzero(labels == lab)
+        wts = grey[rr, cc].astype(np.float64)
+        xs.append((wts * cc).sum() / wts.sum())
+        ys.append((wts * rr).sum() / wts.sum())
+    return np.array(xs), np.array(ys), without
+
+
+@pytest.mark.parametrize("density", [0.3, 0.5, 0.62])
+def test_run_based_blob_labelling_matches_opencv(density):
+    from processing.pores import detect_blob_pores
+
+    rng = np.random.default_rng(3)
+    binary = np.where(rng.random((90, 130)) < density, 255, 0).astype(np.uint8)
+    binary[40:45, :] = 255  # one long valley (not a pore), touching both image edges
+    grey = rng.uniform(1.0, 50.0, binary.shape).astype(np.float32)
+    got = detect_blob_pores(binary, grey=grey, max_diameter_px=5.0, min_area_px=2)
+    x, y, without = _cv2_blob_pores(binary, grey, 5.0, 2)
+    np.testing.assert_array_equal(got.binary_without_pores, without)
+    np.testing.assert_allclose(got.x, x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.y, y, rtol=0, atol=1e-9)
+    assert got.x.size > 20
