@@ -71,6 +71,25 @@ def _signed_area(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return -0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
 
 
+def _first_of_duplicates(p: np.ndarray) -> np.ndarray:
+    """Rows of ``p`` (n, 2) that are the first occurrence of their value, in increasing order (what
+    ``np.sort(np.unique(p, axis=0, return_index=True)[1])`` gives, without its structured-array sort)."""
+    order = np.lexsort((p[:, 1], p[:, 0]))
+    q = p[order]
+    new = np.ones(order.size, bool)
+    new[1:] = np.any(q[1:] != q[:-1], axis=1)
+    # lexsort is stable: within a run of equal rows the first is the smallest index.
+    return np.sort(order[new])
+
+
+def _unique_edges(tri: np.ndarray, n_points: int) -> np.ndarray:
+    """Each edge of the triangles once, as (low, high) rows sorted lexicographically."""
+    a = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
+    b = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+    key = np.unique(np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b))
+    return np.column_stack([key // n_points, key % n_points])
+
+
 def triangulation_strain(
     sample: MotionSample,
     *,
@@ -116,8 +135,7 @@ def triangulation_strain(
     pa, d, ids = pa[finite], d[finite], ids[finite]
     n_in = pa.shape[0]
     if n_in:
-        _, first = np.unique(np.round(pa, 6), axis=0, return_index=True)
-        first = np.sort(first)
+        first = _first_of_duplicates(np.round(pa, 6))
         pa, d, ids = pa[first], d[first], ids[first]
     n_dropped = n_in - pa.shape[0]
     if pa.shape[0] < 3:
@@ -148,8 +166,7 @@ def triangulation_strain(
             f"frames {sample.frame_a}->{sample.frame_b}: no usable triangle (points nearly collinear or too far apart)"
         )
     area_b = _signed_area(pb, tri)
-    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    edges = _unique_edges(tri, pa.shape[0])
     la = np.hypot(*(pa[edges[:, 0]] - pa[edges[:, 1]]).T)
     lb = np.hypot(*(pb[edges[:, 0]] - pb[edges[:, 1]]).T)
     return TriangulationStrain(
@@ -266,41 +283,69 @@ def horizontal_stretch_profile(
     fingertip_displacement: np.ndarray,
     x_positions: np.ndarray,
     strip_width_px: float,
-    min_points: int = 2,
+    min_points: int = 3,
 ) -> StretchProfile:
-    """Change in horizontal stretch at each x: (mean dx in [x, x+w) - mean dx in [x-w, x)) / w.
+    """Change in horizontal stretch at each x between frames a and b (seed 5.3.2, Figure 62).
 
-    The two vertical strips' centres are ``w`` apart, so the result is the mean horizontal strain between them
-    (positive = expansion). Strips with fewer than ``min_points`` points leave the position invalid.
+    The points (frame-a positions) in the strips ``[x - w, x)`` and ``[x, x + w)`` give a mean horizontal movement
+    relative to the fingertip and a mean position each; the change in stretch at x is the difference of the two
+    movements over the distance between the two mean positions (positive = expansion). Dividing by that distance
+    rather than by ``w`` keeps the result exact for a linear field however the points are spread in the strips
+    (features are sparse where the image is dark). The fingertip movement is subtracted as the seed does; it
+    cancels in the difference. A position is invalid when a strip has fewer than ``min_points`` points or when a
+    strip's points do not cover it (their mean position more than ``w / 4`` from the strip's centre: the strip runs
+    off the contact area, the image or a band without features), so the value always describes the skin at x.
+
+    Examples
+    --------
+    >>> pts = np.column_stack([np.arange(0.0, 100.0), np.zeros(100)])
+    >>> s = MotionSample(0, 1, pts, np.column_stack([0.01 * pts[:, 0], np.zeros(100)]), np.arange(100))
+    >>> p = horizontal_stretch_profile(s, fingertip_displacement=np.zeros(2), x_positions=np.array([50.0, 95.0]),
+    ...                                strip_width_px=20.0)
+    >>> np.round(p.change, 6).tolist(), p.valid.tolist()
+    ([0.01, nan], [True, False])
     """
     if not strip_width_px > 0:
         raise InvalidInputError(f"strip_width_px must be positive, got {strip_width_px!r}")
+    if int(min_points) < 1:
+        raise InvalidInputError(f"min_points must be at least 1, got {min_points!r}")
+    w = float(strip_width_px)
     xs = np.asarray(x_positions, dtype=np.float64).reshape(-1)
     px = np.asarray(sample.points, dtype=np.float64)[:, 0] if len(sample) else np.zeros(0)
-    dx = (np.asarray(sample.displacement, dtype=np.float64)[:, 0] - float(np.asarray(fingertip_displacement)[0])) if len(sample) else np.zeros(0)
+    ft = float(np.asarray(fingertip_displacement, dtype=np.float64).reshape(-1)[0])
+    dx = (np.asarray(sample.displacement, dtype=np.float64)[:, 0] - ft) if len(sample) else np.zeros(0)
+    keep = np.isfinite(px) & np.isfinite(dx)
+    px, dx = px[keep], dx[keep]
     order = np.argsort(px)
     px, dx = px[order], dx[order]
-    csum = np.concatenate([[0.0], np.cumsum(dx)])
+    csum_d = np.concatenate([[0.0], np.cumsum(dx)])
+    csum_x = np.concatenate([[0.0], np.cumsum(px)])
 
-    def strip(lo, hi):
+    def strip(lo):
         i0 = np.searchsorted(px, lo, side="left")
-        i1 = np.searchsorted(px, hi, side="left")
+        i1 = np.searchsorted(px, lo + w, side="left")
         n = i1 - i0
-        s = csum[i1] - csum[i0]
-        return s, n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (csum_d[i1] - csum_d[i0]) / n, (csum_x[i1] - csum_x[i0]) / n, n
 
-    sl, nl = strip(xs - strip_width_px, xs)
-    sr, nr = strip(xs, xs + strip_width_px)
+    dl, cl, nl = strip(xs - w)
+    dr, cr, nr = strip(xs)
     valid = (nl >= min_points) & (nr >= min_points)
+    valid &= (np.abs(cl - (xs - 0.5 * w)) <= 0.25 * w) & (np.abs(cr - (xs + 0.5 * w)) <= 0.25 * w)
     change = np.full(xs.shape, np.nan)
-    change[valid] = (sr[valid] / nr[valid] - sl[valid] / nl[valid]) / strip_width_px
+    change[valid] = (dr[valid] - dl[valid]) / (cr[valid] - cl[valid])
     return StretchProfile(xs, change, valid)
 
 
-def mean_profile(profiles: list[StretchProfile]) -> StretchProfile:
-    """Average of profiles at the same positions over a sequence (seed Figure 94), ignoring invalid entries."""
+def mean_profile(profiles: list[StretchProfile], *, min_pairs: int = 1) -> StretchProfile:
+    """Average of profiles at the same positions over a sequence (seed Figure 94), ignoring invalid entries.
+
+    A position is valid when at least ``min_pairs`` profiles have a value there.
+    """
     if not profiles:
         raise InsufficientDataError("no stretch profile to average")
+    if int(min_pairs) < 1:
+        raise InvalidInputError(f"min_pairs must be at least 1, got {min_pairs!r}")
     x = profiles[0].x
     total = np.zeros(x.shape)
     count = np.zeros(x.shape)
@@ -309,7 +354,55 @@ def mean_profile(profiles: list[StretchProfile]) -> StretchProfile:
             raise InvalidInputError("profiles must share their x positions")
         total += np.where(p.valid, p.change, 0.0)
         count += p.valid
-    valid = count > 0
+    valid = count >= int(min_pairs)
     change = np.full(x.shape, np.nan)
     change[valid] = total[valid] / count[valid]
     return StretchProfile(x, change, valid)
+
+
+@dataclass(frozen=True)
+class ProfilePattern:
+    """What a stretch profile shows (seed 6.3.2, Figure 94), positions in the profile's units.
+
+    ``amplitude`` is the RMS of the valid values; ``compression``/``expansion`` are the most negative/positive
+    values and ``compression_at``/``expansion_at`` where they are. ``compression_first`` says whether the
+    compression comes before the expansion in the sliding direction: the seed's finding is True for a ridge,
+    False for a valley; on a flat surface there is no pattern and only ``amplitude`` means something.
+    """
+
+    amplitude: float
+    compression: float
+    compression_at: float
+    expansion: float
+    expansion_at: float
+    compression_first: bool
+
+
+def profile_pattern(profile: StretchProfile, *, direction: float, margin: float = 0.0) -> ProfilePattern:
+    """Summarise a profile: its amplitude and the order of its compression and expansion lobes.
+
+    ``direction`` is the sign of the sliding motion along the profile's axis (positive = towards larger x).
+    Values within ``margin`` of either end of the valid positions are left out: there the strips reach the edge
+    of the contact area, where skin touches or leaves the glass, which is not the pattern of a shape.
+    """
+    if not np.isfinite(direction) or direction == 0:
+        raise InvalidInputError(f"direction must be a non-zero number, got {direction!r}")
+    if not (np.isfinite(margin) and margin >= 0):
+        raise InvalidInputError(f"margin must be a non-negative number, got {margin!r}")
+    ok = np.asarray(profile.valid, dtype=bool).copy()
+    x_all = np.asarray(profile.x, dtype=np.float64)
+    if ok.any():
+        lo, hi = x_all[ok].min(), x_all[ok].max()
+        ok &= (x_all >= lo + margin) & (x_all <= hi - margin)
+    if ok.sum() < 3:
+        raise InsufficientDataError(f"a profile pattern needs 3 valid positions, got {int(ok.sum())}")
+    x, c = x_all[ok], np.asarray(profile.change)[ok]
+    i, j = int(np.argmin(c)), int(np.argmax(c))
+    return ProfilePattern(
+        amplitude=float(np.sqrt(np.mean(c**2))),
+        compression=float(c[i]),
+        compression_at=float(x[i]),
+        expansion=float(c[j]),
+        expansion_at=float(x[j]),
+        compression_first=bool(np.sign(direction) * (x[j] - x[i]) > 0),
+    )

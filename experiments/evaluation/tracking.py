@@ -5,7 +5,8 @@ measured points, so the feature method and the dense methods are judged the same
 
 * displacement: for each measured point p in frame a, the true displacement of the skin point at p to frame b;
 * edge/area strain: the same edges and triangles, moved by the true field;
-* profile: the seed Figure 94 profile computed by the same code from the true field on its grid;
+* profile: the seed Figure 94 profile computed by the same code from the true field on its grid, compared by
+  correlation (not on a flat surface, where the truth has no pattern: there the amplitude is what counts);
 * wrong matches (features only): a matched pair whose extracted features lie nearest to different truth features.
 """
 
@@ -152,8 +153,9 @@ def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tup
     return (float(wrong.sum()) / n if n else math.nan), n
 
 
-def profile_correlation(r: Results, tf: TruthField, *, strip_px: float) -> tuple[float, np.ndarray]:
-    """Pearson correlation of the measured profile with the same profile computed from the true field."""
+def true_profile(r: Results, tf: TruthField, *, strip_px: float):
+    """The seed Figure 94 profile computed by the analysis code from the true motion of the truth grid's skin points
+    (every consecutive pair, the results' axis and positions)."""
     from experiments.analysis import stretch_profile
 
     samples, ft = [], []
@@ -161,13 +163,65 @@ def profile_correlation(r: Results, tf: TruthField, *, strip_px: float) -> tuple
         s = tf.grid_motion(k, k + 1, stride=2)
         samples.append(s)
         ft.append(s.displacement.mean(axis=0) if len(s) else np.zeros(2))
-    true = stretch_profile(
+    return stretch_profile(
         samples, np.asarray(ft), axis=r.profile_axis, positions=r.profile_position, strip_px=strip_px
     )
+
+
+def profile_correlation(r: Results, tf: TruthField, *, strip_px: float) -> tuple[float, np.ndarray]:
+    """Pearson correlation of the measured profile with the same profile computed from the true field, over the
+    positions valid in both (NaN when fewer than 3 or one of them is constant), and the true profile."""
+    true = true_profile(r, tf, strip_px=strip_px)
     ok = true.valid & r.profile_valid
     if ok.sum() < 3 or np.std(true.change[ok]) == 0 or np.std(r.profile_change[ok]) == 0:
         return math.nan, true.change
     return float(np.corrcoef(true.change[ok], r.profile_change[ok])[0, 1]), true.change
+
+
+def _sliding_direction(r: Results) -> float:
+    travel = np.nansum(np.asarray(r.fingertip_displacement, dtype=np.float64)[:, r.profile_axis])
+    return 1.0 if travel >= 0 else -1.0
+
+
+def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str, Any]:
+    """The ``"profile"`` part of ``skinstretch evaluate``: correlation with the truth and the pattern (seed 6.3.2).
+
+    ``amplitude``/``true_amplitude`` are the RMS of the measured/true profile (fractions per frame pair; one strip
+    width from the ends of the valid positions left out, see :func:`processing.stretch.profile_pattern`) and
+    ``compression_first``/``true_compression_first`` whether its compression lobe comes before its expansion lobe
+    in the sliding direction (the seed: True for a ridge, False for a valley). On a flat surface the true profile
+    has no pattern, so ``correlation`` is not computed (null) and a ``note`` says to compare the amplitude with a
+    ridge or valley session instead.
+    """
+    from processing.errors import InsufficientDataError
+    from processing.stretch import StretchProfile, profile_pattern
+
+    surface = str(tf.truth.attrs.get("surface", "unknown"))
+    true = true_profile(r, tf, strip_px=strip_px)
+    ok = true.valid & r.profile_valid
+    out: dict[str, Any] = {"axis": "x" if r.profile_axis == 0 else "y", "surface": surface}
+    corr = math.nan
+    if ok.sum() >= 3 and np.std(true.change[ok]) > 0 and np.std(r.profile_change[ok]) > 0:
+        corr = float(np.corrcoef(true.change[ok], r.profile_change[ok])[0, 1])
+    direction = _sliding_direction(r)
+    for prefix, prof in (("", StretchProfile(r.profile_position, r.profile_change, r.profile_valid)), ("true_", true)):
+        try:
+            pat = profile_pattern(prof, direction=direction, margin=strip_px)
+        except InsufficientDataError:
+            out[f"{prefix}amplitude"], out[f"{prefix}compression_first"] = math.nan, None
+            continue
+        out[f"{prefix}amplitude"] = pat.amplitude
+        out[f"{prefix}compression_first"] = pat.compression_first if surface != "flat" else None
+    if surface == "flat":
+        out["correlation"] = math.nan
+        out["note"] = (
+            "flat surface: the true profile has no ridge/valley pattern, so no correlation is computed; "
+            "compare 'amplitude' with that of a ridge or valley session (seed 6.3.2, Figure 94)"
+        )
+    else:
+        out["correlation"] = corr
+    out["n_positions"] = int(ok.sum())
+    return out
 
 
 def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
@@ -201,8 +255,7 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
     for key in ("edge_rmse_1", "edge_rmse_11", "area_rmse_1"):
         out["strain"].setdefault(key, math.nan)
     strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
-    corr, _ = profile_correlation(r, tf, strip_px=strip)
-    out["profile"] = {"correlation": corr, "axis": "x" if r.profile_axis == 0 else "y"}
+    out["profile"] = evaluate_profile(r, tf, strip_px=strip)
     out["timing"] = {"frames_per_s": float(r.timing.get("frames_per_s", math.nan))}
     return out
 
