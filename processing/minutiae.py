@@ -16,17 +16,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from processing.errors import InvalidInputError
 from processing.feature_table import FeatureKind
+from processing.jit import njit
 
 __all__ = ["SkeletonGraph", "trace_skeleton", "node_kind", "branch_direction", "node_orientation"]
 
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _trace(f, h, w):  # pragma: no cover - compiled
     offs = np.array([-w, -w + 1, 1, w + 1, w, w - 1, -1, -w - 1])
     steplen = np.array([1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0)])

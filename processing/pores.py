@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from processing.errors import InvalidInputError
+from processing.jit import njit
 
 __all__ = ["BlobPores", "detect_blob_pores"]
 
@@ -41,7 +41,7 @@ class BlobPores:
     binary_without_pores: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _root(parent, i):  # pragma: no cover - compiled
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -49,7 +49,7 @@ def _root(parent, i):  # pragma: no cover - compiled
     return i
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _small_blobs(binary, weights, max_diameter, min_area):  # pragma: no cover - compiled
     """4-connected blobs of ``binary`` narrower than ``max_diameter`` (bounding box, both axes): removed from a copy
     of the image; those of at least ``min_area`` pixels reported with their weighted centre of mass.

@@ -11,15 +11,15 @@ valley (or the ridge between a fork's arms) actually ends in the grey image. See
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from processing.errors import InvalidInputError
+from processing.jit import njit
 
 __all__ = ["refine_pores", "refine_minutiae", "refine_bifurcations", "locate_minutiae_tips"]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _excess_centroids(img, thr, xs, ys, radius, iterations):  # pragma: no cover - compiled
     h, w = img.shape
     n = xs.size
@@ -126,7 +126,7 @@ def refine_pores(
     return _excess_centroids(img, thr, x, y, radius, int(iterations))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _bilinear(img, x, y):  # pragma: no cover - compiled
     h, w = img.shape
     if x < 0 or y < 0 or x > w - 1.001 or y > h - 1.001:
@@ -141,7 +141,7 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _apex(img, x0, y0, wx, wy, sign, t0, t_max, half, step):  # pragma: no cover - compiled
     """Apex of the region ``sign * img > 0`` in direction (wx, wy): for lateral offsets d in [-half, half], walk
     from (x0, y0) + t0 w + d v along w to the region's edge; the apex is the farthest edge point (parabola-refined
@@ -191,7 +191,7 @@ def _apex(img, x0, y0, wx, wy, sign, t0, t_max, half, step):  # pragma: no cover
     return x0 + best_t * wx + d_best * vx, y0 + best_t * wy + d_best * vy, True
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _refine_minutiae(img, xs, ys, ux, uy, is_end, back, reach, half):  # pragma: no cover - compiled
     n = xs.size
     ox = xs.copy()
@@ -279,7 +279,7 @@ def refine_minutiae(
 
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _gaussian_mean_shift(img, thr, xs, ys, sigma, iterations):  # pragma: no cover - compiled
     """Mean shift of ``max(img - thr, 0)`` under a Gaussian window (cut at 3 sigma) from each start point."""
     h, w = img.shape
@@ -363,7 +363,7 @@ def refine_bifurcations(
     return rx, ry, ok
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _across_peak(img, px, py, vx, vy, sign, half):  # pragma: no cover - compiled
     """Lateral offset (along v) of the centre of mass of ``max(sign * img, 0)`` sampled every 0.5 px within
     [-half, half] of (px, py); NaN when there is none. A centre of mass of the positive part moves smoothly with
@@ -387,7 +387,7 @@ def _across_peak(img, px, py, vx, vy, sign, half):  # pragma: no cover - compile
 _LAT_W = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _tips(img, xs, ys, ux, uy, sign, t0, t_max, half, n_centres, fit_px):  # pragma: no cover - compiled
     """See :func:`locate_minutiae_tips`. (ux, uy) points toward the tip; sign +1 follows a bright valley, -1 a
     dark ridge."""

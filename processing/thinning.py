@@ -13,10 +13,10 @@ the staircase passes, which are sequential, look the table up per skeleton pixel
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from processing.errors import InvalidInputError
+from processing.jit import njit
 
 __all__ = ["thin", "zhang_suen_tables", "staircase_table", "neighbour_code"]
 
@@ -69,7 +69,7 @@ _ONE = np.uint64(1)
 _S63 = np.uint64(63)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def neighbour_code(img, r, c):  # pragma: no cover - compiled
     """8-bit neighbour code of pixel (r, c); bit i-1 is p_i (p1 = N, clockwise)."""
     code = 0
@@ -92,7 +92,7 @@ def neighbour_code(img, r, c):  # pragma: no cover - compiled
     return code
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _code_flat(f, i, w):  # pragma: no cover - compiled
     return (
         f[i - w]
@@ -106,7 +106,7 @@ def _code_flat(f, i, w):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _at_least_two(a, b, c, d, e, f, g, h):  # pragma: no cover - compiled
     """Bit-sliced counting of eight bit planes: (at least one set, at least two set), per bit."""
     ones = a
@@ -127,7 +127,7 @@ def _at_least_two(a, b, c, d, e, f, g, h):  # pragma: no cover - compiled
     return ones, twos
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _zhang_suen_bits(bits, h, nw):  # pragma: no cover - compiled
     """Modified Zhang-Suen thinning of the bit-packed image ``bits`` (h, nw + 2) uint64, in place.
 
@@ -194,7 +194,7 @@ def _zhang_suen_bits(bits, h, nw):  # pragma: no cover - compiled
     return bits
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _unpack_without_staircases(bits, h, w, stairs):  # pragma: no cover - compiled
     """The (h, w) uint8 image of the packed skeleton ``bits``, after the staircase passes (seed Figure 27).
 

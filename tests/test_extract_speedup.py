@@ -175,3 +175,32 @@ def test_run_based_blob_labelling_matches_opencv(density):
     np.testing.assert_allclose(got.x, x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.y, y, rtol=0, atol=1e-9)
     assert got.x.size > 20
+
+
+def test_disk_cache_written_under_another_module_name_is_recompiled(tmp_path):
+    # numba's cache files are named after the source file but store the importing module's name: a kernel compiled
+    # once as top-level "kern" used to make every later "pkg.kern" call fail with "No module named 'kern'".
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "kern.py").write_text(
+        "from processing.jit import njit\n\n\n@njit(nogil=True)\ndef twice(x):\n    return 2 * x\n"
+    )
+    env_path = {"first": f"{pkg}:{root}", "second": f"{tmp_path}:{root}"}
+    calls = {"first": "import kern; print(kern.twice(21))", "second": "import pkg.kern as k; print(k.twice(21))"}
+    for name in ("first", "second", "second"):
+        out = subprocess.run(
+            [sys.executable, "-c", calls[name]],
+            env={"PYTHONPATH": env_path[name], "PATH": "/usr/bin:/bin"},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == "42"
+    assert any((pkg / "__pycache__").glob("kern.twice-*.nbi"))  # the cache is still used and written
