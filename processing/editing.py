@@ -25,9 +25,9 @@ import math
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from processing.errors import InvalidInputError
+from processing.jit import njit
 from processing.minutiae import SkeletonGraph, branch_direction
 
 __all__ = [
@@ -123,27 +123,26 @@ def heal_broken_valleys(
     ends_a = np.array(ends)
     xy = np.array([[g.node_x[n], g.node_y[n]] for n in ends])
     inward = np.array(dirs)  # from the ending into its own valley
+    edge_of = np.array([g.node_edges[n][0] for n in ends])
     diff = xy[None, :, :] - xy[:, None, :]  # diff[i, j] = E_j - E_i
     dist = np.hypot(diff[..., 0], diff[..., 1])
     iu, ju = np.nonzero(np.triu((dist < d_max) & (dist > 0), 1))
-    candidates = []
-    for i, j in zip(iu.tolist(), ju.tolist()):
-        ei, ej = g.node_edges[ends[i]][0], g.node_edges[ends[j]][0]
-        if ei == ej:  # the two ends of one valley: joining them would make a loop
-            continue
-        u = diff[i, j] / dist[i, j]
-        # The gap must continue each valley: compare the bridging line with the outward (= -inward) directions.
-        c1 = float(np.clip(-(u @ inward[i]), -1, 1))
-        c2 = float(np.clip(u @ inward[j], -1, 1))
-        t1, t2 = math.degrees(math.acos(c1)), math.degrees(math.acos(c2))
-        if t1 >= t_max or t2 >= t_max:
-            continue
-        conf = (d_max - dist[i, j]) / d_max * (t_max - t1) / t_max * (t_max - t2) / t_max  # eq. 4.4
-        candidates.append((conf, i, j))
-    candidates.sort(key=lambda c: -c[0])
+    # Not the two ends of one valley (joining them would make a loop).
+    other = edge_of[iu] != edge_of[ju]
+    iu, ju = iu[other], ju[other]
+    u = diff[iu, ju] / dist[iu, ju][:, None]
+    # The gap must continue each valley: compare the bridging line with the outward (= -inward) directions.
+    c1 = np.clip(-np.einsum("ij,ij->i", u, inward[iu]), -1, 1)
+    c2 = np.clip(np.einsum("ij,ij->i", u, inward[ju]), -1, 1)
+    t1, t2 = np.degrees(np.arccos(c1)), np.degrees(np.arccos(c2))
+    ok = (t1 < t_max) & (t2 < t_max)
+    iu, ju, t1, t2 = iu[ok], ju[ok], t1[ok], t2[ok]
+    conf = (d_max - dist[iu, ju]) / d_max * (t_max - t1) / t_max * (t_max - t2) / t_max  # eq. 4.4
+    order = np.argsort(-conf, kind="stable")  # best first; ties keep the (i, j) order
+    candidates = zip(iu[order].tolist(), ju[order].tolist())
     healed = np.zeros(len(ends), dtype=bool)
     h, w = g.skeleton.shape
-    for _, i, j in candidates:
+    for i, j in candidates:
         if healed[i] or healed[j]:
             continue
         n1, n2 = int(ends_a[i]), int(ends_a[j])
@@ -325,21 +324,41 @@ def feature_density_mask(x: np.ndarray, y: np.ndarray, kind: np.ndarray, *, radi
     radius_px = _positive(radius_px, "radius_px")
     if not (isinstance(max_count, (int, np.integer)) and max_count >= 1):
         raise InvalidInputError(f"max_count must be a positive integer, got {max_count!r}")
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    kind = np.asarray(kind)
-    keep = np.ones(x.size, dtype=bool)
-    for k in np.unique(kind):
-        idx = np.flatnonzero(kind == k)
-        if idx.size <= max_count:
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    kind = np.ascontiguousarray(kind, dtype=np.int64)
+    if not x.shape == y.shape == kind.shape or x.ndim != 1:
+        raise InvalidInputError(f"x, y and kind must be 1-D arrays of one length, got {x.shape}, {y.shape}, {kind.shape}")
+    return _density_keep(x, y, kind, radius_px, int(max_count))
+
+
+@njit(nogil=True)
+def _density_keep(x, y, kind, radius, max_count):  # pragma: no cover - compiled
+    """Keep mask of :func:`feature_density_mask`: pairwise distances within each kind (a frame holds a few hundred
+    features), neighbours counted with the feature itself, at distance <= radius."""
+    n = x.size
+    r2 = radius * radius
+    count = np.zeros(n, np.int64)
+    for i in range(n):
+        for j in range(i, n):
+            if kind[j] != kind[i]:
+                continue
+            dx = x[j] - x[i]
+            dy = y[j] - y[i]
+            if dx * dx + dy * dy <= r2:
+                count[i] += 1
+                if j != i:
+                    count[j] += 1
+    keep = np.ones(n, np.bool_)
+    for i in range(n):
+        if count[i] <= max_count:
             continue
-        pts = np.stack([x[idx], y[idx]], axis=1)
-        tree = cKDTree(pts)
-        counts = tree.query_ball_point(pts, radius_px, return_length=True)
-        crowded = np.flatnonzero(counts > max_count)
-        if crowded.size:
-            hit = tree.query_ball_point(pts[crowded], radius_px)
-            keep[idx[np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hit]))]] = False
+        for j in range(n):
+            if kind[j] == kind[i]:
+                dx = x[j] - x[i]
+                dy = y[j] - y[i]
+                if dx * dx + dy * dy <= r2:
+                    keep[j] = False
     return keep
 
 
