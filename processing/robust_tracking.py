@@ -61,7 +61,8 @@ class GlobalMotionEstimator:
         self.min_response = float(min_response)
         self._window: np.ndarray | None = None
 
-    def _prepare(self, image: np.ndarray) -> np.ndarray:
+    def prepare(self, image: np.ndarray) -> np.ndarray:
+        """The image as :meth:`estimate_prepared` wants it (downsampled, zero mean); thread-safe, once per frame."""
         image = np.asarray(image)
         if image.ndim != 2:
             raise InvalidInputError(f"image must be 2-D, got shape {image.shape}")
@@ -72,10 +73,12 @@ class GlobalMotionEstimator:
         return img - float(img.mean())
 
     def estimate(self, prev_image: np.ndarray, curr_image: np.ndarray) -> GlobalMotion:
-        a = self._prepare(prev_image)
-        b = self._prepare(curr_image)
+        return self.estimate_prepared(self.prepare(prev_image), self.prepare(curr_image))
+
+    def estimate_prepared(self, a: np.ndarray, b: np.ndarray) -> GlobalMotion:
+        """:meth:`estimate` on two images already through :meth:`prepare`."""
         if a.shape != b.shape:
-            raise InvalidInputError(f"images differ in shape: {prev_image.shape} vs {curr_image.shape}")
+            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape} (after preparation)")
         if self._window is None or self._window.shape != a.shape:
             self._window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
         if float(a.std()) < 1e-3 or float(b.std()) < 1e-3:

@@ -18,15 +18,16 @@ extraction's accuracy divided by the square root of the track length.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from processing.calibration import Calibration
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.feature_table import FEATURE_DTYPE, validate_features
 from processing.robust_tracking import GlobalMotionEstimator, local_predictions
-from processing.subpixel_displacement import SubpixelRefiner
+from processing.subpixel_displacement import PreparedImage, SubpixelRefiner
 
 
 @dataclass(frozen=True)
@@ -176,43 +177,106 @@ def _columns(table: np.ndarray) -> _Cols:
 
 
 def _match(prev: _Cols, curr: _Cols, pred: np.ndarray, radius: float) -> Matches:
-    empty = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if prev.xy.shape[0] == 0 or curr.xy.shape[0] == 0:
-        return empty
-    expected = prev.xy + pred
-    pairs = cKDTree(expected).sparse_distance_matrix(cKDTree(curr.xy), radius, output_type="ndarray")
-    # sparse_distance_matrix leaves out pairs at distance exactly 0; add them back.
-    i, j, d = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"].astype(np.float64)
-    exact = cKDTree(curr.xy).query(expected, k=1, distance_upper_bound=1e-12)
-    hit = np.isfinite(exact[0])
-    if np.any(hit):
-        ei = np.nonzero(hit)[0]
-        ej = exact[1][hit].astype(np.int64)
-        i, j, d = np.concatenate([i, ei]), np.concatenate([j, ej]), np.concatenate([d, np.zeros(ei.size)])
-        key = np.unique(i * curr.xy.shape[0] + j, return_index=True)[1]
-        i, j, d = i[key], j[key], d[key]
-    same = prev.kind[i] == curr.kind[j]
-    i, j, d = i[same], j[same], d[same]
-    if i.size == 0:
-        return empty
-    # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
-    both = prev.known[i] & curr.known[j]
-    dtheta = np.abs(np.mod(prev.orientation[i] - curr.orientation[j] + 180.0, 360.0) - 180.0)
-    orient = np.where(both, (180.0 - np.where(both, dtheta, 0.0)) / 180.0, 0.0)
-    conf = orient + (radius - d) / radius
-    order = np.lexsort((d, -conf))
-    used_p = np.zeros(prev.xy.shape[0], bool)
-    used_c = np.zeros(curr.xy.shape[0], bool)
-    keep = []
-    for t in order.tolist():
-        a, b = i[t], j[t]
+        return Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    expected = np.ascontiguousarray(prev.xy + pred, dtype=np.float64)
+    order = np.argsort(curr.xy[:, 0], kind="stable")
+    i, j, conf = _match_kernel(
+        expected,
+        prev.kind,
+        prev.orientation,
+        prev.known,
+        np.ascontiguousarray(curr.xy[order], dtype=np.float64),
+        order.astype(np.int64),
+        curr.kind,
+        curr.orientation,
+        curr.known,
+        float(radius),
+    )
+    return Matches(i, j, conf)
+
+
+@numba.njit(cache=True, nogil=True)
+def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, corient, cknown, radius):
+    """Candidates (same kind, distance <= radius from the expected position; ``cxy_sorted`` is the current
+    frame's positions sorted by x, ``corder`` their rows), rated by eq. 5.1, then finalised greedily in decreasing
+    confidence (ties: shorter distance first), each feature used once. Returns the pairs sorted by prev row."""
+    n = expected.shape[0]
+    m = cxy_sorted.shape[0]
+    r2 = radius * radius
+    cap = 16
+    ci = np.empty(cap, np.int64)
+    cj = np.empty(cap, np.int64)
+    cd = np.empty(cap, np.float64)
+    cc = np.empty(cap, np.float64)
+    k = 0
+    for a in range(n):
+        ex = expected[a, 0]
+        ey = expected[a, 1]
+        lo = np.searchsorted(cxy_sorted[:, 0], ex - radius, side="left")
+        for t in range(lo, m):
+            dx = cxy_sorted[t, 0] - ex
+            if dx > radius:
+                break
+            dy = cxy_sorted[t, 1] - ey
+            d2 = dx * dx + dy * dy
+            if d2 > r2:
+                continue
+            b = corder[t]
+            if pkind[a] != ckind[b]:
+                continue
+            d = np.sqrt(d2)
+            # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
+            orient = 0.0
+            if pknown[a] and cknown[b]:
+                dtheta = abs((porient[a] - corient[b] + 180.0) % 360.0 - 180.0)
+                orient = (180.0 - dtheta) / 180.0
+            if k == cap:
+                cap *= 2
+                ci2 = np.empty(cap, np.int64)
+                cj2 = np.empty(cap, np.int64)
+                cd2 = np.empty(cap, np.float64)
+                cc2 = np.empty(cap, np.float64)
+                ci2[:k] = ci
+                cj2[:k] = cj
+                cd2[:k] = cd
+                cc2[:k] = cc
+                ci, cj, cd, cc = ci2, cj2, cd2, cc2
+            ci[k] = a
+            cj[k] = b
+            cd[k] = d
+            cc[k] = orient + (radius - d) / radius
+            k += 1
+    ci, cj, cd, cc = ci[:k], cj[:k], cd[:k], cc[:k]
+    by_d = np.argsort(cd, kind="mergesort")
+    order = by_d[np.argsort(-cc[by_d], kind="mergesort")]
+    used_p = np.zeros(n, np.bool_)
+    used_c = np.zeros(ckind.shape[0], np.bool_)
+    owner = np.full(n, -1, np.int64)
+    for t in order:
+        a = ci[t]
+        b = cj[t]
         if used_p[a] or used_c[b]:
             continue
-        used_p[a] = used_c[b] = True
-        keep.append(t)
-    keep = np.asarray(keep, dtype=np.int64)
-    keep = keep[np.argsort(i[keep], kind="stable")]
-    return Matches(i[keep], j[keep], conf[keep])
+        used_p[a] = True
+        used_c[b] = True
+        owner[a] = t
+    count = 0
+    for a in range(n):
+        if owner[a] >= 0:
+            count += 1
+    pi = np.empty(count, np.int64)
+    pj = np.empty(count, np.int64)
+    pc = np.empty(count, np.float64)
+    q = 0
+    for a in range(n):
+        t = owner[a]
+        if t >= 0:
+            pi[q] = a
+            pj[q] = cj[t]
+            pc[q] = cc[t]
+            q += 1
+    return pi, pj, pc
 
 
 @dataclass
@@ -261,9 +325,10 @@ class Trajectories:
         """Number of frames each track is present in."""
         return self.present.sum(axis=0)
 
-    @property
+    @cached_property
     def runs(self) -> np.ndarray:
-        """(N, T) run number of each sample: displacements are measured only within a run (linked steps)."""
+        """(N, T) run number of each sample: displacements are measured only within a run (linked steps).
+        Computed once (``present`` and ``linked`` are not changed after :meth:`FeatureTracker.finish`)."""
         return np.cumsum(self.present & ~self.linked, axis=0)
 
     def positions(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
@@ -326,8 +391,7 @@ class FeatureTracker:
         self._n_tracks = 0
         self._n_features = 0
         self._prev: _Cols | None = None
-        self._prev_image: np.ndarray | None = None
-        self._prev_prepared: np.ndarray | None = None
+        self._prev_frame: FrameImages | None = None
         self._prev_tracks = np.zeros(0, np.int64)
         self._prev_disp = np.zeros((0, 2))
         # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
@@ -341,14 +405,32 @@ class FeatureTracker:
     def n_frames(self) -> int:
         return self._n_frames
 
-    def add_frame(self, features: np.ndarray, *, image: np.ndarray | None = None) -> Matches:
-        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first)."""
+    def prepare_image(self, image: np.ndarray) -> "FrameImages":
+        """The per-frame image work of :meth:`add_frame` (registration image, coarse-motion image). It depends on
+        this frame alone and is thread-safe, so the analysis runs it on its extraction threads, ahead of
+        matching."""
+        image = np.asarray(image)
+        return FrameImages(
+            refine=self.refiner.prepare(image) if self.refiner is not None else None,
+            motion=self.motion_estimator.prepare(image) if self.motion_estimator is not None else None,
+        )
+
+    def add_frame(
+        self, features: np.ndarray, *, image: np.ndarray | None = None, prepared: "FrameImages | None" = None
+    ) -> Matches:
+        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first).
+
+        ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
+        of the same image) is given instead.
+        """
         validate_features(features)
-        if (self.refiner is not None or self.motion_estimator is not None) and image is None:
-            raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
+        needs_image = self.refiner is not None or self.motion_estimator is not None
+        if needs_image and prepared is None:
+            if image is None:
+                raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
+            prepared = self.prepare_image(image)
         cols = _columns(features)
         n = cols.xy.shape[0]
-        prepared = self.refiner.prepare(image) if self.refiner is not None else None
         disp = np.full((n, 2), np.nan)
         refined = np.zeros(n, bool)
         tracks = np.full(n, -1, np.int64)
@@ -356,9 +438,9 @@ class FeatureTracker:
         if self._prev is not None:
             prev = self._prev
             known = np.all(np.isfinite(self._prev_disp), axis=1)
-            shift = self._prediction_shift(known, image)
+            shift = self._prediction_shift(known, prepared)
             pred = np.where(known[:, None], self._prev_disp, shift)
-            if self.motion_estimator is not None and self._prev_image is not None:
+            if self.motion_estimator is not None and self._prev_frame is not None:
                 # A previous displacement disagreeing with the measured global motion is stale (direction change).
                 stale = np.hypot(*(pred - shift).T) > self._radius / 2
                 pred[stale] = shift
@@ -370,8 +452,8 @@ class FeatureTracker:
                 matches = _match(prev, cols, pred2, self._radius)
             pi, ci = matches.prev_index, matches.curr_index
             d = cols.xy[ci] - prev.xy[pi]
-            if self.refiner is not None and self._prev_prepared is not None and pi.size:
-                r = self.refiner.refine(self._prev_prepared, prepared, prev.xy[pi], d)
+            if self.refiner is not None and self._prev_frame is not None and pi.size:
+                r = self.refiner.refine(self._prev_frame.refine, prepared.refine, prev.xy[pi], d)
                 d = r.displacement
                 ok = r.refined.copy()
                 if ok.sum() >= 7:
@@ -410,13 +492,12 @@ class FeatureTracker:
         self._prev = cols
         self._prev_tracks = tracks
         self._prev_disp = disp
-        self._prev_image = None if image is None else np.asarray(image)
-        self._prev_prepared = prepared
+        self._prev_frame = prepared if needs_image else None
         return matches
 
-    def _prediction_shift(self, known: np.ndarray, image: np.ndarray | None) -> np.ndarray:
-        if self.motion_estimator is not None and self._prev_image is not None:
-            gm = self.motion_estimator.estimate(self._prev_image, image)
+    def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:
+        if self.motion_estimator is not None and self._prev_frame is not None:
+            gm = self.motion_estimator.estimate_prepared(self._prev_frame.motion, prepared.motion)
             if gm.reliable:
                 return gm.shift
         # Seed 5.1.1: features without a previous position take the average of the predicted displacements.
@@ -473,6 +554,15 @@ class FeatureTracker:
             refined=refined & linked,
             kind=kind.astype(np.int8),
         )
+
+
+@dataclass(frozen=True)
+class FrameImages:
+    """One frame's images as :meth:`FeatureTracker.add_frame` uses them (see :meth:`FeatureTracker.prepare_image`):
+    the refiner's registration image and the motion estimator's coarse image (None without them)."""
+
+    refine: PreparedImage | None
+    motion: np.ndarray | None
 
 
 @dataclass
