@@ -71,6 +71,25 @@ def _signed_area(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return -0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
 
 
+def _first_of_duplicates(p: np.ndarray) -> np.ndarray:
+    """Rows of ``p`` (n, 2) that are the first occurrence of their value, in increasing order (what
+    ``np.sort(np.unique(p, axis=0, return_index=True)[1])`` gives, without its structured-array sort)."""
+    order = np.lexsort((p[:, 1], p[:, 0]))
+    q = p[order]
+    new = np.ones(order.size, bool)
+    new[1:] = np.any(q[1:] != q[:-1], axis=1)
+    # lexsort is stable: within a run of equal rows the first is the smallest index.
+    return np.sort(order[new])
+
+
+def _unique_edges(tri: np.ndarray, n_points: int) -> np.ndarray:
+    """Each edge of the triangles once, as (low, high) rows sorted lexicographically."""
+    a = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
+    b = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+    key = np.unique(np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b))
+    return np.column_stack([key // n_points, key % n_points])
+
+
 def triangulation_strain(
     sample: MotionSample,
     *,
@@ -116,8 +135,7 @@ def triangulation_strain(
     pa, d, ids = pa[finite], d[finite], ids[finite]
     n_in = pa.shape[0]
     if n_in:
-        _, first = np.unique(np.round(pa, 6), axis=0, return_index=True)
-        first = np.sort(first)
+        first = _first_of_duplicates(np.round(pa, 6))
         pa, d, ids = pa[first], d[first], ids[first]
     n_dropped = n_in - pa.shape[0]
     if pa.shape[0] < 3:
@@ -148,8 +166,7 @@ def triangulation_strain(
             f"frames {sample.frame_a}->{sample.frame_b}: no usable triangle (points nearly collinear or too far apart)"
         )
     area_b = _signed_area(pb, tri)
-    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    edges = _unique_edges(tri, pa.shape[0])
     la = np.hypot(*(pa[edges[:, 0]] - pa[edges[:, 1]]).T)
     lb = np.hypot(*(pb[edges[:, 0]] - pb[edges[:, 1]]).T)
     return TriangulationStrain(
