@@ -233,7 +233,9 @@ def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]]
     """Seed Figure 94: relative change in horizontal stretch with position, averaged over a sequence.
 
     ``profiles``: label -> (x, change as a fraction); ``true_profiles`` (optional, simulated sessions) are drawn
-    dashed; ``band``: label -> (low, high) spread across sessions.
+    dashed; ``band``: label -> (low, high) spread across sessions. All panels share one stretch scale and each
+    title gives the RMS of its measured profile, so a flat surface's lack of pattern reads as a small amplitude
+    beside a ridge's or a valley's (seed 6.3.2), not as a shape of its own.
     """
     if not profiles:
         raise InvalidInputError("profiles must hold at least one sequence")
@@ -241,7 +243,7 @@ def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]]
     cols = min(3, n)
     rows = int(np.ceil(n / cols))
     fig = Figure(figsize=(3.8 * cols, 2.8 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
     for k, (ax, (label, (x, ch))) in enumerate(zip(axes, profiles.items())):
         x = np.asarray(x, float)
         ch = np.asarray(ch, float)
@@ -254,9 +256,12 @@ def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]]
             tx, tch = true_profiles[label]
             ax.plot(np.asarray(tx, float), np.asarray(tch, float) * 100, "--", color="k", label="true")
             ax.legend(fontsize=7)
-        ax.set_title(f"({chr(97 + k)}) {label}", fontsize=9)
+        finite = ch[np.isfinite(ch)]
+        rms = f", RMS {np.sqrt(np.mean(finite**2)) * 100:.3f} %" if finite.size else ""
+        ax.set_title(f"({chr(97 + k)}) {label}{rms}", fontsize=9)
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("stretch change (%)")
+        ax.yaxis.set_tick_params(labelleft=True)
     for ax in axes[n:]:
         ax.set_axis_off()
     fig.suptitle(title or "Relative change in stretch with position, averaged over the sequence (seed Figure 94)",
@@ -280,7 +285,7 @@ def contactor_positions_figure(positions_um: np.ndarray, *, frames: Sequence[int
     cols = min(3, len(frames))
     rows = int(np.ceil(len(frames) / cols))
     fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
     r, c = pos.shape[1:]
     yy, xx = np.mgrid[0:r, 0:c]
     for k, (ax, f) in enumerate(zip(axes, frames)):
@@ -316,7 +321,7 @@ def stretch_fields_figure(stretch_change: np.ndarray, *, frames: Sequence[int], 
     cols = min(3, len(frames))
     rows = int(np.ceil(len(frames) / cols))
     fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
     for k, (ax, f) in enumerate(zip(axes, frames)):
         ax.imshow(np.nan_to_num(sc[f], nan=0.0), cmap=_CMAP, norm=_norm(limit), interpolation="nearest")
         ax.set_xticks([])
