@@ -1,0 +1,133 @@
+"""Glass-fixed shading: brightness patterns that stay on the prism while the skin slides over it.
+
+Over a ridge or a valley the contact is partial and the slopes are lit differently (seed 6.3.2, 6.3.3, Figure
+95), so the image of the skin is ``I(p) = o(p) + g(p) T(p - u)``: a texture ``T`` that moves with the skin seen
+through an offset ``o`` and a gain ``g`` that do not move. Any motion estimate (feature positions, optical flow)
+is pulled towards zero where ``o`` and ``g`` vary, because part of what it sees stands still. On the simulated
+``valleyL`` both of our methods under-read the skin's movement across the valley by up to 0.1-0.2 px per frame,
+several times the per-frame change of stretch that the seed's Figure 94 looks for.
+
+When the skin has slid by several ridge periods over the sequence, every pixel has seen the texture at every
+phase, so the per-pixel temporal mean and standard deviation of the sequence estimate ``o + g mean(T)`` and
+``g std(T)``; :func:`remove_glass_shading` maps each frame to ``level + contrast (I - mean) / std``, which leaves
+the moving texture with the same contrast everywhere. This generalises the seed's illumination map (3.5,
+``255 / max_t I``: a gain only) to an offset and a gain. It needs the whole sequence, like the seed's map.
+
+If the skin did not move enough, the statistics would hold the texture itself and the mapping would erase it:
+:func:`glass_shading` checks that the temporal spread is comparable to the texture's spatial contrast and raises
+:class:`~processing.errors.InsufficientDataError` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from processing.errors import InsufficientDataError, InvalidInputError
+
+__all__ = ["GlassShading", "glass_shading", "remove_glass_shading"]
+
+
+@dataclass(frozen=True)
+class GlassShading:
+    """Per-pixel statistics of one sequence (float32 maps of the frame's shape) and the output levels.
+
+    ``offset`` is the temporal mean, ``gain`` is ``contrast / max(std, floor)``; a frame maps to
+    ``level + gain * (frame - offset)``. ``motion_ratio`` is the temporal spread over the texture's spatial
+    contrast (about 1 when the skin slid far enough, near 0 when it stood still).
+    """
+
+    offset: np.ndarray
+    gain: np.ndarray
+    level: float
+    motion_ratio: float
+
+
+def glass_shading(
+    frames: Sequence[np.ndarray],
+    *,
+    smooth_px: float = 1.5,
+    level: float = 160.0,
+    contrast: float = 45.0,
+    floor_fraction: float = 0.25,
+    min_motion_ratio: float = 0.8,
+) -> GlassShading:
+    """Estimate the glass-fixed offset and gain of a sequence of uint8 frames (see the module doc).
+
+    Parameters
+    ----------
+    frames : sequence of (H, W) uint8 arrays
+        The whole sequence (at least 2 frames).
+    smooth_px : float
+        Gaussian smoothing of the mean and standard deviation maps (removes the residue of the texture).
+    level, contrast : float
+        Output grey level of the glass-fixed mean and output contrast of one standard deviation.
+    floor_fraction : float
+        The standard deviation is floored at this fraction of its 90th percentile, so that pixels the skin never
+        covered (the glass around the finger) stay flat instead of amplifying sensor noise.
+    min_motion_ratio : float
+        Smallest accepted ratio of the median temporal standard deviation to the median spatial contrast of the
+        texture (local standard deviation) inside the skin.
+
+    Raises
+    ------
+    InvalidInputError
+        Frames that are not 2-D uint8 arrays of one shape, or bad parameters.
+    InsufficientDataError
+        Fewer than 2 frames, or a sequence in which the skin did not move enough.
+    """
+    if len(frames) < 2:
+        raise InsufficientDataError(f"glass shading needs at least 2 frames, got {len(frames)}")
+    for name, v in (("smooth_px", smooth_px), ("contrast", contrast), ("floor_fraction", floor_fraction)):
+        if not (np.isfinite(v) and v > 0):
+            raise InvalidInputError(f"{name} must be positive, got {v!r}")
+    if not (np.isfinite(min_motion_ratio) and min_motion_ratio >= 0):
+        raise InvalidInputError(f"min_motion_ratio must be non-negative, got {min_motion_ratio!r}")
+    first = np.asarray(frames[0])
+    if first.ndim != 2 or first.dtype != np.uint8:
+        raise InvalidInputError(f"frames must be 2-D uint8 arrays, got {first.dtype} {first.shape}")
+    total = np.zeros(first.shape, np.float64)
+    total_sq = np.zeros(first.shape, np.float64)
+    for k, f in enumerate(frames):
+        f = np.asarray(f)
+        if f.shape != first.shape or f.dtype != np.uint8:
+            raise InvalidInputError(f"frames[{k}] is {f.dtype} {f.shape}, expected uint8 {first.shape}")
+        cv2.accumulate(f, total)
+        cv2.accumulateSquare(f, total_sq)
+    n = float(len(frames))
+    mean = total / n
+    std = np.sqrt(np.maximum(total_sq / n - mean * mean, 0.0))
+    mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), smooth_px)
+    std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), smooth_px)
+    # Spatial contrast of the texture in the first frame (local std over ~ a ridge period).
+    f0 = first.astype(np.float32)
+    m0 = cv2.blur(f0, (15, 15))
+    spatial = np.sqrt(np.maximum(cv2.blur(f0 * f0, (15, 15)) - m0 * m0, 0.0))
+    skin = spatial > 0.5 * float(np.percentile(spatial, 90))
+    if not skin.any():
+        raise InsufficientDataError("glass shading: no textured skin in the first frame")
+    ratio = float(np.median(std[skin]) / np.median(spatial[skin]))
+    if ratio < min_motion_ratio:
+        raise InsufficientDataError(
+            f"glass shading: the skin moved too little over the sequence (temporal/spatial contrast {ratio:.2f} "
+            f"< {min_motion_ratio}); its statistics would hold the fingerprint itself"
+        )
+    floor = floor_fraction * float(np.percentile(std, 90))
+    gain = (contrast / np.maximum(std, max(floor, 1e-3))).astype(np.float32)
+    return GlassShading(offset=mean, gain=gain, level=float(level), motion_ratio=ratio)
+
+
+def remove_glass_shading(frame: np.ndarray, shading: GlassShading) -> np.ndarray:
+    """``level + gain * (frame - offset)``, rounded and clipped to uint8 (see :func:`glass_shading`)."""
+    frame = np.asarray(frame)
+    if frame.ndim != 2 or frame.dtype != np.uint8 or frame.shape != shading.offset.shape:
+        raise InvalidInputError(
+            f"frame must be a uint8 array of shape {shading.offset.shape}, got {frame.dtype} {frame.shape}"
+        )
+    out = cv2.subtract(frame, shading.offset, dtype=cv2.CV_32F)
+    out = cv2.multiply(out, shading.gain)
+    out += shading.level
+    return np.clip(out, 0, 255).round().astype(np.uint8)

@@ -1,0 +1,66 @@
+"""Glass-fixed shading removal: a band of partial contact no longer pulls the measured motion towards zero."""
+
+import cv2
+import numpy as np
+import pytest
+
+from processing.errors import InsufficientDataError, InvalidInputError
+from processing.glass_shading import glass_shading, remove_glass_shading
+
+H, W, N, STEP = 200, 160, 80, 0.5
+
+
+def _frames():
+    """A random texture sliding down STEP px per frame, seen through a glass-fixed band of lower gain and
+    higher offset (a valley where the skin only partly touches)."""
+    rng = np.random.default_rng(0)
+    big = cv2.GaussianBlur(rng.normal(size=(H + 2 * N + 20, W)).astype(np.float32), (0, 0), 3)
+    big /= big.std()
+    y = np.arange(H, dtype=np.float32)[:, None]
+    band = np.exp(-0.5 * ((y - 100) / 15) ** 2)
+    gain, offset = 1 - 0.7 * band, 40 * band
+    map_x = np.tile(np.arange(W, dtype=np.float32), (H, 1))
+    out = []
+    for k in range(N):
+        map_y = np.repeat(y - STEP * k + 2 * N, W, axis=1).astype(np.float32)
+        t = cv2.remap(big, map_x, map_y, cv2.INTER_CUBIC)
+        out.append(np.clip(120 + offset + 40 * gain * t, 0, 255).round().astype(np.uint8))
+    return out
+
+
+def _shift(a, b, rows):
+    """Least-squares vertical shift between two frames over some rows (gradient-based, as a flow would)."""
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    gy = np.gradient((a + b) / 2, axis=0)[rows]
+    return -np.sum(gy * (b - a)[rows]) / np.sum(gy * gy)
+
+
+def test_removing_the_glass_shading_removes_the_motion_deficit_in_the_band():
+    frames = _frames()
+    g = glass_shading(frames)
+    band, clear = np.s_[80:120], np.s_[10:50]
+    fixed = [remove_glass_shading(f, g) for f in frames]
+
+    def deficit(seq):
+        pairs = range(10, 70)
+        return np.mean([_shift(seq[k], seq[k + 1], clear) - _shift(seq[k], seq[k + 1], band) for k in pairs])
+
+    assert deficit(frames) > 0.03  # the band reads ~10 % less motion than the clear rows
+    assert abs(deficit(fixed)) < 0.01
+    c = np.stack(fixed).astype(np.float64)
+    assert c[:, 90:110].std() == pytest.approx(c[:, 10:40].std(), rel=0.1)  # same contrast in and out of the band
+
+
+def test_a_still_finger_is_refused_and_bad_input_is_named():
+    still = [_frames()[0]] * 20
+    with pytest.raises(InsufficientDataError, match="moved too little"):
+        glass_shading(still)
+    with pytest.raises(InsufficientDataError):
+        glass_shading(still[:1])
+    with pytest.raises(InvalidInputError, match="uint8"):
+        glass_shading([np.zeros((8, 8), np.float32)] * 3)
+    with pytest.raises(InvalidInputError, match="smooth_px"):
+        glass_shading(still, smooth_px=0)
+    g = glass_shading(_frames())
+    with pytest.raises(InvalidInputError, match="shape"):
+        remove_glass_shading(np.zeros((4, 4), np.uint8), g)
