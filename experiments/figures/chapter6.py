@@ -285,7 +285,7 @@ def contactor_positions_figure(positions_um: np.ndarray, *, frames: Sequence[int
     cols = min(3, len(frames))
     rows = int(np.ceil(len(frames) / cols))
     fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
     r, c = pos.shape[1:]
     yy, xx = np.mgrid[0:r, 0:c]
     for k, (ax, f) in enumerate(zip(axes, frames)):
@@ -321,7 +321,7 @@ def stretch_fields_figure(stretch_change: np.ndarray, *, frames: Sequence[int], 
     cols = min(3, len(frames))
     rows = int(np.ceil(len(frames) / cols))
     fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
     for k, (ax, f) in enumerate(zip(axes, frames)):
         ax.imshow(np.nan_to_num(sc[f], nan=0.0), cmap=_CMAP, norm=_norm(limit), interpolation="nearest")
         ax.set_xticks([])
