@@ -90,6 +90,11 @@ def test_rendering_is_deterministic_in_any_order():
     fa = [a.render_frame(k) for k in (5, 2)]
     fb = [b.render_frame(k) for k in (2, 5)][::-1]
     assert all(np.array_equal(p, q) for p, q in zip(fa, fb))
+    # Row bands in one thread or two, and frames in parallel: the same bytes.
+    assert np.array_equal(a.render_frame(5, threads=1), fa[0])
+    assert np.array_equal(a.render_frame(5, threads=2), fa[0])
+    par = render_session(scene, seed=4, workers=2)
+    assert np.array_equal(par.frames[5], fa[0]) and np.array_equal(par.frames[2], fa[1])
     c = SceneRenderer(scene, seed=5)
     assert not np.array_equal(c.render_frame(2), fb[1])
     assert fa[0].dtype == np.uint8 and fa[0].shape == (484, 640)

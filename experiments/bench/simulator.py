@@ -3,11 +3,13 @@
 Columns
 -------
 init s        building the renderer (print, master image, constant maps)
-frames/s      render_frame throughput (640x484 for the full-mode scenes), single thread, wall clock
-frames/CPU-s  the same per second of this process's CPU time (what one idle core would give; the machine is shared)
+frames/s      render_frame throughput (640x484 for the full-mode scenes), wall clock, with the renderer's default
+              threads (two row bands in two threads on this 2-core machine)
+frames/CPU-s  the same per second of this process's CPU time, all threads (what one idle core would give; the machine
+              is shared)
 truth s       computing the whole SessionTruth
-map err px    max / RMS distance between the skin point the renderer samples at each pixel (node grid every 4 px,
-              bilinear) and the exact inverse of the deformation, in camera pixels, at the middle frame
+map err px    max / RMS distance between the skin point the renderer samples at each pixel (node grid every 8 px,
+              Catmull-Rom) and the exact inverse of the deformation, in camera pixels, at the middle frame
 inverse px    max |forward(inverse(x)) - x| over the node grid, in pixels
 warp RMS      noise-free frame k vs frame 0 warped by the truth displacement (grey levels, contact interior,
               uniform illumination; flat scenes only, where the light does not depend on the position)
