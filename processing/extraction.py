@@ -260,12 +260,9 @@ def _counts(kinds: np.ndarray) -> dict[str, int]:
 
 
 def _graph_counts(g: SkeletonGraph) -> dict[str, int]:
-    ends = bifs = 0
-    for n, alive in enumerate(g.node_alive):
-        if alive:
-            d = len(g.node_edges[n])
-            ends += d == 1
-            bifs += d >= 3
+    degrees = [len(edges) for edges, alive in zip(g.node_edges, g.node_alive) if alive]
+    ends = degrees.count(1)
+    bifs = len(degrees) - ends - degrees.count(2) - degrees.count(0)
     return {
         KIND_NAMES[FeatureKind.VALLEY_ENDING]: ends,
         KIND_NAMES[FeatureKind.VALLEY_BIFURCATION]: bifs,
@@ -410,8 +407,7 @@ class FeatureExtractor:
             pore_x = pore_y = pore_d = np.zeros(0)
         skeleton = thin(valleys)  # 4.6
         g = trace_skeleton(skeleton)  # 4.7
-        for x, y, d in zip(pore_x.tolist(), pore_y.tolist(), pore_d.tolist()):
-            g.add_pore(x, y, size=d)
+        g.add_pores(pore_x, pore_y, sizes=pore_d)
 
         counts: OrderedDict[str, dict[str, int]] = OrderedDict()
         counts["initial"] = _graph_counts(g)

@@ -261,6 +261,18 @@ class SkeletonGraph:
         self.pore_alive.append(True)
         self.pore_size.append(float(size))
 
+    def add_pores(self, x, y, sizes=None) -> None:
+        """Add pores at arrays of positions ``x``, ``y`` with blob diameters ``sizes`` (default 0)."""
+        x = np.asarray(x, dtype=np.float64).ravel()
+        y = np.asarray(y, dtype=np.float64).ravel()
+        sizes = np.zeros(x.size) if sizes is None else np.asarray(sizes, dtype=np.float64).ravel()
+        if not x.size == y.size == sizes.size:
+            raise InvalidInputError(f"x, y and sizes differ in length: {x.size}, {y.size}, {sizes.size}")
+        self.pore_x.extend(x.tolist())
+        self.pore_y.extend(y.tolist())
+        self.pore_alive.extend([True] * x.size)
+        self.pore_size.extend(sizes.tolist())
+
     def add_node(self, x: float, y: float) -> int:
         self.node_x.append(float(x))
         self.node_y.append(float(y))
@@ -349,29 +361,31 @@ def trace_skeleton(skeleton: np.ndarray) -> SkeletonGraph:
     h, w = sk.shape
     node_x, node_y, _, iso, e_a, e_b, e_start, e_len, e_length, path = _trace(sk.ravel(), h, w)
     px = np.stack([path % w, path // w], axis=1)
+    # Self-loops shorter than 4 px are a thick junction's inner corner, not a valley.
+    keep = ~((e_a == e_b) & (e_length < 4))
+    e_a, e_b, e_start, e_len, e_length = e_a[keep], e_b[keep], e_start[keep], e_len[keep], e_length[keep]
+    edge_a = e_a.tolist()
+    edge_b = e_b.tolist()
+    node_edges = [[] for _ in range(len(node_x))]
+    for e, (a, b) in enumerate(zip(edge_a, edge_b)):
+        node_edges[a].append(e)
+        node_edges[b].append(e)
     g = SkeletonGraph(
         node_x=node_x.tolist(),
         node_y=node_y.tolist(),
-        node_alive=[True] * len(node_x),
-        node_edges=[[] for _ in range(len(node_x))],
-        edge_a=[],
-        edge_b=[],
-        edge_path=[],
-        edge_length=[],
-        edge_alive=[],
+        node_alive=[len(edges) > 0 for edges in node_edges],
+        node_edges=node_edges,
+        edge_a=edge_a,
+        edge_b=edge_b,
+        edge_path=[px[s0 : s0 + n] for s0, n in zip(e_start.tolist(), e_len.tolist())],
+        edge_length=e_length.tolist(),
+        edge_alive=[True] * len(edge_a),
         pore_x=(iso % w).astype(float).tolist(),
         pore_y=(iso // w).astype(float).tolist(),
         pore_alive=[True] * len(iso),
         skeleton=sk,
         pore_size=[0.0] * len(iso),
     )
-    for a, b, s0, n, length in zip(e_a.tolist(), e_b.tolist(), e_start.tolist(), e_len.tolist(), e_length.tolist()):
-        if a == b and length < 4:
-            continue
-        g.add_edge(a, b, px[s0 : s0 + n], length)
-    for node in range(len(node_x)):
-        if not g.node_edges[node]:
-            g.node_alive[node] = False
     return g
 
 

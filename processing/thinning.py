@@ -204,7 +204,14 @@ def _unpack_without_staircases(bits, h, w, stairs):  # pragma: no cover - compil
     out = np.zeros((h, w), np.uint8)
     f = out.ravel()
     nw = bits.shape[1] - 2
-    sk = np.empty(h * w, np.int64)
+    n_set = 0
+    for r in range(h):
+        for j in range(1, nw + 1):
+            x = bits[r, j]
+            while x != _Z:
+                x &= x - _ONE
+                n_set += 1
+    sk = np.empty(n_set, np.int64)
     n_sk = 0
     for r in range(h):
         for j in range(1, nw + 1):
