@@ -111,35 +111,39 @@ def _catmull_rom_matrix(grid0: float, step: float, n: int, coords: np.ndarray):
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
-def _spiral_cosine(phic, u0, du, s0, ds, mu, ms, mp):  # pragma: no cover - compiled
-    """cos(phi_c + sum p atan2(...)) on a grid, via a product of unit phasors (no atan2 per pixel)."""
-    ny, nx = phic.shape
-    out = np.empty((ny, nx), dtype=np.float32)
+def _spiral_cosine(phic, u, s, grid_of_row, mu, ms, mp):  # pragma: no cover - compiled
+    """cos(phi_c + sum p atan2(...)) on the rows of one or more regular grids, via a product of unit phasors (no
+    atan2 per pixel). Row r of ``phic`` (R, nx) lies at skin ``s[r]`` and has the columns ``u[grid_of_row[r]]``
+    (``u`` is (G, nx)). Each row's phasors are updated spiral by spiral over the whole row (SIMD-friendly)."""
+    nrows, nx = phic.shape
+    out = np.empty((nrows, nx), dtype=np.float32)
     nm = mu.shape[0]
-    for i in numba.prange(ny):
-        s = s0 + i * ds
-        for j in range(nx):
-            u = u0 + j * du
-            ar = 1.0
-            ai = 0.0
-            for n in range(nm):
-                zr = u - mu[n]
-                zi = s - ms[n]
-                if mp[n] < 0:
-                    zi = -zi
-                tr = ar * zr - ai * zi
-                ai = ar * zi + ai * zr
-                ar = tr
-                if n % 16 == 15:
-                    mag = np.sqrt(ar * ar + ai * ai)
+    for i in numba.prange(nrows):
+        ur = u[grid_of_row[i]]
+        ar = np.ones(nx)
+        ai = np.zeros(nx)
+        for n in range(nm):
+            zi = s[i] - ms[n]
+            if mp[n] < 0:
+                zi = -zi
+            m = mu[n]
+            for j in range(nx):
+                zr = ur[j] - m
+                tr = ar[j] * zr - ai[j] * zi
+                ai[j] = ar[j] * zi + ai[j] * zr
+                ar[j] = tr
+            if n % 16 == 15:
+                for j in range(nx):
+                    mag = np.sqrt(ar[j] * ar[j] + ai[j] * ai[j])
                     if mag > 0.0:
-                        ar /= mag
-                        ai /= mag
-            mag = np.sqrt(ar * ar + ai * ai)
+                        ar[j] /= mag
+                        ai[j] /= mag
+        for j in range(nx):
+            mag = np.sqrt(ar[j] * ar[j] + ai[j] * ai[j])
             c = np.cos(phic[i, j])
             sn = np.sin(phic[i, j])
             if mag > 0.0:
-                out[i, j] = (c * ar - sn * ai) / mag
+                out[i, j] = (c * ar[j] - sn * ai[j]) / mag
             else:
                 out[i, j] = 0.0
     return out
@@ -254,11 +258,14 @@ class Fingerprint:
         offs = np.arange(-half, half + step / 2, step)
         n = offs.size
         kernel = np.ones((3, 3))
+        # phi_c of every local grid, then the spiral phasors of all of them in one parallel call.
+        grids = [self._phase_c_grid(u0=pu + offs[0], s0=ps + offs[0], step_mm=step, shape=(n, n), with_contrast=True)
+                 for pu, ps in self.spiral_xy]
+        cos_all = self._spiral_cosine(np.concatenate([g[0] for g in grids]), [g[2] for g in grids],
+                                      [g[3] for g in grids]) if m else None
         for i in range(m):
             pu, ps = self.spiral_xy[i]
-            cosphi, contrast = self._cos_phase_grid(
-                u0=pu + offs[0], s0=ps + offs[0], step_mm=step, shape=(n, n), with_contrast=True
-            )
+            cosphi, contrast = cos_all[i * n : (i + 1) * n], grids[i][1]
             valley = self._brightness(cosphi, contrast) > 0.5
             sk = skeletonize(valley)
             nb = convolve(sk.astype(np.int32), kernel.astype(np.int32), mode="constant") - 1
@@ -420,26 +427,33 @@ class Fingerprint:
 
     def _cos_phase_grid(self, *, u0, s0, step_mm, shape, with_contrast=False):
         """cos(phi) (float32) on a regular skin grid, and optionally the ridge contrast there."""
+        phic, contrast, u, s = self._phase_c_grid(u0=u0, s0=s0, step_mm=step_mm, shape=shape, with_contrast=with_contrast)
+        return self._spiral_cosine(phic, [u], [s]), contrast
+
+    def _phase_c_grid(self, *, u0, s0, step_mm, shape, with_contrast=False):
+        """phi_c (float64) on a regular skin grid, the ridge contrast there (or None), and the grid's columns and
+        rows (skin mm)."""
         ny, nx = shape
         ns, nu = self.phase_grid.shape
-        wu = _catmull_rom_matrix(self.grid_u0, _GRID_MM, nu, u0 + step_mm * np.arange(nx))
-        ws = _catmull_rom_matrix(self.grid_s0, _GRID_MM, ns, s0 + step_mm * np.arange(ny))
+        u = float(u0) + float(step_mm) * np.arange(nx)
+        s = float(s0) + float(step_mm) * np.arange(ny)
+        wu = _catmull_rom_matrix(self.grid_u0, _GRID_MM, nu, u)
+        ws = _catmull_rom_matrix(self.grid_s0, _GRID_MM, ns, s)
         # Separable Catmull-Rom in float64 (cv2.remap would quantise positions to 1/32 px, too coarse for phase).
         phic = np.ascontiguousarray((wu @ (ws @ self.phase_grid).T).T)
         contrast = None
         if with_contrast:
             contrast = (wu @ (ws @ self.contrast_grid.astype(np.float64)).T).T.astype(np.float32)
-        cosphi = _spiral_cosine(
-            phic,
-            float(u0),
-            float(step_mm),
-            float(s0),
-            float(step_mm),
-            self.spiral_xy[:, 0].copy(),
-            self.spiral_xy[:, 1].copy(),
-            self.minutia_polarity.astype(np.int64),
+        return phic, contrast, u, s
+
+    def _spiral_cosine(self, phic: np.ndarray, us: list[np.ndarray], ss: list[np.ndarray]) -> np.ndarray:
+        """cos(phi) on grids g with columns us[g] and rows ss[g] (all the same width), given phi_c there, stacked
+        row-wise in ``phic``."""
+        grid_of_row = np.repeat(np.arange(len(ss)), [len(r) for r in ss])
+        return _spiral_cosine(
+            np.ascontiguousarray(phic), np.stack(us), np.concatenate(ss), grid_of_row,
+            self.spiral_xy[:, 0].copy(), self.spiral_xy[:, 1].copy(), self.minutia_polarity.astype(np.int64),
         )
-        return cosphi, contrast
 
     # ------------------------------------------------------------------ truth
     def features(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
