@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -124,6 +125,48 @@ def local_predictions(
     if m < 3 or points.shape[0] == 0:
         return np.tile(fb, (points.shape[0], 1))
     k = min(neighbours, m)
-    _, idx = cKDTree(matched_points).query(points, k=k)
-    idx = idx.reshape(points.shape[0], k)
-    return np.median(matched_displacements[idx], axis=1)
+    if points.shape[0] * m > 4_000_000:  # large sets: a tree beats the compiled brute force
+        _, idx = cKDTree(matched_points).query(points, k=k)
+        idx = idx.reshape(points.shape[0], k)
+        return np.median(matched_displacements[idx], axis=1)
+    return _knn_median(points, matched_points, matched_displacements, k)
+
+
+@numba.njit(cache=True, nogil=True)
+def _knn_median(points, matched_points, matched_displacements, k):
+    """Per point, the median (per axis, as np.median) of the displacements of its k nearest matched points."""
+    n = points.shape[0]
+    m = matched_points.shape[0]
+    out = np.empty((n, 2))
+    best_d = np.empty(k)
+    best_i = np.empty(k, np.int64)
+    vals = np.empty(k)
+    for a in range(n):
+        px = points[a, 0]
+        py = points[a, 1]
+        found = 0
+        for b in range(m):
+            dx = matched_points[b, 0] - px
+            dy = matched_points[b, 1] - py
+            d = dx * dx + dy * dy
+            if found == k and d >= best_d[k - 1]:
+                continue
+            # insertion into the sorted list of the k best so far
+            t = found if found < k else k - 1
+            while t > 0 and best_d[t - 1] > d:
+                best_d[t] = best_d[t - 1]
+                best_i[t] = best_i[t - 1]
+                t -= 1
+            best_d[t] = d
+            best_i[t] = b
+            if found < k:
+                found += 1
+        for c in range(2):
+            for t in range(k):
+                vals[t] = matched_displacements[best_i[t], c]
+            vals.sort()
+            if k % 2:
+                out[a, c] = vals[k // 2]
+            else:
+                out[a, c] = (vals[k // 2 - 1] + vals[k // 2]) / 2.0
+    return out
