@@ -27,27 +27,21 @@ __all__ = ["SkeletonGraph", "trace_skeleton", "node_kind", "branch_direction", "
 
 
 @njit(nogil=True)
-def _trace(f, h, w):  # pragma: no cover - compiled
+def _trace(f, h, w, pix):  # pragma: no cover - compiled
+    """Trace the skeleton ``f`` (flat, zero outer ring) whose pixels, in raster order, are ``pix``."""
     offs = np.array([-w, -w + 1, 1, w + 1, w, w - 1, -1, -w - 1])
     steplen = np.array([1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0), 1.0, math.sqrt(2.0)])
     n = h * w
-    # Skeleton pixels and their neighbour counts.
-    n_sk = 0
-    for i in range(n):
-        if f[i]:
-            n_sk += 1
-    pix = np.empty(n_sk, np.int64)
+    # Neighbour counts of the skeleton pixels.
+    n_sk = pix.size
     deg = np.zeros(n, np.int8)
-    k = 0
-    for i in range(n):
-        if f[i]:
-            pix[k] = i
-            k += 1
-            c = 0
-            for j in range(8):
-                if f[i + offs[j]]:
-                    c += 1
-            deg[i] = c
+    for k in range(n_sk):
+        i = pix[k]
+        c = 0
+        for j in range(8):
+            if f[i + offs[j]]:
+                c += 1
+        deg[i] = c
     # Nodes: endings (1 neighbour) and 8-connected groups of bifurcation pixels (3+ neighbours).
     node_of = np.full(n, -1, np.int32)
     node_sx = np.zeros(n_sk)
@@ -359,7 +353,8 @@ def trace_skeleton(skeleton: np.ndarray) -> SkeletonGraph:
     sk[:, 0] = 0
     sk[:, -1] = 0
     h, w = sk.shape
-    node_x, node_y, _, iso, e_a, e_b, e_start, e_len, e_length, path = _trace(sk.ravel(), h, w)
+    flat = sk.ravel()
+    node_x, node_y, _, iso, e_a, e_b, e_start, e_len, e_length, path = _trace(flat, h, w, np.flatnonzero(flat))
     px = np.stack([path % w, path // w], axis=1)
     # Self-loops shorter than 4 px are a thick junction's inner corner, not a valley.
     keep = ~((e_a == e_b) & (e_length < 4))
