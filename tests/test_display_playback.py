@@ -1,11 +1,12 @@
 """Real-time movie streaming on the simulated display (functional checks only; speed is in the bench)."""
 
 import itertools
+import time
 
 import numpy as np
 import pytest
 
-from drivers.display.playback import stream_movie
+from drivers.display.playback import PHASES, find_stalls, stream_movie
 from drivers.display.stress import StressDisplay
 from drivers.display.transports import SerialTransport
 from processing.errors import InvalidInputError
@@ -106,3 +107,69 @@ def test_a_failing_callback_still_rests_the_display_then_raises(sim):
     assert np.all(display.last_command_um == 0)
     link.advance()
     assert link.firmware.benders.resting
+
+
+def test_every_frame_is_stamped_at_each_phase_in_order(sim):
+    display, _ = sim
+    report = stream_movie(display, np.zeros((80, 10, 10)), rate_hz=500)
+    assert report.completed
+    ph = report.phase_times_s
+    assert ph.shape == (80, len(PHASES))
+    sent = ~report.skipped
+    assert np.all(np.isfinite(ph[sent]))
+    stamps = ph[sent].reshape(-1)
+    assert np.all(np.diff(stamps) >= 0)  # one clock, stamped in loop order
+    assert np.array_equal(ph[sent, PHASES.index("send")], report.send_times_s[sent])
+    assert np.all(ph[sent, PHASES.index("send")] >= report.deadlines_s[sent])  # never sent early
+    assert report.thread_cpu_s[0] == 0 and np.all(np.diff(report.thread_cpu_s) >= 0)
+    assert report.clock_origin_s > 0
+
+
+@pytest.mark.parametrize("how", ["sleep", "spin"])
+def test_a_stall_is_located_by_frame_phase_and_cpu_charge(sim, how):
+    display, _ = sim
+
+    stalled_at = []
+
+    def stall_once(index, command, ack):
+        if index >= 40 and not stalled_at:  # frame 40 itself may be skipped on a starved machine
+            stalled_at.append(index)
+            if how == "sleep":
+                time.sleep(0.02)  # off the CPU: a late wake-up, the GIL held elsewhere, a stolen vCPU look so
+            else:
+                end = time.thread_time() + 0.02  # 20 ms on the CPU, charged to the sending thread
+                while time.thread_time() < end:
+                    pass
+        return None
+
+    report = stream_movie(display, np.zeros((120, 10, 10)), rate_hz=500, callback=stall_once,
+                          max_outstanding=100)
+    assert report.completed and len(stalled_at) == 1
+    k = stalled_at[0]
+    ours = [s for s in report.stalls(0.015) if s.frame == k and s.after == "prepared"]
+    assert len(ours) == 1, report.stalls(0.015)
+    stall = ours[0]
+    assert stall.before == "waited"  # the callback runs between these two stamps
+    assert stall.duration_s >= 0.02
+    assert stall.start_s == pytest.approx(report.phase_times_s[k, PHASES.index("waited")])
+    if how == "sleep":
+        assert stall.thread_cpu_s < 0.5 * stall.duration_s
+    else:
+        assert stall.thread_cpu_s >= 0.02
+
+
+def test_find_stalls_skips_unstamped_phases_and_checks_its_threshold():
+    ph = np.arange(20, dtype=float).reshape(4, 5) * 1e-3  # 1 ms between stamps
+    ph[2, 1:] = np.nan  # a skipped frame is stamped at its start only
+    ph[3:] += 0.010  # 10 ms lost between frame 2's start and frame 3's start
+    cpu = np.array([0.0, 0.001, 0.002, 0.003])
+    stalls = find_stalls(ph, cpu, min_gap_s=0.005)
+    assert len(stalls) == 1
+    s = stalls[0]
+    assert (s.frame, s.before, s.after) == (3, "start", "start")
+    assert s.duration_s == pytest.approx(0.015) and s.start_s == pytest.approx(0.010)
+    assert np.isnan(s.thread_cpu_s)  # no stamp after the last frame
+    assert find_stalls(ph, None, min_gap_s=0.02) == []
+    assert find_stalls(np.empty((0, 5)), None) == []
+    with pytest.raises(InvalidInputError, match="min_gap_s"):
+        find_stalls(ph, cpu, min_gap_s=0.0)

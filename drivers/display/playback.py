@@ -9,6 +9,12 @@ On a link failure (write error, silent link, too many unacknowledged frames) the
 rest when it can (the firmware watchdog does it otherwise) and the report, with everything acquired so far, is
 returned flagged ``outcome="link_failure"``. A callback may correct each command (closed loop) and may stop the
 movie by raising :class:`processing.errors.SafetyStop` (force ceiling): ``outcome="safety_stop"``.
+
+Every frame is stamped at each phase of the loop (:data:`PHASES`) with the sending thread's CPU time at its top,
+so :meth:`PlaybackReport.stalls` can say where the loop lost the CPU and whether the lost time was charged to the
+thread (it ran, or the kernel/hypervisor billed it) or not (it was not running). Per-frame arrays are written
+before the first deadline so that no first-touch page fault lands on the deadline path; the garbage collector is
+off during the movie.
 """
 
 from __future__ import annotations
@@ -25,8 +31,55 @@ from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
 from .base import FrameAck, TactileDisplay
 from .stress_protocol import COLS, ROWS
 
+#: What :attr:`PlaybackReport.phase_times_s` columns record, per frame: top of the loop, end of the ack wait,
+#: command ready (callback + limits + encoding), end of the spin (= send time), bytes written and filed.
+PHASES = ("start", "waited", "prepared", "send", "sent")
+
 #: ``callback(index, command_um, latest_ack) -> corrected command (10, 10) or None (keep)``
 FrameCallback = Callable[[int, np.ndarray, Optional[FrameAck]], Optional[np.ndarray]]
+
+
+@dataclass(frozen=True)
+class Stall:
+    """A gap of at least ``min_gap_s`` between two consecutive phase stamps of the streaming loop.
+
+    ``thread_cpu_s`` is the sending thread's CPU time over the frames the gap spans: about ``duration_s`` when the
+    thread was charged for the time (spinning, or kernel/interrupt/hypervisor time billed to it), about 0 when it
+    was not running at all (sleeping past its wake-up, waiting for the GIL, preempted, throttled, vCPU stolen).
+    """
+
+    frame: int  # the frame whose phase ``after`` ended the gap
+    before: str  # phase stamped just before the gap
+    after: str  # phase stamped just after it
+    start_s: float  # relative to the first deadline
+    duration_s: float
+    thread_cpu_s: float  # NaN when the gap lies in the last frame (no later CPU stamp)
+
+
+def find_stalls(phase_times_s: np.ndarray | None, thread_cpu_s: np.ndarray | None, *,
+                min_gap_s: float = 0.004) -> list[Stall]:
+    """Gaps of at least ``min_gap_s`` between consecutive stamps of a (frames, len(PHASES)) phase-time array.
+
+    NaN stamps (phases a skipped frame never reached) are passed over. ``thread_cpu_s`` (frames,) is the thread
+    CPU time stamped at the top of each frame, or None.
+    """
+    if phase_times_s is None or phase_times_s.size == 0:
+        return []
+    if not (np.isfinite(min_gap_s) and min_gap_s > 0):
+        raise InvalidInputError(f"min_gap_s must be > 0, got {min_gap_s!r}")
+    flat = np.asarray(phase_times_s, dtype=float).reshape(-1)
+    width = phase_times_s.shape[1]
+    idx = np.flatnonzero(~np.isnan(flat))
+    gaps = np.diff(flat[idx])
+    cpu = np.full(phase_times_s.shape[0], np.nan) if thread_cpu_s is None else np.asarray(thread_cpu_s, float)
+    out = []
+    for g in np.flatnonzero(gaps >= min_gap_s):
+        k0, p0 = divmod(int(idx[g]), width)
+        k1, p1 = divmod(int(idx[g + 1]), width)
+        # CPU time is stamped at the top of each frame: take the frames the gap lies in
+        c1 = cpu[k1 + 1] if k1 + 1 < cpu.size else np.nan
+        out.append(Stall(k1, PHASES[p0], PHASES[p1], float(flat[idx[g]]), float(gaps[g]), float(c1 - cpu[k0])))
+    return out
 
 
 @dataclass
@@ -55,6 +108,12 @@ class PlaybackReport:
     miss_tolerance_s: float
     lost_acks: int
     settle_frames: int
+    #: per frame, host clock relative to the first deadline at each phase of the loop (see :data:`PHASES`)
+    phase_times_s: np.ndarray = field(default=None, repr=False)
+    #: per frame, the sending thread's CPU time (``time.thread_time``) at the top of the loop
+    thread_cpu_s: np.ndarray = field(default=None, repr=False)
+    #: the host clock's value at the first deadline (times above are relative to it)
+    clock_origin_s: float = float("nan")
 
     @property
     def completed(self) -> bool:
@@ -79,6 +138,10 @@ class PlaybackReport:
         """99th percentile of |period - nominal| of the host's send times (0 with fewer than 2 frames)."""
         p = self.periods_s
         return float(np.percentile(np.abs(p - 1.0 / self.rate_hz), 99)) if p.size else 0.0
+
+    def stalls(self, min_gap_s: float = 0.004) -> list[Stall]:
+        """Gaps of at least ``min_gap_s`` between consecutive phase stamps (where the loop lost the CPU)."""
+        return find_stalls(self.phase_times_s, self.thread_cpu_s, min_gap_s=min_gap_s)
 
     def _errors(self) -> np.ndarray:
         """(n, 10, 10) measured - previous command over acked frames after the settle time."""
@@ -152,12 +215,18 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         raise InvalidInputError(f"settle_frames must be an int >= 0, got {settle_frames!r}")
 
     n = movie.shape[0]
-    commands = np.zeros((n, ROWS, COLS))
+    # every per-frame array is written once here: np.zeros maps untouched pages, and a first touch inside the
+    # loop would be a page fault on the deadline path
+    commands = np.empty((n, ROWS, COLS))
+    commands.fill(0.0)
     measured = np.full((n, ROWS, COLS), np.nan)
-    acked = np.zeros(n, dtype=bool)
+    acked = np.full(n, False)
     deadlines = np.arange(n) * period
-    send_times = np.zeros(n)
-    skipped = np.zeros(n, dtype=bool)
+    send_times = np.full(n, 0.0)
+    skipped = np.full(n, False)
+    phases = np.full((n, len(PHASES)), np.nan)
+    cpu = np.full(n, np.nan)
+    thread_time = time.thread_time
     frame_of_seq: dict[int, int] = {}
     latest: list[FrameAck | None] = [None]
     lost_before = getattr(display, "lost_acks", 0)
@@ -171,6 +240,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
             latest[0] = ack
 
     outcome, error, sent = "completed", "", 0
+    t0 = float("nan")
     # a full garbage collection over thousands of acks takes milliseconds: none during the movie
     gc_was_enabled = gc.isenabled()
     gc.disable()
@@ -181,6 +251,8 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         for k in range(n):
             deadline = t0 + k * period
             now = clock()
+            phases[k, 0] = now - t0
+            cpu[k] = thread_time()
             if now > deadline + period:
                 # this frame's whole slot has passed (the host was starved): a burst of stale frames would only
                 # overrun the line, so skip it; the next frame is limited against what the contactors last got
@@ -194,20 +266,23 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
                 if remaining <= 0:
                     break
                 file_acks(display.collect_acks(timeout_s=remaining))
+            phases[k, 1] = clock() - t0
             command = movie[k]
             if callback is not None:
                 corrected = callback(k, command.copy(), latest[0])
                 if corrected is not None:
                     command = corrected
             prepared = display.prepare_frame(command)  # limits and encoding off the deadline path
+            phases[k, 2] = clock() - t0
             while clock() < deadline:
                 pass
             now = clock()
             seq = display.send_prepared(prepared)
-            send_times[k] = now - t0
+            send_times[k] = phases[k, 3] = now - t0
             commands[k] = display.last_command_um
             frame_of_seq[seq] = k
             sent = k + 1
+            phases[k, 4] = clock() - t0
             if display.outstanding > max_outstanding // 2:
                 # behind schedule the wait above is skipped: collect what has arrived without waiting
                 file_acks(display.collect_acks(timeout_s=0.0))
@@ -245,4 +320,5 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         commands_um=commands[:sent], measured_um=measured[:sent], acked=acked[:sent],
         deadlines_s=deadlines[:sent], send_times_s=send_times[:sent], skipped=skipped[:sent],
         missed_deadlines=int(np.sum(lateness > tolerance) + skipped[:sent].sum()), miss_tolerance_s=tolerance,
-        lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames)
+        lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames, clock_origin_s=t0,
+        phase_times_s=phases[:sent], thread_cpu_s=cpu[:sent] - cpu[0] if sent else cpu[:0])
