@@ -13,8 +13,10 @@ Strains are fractions (0.01 = 1 %). Degenerate inputs raise :class:`Insufficient
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
@@ -65,12 +67,6 @@ class TriangulationStrain:
     n_dropped: int = 0
 
 
-def _signed_area(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-    # Image y points down; a positive value here is counter-clockwise as seen on the image.
-    return -0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
-
-
 def _first_of_duplicates(p: np.ndarray) -> np.ndarray:
     """Rows of ``p`` (n, 2) that are the first occurrence of their value, in increasing order (what
     ``np.sort(np.unique(p, axis=0, return_index=True)[1])`` gives, without its structured-array sort)."""
@@ -82,12 +78,59 @@ def _first_of_duplicates(p: np.ndarray) -> np.ndarray:
     return np.sort(order[new])
 
 
-def _unique_edges(tri: np.ndarray, n_points: int) -> np.ndarray:
-    """Each edge of the triangles once, as (low, high) rows sorted lexicographically."""
-    a = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
-    b = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
-    key = np.unique(np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b))
-    return np.column_stack([key // n_points, key % n_points])
+@numba.njit(cache=True, nogil=True)
+def _triangle_changes(pa, pb, tri, max_edge, min_area, min_quality):
+    """After the Delaunay triangulation (in place on ``tri``): orient each triangle counter-clockwise on the image,
+    leave out degenerate, long and sliver triangles, and measure the areas (frames a and b, signed in b) and the
+    unique edges (sorted (low, high) rows) with their lengths in both frames. Signed area
+    ``-((b - a) x (c - a)) / 2``: positive is counter-clockwise as seen on the image (y points down)."""
+    m = tri.shape[0]
+    keep = np.zeros(m, np.bool_)
+    area_a = np.empty(m)
+    q = 4.0 * np.sqrt(3.0)
+    for t in range(m):
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        s = -0.5 * ((pa[b, 0] - pa[a, 0]) * (pa[c, 1] - pa[a, 1]) - (pa[c, 0] - pa[a, 0]) * (pa[b, 1] - pa[a, 1]))
+        if s < 0:
+            tri[t, 1], tri[t, 2] = c, b
+        s = abs(s)
+        area_a[t] = s
+        ok = s >= min_area
+        e2 = 0.0
+        emax = 0.0
+        for i in range(3):
+            u, v = tri[t, i], tri[t, (i + 1) % 3]
+            e = math.hypot(pa[u, 0] - pa[v, 0], pa[u, 1] - pa[v, 1])
+            e2 += e * e
+            emax = max(emax, e)
+        ok = ok and emax <= max_edge
+        if min_quality > 0:
+            ok = ok and q * s >= min_quality * e2
+        keep[t] = ok
+    tri = tri[keep]
+    area_a = area_a[keep]
+    k = tri.shape[0]
+    area_b = np.empty(k)
+    n = pa.shape[0]
+    keys = np.empty(3 * k, np.int64)
+    for t in range(k):
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        area_b[t] = -0.5 * (
+            (pb[b, 0] - pb[a, 0]) * (pb[c, 1] - pb[a, 1]) - (pb[c, 0] - pb[a, 0]) * (pb[b, 1] - pb[a, 1])
+        )
+        for i in range(3):
+            u, v = tri[t, i], tri[t, (i + 1) % 3]
+            keys[3 * t + i] = min(u, v) * n + max(u, v)
+    keys = np.unique(keys)
+    edges = np.empty((keys.size, 2), np.int64)
+    la = np.empty(keys.size)
+    lb = np.empty(keys.size)
+    for e in range(keys.size):
+        u, v = keys[e] // n, keys[e] % n
+        edges[e, 0], edges[e, 1] = u, v
+        la[e] = math.hypot(pa[u, 0] - pa[v, 0], pa[u, 1] - pa[v, 1])
+        lb[e] = math.hypot(pb[u, 0] - pb[v, 0], pb[u, 1] - pb[v, 1])
+    return tri, area_a, area_b, edges, la, lb
 
 
 def triangulation_strain(
@@ -144,31 +187,20 @@ def triangulation_strain(
         )
     try:
         tri = Delaunay(pa).simplices.astype(np.int64)
+        simplices_count = tri.shape[0]
     except QhullError:
         raise InsufficientDataError(
             f"frames {sample.frame_a}->{sample.frame_b}: the {pa.shape[0]} matched points are collinear"
         ) from None
     pb = pa + d
-    area_a = _signed_area(pa, tri)
-    neg = area_a < 0
-    tri[neg] = tri[neg][:, [0, 2, 1]]
-    area_a = np.abs(area_a)
-    keep = area_a >= min_area_px2
-    ea = np.stack([np.hypot(*(pa[tri[:, i]] - pa[tri[:, (i + 1) % 3]]).T) for i in range(3)], axis=1)
-    if max_edge_px is not None:
-        keep &= ea.max(axis=1) <= max_edge_px
-    if min_quality > 0:
-        keep &= 4.0 * np.sqrt(3.0) * area_a >= min_quality * np.sum(ea**2, axis=1)
-    n_dropped += int((~keep).sum())
-    tri, area_a = tri[keep], area_a[keep]
+    tri, area_a, area_b, edges, la, lb = _triangle_changes(
+        pa, pb, tri, np.inf if max_edge_px is None else float(max_edge_px), float(min_area_px2), float(min_quality)
+    )
+    n_dropped += int(simplices_count - tri.shape[0])
     if tri.shape[0] == 0:
         raise InsufficientDataError(
             f"frames {sample.frame_a}->{sample.frame_b}: no usable triangle (points nearly collinear or too far apart)"
         )
-    area_b = _signed_area(pb, tri)
-    edges = _unique_edges(tri, pa.shape[0])
-    la = np.hypot(*(pa[edges[:, 0]] - pa[edges[:, 1]]).T)
-    lb = np.hypot(*(pb[edges[:, 0]] - pb[edges[:, 1]]).T)
     return TriangulationStrain(
         frame_a=int(sample.frame_a),
         frame_b=int(sample.frame_b),
