@@ -49,7 +49,7 @@ class GlassShading:
 def glass_shading(
     frames: Sequence[np.ndarray],
     *,
-    smooth_px: float = 1.5,
+    smooth_px: float | tuple[float, float] = 1.5,
     level: float = 160.0,
     contrast: float = 45.0,
     floor_fraction: float = 0.25,
@@ -61,8 +61,12 @@ def glass_shading(
     ----------
     frames : sequence of (H, W) uint8 arrays
         The whole sequence (at least 2 frames).
-    smooth_px : float
-        Gaussian smoothing of the mean and standard deviation maps (removes the residue of the texture).
+    smooth_px : float or (float, float)
+        Gaussian smoothing (standard deviation, px; one value or (along x, along y)) of the mean and standard
+        deviation maps: it removes what is left of the texture in them. The shading of a ridge or a valley varies
+        only across the shape, i.e. along the sliding direction, so it can be smoothed much more along the shape:
+        on valleyL (sliding along y) ``(8, 1.5)`` keeps the profile correlation of ``1.5`` and halves the damage
+        to the 11-frame edge strain of flatL.
     level, contrast : float
         Output grey level of the glass-fixed mean and output contrast of one standard deviation.
     floor_fraction : float
@@ -81,9 +85,10 @@ def glass_shading(
     """
     if len(frames) < 2:
         raise InsufficientDataError(f"glass shading needs at least 2 frames, got {len(frames)}")
-    for name, v in (("smooth_px", smooth_px), ("contrast", contrast), ("floor_fraction", floor_fraction)):
+    sx, sy = (smooth_px, smooth_px) if np.ndim(smooth_px) == 0 else tuple(smooth_px)
+    for name, v in (("smooth_px", sx), ("smooth_px", sy), ("contrast", contrast), ("floor_fraction", floor_fraction)):
         if not (np.isfinite(v) and v > 0):
-            raise InvalidInputError(f"{name} must be positive, got {v!r}")
+            raise InvalidInputError(f"{name} must be positive, got {smooth_px if name == 'smooth_px' else v!r}")
     if not (np.isfinite(min_motion_ratio) and min_motion_ratio >= 0):
         raise InvalidInputError(f"min_motion_ratio must be non-negative, got {min_motion_ratio!r}")
     first = np.asarray(frames[0])
@@ -100,8 +105,8 @@ def glass_shading(
     n = float(len(frames))
     mean = total / n
     std = np.sqrt(np.maximum(total_sq / n - mean * mean, 0.0))
-    mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), smooth_px)
-    std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), smooth_px)
+    mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
+    std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     # Spatial contrast of the texture in the first frame (local std over ~ a ridge period).
     f0 = first.astype(np.float32)
     m0 = cv2.blur(f0, (15, 15))

@@ -35,9 +35,10 @@ def _shift(a, b, rows):
     return -np.sum(gy * (b - a)[rows]) / np.sum(gy * gy)
 
 
-def test_removing_the_glass_shading_removes_the_motion_deficit_in_the_band():
+@pytest.mark.parametrize("smooth_px", [1.5, (8.0, 1.5)])
+def test_removing_the_glass_shading_removes_the_motion_deficit_in_the_band(smooth_px):
     frames = _frames()
-    g = glass_shading(frames)
+    g = glass_shading(frames, smooth_px=smooth_px)
     band, clear = np.s_[80:120], np.s_[10:50]
     fixed = [remove_glass_shading(f, g) for f in frames]
 
@@ -61,6 +62,8 @@ def test_a_still_finger_is_refused_and_bad_input_is_named():
         glass_shading([np.zeros((8, 8), np.float32)] * 3)
     with pytest.raises(InvalidInputError, match="smooth_px"):
         glass_shading(still, smooth_px=0)
+    with pytest.raises(InvalidInputError, match="smooth_px"):
+        glass_shading(still, smooth_px=(3.0, -1.0))
     g = glass_shading(_frames())
     with pytest.raises(InvalidInputError, match="shape"):
         remove_glass_shading(np.zeros((4, 4), np.uint8), g)
