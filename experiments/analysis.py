@@ -289,7 +289,7 @@ def _progress(it, enabled: bool, desc: str):
 def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px: float) -> SpanStrain:
     """Triangulation strain of every pair of one span; pairs that cannot give one carry the reason."""
     pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
-    edges, tris = [], []
+    done: list[tuple[int, Any]] = []
     for i, s in enumerate(samples):
         if isinstance(s, str):
             pairs[i] = (i, i + span, 0, s.encode()[:96])
@@ -301,26 +301,28 @@ def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px
             pairs[i]["status"] = str(exc).encode()[:96]
             continue
         pairs[i]["status"] = b"ok"
-        e = np.zeros(t.edges.shape[0], dtype=EDGE_DTYPE)
-        e["pair"] = i
-        e["id_a"], e["id_b"] = t.ids[t.edges[:, 0]], t.ids[t.edges[:, 1]]
-        e["xa"], e["ya"] = t.points[t.edges[:, 0]].T
-        e["xb"], e["yb"] = t.points[t.edges[:, 1]].T
-        e["length"], e["change"] = t.edge_length, t.edge_change
-        edges.append(e)
-        tr = np.zeros(t.triangles.shape[0], dtype=TRIANGLE_DTYPE)
-        tr["pair"] = i
-        tr["id_a"], tr["id_b"], tr["id_c"] = t.ids[t.triangles].T
+        done.append((i, t))
+    # The edge and triangle tables are filled once for all pairs (field by field over concatenated arrays).
+    edges = np.zeros(sum(t.edges.shape[0] for _, t in done), dtype=EDGE_DTYPE)
+    tris = np.zeros(sum(t.triangles.shape[0] for _, t in done), dtype=TRIANGLE_DTYPE)
+    if done:
+        edges["pair"] = np.repeat([i for i, _ in done], [t.edges.shape[0] for _, t in done])
+        ends = np.concatenate([t.ids[t.edges] for _, t in done])
+        edges["id_a"], edges["id_b"] = ends[:, 0], ends[:, 1]
+        xy = np.concatenate([t.points[t.edges].reshape(-1, 4) for _, t in done])  # xa, ya, xb, yb
+        edges["xa"], edges["ya"], edges["xb"], edges["yb"] = xy.T
+        edges["length"] = np.concatenate([t.edge_length for _, t in done])
+        edges["change"] = np.concatenate([t.edge_change for _, t in done])
+        tris["pair"] = np.repeat([i for i, _ in done], [t.triangles.shape[0] for _, t in done])
+        corners = np.concatenate([t.ids[t.triangles] for _, t in done])
+        tris["id_a"], tris["id_b"], tris["id_c"] = corners.T
+        xy = np.concatenate([t.points[t.triangles].reshape(-1, 6) for _, t in done])  # x0, y0, x1, y1, x2, y2
         for j in range(3):
-            tr[f"x{j}"], tr[f"y{j}"] = t.points[t.triangles[:, j]].T
-        tr["area"], tr["change"], tr["flipped"] = t.area, t.area_change, t.flipped
-        tris.append(tr)
-    return SpanStrain(
-        span,
-        pairs,
-        np.concatenate(edges) if edges else np.zeros(0, EDGE_DTYPE),
-        np.concatenate(tris) if tris else np.zeros(0, TRIANGLE_DTYPE),
-    )
+            tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
+        tris["area"] = np.concatenate([t.area for _, t in done])
+        tris["change"] = np.concatenate([t.area_change for _, t in done])
+        tris["flipped"] = np.concatenate([t.flipped for _, t in done])
+    return SpanStrain(span, pairs, edges, tris)
 
 
 def sliding_axis(fingertip_position: np.ndarray) -> int:
