@@ -198,3 +198,55 @@ def test_refined_tracker_positions_are_subpixel():
     assert len(m) >= 20
     err = np.hypot(*(m.displacement - (steps[4] - steps[0])).T)
     assert np.median(err) < 0.03 and np.sqrt(np.mean(err**2)) < 0.06  # vs 0.7 px for the extracted positions
+
+
+def _reference_match(a, b, pred, radius):
+    """Eq. 5.1 matching written out pair by pair (the compiled matcher must give the same pairs)."""
+    cands = []
+    ax, ay, ao, bx, by, bo = (t[c].astype(np.float64) for t in (a, b) for c in ("x", "y", "orientation"))
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            d = np.hypot(bx[j] - (ax[i] + pred[i, 0]), by[j] - (ay[i] + pred[i, 1]))
+            if d > radius or a["kind"][i] != b["kind"][j]:
+                continue
+            orient = 0.0
+            if a["orientation_known"][i] and b["orientation_known"][j]:
+                dtheta = abs((ao[i] - bo[j] + 180.0) % 360.0 - 180.0)
+                orient = (180.0 - dtheta) / 180.0
+            cands.append((-(orient + (radius - d) / radius), d, i, j))
+    used_a, used_b, out = set(), set(), {}
+    for negc, _, i, j in sorted(cands):
+        if i not in used_a and j not in used_b:
+            used_a.add(i), used_b.add(j)
+            out[i] = (j, -negc)
+    return out
+
+
+def test_compiled_matching_equals_the_written_out_rule():
+    rng = np.random.default_rng(5)
+    radius = CAL.px(0.3)
+    for trial in range(20):
+        n, m = rng.integers(0, 60, 2)
+        orient_a = np.where(rng.random(n) < 0.3, np.nan, rng.uniform(0, 360, n))
+        orient_b = np.where(rng.random(m) < 0.3, np.nan, rng.uniform(0, 360, m))
+        a = make_features(rng.uniform(0, 120, n), rng.uniform(0, 120, n), rng.integers(0, 3, n), orientation=orient_a)
+        b = make_features(rng.uniform(0, 120, m), rng.uniform(0, 120, m), rng.integers(0, 3, m), orientation=orient_b)
+        pred = rng.normal(0, 3, (n, 2))
+        got = match_features(a, b, calibration=CAL, predicted_displacement=pred)
+        ref = _reference_match(a, b, pred, radius)
+        assert got.prev_index.tolist() == sorted(ref)  # sorted by row of the previous frame
+        assert got.curr_index.tolist() == [ref[i][0] for i in sorted(ref)]
+        np.testing.assert_allclose(got.confidence, [ref[i][1] for i in sorted(ref)], rtol=0, atol=1e-12)
+
+
+def test_local_predictions_are_medians_of_nearest_neighbours():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(6)
+    for k in (1, 4, 7):
+        mp = rng.uniform(0, 300, (80, 2))
+        md = rng.normal(0, 2, (80, 2))
+        pts = np.concatenate([rng.uniform(0, 300, (50, 2)), mp[:10]])  # also at matched points themselves
+        _, idx = cKDTree(mp).query(pts, k=k)
+        expected = np.median(md[idx.reshape(len(pts), k)], axis=1)
+        np.testing.assert_array_equal(local_predictions(pts, mp, md, neighbours=k), expected)
