@@ -69,19 +69,41 @@ class CameraModel:
     def apply(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Blur, add noise and quantise a float image in grey levels; returns uint8.
 
-        The noise draws one 16-bit uniform per pixel from ``rng`` (``rng.bytes``, the generator's fastest output) and
-        maps it through a table of normal quantiles (:func:`normal_quantile_table`): a Gaussian to 16 bits,
-        truncated at 4.2 sigma, with unit variance; three times faster than ``standard_normal``.
+        The noise draws one 16-bit uniform per pixel from ``rng`` (:meth:`noise_indices`) and maps it through a table
+        of normal quantiles (:func:`normal_quantile_table`): a Gaussian to 16 bits, truncated at 4.2 sigma, with unit
+        variance; three times faster than ``standard_normal``.
         """
         img = np.asarray(radiance, dtype=np.float32)
         if img.ndim != 2:
             raise InvalidInputError(f"radiance must be a 2-D image, got shape {img.shape}")
+        return self.apply_rows(img, 0, img.shape[0], self.noise_indices(rng, img.shape))
+
+    @property
+    def blur_halo_px(self) -> int:
+        """Rows of context on each side of a row that its blur reads (cv2.GaussianBlur's kernel radius, plus one)."""
+        if self.blur_sigma_px <= 0:
+            return 0
+        ksize = int(round(self.blur_sigma_px * 8 + 1)) | 1  # cv2's kernel size for float images
+        return ksize // 2 + 1
+
+    def noise_indices(self, rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray | None:
+        """The uniform 16-bit indices (uint16, ``shape``) that :meth:`apply` draws from ``rng``; None without noise."""
+        if self.noise_sigma > 0 or self.shot_noise_gain > 0:
+            return np.frombuffer(rng.bytes(2 * int(shape[0]) * int(shape[1])), dtype="<u2").reshape(shape)
+        return None
+
+    def apply_rows(self, radiance: np.ndarray, start: int, stop: int, noise_idx: np.ndarray | None) -> np.ndarray:
+        """Rows ``start:stop`` of the camera image of a block of radiance rows (float32) that extends at least
+        :attr:`blur_halo_px` rows beyond them or reaches the image border there; ``noise_idx`` holds the noise
+        indices of those rows (:meth:`noise_indices`). Rendering an image in row bands this way gives the same
+        result as :meth:`apply` on the whole of it."""
+        img = radiance
         if self.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), sigmaX=self.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-        if self.noise_sigma > 0 or self.shot_noise_gain > 0:
-            idx = np.frombuffer(rng.bytes(2 * img.size), dtype="<u2").reshape(img.shape)
-            return _noise_and_quantise(np.ascontiguousarray(img), idx, normal_quantile_table(),
-                                       np.float32(self.noise_sigma**2), np.float32(self.shot_noise_gain))
+        img = np.ascontiguousarray(img[start:stop])
+        if noise_idx is not None:
+            return _noise_and_quantise(img, noise_idx, normal_quantile_table(), np.float32(self.noise_sigma**2),
+                                       np.float32(self.shot_noise_gain))
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 

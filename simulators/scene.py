@@ -389,7 +389,7 @@ class SceneRenderer:
         ny = (h - 1) // _NODE_STEP_PX + 4
         gx, gy = np.meshgrid((np.arange(nx) - 1.0) * _NODE_STEP_PX, (np.arange(ny) - 1.0) * _NODE_STEP_PX)
         self._nodes_surface = optics.image_to_surface(np.stack([gx, gy], -1).astype(np.float64))
-        self._bands = _row_bands(h, ny, _N_BANDS)
+        self._bands = _row_bands(h, _N_BANDS)
         #: Threads rendering the row bands of one frame (the frames do not depend on it).
         self.threads = min(_N_BANDS, os.cpu_count() or 1)
         fx, fy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -492,10 +492,11 @@ class SceneRenderer:
     def _contact_at(self, X: np.ndarray, x_surface: np.ndarray, t_s: float) -> np.ndarray:
         return self._ellipse_contact(X, t_s) * self._surface_contact(x_surface[..., 1])
 
-    def _band_maps(self, d: FrameDeformation, band: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """Master-image column and row maps (float32, contiguous) of image rows ``band[0]:band[1]``: the exact
-        inverse at the nodes of the band, Catmull-Rom in between."""
-        r0, r1, n0, n1 = band
+    def _row_maps(self, d: FrameDeformation, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Master-image column and row maps (float32, contiguous) of image rows ``r0:r1``: the exact inverse at the
+        nodes those rows need, Catmull-Rom in between."""
+        n0 = r0 // _NODE_STEP_PX  # row r uses node rows r // step .. r // step + 3 (Catmull-Rom)
+        n1 = (r1 - 1) // _NODE_STEP_PX + 4
         X = d.inverse(self._nodes_surface[n0:n1])
         return _node_maps(X, self._master_u0, self._master_s0, 1.0 / self._master_step, r0, r1,
                           self.camera_mode.width, n0, _NODE_STEP_PX)
@@ -504,11 +505,32 @@ class SceneRenderer:
         """(H, W, 2) float32: master-image column and row of the skin seen at each pixel (Catmull-Rom from nodes)."""
         d = self._deform(k)
         out = np.empty((self.camera_mode.height, self.camera_mode.width, 2), dtype=np.float32)
-        for band in self._bands:
-            mx, my = self._band_maps(d, band)
-            out[band[0] : band[1], :, 0] = mx
-            out[band[0] : band[1], :, 1] = my
+        for r0, r1 in self._bands:
+            mx, my = self._row_maps(d, r0, r1)
+            out[r0:r1, :, 0] = mx
+            out[r0:r1, :, 1] = my
         return out
+
+    def _radiance_rows(self, k: int):
+        """A function (r0, r1, out) writing the radiance of rows r0:r1 of frame k into ``out`` (float32)."""
+        cam = self.scene.camera
+        c = self.scene.contact
+        d = self._deform(k)
+        a, b = self._contact_axes(self.time_of(k))
+        consts = (
+            np.float32(cam.ridge_level), np.float32(cam.valley_level),
+            float(self._master_u0 - c.center_mm[0]), float(self._master_s0 - c.center_mm[1]),
+            float(self._master_step), float(a), float(b), float(c.edge_mm),
+        )
+
+        def rows(r0: int, r1: int, out: np.ndarray) -> None:
+            mx, my = self._row_maps(d, r0, r1)
+            # Separate x / y maps: cv2's cubic remap is twice as fast with them as with one 2-channel map.
+            v = cv2.remap(self._master, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            _compose(v, mx, my, self._surface_contact_px[r0:r1], self._gain[r0:r1], self._background[r0:r1],
+                     *consts, out)
+
+        return rows
 
     def _contact_axes(self, t_s: float) -> tuple[float, float]:
         c = self.scene.contact
@@ -523,34 +545,35 @@ class SceneRenderer:
         does not depend on it.
         """
         self._check_frame(k)
-        cam = self.scene.camera
-        c = self.scene.contact
-        d = self._deform(k)
-        a, b = self._contact_axes(self.time_of(k))
+        rows = self._radiance_rows(k)
         out = np.empty((self.camera_mode.height, self.camera_mode.width), dtype=np.float32)
-        consts = (
-            np.float32(cam.ridge_level), np.float32(cam.valley_level),
-            float(self._master_u0 - c.center_mm[0]), float(self._master_s0 - c.center_mm[1]),
-            float(self._master_step), float(a), float(b), float(c.edge_mm),
-        )
-
-        def band(bd: tuple[int, int, int, int]) -> None:
-            r0, r1 = bd[0], bd[1]
-            mx, my = self._band_maps(d, bd)
-            # Separate x / y maps: cv2's cubic remap is twice as fast with them as with one 2-channel map.
-            v = cv2.remap(self._master, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-            _compose(v, mx, my, self._surface_contact_px[r0:r1], self._gain[r0:r1], self._background[r0:r1],
-                     *consts, out[r0:r1])
-
-        _run_bands(band, self._bands, self.threads if threads is None else threads)
+        _run_bands(lambda band: rows(*band, out[band[0] : band[1]]), self._bands,
+                   self.threads if threads is None else threads)
         return out
 
     def render_frame(self, k: int, *, threads: int | None = None) -> np.ndarray:
-        """Frame k as the camera delivers it: uint8 (H, W). Deterministic for (scene, seed, noise, k), whatever the
-        order of the calls and the number of ``threads`` (default :attr:`threads`)."""
+        """Frame k as the camera delivers it: uint8 (H, W), ``camera.apply(radiance(k), rng_k)``. Deterministic for
+        (scene, seed, noise, k), whatever the order of the calls and the number of ``threads`` (default
+        :attr:`threads`)."""
+        self._check_frame(k)
+        h, w = self.camera_mode.height, self.camera_mode.width
         # Noise stream of frame k: its own child of the seed, so any frame renders alone, in any order.
         rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(1, int(k))))
-        return self.camera.apply(self.radiance(k, threads=threads), rng)
+        idx = self.camera.noise_indices(rng, (h, w))
+        rows = self._radiance_rows(k)
+        halo = self.camera.blur_halo_px
+        out = np.empty((h, w), dtype=np.uint8)
+
+        def band(bd: tuple[int, int]) -> None:
+            # Each band renders the rows its blur needs beyond it (a few, computed twice) and finishes its rows.
+            r0, r1 = bd
+            e0, e1 = max(r0 - halo, 0), min(r1 + halo, h)
+            rad = np.empty((e1 - e0, w), dtype=np.float32)
+            rows(e0, e1, rad)
+            out[r0:r1] = self.camera.apply_rows(rad, r0 - e0, r1 - e0, None if idx is None else idx[r0:r1])
+
+        _run_bands(band, self._bands, self.threads if threads is None else threads)
+        return out
 
     def _check_frame(self, k: int) -> None:
         if not isinstance(k, (int, np.integer)) or not 0 <= k < self.n_frames:
@@ -641,17 +664,10 @@ _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 
 
-def _row_bands(height: int, n_node_rows: int, n_bands: int) -> list[tuple[int, int, int, int]]:
-    """(first row, end row, first node row, end node row) of ``n_bands`` bands of image rows."""
-    bands = []
-    for i in range(n_bands):
-        r0, r1 = i * height // n_bands, (i + 1) * height // n_bands
-        n0 = r0 // _NODE_STEP_PX  # rows r0..r1-1 use node rows r // step .. r // step + 3 (Catmull-Rom)
-        n1 = (r1 - 1) // _NODE_STEP_PX + 4
-        if r1 > r0:
-            assert n1 <= n_node_rows
-            bands.append((r0, r1, n0, n1))
-    return bands
+def _row_bands(height: int, n_bands: int) -> list[tuple[int, int]]:
+    """(first row, end row) of ``n_bands`` bands of image rows."""
+    bands = [(i * height // n_bands, (i + 1) * height // n_bands) for i in range(n_bands)]
+    return [b for b in bands if b[1] > b[0]]
 
 
 def _run_bands(fn, bands, threads: int) -> None:

@@ -93,6 +93,9 @@ def test_rendering_is_deterministic_in_any_order():
     # Row bands in one thread or two, and frames in parallel: the same bytes.
     assert np.array_equal(a.render_frame(5, threads=1), fa[0])
     assert np.array_equal(a.render_frame(5, threads=2), fa[0])
+    # The banded pipeline (blur with a few rows of context per band) is the camera applied to the whole radiance.
+    rng5 = np.random.default_rng(np.random.SeedSequence(4, spawn_key=(1, 5)))
+    assert np.array_equal(a.camera.apply(a.radiance(5), rng5), fa[0])
     par = render_session(scene, seed=4, workers=2)
     assert np.array_equal(par.frames[5], fa[0]) and np.array_equal(par.frames[2], fa[1])
     b.threads = 1
@@ -175,3 +178,21 @@ def test_renders_through_prism_optics():
     _, _, skin = r.fingerprint.features()
     np.testing.assert_allclose(xy, optics.surface_to_image(r.deformation.at(2 / 60).forward(skin)))
     assert vis.sum() > 20
+
+
+def test_camera_noise_has_the_stated_sigma():
+    from simulators.camera_model import CameraModel
+
+    cam = CameraModel(blur_sigma_px=0.0, noise_sigma=2.0, shot_noise_gain=0.05)
+    img = np.full((484, 640), 100.3, np.float32)
+    out = cam.apply(img, np.random.default_rng(0)).astype(np.float64)
+    # Read + shot noise, plus the 1/12 grey level^2 of quantisation.
+    sigma = np.sqrt(2.0**2 + 0.05 * 100.3 + 1 / 12)
+    assert out.mean() == pytest.approx(100.3, abs=0.03)
+    assert out.std() == pytest.approx(sigma, rel=0.01)
+    # Gaussian tails: 4.55 % beyond 2 sigma of the noise (quantisation shifts it a little).
+    z = np.abs(out - 100.3) / np.sqrt(2.0**2 + 0.05 * 100.3)
+    assert 0.040 < np.mean(z > 2) < 0.052
+    # Independent pixels: no correlation between neighbours.
+    c = np.corrcoef(out[:, :-1].ravel(), out[:, 1:].ravel())[0, 1]
+    assert abs(c) < 0.01
