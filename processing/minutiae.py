@@ -27,6 +27,37 @@ __all__ = ["SkeletonGraph", "trace_skeleton", "node_kind", "branch_direction", "
 
 
 @njit(nogil=True)
+def _nonzero(f):  # pragma: no cover - compiled
+    """Indices of the non-zero bytes of ``f`` (uint8, 1-D), ascending; skips zero bytes eight at a time (a
+    skeleton covers ~3% of a frame). Unlike np.flatnonzero it runs without the GIL."""
+    n = f.size
+    n8 = n // 8
+    words = f[: n8 * 8].view(np.uint64)
+    count = 0
+    for j in range(n8):
+        if words[j] != 0:
+            for i in range(8 * j, 8 * j + 8):
+                if f[i]:
+                    count += 1
+    for i in range(n8 * 8, n):
+        if f[i]:
+            count += 1
+    out = np.empty(count, np.int64)
+    k = 0
+    for j in range(n8):
+        if words[j] != 0:
+            for i in range(8 * j, 8 * j + 8):
+                if f[i]:
+                    out[k] = i
+                    k += 1
+    for i in range(n8 * 8, n):
+        if f[i]:
+            out[k] = i
+            k += 1
+    return out
+
+
+@njit(nogil=True)
 def _trace(f, h, w, pix):  # pragma: no cover - compiled
     """Trace the skeleton ``f`` (flat, zero outer ring) whose pixels, in raster order, are ``pix``."""
     offs = np.array([-w, -w + 1, 1, w + 1, w, w - 1, -1, -w - 1])
@@ -354,7 +385,7 @@ def trace_skeleton(skeleton: np.ndarray) -> SkeletonGraph:
     sk[:, -1] = 0
     h, w = sk.shape
     flat = sk.ravel()
-    node_x, node_y, _, iso, e_a, e_b, e_start, e_len, e_length, path = _trace(flat, h, w, np.flatnonzero(flat))
+    node_x, node_y, _, iso, e_a, e_b, e_start, e_len, e_length, path = _trace(flat, h, w, _nonzero(flat))
     px = np.stack([path % w, path // w], axis=1)
     # Self-loops shorter than 4 px are a thick junction's inner corner, not a valley.
     keep = ~((e_a == e_b) & (e_length < 4))

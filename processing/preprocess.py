@@ -180,5 +180,8 @@ def binarize(
     if background is not None:
         if background.shape != smoothed.shape:
             raise InvalidInputError(f"background shape {background.shape} differs from the image's {smoothed.shape}")
-        binary[background] = 0
+        # Through OpenCV (no boolean-mask indexing: that holds the GIL for a whole-frame scan).
+        bg = np.ascontiguousarray(background if background.dtype == np.bool_ else background != 0)
+        foreground = cv2.compare(bg.view(np.uint8), 0, cv2.CMP_EQ)
+        binary = cv2.bitwise_and(binary, foreground)
     return binary
