@@ -428,10 +428,14 @@ def node_kind(graph: SkeletonGraph, node: int) -> int:
 def branch_direction(graph: SkeletonGraph, node: int, edge: int, *, n_px: int) -> tuple[float, float, bool]:
     """Unit vector (dx, dy) from ``node`` to the ``n_px``-th pixel of ``edge`` (seed 4.7), and whether the valley
     was long enough (at least ``n_px // 2`` pixels) to trust it."""
-    path = graph.path_from(edge, node)
+    path = graph.edge_path[edge]
+    m = len(path)
     x0, y0 = graph.node_x[node], graph.node_y[node]
-    if len(path) >= 1:
-        tx, ty = path[min(n_px, len(path)) - 1]
+    if m >= 1:
+        k = min(n_px, m) - 1
+        if graph.edge_a[edge] != node:  # the path runs from the other end (path_from would reverse it)
+            k = m - 1 - k
+        tx, ty = path[k].tolist()
     else:
         other = graph.other_end(edge, node)
         tx, ty = graph.node_x[other], graph.node_y[other]
@@ -439,7 +443,7 @@ def branch_direction(graph: SkeletonGraph, node: int, edge: int, *, n_px: int) -
     norm = math.hypot(dx, dy)
     if norm == 0:
         return 0.0, 0.0, False
-    return dx / norm, dy / norm, len(path) + 1 >= max(n_px // 2, 2)
+    return dx / norm, dy / norm, m + 1 >= max(n_px // 2, 2)
 
 
 def _angle_deg(dx: float, dy: float) -> float:
