@@ -2,7 +2,9 @@
 kept, and the contactors go to rest (driver rest when the link allows, firmware watchdog otherwise)."""
 
 import itertools
+import os
 import time
+import tty
 
 import numpy as np
 import pytest
@@ -176,3 +178,25 @@ def test_unknown_url_options_and_fault_specs_are_refused():
         LinkFaults.parse("explode:1")
     with pytest.raises(DeviceError, match="cannot open"):
         SerialTransport("/dev/does-not-exist-stress")
+
+
+def test_a_port_nobody_reads_fails_the_write_in_bounded_time(monkeypatch):
+    # a real pty whose far end never reads: the kernel buffer fills, then a write must give up, not hang
+    monkeypatch.setattr(SerialTransport, "WRITE_TIMEOUT_S", 0.05)
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    transport = SerialTransport(os.ttyname(slave))
+    packet = sp.encode_packet(seq=1, command=sp.Command.FRAME, payload=bytes(sp.N_CONTACTORS))
+    try:
+        start = time.monotonic()
+        with pytest.raises(DeviceError, match="took .* of"):
+            for _ in range(100_000):  # far more than any pty buffer holds
+                transport.write(packet)
+        assert time.monotonic() - start < 10.0
+        transport.close()
+        with pytest.raises(DeviceError):  # closed: never written to a reused descriptor number
+            transport.write(packet)
+    finally:
+        transport.close()
+        os.close(master)
+        os.close(slave)

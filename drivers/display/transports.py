@@ -9,8 +9,10 @@ from __future__ import annotations
 import abc
 import errno
 import math
+import os
 import select
 import threading
+import time
 
 from processing.errors import DeviceError, InvalidInputError
 
@@ -58,6 +60,8 @@ class SerialTransport(Transport):
         Line rate in bit/s; the protocol needs >= 749 kbaud at 700 Hz (``docs/protocols/stress.md``).
     """
 
+    WRITE_TIMEOUT_S = 1.0  # a port that takes no byte for this long is dead
+
     def __init__(self, url: str, *, baudrate: int = 2_000_000) -> None:
         import serial  # the dependency is only needed when a serial link is used
 
@@ -68,7 +72,7 @@ class SerialTransport(Transport):
         self._serial_module = serial
         self._url = url
         try:
-            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=1.0)
+            self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=self.WRITE_TIMEOUT_S)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open serial link {url!r}: {exc}") from exc
         self.baudrate = baudrate
@@ -82,11 +86,40 @@ class SerialTransport(Transport):
         return f"serial {self._url} @ {self.baudrate} baud"
 
     def write(self, data: bytes) -> None:
+        if self._fd is not None:
+            self._write_fd(data)
+            return
         try:
             written = self._port.write(data)
             if written is not None and written != len(data):
                 raise DeviceError(f"serial link {self._url!r} wrote {written} of {len(data)} bytes")
         except (self._serial_module.SerialException, OSError) as exc:
+            raise DeviceError(f"serial link {self._url!r} lost while writing: {exc}") from exc
+
+    def _write_fd(self, data: bytes) -> None:
+        """Write to the port's (non-blocking) descriptor; wait for room only when the driver's buffer is full.
+
+        pyserial's own write selects for writability after *every* write when a write timeout is set: on a pty
+        that wait follows the kernel's buffer-flush worker (an ordinary thread) and took 0.5 ms at p99 and up to
+        5 ms on a loaded machine, on the deadline path of every frame.
+        """
+        view = memoryview(data)
+        deadline = None
+        try:
+            while view:
+                try:
+                    n = os.write(self._fd, view)
+                except BlockingIOError:
+                    n = 0
+                view = view[n:]
+                if view:
+                    now = time.monotonic()
+                    deadline = now + self.WRITE_TIMEOUT_S if deadline is None else deadline
+                    if now >= deadline:
+                        raise DeviceError(f"serial link {self._url!r} took {len(data) - len(view)} of {len(data)} "
+                                          f"bytes within {self.WRITE_TIMEOUT_S} s")
+                    select.select([], [self._fd], [], deadline - now)
+        except OSError as exc:
             raise DeviceError(f"serial link {self._url!r} lost while writing: {exc}") from exc
 
     def read(self, max_bytes: int, *, timeout_s: float) -> bytes:
@@ -97,7 +130,10 @@ class SerialTransport(Transport):
                 ready, _, _ = select.select([self._fd], [], [], timeout_s)
                 if not ready:
                     return b""
-                data = self._port.read(max(1, min(max_bytes, self._port.in_waiting)))
+                try:
+                    data = os.read(self._fd, max(1, max_bytes))  # the descriptor is non-blocking (pyserial)
+                except BlockingIOError:
+                    return b""
                 if not data:
                     raise DeviceError(f"serial link {self._url!r} lost: readable but no data (device gone)")
                 return data
@@ -115,6 +151,7 @@ class SerialTransport(Transport):
             raise DeviceError(f"serial link {self._url!r} lost while reading: {exc}") from exc
 
     def close(self) -> None:
+        self._fd = None  # the number may be reused by the next open file: never write to it again
         try:
             self._port.close()
         except (self._serial_module.SerialException, OSError):
