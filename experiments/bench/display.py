@@ -1,7 +1,9 @@
 """Bench section ``display``: 700 Hz tactile-movie playback on the simulated STReSS display over each transport.
 
 Speed: missed deadlines and period jitter, on the host's send clock and on the firmware simulator's receive clock
-(the time the last byte of each frame arrives on the modelled 2 Mbaud line). Error: open-loop position error
+(the time the last byte of each frame arrives on the modelled 2 Mbaud line). A second table says where the
+sending loop lost the CPU (stalls located by loop phase, from the per-frame phase stamps), next to the same
+deadline loop with no display at all: the floor the machine itself sets. Error: open-loop position error
 per contactor from the acks (measured position when frame k arrives minus the command of frame k - 1).
 
 The host loop asks for SCHED_FIFO when it may (root on Linux): a playback loop on a lab PC would run so, and on
@@ -18,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.display import stress_protocol as sp
-from drivers.display.playback import PlaybackReport, stream_movie
+from drivers.display.playback import PHASES, PlaybackReport, find_stalls, stream_movie
 from drivers.display.stress import StressDisplay
 from drivers.display.transports import SerialTransport, UsbTransport
 from experiments.bench import BenchOptions, BenchTable
@@ -36,6 +38,7 @@ JITTER_TARGET_S = 0.3e-3
 BENCH_WATCHDOG_S = 0.5
 MAX_OUTSTANDING = 200
 DRIVER_OPTIONS = {"watchdog_s": BENCH_WATCHDOG_S, "ack_timeout_s": 0.2}
+STALL_S = 0.004  # a gap this long between two stamps of the loop is a stall (about 3 frame periods)
 SPIN_S = 0.0007  # busy-wait before each deadline: covers the p99 wake-up overshoot measured here (~0.45 ms)
 
 
@@ -48,7 +51,11 @@ def travelling_wave(n_frames: int, *, rate_hz: float = RATE_HZ, amplitude_um: fl
 
 
 class _RealtimePriority:
-    """SCHED_FIFO for this process while inside the block, when the OS allows it (restored after)."""
+    """SCHED_FIFO for this thread while inside the block, when the OS allows it (restored after).
+
+    Threads and processes started inside the block (the USB reader, the firmware process) inherit the policy.
+    (Locking memory with mlockall as well was tried: no fewer stalls on this machine, 108 MB more resident.)
+    """
 
     def __enter__(self) -> "_RealtimePriority":
         self.granted = False
@@ -65,6 +72,50 @@ class _RealtimePriority:
     def __exit__(self, *exc) -> None:
         if self.granted and self._saved is not None:
             os.sched_setscheduler(0, self._saved[0], self._saved[1])
+
+
+def _timer_only(n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The playback loop's timing with no display: wait (sleep) to ``SPIN_S`` before each deadline, then spin.
+
+    Returns (lateness s, phase times (frames, len(PHASES)) relative to the first deadline, thread CPU s): the
+    floor the machine itself sets, to compare the transports' rows with.
+    """
+    period = 1.0 / RATE_HZ
+    clock = time.perf_counter
+    phases = np.full((n_frames, len(PHASES)), np.nan)
+    cpu = np.full(n_frames, np.nan)
+    late = np.full(n_frames, 0.0)
+    t0 = clock() + 2 * period
+    for k in range(n_frames):
+        deadline = t0 + k * period
+        now = clock()
+        phases[k, 0] = now - t0
+        cpu[k] = time.thread_time()
+        remaining = deadline - now - SPIN_S
+        if remaining > 0:
+            time.sleep(remaining)
+        phases[k, 1] = phases[k, 2] = clock() - t0
+        while clock() < deadline:
+            pass
+        now = clock()
+        phases[k, 3] = phases[k, 4] = now - t0
+        late[k] = now - deadline
+    return late, phases, cpu - cpu[0]
+
+
+def _stall_row(name: str, missed: int, stalls: list, load: tuple[float, float]) -> list:
+    """Where a loop lost the CPU: count, total and longest stall, split by loop phase and by CPU charge."""
+    durations = np.array([s.duration_s for s in stalls])
+    where = {"waited": 0, "prepared": 0, "send": 0, "sent": 0, "start": 0}  # the phase each gap ended in
+    for s in stalls:
+        where[s.after] += 1
+    on_cpu = sum(1 for s in stalls if np.isfinite(s.thread_cpu_s) and s.thread_cpu_s > 0.5 * s.duration_s)
+    return [name, missed, len(stalls), float(durations.sum() * 1e3) if stalls else 0.0,
+            float(durations.max() * 1e3) if stalls else 0.0, *where.values(), on_cpu, load[0], load[1]]
+
+
+def _load() -> float:
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
 def _jitter(times_s: np.ndarray) -> tuple[float, float]:
@@ -113,43 +164,56 @@ def run(options: BenchOptions) -> list[BenchTable]:
     workdir = Path(options.workdir) if options.workdir else Path(tempfile.gettempdir())
     workdir.mkdir(parents=True, exist_ok=True)
 
+    stall_rows = []
+
+    def played(name: str, report: PlaybackReport, fw_times, load_before: float) -> None:
+        rows.append(_row(name, report, np.asarray(fw_times), priority.granted))
+        stall_rows.append(_stall_row(name, report.missed_deadlines, report.stalls(STALL_S), (load_before, _load())))
+
     with _RealtimePriority() as priority:
+        # 0. the same deadline loop with no display at all: what the machine alone costs
+        load_before = _load()
+        late, phases, cpu = _timer_only(len(movie))
+        stall_rows.append(_stall_row("timer only (no display)", int(np.sum(late > 0.25 / RATE_HZ)),
+                                     find_stalls(phases, cpu, min_gap_s=STALL_S), (load_before, _load())))
+
         # 1. pyserial URL: the firmware runs on the host's calls; its clock is the modelled line
+        load_before = _load()
         link = stresssim.make_link(seed=1)
         report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_url", link)), **DRIVER_OPTIONS), movie)
-        rows.append(_row("stresssim:// (in process)", report, np.asarray(link.firmware.frame_times),
-                         priority.granted))
+        played("stresssim:// (in process)", report, link.firmware.frame_times, load_before)
         grids["stresssim://"] = report
         stresssim.detach("bench_url")
 
         # 2. the same with a finger load on the centre of the array (skin as stiff as a bender, half of it)
+        load_before = _load()
         link = stresssim.make_link(seed=1)
         load = np.zeros((sp.ROWS, sp.COLS))
         load[3:7, 3:7] = 0.25
         link.firmware.benders.set_load(load)
         report = _play(StressDisplay(SerialTransport(stresssim.attach("bench_load", link)), **DRIVER_OPTIONS), movie)
-        rows.append(_row("stresssim:// + finger load", report, np.asarray(link.firmware.frame_times),
-                         priority.granted))
+        played("stresssim:// + finger load", report, link.firmware.frame_times, load_before)
         grids["stresssim:// + load 0.25 N/mm on rows/cols 3-6"] = report
         stresssim.detach("bench_load")
 
         # 3. a real pty to the firmware in its own process (kernel tty path, two schedulers)
+        load_before = _load()
         record = workdir / f"display-firmware-{os.getpid()}.npz"
         with stresssim.FirmwareProcess(record_path=record, seed=1) as firmware:
             report = _play(StressDisplay(SerialTransport(firmware.port), **DRIVER_OPTIONS), movie)
         fw_times = firmware.records()["frame_times"]
         record.unlink(missing_ok=True)
-        rows.append(_row("pty + firmware process", report, fw_times, priority.granted))
+        played("pty + firmware process", report, fw_times, load_before)
 
         # 4. pyusb bulk endpoints (high-speed USB model: 125 us microframe latency)
+        load_before = _load()
         link = PacedLink.usb_high_speed(StressFirmware(seed=1, t0=time.perf_counter()), clock=RealClock())
         report = _play(StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), **DRIVER_OPTIONS), movie)
-        rows.append(_row("USB bulk (pyusb backend)", report, np.asarray(link.firmware.frame_times),
-                         priority.granted))
+        played("USB bulk (pyusb backend)", report, link.firmware.frame_times, load_before)
 
     notes.extend(_errors)
     _errors.clear()
-    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load1 = _load()
     notes.append(f"{seconds:.0f} s at {RATE_HZ:.0f} Hz per row ({len(movie)} frames), travelling wave 20 um / 8 Hz; "
                  f"2 Mbaud 8N1 link model; machine load average {load1:.1f} on {os.cpu_count()} cores.")
     notes.append(f"bench settings: watchdog {BENCH_WATCHDOG_S} s, window {MAX_OUTSTANDING} frames, "
@@ -165,7 +229,18 @@ def run(options: BenchOptions) -> list[BenchTable]:
                  "RMS err um (worst)", "|bias| um (mean)", "target met", "outcome"],
         rows=rows, notes=notes)
 
-    tables = [speed]
+    stalls = BenchTable(
+        title=f"display: where the sending loop lost the CPU (gaps >= {STALL_S * 1e3:.0f} ms between phase stamps)",
+        columns=["loop", "missed", "stalls", "stalled ms", "longest ms", "in wait", "in callback+prepare",
+                 "in spin", "in send", "between frames", "thread on CPU", "load before", "load after"],
+        rows=stall_rows,
+        notes=["a stall is a gap between consecutive stamps of the loop (PlaybackReport.phase_times_s); 'thread on "
+               "CPU' counts stalls whose time was charged to the sending thread (kernel, interrupt or hypervisor "
+               "time billed to it), the others are time it was not running at all (late wake-up, preempted, "
+               "vCPU stolen, GIL held elsewhere).",
+               "'timer only' is the same sleep-then-spin loop with no display, transport or firmware: stalls there "
+               "come from the machine, not from the playback code."])
+    tables = [speed, stalls]
     for name, report in grids.items():
         try:
             rms = report.position_rms_error_um()
