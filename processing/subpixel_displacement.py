@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from processing.calibration import Calibration
@@ -237,14 +238,22 @@ class PreparedImage:
 
 def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
     """Fraction of the (2 half + 1)^2 window around each point that is set in the mask of ``integral``."""
+    return _window_fraction_kernel(integral, np.ascontiguousarray(points, dtype=np.float64), int(half))
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_fraction_kernel(integral, points, half):
     h, w = integral.shape[0] - 1, integral.shape[1] - 1
-    c = np.clip(np.round(points[:, 0]).astype(np.int64), 0, w - 1)
-    r = np.clip(np.round(points[:, 1]).astype(np.int64), 0, h - 1)
-    r0, r1 = np.clip(r - half, 0, h), np.clip(r + half + 1, 0, h)
-    c0, c1 = np.clip(c - half, 0, w), np.clip(c + half + 1, 0, w)
-    total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
-    area = np.maximum((r1 - r0) * (c1 - c0), 1)
-    return total / area
+    out = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        # np.round: half to even, as numpy rounds
+        c = min(max(int(np.round(points[i, 0])), 0), w - 1)
+        r = min(max(int(np.round(points[i, 1])), 0), h - 1)
+        r0, r1 = min(max(r - half, 0), h), min(max(r + half + 1, 0), h)
+        c0, c1 = min(max(c - half, 0), w), min(max(c + half + 1, 0), w)
+        total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+        out[i] = total / max((r1 - r0) * (c1 - c0), 1)
+    return out
 
 
 def _as_gray(image: np.ndarray, name: str) -> np.ndarray:

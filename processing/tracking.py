@@ -467,7 +467,9 @@ class FeatureTracker:
             self.global_shifts.append(shift)
             self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
             # Features of frame k-1 left unmatched may be re-linked within max_gap_frames (beyond the seed).
-            unmatched_prev = np.setdiff1d(np.arange(prev.xy.shape[0]), pi)
+            matched_prev = np.zeros(prev.xy.shape[0], bool)
+            matched_prev[pi] = True
+            unmatched_prev = np.flatnonzero(~matched_prev)
             step = np.median(d, axis=0) if pi.size else shift
             self._lost.advance(step)
             free = np.nonzero(tracks < 0)[0]
