@@ -66,6 +66,7 @@ def _trace(f, h, w, pix):  # pragma: no cover - compiled
     # Neighbour counts of the skeleton pixels.
     n_sk = pix.size
     deg = np.zeros(n, np.int8)
+    n_node_px = 0
     for k in range(n_sk):
         i = pix[k]
         c = 0
@@ -73,6 +74,8 @@ def _trace(f, h, w, pix):  # pragma: no cover - compiled
             if f[i + offs[j]]:
                 c += 1
         deg[i] = c
+        if c == 1 or c >= 3:
+            n_node_px += 1
     # Nodes: endings (1 neighbour) and 8-connected groups of bifurcation pixels (3+ neighbours).
     node_of = np.full(n, -1, np.int32)
     node_sx = np.zeros(n_sk)
@@ -117,7 +120,9 @@ def _trace(f, h, w, pix):  # pragma: no cover - compiled
     node_x = node_sx[:n_nodes] / np.maximum(node_np[:n_nodes], 1)
     node_y = node_sy[:n_nodes] / np.maximum(node_np[:n_nodes], 1)
     # Trace every branch once, from a node pixel to the next node pixel.
-    cap = n_sk * 4 + 8
+    # Every edge leaves a node pixel toward one of its 8 neighbours: at most 8 per node pixel. (Sized to that, not
+    # to the skeleton: large scratch arrays cost more than the tracing itself.)
+    cap = 8 * n_node_px + 8
     e_a = np.empty(cap, np.int64)
     e_b = np.empty(cap, np.int64)
     e_start = np.empty(cap, np.int64)
