@@ -204,3 +204,57 @@ def test_disk_cache_written_under_another_module_name_is_recompiled(tmp_path):
         assert out.returncode == 0, out.stderr
         assert out.stdout.strip() == "42"
     assert any((pkg / "__pycache__").glob("kern.twice-*.nbi"))  # the cache is still used and written
+
+
+@pytest.mark.parametrize("shape", [(3, 3), (4, 63), (5, 64), (6, 65), (9, 128), (11, 130), (30, 200)])
+def test_bit_packed_thinning_at_word_boundaries(shape):
+    # Widths around multiples of 64 exercise the shifts between packed words.
+    from processing.thinning import thin
+
+    rng = np.random.default_rng(shape[1])
+    b = (rng.random(shape) < 0.7).astype(np.uint8)
+    b[:, shape[1] // 2 :] |= (rng.random((shape[0], shape[1] - shape[1] // 2)) < 0.5).astype(np.uint8)
+    np.testing.assert_array_equal(thin(b), _naive_thin(b))
+    np.testing.assert_array_equal(thin(np.ones(shape, np.uint8)), _naive_thin(np.ones(shape, np.uint8)))
+
+
+def test_blob_labelling_handles_empty_full_and_edge_blobs():
+    from processing.pores import detect_blob_pores
+
+    grey = np.ones((12, 70), np.float32)
+    empty = detect_blob_pores(np.zeros((12, 70), np.uint8), grey=grey, max_diameter_px=5.0)
+    full = detect_blob_pores(np.full((12, 70), 255, np.uint8), grey=grey, max_diameter_px=5.0)
+    assert empty.x.size == 0 and full.x.size == 0
+    assert np.count_nonzero(full.binary_without_pores) == 12 * 70  # one big blob is a valley, not a pore
+    b = np.zeros((12, 70), np.uint8)
+    b[0:2, 0:2] = 255  # corner blob
+    b[10:12, 66:70] = 255  # blob on the last row and column
+    b[5, 30:33] = 255
+    b[6, 32] = 255  # 4-connected to the run above
+    b[7, 33] = 255  # only 8-connected: a separate blob
+    p = detect_blob_pores(b, grey=grey, max_diameter_px=5.0)
+    assert p.x.size == 4
+    np.testing.assert_allclose(p.x, [0.5, 31.25, 33.0, 67.5])
+    np.testing.assert_allclose(p.y, [0.5, 5.25, 7.0, 10.5])
+    assert p.area_px.tolist() == [4, 4, 1, 8]
+    assert np.count_nonzero(p.binary_without_pores) == 0
+
+
+def test_compiled_density_filter_matches_a_kd_tree_reference():
+    from scipy.spatial import cKDTree
+
+    from processing.editing import feature_density_mask
+
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(0, 60, 300), rng.uniform(0, 60, 300)
+    kind = rng.integers(0, 3, 300).astype(np.int8)
+    ref = np.ones(300, bool)
+    for k in range(3):
+        idx = np.flatnonzero(kind == k)
+        pts = np.stack([x[idx], y[idx]], axis=1)
+        tree = cKDTree(pts)
+        for i in np.flatnonzero(tree.query_ball_point(pts, 4.0, return_length=True) > 3):
+            ref[idx[tree.query_ball_point(pts[i], 4.0)]] = False
+    got = feature_density_mask(x, y, kind, radius_px=4.0, max_count=3)
+    assert 0 < np.count_nonzero(~ref) < 300
+    np.testing.assert_array_equal(got, ref)
