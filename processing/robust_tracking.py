@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from processing.errors import InvalidInputError
 
@@ -125,18 +124,19 @@ def local_predictions(
     if m < 3 or points.shape[0] == 0:
         return np.tile(fb, (points.shape[0], 1))
     k = min(neighbours, m)
-    if points.shape[0] * m > 4_000_000:  # large sets: a tree beats the compiled brute force
-        _, idx = cKDTree(matched_points).query(points, k=k)
-        idx = idx.reshape(points.shape[0], k)
-        return np.median(matched_displacements[idx], axis=1)
     return _knn_median(points, matched_points, matched_displacements, k)
 
 
 @numba.njit(cache=True, nogil=True)
 def _knn_median(points, matched_points, matched_displacements, k):
-    """Per point, the median (per axis, as np.median) of the displacements of its k nearest matched points."""
+    """Per point, the median (per axis, as np.median) of the displacements of its k nearest matched points.
+    The matched points are scanned outward in x from the point's own x, stopping once the x gap alone exceeds
+    the k-th best distance so far."""
     n = points.shape[0]
     m = matched_points.shape[0]
+    order = np.argsort(matched_points[:, 0])
+    xs = matched_points[order, 0]
+    ys = matched_points[order, 1]
     out = np.empty((n, 2))
     best_d = np.empty(k)
     best_i = np.empty(k, np.int64)
@@ -145,26 +145,41 @@ def _knn_median(points, matched_points, matched_displacements, k):
         px = points[a, 0]
         py = points[a, 1]
         found = 0
-        for b in range(m):
-            dx = matched_points[b, 0] - px
-            dy = matched_points[b, 1] - py
+        hi = np.searchsorted(xs, px)
+        lo = hi - 1
+        while lo >= 0 or hi < m:
+            # the nearer side in x next
+            if hi >= m or (lo >= 0 and px - xs[lo] <= xs[hi] - px):
+                t = lo
+                lo -= 1
+            else:
+                t = hi
+                hi += 1
+            dx = xs[t] - px
+            if found == k and dx * dx > best_d[k - 1]:
+                break  # every point left is further in x alone
+            dy = ys[t] - py
             d = dx * dx + dy * dy
             if found == k and d >= best_d[k - 1]:
                 continue
             # insertion into the sorted list of the k best so far
-            t = found if found < k else k - 1
-            while t > 0 and best_d[t - 1] > d:
-                best_d[t] = best_d[t - 1]
-                best_i[t] = best_i[t - 1]
-                t -= 1
-            best_d[t] = d
-            best_i[t] = b
+            j = found if found < k else k - 1
+            while j > 0 and best_d[j - 1] > d:
+                best_d[j] = best_d[j - 1]
+                best_i[j] = best_i[j - 1]
+                j -= 1
+            best_d[j] = d
+            best_i[j] = order[t]
             if found < k:
                 found += 1
         for c in range(2):
-            for t in range(k):
-                vals[t] = matched_displacements[best_i[t], c]
-            vals.sort()
+            for j in range(k):  # insertion sort: k is small
+                v = matched_displacements[best_i[j], c]
+                q = j
+                while q > 0 and vals[q - 1] > v:
+                    vals[q] = vals[q - 1]
+                    q -= 1
+                vals[q] = v
             if k % 2:
                 out[a, c] = vals[k // 2]
             else:
