@@ -401,10 +401,12 @@ class SceneRenderer:
         self._gain = (shade * self.camera.illumination(h, w)).astype(np.float32)
         self._surface_contact_px = self._surface_contact(s_pix).astype(np.float32)
 
-        # 2. The skin ever seen: inverse-map the image border in every frame.
-        border = np.concatenate(
-            [self._nodes_surface[0], self._nodes_surface[-1], self._nodes_surface[:, 0], self._nodes_surface[:, -1]]
-        )
+        # 2. The skin ever seen: inverse-map the image border (half a pixel outside the pixel centres, a point every
+        # 4 px) in every frame. The print covers it with a margin, so its size (and a seed's print) depends on it.
+        bx = np.arange(int(np.ceil((w - 0.5) / 4)) + 1) * 4.0 - 0.5
+        by = np.arange(int(np.ceil((h - 0.5) / 4)) + 1) * 4.0 - 0.5
+        edge = np.stack(np.meshgrid(bx, by), -1)
+        border = optics.image_to_surface(np.concatenate([edge[0], edge[-1], edge[:, 0], edge[:, -1]]))
         lo, hi = border.min(0), border.max(0)
         for k in range(self.n_frames):
             X = self._deform(k).inverse(border)
