@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -663,6 +663,7 @@ class SceneRenderer:
 
 _N_BANDS = 2
 _POOL: ThreadPoolExecutor | None = None
+_POOL_PID = 0
 _POOL_LOCK = threading.Lock()
 
 
@@ -678,16 +679,18 @@ def _run_bands(fn, bands, threads: int) -> None:
         for bd in bands:
             fn(bd)
         return
-    global _POOL
+    global _POOL, _POOL_PID
     with _POOL_LOCK:
-        if _POOL is None:
+        if _POOL is None or _POOL_PID != os.getpid():  # a forked child does not inherit the pool's threads
             _POOL = ThreadPoolExecutor(max_workers=_N_BANDS - 1, thread_name_prefix="scene-band")
+            _POOL_PID = os.getpid()
     futures = [_POOL.submit(fn, bd) for bd in bands[1:]]
     try:
         fn(bands[0])
     finally:
-        for f in futures:
-            f.result()
+        wait(futures)
+    for f in futures:
+        f.result()
 
 
 @numba.njit(cache=True, nogil=True)
