@@ -173,21 +173,23 @@ def _touches_other_skeleton(skeleton: np.ndarray, inner: np.ndarray, p1, p2) -> 
     8-neighbourhood of the bridging line's inner pixels."""
     if len(inner) == 0:
         return False
+    return _touches(skeleton, np.ascontiguousarray(inner, dtype=np.int64), int(p1[0]), int(p1[1]), int(p2[0]), int(p2[1]))
+
+
+@njit(nogil=True)
+def _touches(skeleton, inner, x1, y1, x2, y2):  # pragma: no cover - compiled
     h, w = skeleton.shape
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            xs = inner[:, 0] + dx
-            ys = inner[:, 1] + dy
-            ok = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
-            xs, ys = xs[ok], ys[ok]
-            hit = skeleton[ys, xs] != 0
-            if not hit.any():
-                continue
-            xs, ys = xs[hit], ys[hit]
-            near1 = np.maximum(np.abs(xs - p1[0]), np.abs(ys - p1[1])) <= 1
-            near2 = np.maximum(np.abs(xs - p2[0]), np.abs(ys - p2[1])) <= 1
-            if np.any(~(near1 | near2)):
-                return True
+    for k in range(inner.shape[0]):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                x = inner[k, 0] + dx
+                y = inner[k, 1] + dy
+                if x < 0 or x >= w or y < 0 or y >= h or skeleton[y, x] == 0:
+                    continue
+                near1 = max(abs(x - x1), abs(y - y1)) <= 1
+                near2 = max(abs(x - x2), abs(y - y2)) <= 1
+                if not (near1 or near2):
+                    return True
     return False
 
 

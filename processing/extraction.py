@@ -299,9 +299,10 @@ def _graph_features(g: SkeletonGraph, orient_n: int):
 
 def _flags(frame: np.ndarray, p: ExtractionParams) -> set:
     flags = set()
-    if int(frame.max()) < p.black_level:
+    brightest = cv2.minMaxLoc(frame)[1]
+    if brightest < p.black_level:
         flags.add("all_black")
-    elif np.count_nonzero(frame == 255) > p.saturated_fraction * frame.size:
+    elif brightest == 255 and cv2.countNonZero(cv2.compare(frame, 255, cv2.CMP_EQ)) > p.saturated_fraction * frame.size:
         flags.add("saturated")
     return flags
 

@@ -195,6 +195,18 @@ def _zhang_suen_bits(bits, h, nw):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
+def _pack(img, nw):  # pragma: no cover - compiled
+    """(h, nw + 2) uint64 words of the non-zero pixels of ``img``, its outer pixel ring left out (zero)."""
+    h, w = img.shape
+    bits = np.zeros((h, nw + 2), np.uint64)
+    for r in range(1, h - 1):
+        for c in range(1, w - 1):
+            if img[r, c] != 0:
+                bits[r, 1 + c // 64] |= _ONE << np.uint64(c % 64)
+    return bits
+
+
+@njit(nogil=True)
 def _unpack_without_staircases(bits, h, w, stairs):  # pragma: no cover - compiled
     """The (h, w) uint8 image of the packed skeleton ``bits``, after the staircase passes (seed Figure 27).
 
@@ -265,8 +277,6 @@ def thin(binary: np.ndarray) -> np.ndarray:
     nw = (w + 63) // 64
     # Bit-packed rows: pixel c of row r is bit c % 64 of word 1 + c // 64; words 0 and nw + 1 stay zero (so do
     # the outer pixel ring and the padding bits), so the neighbour shifts need no bounds checks.
-    padded = np.zeros((h, (nw + 2) * 64), np.uint8)
-    padded[1:-1, 65 : 64 + w - 1] = binary[1:-1, 1:-1] != 0
-    bits = np.packbits(padded, axis=1, bitorder="little").view("<u8")
+    bits = _pack(np.ascontiguousarray(binary).view(np.uint8), nw)
     _zhang_suen_bits(bits, h, nw)
     return _unpack_without_staircases(bits, h, w, _STAIRS)
