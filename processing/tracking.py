@@ -615,22 +615,26 @@ class _LostTracks:
 def _chain_positions(raw: np.ndarray, disp: np.ndarray, linked: np.ndarray, present: np.ndarray) -> np.ndarray:
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
     the run's extracted positions (equal to the extracted positions when displacements are raw differences)."""
-    pos = np.full(raw.shape, np.nan)
     n, t = present.shape
-    for j in range(t):
-        frames = np.nonzero(present[:, j])[0]
-        if frames.size == 0:
-            continue
-        # A run starts at every present frame whose displacement from the previous frame is unknown.
-        starts = frames[~linked[frames, j]] if frames.size else frames
-        bounds = list(starts) + [n]
-        for s, e in zip(bounds[:-1], bounds[1:]):
-            run = frames[(frames >= s) & (frames < e)]
-            steps = disp[run, j].copy()
-            steps[0] = 0.0
-            chain = np.cumsum(steps, axis=0)
-            offset = np.mean(raw[run, j] - chain, axis=0)
-            pos[run, j] = chain + offset
+    pos = np.full(raw.shape, np.nan)
+    if n == 0 or t == 0:
+        return pos
+    # A run starts at every present frame whose displacement from the previous frame is unknown; a linked frame
+    # always follows a present one, so a run has no hole.
+    start = present & ~linked
+    steps = np.where(linked[..., None], disp, 0.0)
+    chain = np.cumsum(steps, axis=0)
+    frame = np.arange(n)[:, None]
+    last_start = np.maximum.accumulate(np.where(start, frame, -1), axis=0)
+    cols = np.broadcast_to(np.arange(t), (n, t))
+    fr, tr = np.nonzero(present)  # frame-major order; a run's samples share (track, run number)
+    local = chain[fr, tr] - chain[last_start[fr, tr], tr]
+    run = np.cumsum(start, axis=0)[fr, tr]
+    key = cols[fr, tr] * (n + 1) + run
+    _, group, count = np.unique(key, return_inverse=True, return_counts=True)
+    resid = raw[fr, tr] - local
+    offset = np.stack([np.bincount(group, weights=resid[:, c]) for c in range(2)], axis=1) / count[:, None]
+    pos[fr, tr] = local + offset[group]
     return pos
 
 
