@@ -343,6 +343,9 @@ class SceneRenderer:
     Attributes
     ----------
     n_frames, camera_mode, calibration, optics, fingerprint, deformation
+    threads : int
+        Threads that render the two row bands of a frame and share the frames of :meth:`truth` (default 2, or 1 on
+        a one-core machine). Frames and truth are the same whatever its value.
     """
 
     def __init__(self, scene: Scene, *, seed: int = 0, noise: float | None = None, optics: Optics | None = None):
@@ -390,7 +393,6 @@ class SceneRenderer:
         gx, gy = np.meshgrid((np.arange(nx) - 1.0) * _NODE_STEP_PX, (np.arange(ny) - 1.0) * _NODE_STEP_PX)
         self._nodes_surface = optics.image_to_surface(np.stack([gx, gy], -1).astype(np.float64))
         self._bands = _row_bands(h, _N_BANDS)
-        #: Threads rendering the row bands of one frame (the frames do not depend on it).
         self.threads = min(_N_BANDS, os.cpu_count() or 1)
         fx, fy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         pix_surface = optics.image_to_surface(np.stack([fx, fy], -1))
