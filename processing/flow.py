@@ -24,6 +24,8 @@ Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite d
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -143,6 +145,16 @@ class FlowField:
         return out, ok
 
 
+@dataclass(frozen=True)
+class _Prepared:
+    """One frame made ready for :class:`DenseFlow`: the grey image, its normalised pyramid (full resolution
+    first, float32) and, when it is the first frame of a pair, its nodes in contact."""
+
+    raw: np.ndarray
+    pyramid: list[np.ndarray]
+    contact: np.ndarray | None
+
+
 class DenseFlow:
     """Grid displacement between two frames: phase correlation, affine ECC start, coupled registration.
 
@@ -189,42 +201,105 @@ class DenseFlow:
         frame_b: int = 1,
         initial_shift: np.ndarray | None = None,
     ) -> FlowField:
+        """Displacement field from ``image_a`` to ``image_b`` (2-D grey images of the same shape)."""
         a = _gray(image_a, "image_a")
         b = _gray(image_b, "image_b")
         if a.shape != b.shape:
             raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
-        raw_a = a
-        gx, gy = self.grid(a.shape)
+        self._check_shape(a.shape)
+        return self._register(self._prepare(a), self._prepare(b, contact=False), frame_a, frame_b, initial_shift)
+
+    def compute_sequence(
+        self,
+        frames: Sequence[np.ndarray],
+        *,
+        first_frame: int = 0,
+        threads: int = 2,
+        on_field: Callable[[FlowField], None] | None = None,
+    ) -> list[FlowField]:
+        """Fields between consecutive frames (k, k + 1), the same as :meth:`compute` on each pair, faster:
+        each frame is normalised once, and ``threads`` threads each take a contiguous run of pairs (the kernels
+        release the GIL). ``on_field`` is called with each field as it is done (any order, e.g. a progress bar);
+        frame numbers start at ``first_frame``."""
+        n = len(frames)
+        if int(threads) < 1:
+            raise InvalidInputError(f"threads must be >= 1, got {threads!r}")
+        if n < 2:
+            return []
+        out: list[FlowField | None] = [None] * (n - 1)
+
+        def run(k0: int, k1: int) -> None:  # pairs k0 .. k1 - 1
+            prev = None
+            for k in range(k0, k1):
+                if prev is None:
+                    prev = self._prepare(self._frame(frames, k))
+                cur = self._prepare(self._frame(frames, k + 1))
+                if cur.raw.shape != prev.raw.shape:
+                    raise InvalidInputError(f"frame {k + 1} has shape {cur.raw.shape}, frame {k} {prev.raw.shape}")
+                f = self._register(prev, cur, first_frame + k, first_frame + k + 1, None)
+                out[k] = f
+                if on_field is not None:
+                    on_field(f)
+                prev = cur
+
+        n_threads = max(1, min(int(threads), n - 1))
+        bounds = np.linspace(0, n - 1, n_threads + 1).round().astype(int)
+        if n_threads == 1:
+            run(0, n - 1)
+        else:
+            with ThreadPoolExecutor(n_threads) as pool:
+                for job in [pool.submit(run, int(k0), int(k1)) for k0, k1 in zip(bounds[:-1], bounds[1:])]:
+                    job.result()
+        return [f for f in out if f is not None]
+
+    def _frame(self, frames: Sequence[np.ndarray], k: int) -> np.ndarray:
+        image = _gray(frames[k], f"frame {k}")
+        self._check_shape(image.shape)
+        return image
+
+    def _check_shape(self, shape: tuple[int, ...]) -> None:
+        gx, gy = self.grid(shape)
         if gx.size < 2 or gy.size < 2:
-            raise InvalidInputError(f"images of shape {a.shape} are too small for a {self._win} px window grid")
+            raise InvalidInputError(f"images of shape {shape} are too small for a {self._win} px window grid")
+
+    def _prepare(self, image: np.ndarray, *, contact: bool = True) -> _Prepared:
+        """What one frame contributes to any pair: its normalised pyramid and (as first frame) its contact nodes."""
+        gx, gy = self.grid(image.shape)
+        nodes = None
+        if contact:
+            # Contact: local grey-level spread over the window at each node (FTIR: no contact -> no ridges).
+            af = image.astype(np.float32)
+            k = (self._win, self._win)
+            mean = cv2.boxFilter(af, -1, k)
+            sq = cv2.boxFilter(af * af, -1, k)
+            spread = np.sqrt(np.maximum(sq - mean * mean, 0.0))
+            rr, cc = np.meshgrid(gy.astype(int), gx.astype(int), indexing="ij")
+            # A node is in contact when (almost) all of its window shows ridges.
+            low = cv2.boxFilter((spread < self.params.min_contrast).astype(np.float32), -1, k)
+            nodes = low[rr, cc] <= 0.05
+        norm = image
+        if self.params.normalize_sigma_mm is not None:
+            # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
+            norm = local_normalize(image, sigma_px=self.calibration.px(self.params.normalize_sigma_mm))
+        pyramid = [norm.astype(np.float32)]
+        for _ in range(int(self.params.pyramid_levels)):
+            pyramid.append(cv2.pyrDown(pyramid[-1]))
+        return _Prepared(image, pyramid, nodes)
+
+    def _register(
+        self, fa: _Prepared, fb: _Prepared, frame_a: int, frame_b: int, initial_shift: np.ndarray | None
+    ) -> FlowField:
+        gx, gy = self.grid(fa.raw.shape)
         if initial_shift is None:
-            gm = self._estimator.estimate(a, b)
-            shift = gm.shift
+            shift = self._estimator.estimate(fa.raw, fb.raw).shift
         else:
             shift = np.asarray(initial_shift, dtype=np.float64).reshape(2)
-        # Contact: local grey-level spread over the window at each node (FTIR: no contact -> no ridges).
-        af = raw_a.astype(np.float32)
-        k = (self._win, self._win)
-        mean = cv2.boxFilter(af, -1, k)
-        sq = cv2.boxFilter(af * af, -1, k)
-        contrast = np.sqrt(np.maximum(sq - mean * mean, 0.0))
-        rr, cc = np.meshgrid(gy.astype(int), gx.astype(int), indexing="ij")
-        # A node is in contact when (almost) all of its window shows ridges.
-        low = cv2.boxFilter((contrast < self.params.min_contrast).astype(np.float32), -1, k)
-        contact = low[rr, cc] <= 0.05
+        contact = fa.contact
         gyn, gxn = gy.size, gx.size
         if not np.any(contact):
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
                              shift, 0, "no contact")
-        if self.params.normalize_sigma_mm is not None:
-            # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
-            sigma = self.calibration.px(self.params.normalize_sigma_mm)
-            a = local_normalize(a, sigma_px=sigma)
-            b = local_normalize(b, sigma_px=sigma)
-        pa, pb = [a.astype(np.float32)], [b.astype(np.float32)]
-        for _ in range(int(self.params.pyramid_levels)):
-            pa.append(cv2.pyrDown(pa[-1]))
-            pb.append(cv2.pyrDown(pb[-1]))
+        pa, pb = fa.pyramid, fb.pyramid
         top = int(self.params.pyramid_levels)
         # The smoothness term acts on the deviation from this global affine motion (see _clg).
         affine = _affine_init(pa[top], pb[top], shift / 2.0**top)
@@ -251,7 +326,7 @@ class DenseFlow:
         med = float(np.median(residual[contact]))
         valid = contact & (residual <= self.params.max_residual_ratio * med + 1e-6)
         # A node whose window leaves the second image cannot be registered there.
-        h, w = a.shape
+        h, w = fa.raw.shape
         half = self._win // 2
         tx, ty = gxx + field[..., 0], gyy + field[..., 1]
         valid &= (tx >= half) & (tx <= w - 1 - half) & (ty >= half) & (ty <= h - 1 - half)

@@ -65,3 +65,29 @@ def test_dense_sampler_and_bad_inputs():
         FlowParams(grid_step_mm=0)
     with pytest.raises(InvalidInputError, match="differ in shape"):
         DenseFlow(calibration=CAL).compute(np.zeros((50, 60), np.uint8), np.zeros((50, 61), np.uint8))
+
+
+def test_sequence_equals_pairwise_compute(strained_pair):
+    f0, f1, _ = strained_pair
+    flat = np.full(SHAPE, 230, np.uint8)
+    frames = [f0, f1, f0, flat, f1]  # a direction reversal and a frame out of contact in the middle
+    flow = DenseFlow(calibration=CAL)
+    seen = []
+    for threads in (1, 2, 3):
+        fields = flow.compute_sequence(frames, first_frame=10, threads=threads, on_field=seen.append)
+        assert [(f.frame_a, f.frame_b) for f in fields] == [(10, 11), (11, 12), (12, 13), (13, 14)]
+        for k, f in enumerate(fields):
+            ref = flow.compute(frames[k], frames[k + 1], frame_a=10 + k, frame_b=11 + k)
+            assert f.status == ref.status
+            np.testing.assert_array_equal(f.valid, ref.valid)
+            np.testing.assert_array_equal(f.displacement, ref.displacement)
+    assert len(seen) == 12
+    assert fields[3].status == "no contact" and not fields[3].valid.any()
+    # forward then back: opposite displacements
+    d01, d12 = fields[0].displacement, fields[1].displacement
+    assert np.nanmedian(d01[..., 0]) == pytest.approx(-np.nanmedian(d12[..., 0]), abs=0.1)
+    assert flow.compute_sequence([f0]) == []
+    with pytest.raises(InvalidInputError, match="threads"):
+        flow.compute_sequence(frames, threads=0)
+    with pytest.raises(InvalidInputError, match="shape"):
+        flow.compute_sequence([f0, f0[:, :300]])
