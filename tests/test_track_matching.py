@@ -250,3 +250,31 @@ def test_local_predictions_are_medians_of_nearest_neighbours():
         _, idx = cKDTree(mp).query(pts, k=k)
         expected = np.median(md[idx.reshape(len(pts), k)], axis=1)
         np.testing.assert_array_equal(local_predictions(pts, mp, md, neighbours=k), expected)
+
+
+def test_prepared_images_give_the_same_tracks_as_raw_images():
+    """The analysis prepares each frame's images on its worker threads (prepare_image); add_frame(prepared=...)
+    must track exactly as add_frame(image=...)."""
+    rng = np.random.default_rng(12)
+    p0 = np.column_stack([rng.uniform(50, 270, 30), rng.uniform(50, 190, 30)])
+    kinds = np.full(30, 2)
+    steps = np.array([[0.0, 0.0], [1.3, 0.4], [2.9, 0.7], [4.2, 1.3]])
+    images = [render(affine_field(*s), shape=(240, 320)) for s in steps]
+    tables = [make_features(*(p0 + s + rng.normal(0, 0.5, p0.shape)).T, kinds) for s in steps]
+
+    def tracker():
+        return FeatureTracker(
+            calibration=CAL, params=TrackingParams(min_length_frames=2), refiner=SubpixelRefiner(calibration=CAL),
+            motion_estimator=GlobalMotionEstimator(),
+        )
+
+    a, b = tracker(), tracker()
+    for img, t in zip(images, tables):
+        a.add_frame(t, image=img)
+        b.add_frame(t, prepared=b.prepare_image(img))
+    ta, tb = a.finish(), b.finish()
+    assert ta.n_tracks >= 25 and ta.refined.sum() > 50
+    np.testing.assert_array_equal(ta.x, tb.x)
+    np.testing.assert_array_equal(ta.refined, tb.refined)
+    with pytest.raises(InvalidInputError, match="image is required"):
+        tracker().add_frame(tables[0])
