@@ -28,6 +28,10 @@ TARGETS = {
 }
 
 
+#: Timed passes per scene (each: the sequence on 1 thread, then on 2); the best is reported.
+_PASSES = 3
+
+
 def _scene_row(name: str, n_frames: int) -> list:
     import numpy as np
 
@@ -46,13 +50,17 @@ def _scene_row(name: str, n_frames: int) -> list:
     ex.fit_illumination(frames)
     illum_ms = (time.perf_counter() - t0) * 1000
     ex.extract(frames[0])  # compile / warm caches outside the timing
-    t0, c0 = time.perf_counter(), time.process_time()
-    ex.extract_many(frames, workers=1)
-    fps1 = len(frames) / (time.perf_counter() - t0)
-    cpu_ms = (time.process_time() - c0) / len(frames) * 1000
-    t0 = time.perf_counter()
-    results = ex.extract_many(frames, workers=2)
-    fps2 = len(frames) / (time.perf_counter() - t0)
+    # Best of _PASSES passes: the machine is shared, and a slower pass measures the other loads, not the code.
+    fps1 = fps2 = 0.0
+    cpu_ms = float("inf")
+    for _ in range(_PASSES):
+        t0, c0 = time.perf_counter(), time.process_time()
+        ex.extract_many(frames, workers=1)
+        fps1 = max(fps1, len(frames) / (time.perf_counter() - t0))
+        cpu_ms = min(cpu_ms, (time.process_time() - c0) / len(frames) * 1000)
+        t0 = time.perf_counter()
+        results = ex.extract_many(frames, workers=2)
+        fps2 = max(fps2, len(frames) / (time.perf_counter() - t0))
     feats = np.concatenate([r.features for r in results])
     dilation = rs.calibration.px_int(ex.params.border_dilation_mm)
     masks = {k: border_mask(r.background, dilation_px=dilation) for k, r in enumerate(results)}
@@ -121,7 +129,8 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "outside the border deletion mask only (experiments/evaluation/features.py).",
             "illumination compensation (seed 3.5) fitted on each sequence first (its time: last column, once per "
             "sequence); fps: extraction + editing + sub-pixel per frame, after a warm-up frame; cpu ms/frame: process "
-            "CPU time of the single-thread run (less sensitive than fps to other loads on the machine).",
+            f"CPU time of the single-thread run (less sensitive than fps to other loads on the machine); all three the "
+            f"best of {_PASSES} passes.",
             "rep = RMS frame-to-frame change of a matched feature's localisation error (jitter vs true motion); "
             "end / bif = valley endings / bifurcations alone.",
             "bias = RMS of each truth feature's mean offset (valley endings are located where the valley's grey "
