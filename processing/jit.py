@@ -15,12 +15,17 @@ from __future__ import annotations
 import warnings
 
 import numba
-from numba.core.caching import FunctionCache
+
+try:  # numba's internal cache class; without it (another numba layout) plain cache=True is used
+    from numba.core.caching import FunctionCache
+    from numba.core.dispatcher import Dispatcher
+except ImportError:  # pragma: no cover - depends on the installed numba
+    FunctionCache = Dispatcher = None
 
 __all__ = ["njit"]
 
 
-class _TolerantCache(FunctionCache):
+class _TolerantCache(FunctionCache or object):
     """numba's per-function disk cache, with load and save failures turned into cache misses."""
 
     def load_overload(self, sig, target_context):
@@ -45,10 +50,15 @@ def njit(*args, cache: bool = True, **options):
     """
 
     def decorate(func):
+        if FunctionCache is None or not hasattr(Dispatcher, "enable_caching"):
+            return numba.njit(cache=cache, **options)(func)  # pragma: no cover - other numba versions
         dispatcher = numba.njit(**options)(func)
         if cache:
-            # What Dispatcher.enable_caching() does, with the tolerant cache class.
-            dispatcher._cache = _TolerantCache(dispatcher.py_func)
+            try:
+                # What Dispatcher.enable_caching() does, with the tolerant cache class.
+                dispatcher._cache = _TolerantCache(dispatcher.py_func)
+            except RuntimeError:
+                pass  # no file to cache next to (a function defined in an interactive session): compile only
         return dispatcher
 
     if args:
