@@ -344,8 +344,8 @@ class SceneRenderer:
     ----------
     n_frames, camera_mode, calibration, optics, fingerprint, deformation
     threads : int
-        Threads that render the two row bands of a frame and share the frames of :meth:`truth` (default 2, or 1 on
-        a one-core machine). Frames and truth are the same whatever its value.
+        Threads that render the two row bands of a frame (default 2, or 1 on a one-core machine). The frames are the
+        same whatever its value.
     """
 
     def __init__(self, scene: Scene, *, seed: int = 0, noise: float | None = None, optics: Optics | None = None):
@@ -615,25 +615,19 @@ class SceneRenderer:
         rigid = np.zeros((n, 3))
         center = np.asarray(self.scene.motion.rotation_center_mm, dtype=np.float64)
         c_img = self.optics.surface_to_image(center)
-
-        def frames(ks: range) -> None:
-            for k in ks:
-                D = self._deform(k)
-                xy, vis = self.feature_positions(k)
-                fx[k], fy[k], fv[k] = xy[:, 0], xy[:, 1], vis
-                d, hgrad = D.displacement(X, with_gradient=True)
-                x_surf = X + d
-                xk = self.optics.surface_to_image(x_surf)
-                disp[k] = xk - img0
-                inview = (xk[..., 0] >= 0) & (xk[..., 0] <= w - 1) & (xk[..., 1] >= 0) & (xk[..., 1] <= h - 1)
-                valid[k] = inview & (self._contact_at(X, x_surf, self.time_of(k)) >= 0.5)
-                strain[k] = green_lagrange(hgrad)
-                tx, ty = self.optics.surface_to_image(center + D.t_b) - c_img
-                rigid[k] = (tx, ty, D.theta_b)
-
-        # Frames are independent: two threads share them (numpy releases the GIL in its loops).
-        chunks = [range(i * n // _N_BANDS, (i + 1) * n // _N_BANDS) for i in range(_N_BANDS)]
-        _run_bands(frames, [c for c in chunks if len(c)], self.threads)
+        for k in range(n):
+            D = self._deform(k)
+            xy, vis = self.feature_positions(k)
+            fx[k], fy[k], fv[k] = xy[:, 0], xy[:, 1], vis
+            d, hgrad = D.displacement(X, with_gradient=True)
+            x_surf = X + d
+            xk = self.optics.surface_to_image(x_surf)
+            disp[k] = xk - img0
+            inview = (xk[..., 0] >= 0) & (xk[..., 0] <= w - 1) & (xk[..., 1] >= 0) & (xk[..., 1] <= h - 1)
+            valid[k] = inview & (self._contact_at(X, x_surf, self.time_of(k)) >= 0.5)
+            strain[k] = green_lagrange(hgrad)
+            tx, ty = self.optics.surface_to_image(center + D.t_b) - c_img
+            rigid[k] = (tx, ty, D.theta_b)
         return SessionTruth(
             feature_id=ids,
             feature_kind=kinds,

