@@ -24,6 +24,7 @@ Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite d
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -145,6 +146,18 @@ class FlowField:
         return out, ok
 
 
+_HELPER: list[ThreadPoolExecutor] = []
+_HELPER_LOCK = threading.Lock()
+
+
+def _helper_pool() -> ThreadPoolExecutor:
+    """One worker thread shared by all :class:`DenseFlow` instances (created on first use)."""
+    with _HELPER_LOCK:
+        if not _HELPER:
+            _HELPER.append(ThreadPoolExecutor(1, thread_name_prefix="dense-flow"))
+        return _HELPER[0]
+
+
 @dataclass(frozen=True)
 class _Prepared:
     """One frame made ready for :class:`DenseFlow`: the grey image, its normalised pyramid (full resolution
@@ -207,7 +220,10 @@ class DenseFlow:
         if a.shape != b.shape:
             raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
         self._check_shape(a.shape)
-        return self._register(self._prepare(a), self._prepare(b, contact=False), frame_a, frame_b, initial_shift)
+        # The second core prepares frame b meanwhile (the kernels release the GIL).
+        fb = _helper_pool().submit(self._prepare, b, contact=False)
+        fa = self._prepare(a)
+        return self._register(fa, fb.result(), frame_a, frame_b, initial_shift)
 
     def compute_sequence(
         self,
