@@ -615,17 +615,21 @@ class SceneRenderer:
         rigid = np.zeros((n, 3))
         center = np.asarray(self.scene.motion.rotation_center_mm, dtype=np.float64)
         c_img = self.optics.surface_to_image(center)
+        # The grid points and the features go through the deformation together (one call per frame, not two; the
+        # same values as feature_positions, point by point).
+        ng = X.shape[0] * X.shape[1]
+        XP = np.concatenate([X.reshape(-1, 2), P])
         for k in range(n):
             D = self._deform(k)
-            xy, vis = self.feature_positions(k)
-            fx[k], fy[k], fv[k] = xy[:, 0], xy[:, 1], vis
-            d, hgrad = D.displacement(X, with_gradient=True)
-            x_surf = X + d
+            d, hgrad = D.displacement(XP, with_gradient=True)
+            x_surf = XP + d
             xk = self.optics.surface_to_image(x_surf)
-            disp[k] = xk - img0
-            inview = (xk[..., 0] >= 0) & (xk[..., 0] <= w - 1) & (xk[..., 1] >= 0) & (xk[..., 1] <= h - 1)
-            valid[k] = inview & (self._contact_at(X, x_surf, self.time_of(k)) >= 0.5)
-            strain[k] = green_lagrange(hgrad)
+            inview = (xk[:, 0] >= 0) & (xk[:, 0] <= w - 1) & (xk[:, 1] >= 0) & (xk[:, 1] <= h - 1)
+            seen = inview & (self._contact_at(XP, x_surf, self.time_of(k)) >= 0.5)
+            fx[k], fy[k], fv[k] = xk[ng:, 0], xk[ng:, 1], seen[ng:]
+            disp[k] = xk[:ng].reshape(X.shape) - img0
+            valid[k] = seen[:ng].reshape(X.shape[:2])
+            strain[k] = green_lagrange(hgrad[:ng].reshape(X.shape[:2] + (2, 2)))
             tx, ty = self.optics.surface_to_image(center + D.t_b) - c_img
             rigid[k] = (tx, ty, D.theta_b)
         return SessionTruth(
