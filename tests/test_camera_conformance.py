@@ -105,8 +105,9 @@ def test_streams_frames_of_the_mode(camera, request):
     host = np.array([f.host_timestamp_s for f in frames])
     assert np.all(np.diff(host) >= 0) and abs(host[0] - time.time()) < 600
     assert stats.completed >= 30 and stats.delivered == 30
-    if request.node.callspec.params["camera"] == "aravis-gv-loopback":
-        # Real UDP: a CPU-starved machine can lose a frame; it must then be counted, never hidden.
+    if request.node.callspec.params["camera"].startswith("aravis"):
+        # A real device (Aravis's fake runs on its own clock, over UDP or in process): a CPU-starved machine can
+        # lose a frame; it must then be counted, never hidden. Zero loss is a benchmark target, not a test.
         assert stats.dropped + stats.failed >= int(np.sum(np.diff(ids) - 1))
     else:
         assert stats.dropped == 0 and stats.failed == 0
