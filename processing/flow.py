@@ -9,7 +9,8 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
    from the affine motion they are within a fraction of a ridge period.
 3. Every node of a regular grid (0.2 mm) in the contact region is registered with a ~0.6 mm window
    (Lucas-Kanade data term), coupled to its neighbours by a membrane term on the deviation from the (re-fitted)
-   affine motion, solved by over-relaxed (SOR) sweeps; Gauss-Newton iterations re-warp the second image. The
+   affine motion, solved by over-relaxed (SOR) sweeps alternating with re-fits of the affine (a joint fit of
+   field and affine); Gauss-Newton iterations re-warp the second image. The
    coupling supplies the along-ridge component a single window cannot see (aperture problem); acting on the
    deviation from an affine, it does not bias uniform strain. The warp is bilinear: OpenCV's bicubic kernel
    (a = -0.75) biased the displacement by up to 0.04 px depending on its sub-pixel part, bilinear by < 0.01 px
@@ -63,6 +64,11 @@ class FlowParams:
         iteration.
     sor_omega : float
         Over-relaxation factor of those sweeps, in (0, 2); 1 is Gauss-Seidel.
+    prior_refits : int
+        Per Gauss-Newton iteration, how many times the affine prior is re-fitted to the field and the coupled
+        system re-solved (``solver_sweeps`` each). Along the ridges the data barely constrain the field, so
+        there it follows the prior: with a single fit per iteration a wrong start in uniform strain (e.g.
+        0.2 % along the ridges after ECC) persists.
     max_residual_ratio : float
         A node whose registration residual exceeds this multiple of the median is flagged invalid.
     clg_levels : int
@@ -78,8 +84,9 @@ class FlowParams:
     min_contrast: float = 8.0
     smoothness: float = 1.0
     refine_iterations: int = 3
-    solver_sweeps: int = 50
+    solver_sweeps: int = 15
     sor_omega: float = 1.8
+    prior_refits: int = 4
     max_residual_ratio: float = 3.0
     clg_levels: int = 0
     normalize_sigma_mm: float | None = 0.15
@@ -91,6 +98,8 @@ class FlowParams:
                 raise InvalidInputError(f"{name} must be positive, got {v!r}")
         if not 0 <= int(self.pyramid_levels) <= 5:
             raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
+        if int(self.prior_refits) < 1:
+            raise InvalidInputError(f"prior_refits must be >= 1, got {self.prior_refits!r}")
         if not 0 < self.sor_omega < 2:
             raise InvalidInputError(f"sor_omega must be in (0, 2), got {self.sor_omega!r}")
         if not self.min_contrast >= 0:
@@ -375,8 +384,9 @@ class DenseFlow:
         design = np.column_stack([gxx_[contact], gyy_[contact], np.ones(int(contact.sum()))])
         full = np.stack([gxx_, gyy_, np.ones_like(gxx_)], axis=-1)
         for _ in range(int(self.params.refine_iterations)):
-            # Re-fit the affine prior to the current field: Jacobi sweeps move the smooth (affine) part of the
-            # field slowly, so a biased start would otherwise persist under a strong smoothness term.
+            # Re-fit the affine prior to the current field (and again between solves below): the sweeps move the
+            # smooth (affine) part of the field slowly, so a biased start would otherwise persist under a strong
+            # smoothness term.
             coef, *_ = np.linalg.lstsq(design, field[contact], rcond=None)
             prior = full @ coef
             bw = cv2.copyMakeBorder(self._warp(b, gx, gy, field), pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
@@ -392,8 +402,13 @@ class DenseFlow:
             # right-hand side of the linearised data term: G u0 - b
             rx = gxx * u0[..., 0] + gxy * u0[..., 1] - bx
             ry = gxy * u0[..., 0] + gyy * u0[..., 1] - by
-            field = _sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, int(self.params.solver_sweeps),
-                         float(self.params.sor_omega))
+            field = u0
+            for r in range(int(self.params.prior_refits)):
+                if r:
+                    coef, *_ = np.linalg.lstsq(design, field[contact], rcond=None)
+                    prior = full @ coef
+                field = _sor(field, prior, gxx, gxy, gyy, rx, ry, contact, lam, int(self.params.solver_sweeps),
+                             float(self.params.sor_omega))
         return field
 
     def _residual(self, a, b, gx, gy, field):

@@ -41,6 +41,22 @@ def test_flow_measures_displacement_and_strain(strained_pair):
     assert dok.all() and np.abs(d - np.column_stack(field(pts[:, 0], pts[:, 1]))).max() < 0.1
 
 
+@pytest.mark.parametrize("shift, exx, eyy", [((0.3, 0.2), -0.02, 0.01), ((6.5, 8.2), 0.02, 0.0)])
+def test_flow_measures_strong_uniform_strain(shift, exx, eyy):
+    """2 % strain: the affine part along the ridges, which the windows barely see, must converge too."""
+    f0 = render(affine_field(0, 0), shape=SHAPE, noise=2.0)
+    field = affine_field(*shift, exx=exx, eyy=eyy)
+    f1 = render(field, shape=SHAPE, noise=2.0, rng=np.random.default_rng(3))
+    flow = DenseFlow(calibration=CAL).compute(f0, f1)
+    X, Y = np.meshgrid(flow.grid_x, flow.grid_y)
+    u, v = field(X, Y)
+    err = np.hypot(flow.displacement[..., 0] - u, flow.displacement[..., 1] - v)[flow.valid]
+    assert flow.valid.mean() > 0.8 and np.sqrt(np.mean(err**2)) < 0.06
+    strain, ok = grid_strain(flow)
+    assert np.median(strain[ok][:, 0]) == pytest.approx(exx, abs=0.001)
+    assert np.median(strain[ok][:, 1]) == pytest.approx(eyy, abs=0.001)
+
+
 def test_no_contact_and_partial_contact_are_flagged(strained_pair):
     f0, f1, _ = strained_pair
     flat = np.full(SHAPE, 230, np.uint8)
@@ -63,6 +79,10 @@ def test_dense_sampler_and_bad_inputs():
         sample_dense_flow(np.zeros((3, 3)), np.zeros((1, 2)))
     with pytest.raises(InvalidInputError, match="grid_step_mm"):
         FlowParams(grid_step_mm=0)
+    with pytest.raises(InvalidInputError, match="sor_omega"):
+        FlowParams(sor_omega=2.0)
+    with pytest.raises(InvalidInputError, match="prior_refits"):
+        FlowParams(prior_refits=0)
     with pytest.raises(InvalidInputError, match="differ in shape"):
         DenseFlow(calibration=CAL).compute(np.zeros((50, 60), np.uint8), np.zeros((50, 61), np.uint8))
 
