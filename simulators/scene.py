@@ -774,7 +774,8 @@ def render_session(
 ) -> RenderedSession:
     """Render a whole scene (a :class:`Scene`, a built-in name or a YAML path) in memory, with its truth.
 
-    ``workers`` threads render frames concurrently (the result does not depend on it).
+    ``workers`` threads render frames concurrently, each frame in one thread; with ``workers=1`` each frame's two
+    row bands are rendered in two threads instead (the result does not depend on it).
     """
     scene = _validate_n(scene, n_frames)
     if not isinstance(workers, (int, np.integer)) or workers < 1:

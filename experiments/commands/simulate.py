@@ -21,7 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the print and the noise (default 0)")
     p.add_argument("--noise", type=float, default=None, help="read noise sigma in grey levels (default: the scene's)")
-    p.add_argument("--workers", type=int, default=1, help="threads rendering frames (same result; default 1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="frames rendered at once, one thread each (same result; default 1: one frame at a time, its "
+                        "two row bands in two threads)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
