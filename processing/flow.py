@@ -370,7 +370,7 @@ class DenseFlow:
     def _clg(self, a, b, gx, gy, field, contact, prior):
         """Gauss-Newton on all nodes at once: windowed brightness constancy at each node (Lucas-Kanade) plus a
         membrane term tying each node's deviation from the global affine ``prior`` to its neighbours', solved by
-        Jacobi sweeps. The neighbour term carries the along-ridge component, which one window cannot see
+        SOR sweeps alternating with re-fits of the affine. The neighbour term carries the along-ridge component, which one window cannot see
         (aperture problem), from the pores and minutiae nearby; acting on the deviation from the affine, it
         leaves uniform strain and rotation unbiased, borders included."""
         h, w = a.shape
