@@ -359,9 +359,13 @@ def write_session(
     metadata: Mapping[str, Any] | None = None,
     truth: SessionTruth | None = None,
     overwrite: bool = False,
-    compression: str | None = "lzf",
+    compression: str | None = None,
 ) -> Path:
-    """Write a complete in-memory session (e.g. a simulated one) to ``path`` and return the path."""
+    """Write a complete in-memory session (e.g. a simulated one) to ``path`` and return the path.
+
+    Frames are stored uncompressed by default: camera noise leaves lzf nothing to gain (54 vs 55 MB for a
+    180-frame 640x484 scene) at 10x the write time. ``compression`` ("lzf", "gzip") is there for noise-free data.
+    """
     path = Path(path)
     frames = np.asarray(frames)
     if frames.dtype != np.uint8 or frames.ndim != 3:
@@ -407,8 +411,8 @@ def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
         g.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
     for name in SessionTruth._ARRAYS:
         arr = np.asarray(getattr(truth, name))
-        big = arr.ndim >= 3
-        g.create_dataset(name, data=arr, compression="gzip" if big else None, compression_opts=1 if big else None)
+        big = arr.ndim >= 3  # the per-frame fields: lzf keeps ~10 % off at half gzip's time (noisy floats)
+        g.create_dataset(name, data=arr, compression="lzf" if big else None)
 
 
 def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
