@@ -52,6 +52,11 @@ class AnalysisParams:
     hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
     profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the
     feature triangulation's ~48 px, seed 6.3.3). ``workers`` threads extract features ahead of the tracker.
+
+    ``glass_shading`` removes brightness patterns that stay on the prism while the skin slides
+    (:mod:`processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias every motion
+    estimate towards zero there): True / False, or None (default) for "when the session's surface is not flat"
+    (its metadata ``surface``). ``glass_shading_smooth_mm`` smooths its per-pixel maps.
     """
 
     tracking: TrackingParams = field(default_factory=lambda: TrackingParams(smoothing_radius_frames=0, max_gap_frames=3))
@@ -66,11 +71,13 @@ class AnalysisParams:
     flow_stride: int = 4
     workers: int = 2
     extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
+    glass_shading: bool | None = None
+    glass_shading_smooth_mm: float = 0.025
 
     def __post_init__(self) -> None:
         if not self.spans or any(int(s) < 1 for s in self.spans):
             raise InvalidInputError(f"spans must be positive frame counts, got {self.spans!r}")
-        for name in ("max_edge_mm", "profile_strip_mm", "profile_step_mm"):
+        for name in ("max_edge_mm", "profile_strip_mm", "profile_step_mm", "glass_shading_smooth_mm"):
             if not getattr(self, name) > 0:
                 raise InvalidInputError(f"{name} must be positive, got {getattr(self, name)!r}")
         if int(self.flow_stride) < 1:
@@ -396,6 +403,38 @@ def derive(
     return out
 
 
+def _without_glass_shading(frames, *, calibration: Calibration, params: AnalysisParams, surface: str | None):
+    """Frames with the glass-fixed shading removed when asked (see :class:`AnalysisParams`), and what was done.
+
+    All-black and saturated frames are left out of the statistics and passed on untouched (extraction flags them).
+    A sequence in which the skin barely moved is passed on untouched, and the status says why.
+    """
+    from processing.extraction import ExtractionParams, frame_flags  # noqa: PLC0415
+    from processing.glass_shading import glass_shading, remove_glass_shading  # noqa: PLC0415
+
+    use = params.glass_shading if params.glass_shading is not None else surface not in (None, "", "flat")
+    if not use:
+        return frames, "off" if params.glass_shading is False else f"off (surface {surface or 'unknown'})"
+    checks = params.extraction or ExtractionParams()
+    good = [k for k, f in enumerate(frames) if not frame_flags(f, checks)]
+    try:
+        shading = glass_shading([frames[k] for k in good], smooth_px=calibration.px(params.glass_shading_smooth_mm))
+    except InsufficientDataError as exc:
+        return frames, f"not applied: {exc}"
+    out = list(frames)
+    for k in good:
+        out[k] = remove_glass_shading(frames[k], shading)
+    return out, f"applied (motion ratio {shading.motion_ratio:.2f})"
+
+
+def _surface_kind(metadata: dict) -> str | None:
+    """The surface of a session's metadata: a simulated scene's "ridge", or a protocol's {"kind": "ridge", ...}."""
+    surface = metadata.get("surface")
+    if isinstance(surface, dict):
+        surface = surface.get("kind")
+    return str(surface) if surface else None
+
+
 def _motion_table(samples: Sequence[MotionSample]) -> tuple[np.ndarray, np.ndarray]:
     pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
     parts = []
@@ -419,8 +458,12 @@ def analyze_frames(
     mapping=None,
     session_path: str = "",
     progress: bool = False,
+    surface: str | None = None,
 ) -> Results:
-    """The whole pipeline on frames in memory; :func:`analyze_session` wraps it for a session file."""
+    """The whole pipeline on frames in memory; :func:`analyze_session` wraps it for a session file.
+
+    ``surface`` ("flat", "ridge", "valley", ...) decides the glass-shading step when ``params.glass_shading`` is None.
+    """
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     params = params or AnalysisParams()
@@ -429,6 +472,8 @@ def analyze_frames(
         raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n}")
     image_shape = tuple(int(v) for v in np.asarray(frames[0]).shape)
     t_start = time.perf_counter()
+    frames, shading_status = _without_glass_shading(frames, calibration=calibration, params=params, surface=surface)
+    t_shading = time.perf_counter() - t_start
     measure = measure_features if method == "features" else measure_flow
     m = measure(frames, calibration=calibration, params=params, mapping=mapping, progress=progress)
     t0 = time.perf_counter()
@@ -436,7 +481,7 @@ def analyze_frames(
     t_derive = time.perf_counter() - t0
     total = time.perf_counter() - t_start
     timing = dict(m.timing)
-    timing.update({"derive_s": t_derive, "total_s": total, "frames_per_s": n / total if total > 0 else float("nan")})
+    timing.update({"glass_shading_s": t_shading, "derive_s": t_derive, "total_s": total, "frames_per_s": n / total if total > 0 else float("nan")})
     pairs, motion = _motion_table(m.samples)
     ft = d["fingertip"]
     win = d.get("window")
@@ -472,7 +517,7 @@ def analyze_frames(
         tactile_clipped=movie.clipped if movie else None,
         tactile_stretch_change=movie.stretch_change if movie else None,
         timing=timing,
-        params=params.to_dict(),
+        params={**params.to_dict(), "glass_shading_status": shading_status},
         versions=_versions(),
         features=m.features,
         trajectories=m.trajectories,
@@ -492,6 +537,7 @@ def summarize(r: Results, results_path: Path) -> dict[str, Any]:
         "n_frames": r.n_frames,
         "coordinates": r.coordinates,
         "timing": r.timing,
+        "glass_shading": r.params.get("glass_shading_status", "off"),
         "frames_flagged": int(sum(1 for f in r.frame_flags if f)),
         "fingertip_travel_px": np.ptp(r.fingertip_position, axis=0).tolist(),
         "profile_axis": "x" if r.profile_axis == 0 else "y",
@@ -530,6 +576,7 @@ def analyze_session(
         frames = session.read_frames()
         mapping = _mapping_of(session)
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
+        surface = _surface_kind(session.metadata)
     r = analyze_frames(
         frames,
         calibration=calibration,
@@ -538,6 +585,7 @@ def analyze_session(
         mapping=mapping,
         session_path=str(session_path.resolve()),
         progress=progress,
+        surface=surface,
     )
     outdir.mkdir(parents=True, exist_ok=True)
     path = write_results(outdir / "results.h5", r)

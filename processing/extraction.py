@@ -297,6 +297,11 @@ def _graph_features(g: SkeletonGraph, orient_n: int):
     )
 
 
+def frame_flags(frame: np.ndarray, params: ExtractionParams | None = None) -> set:
+    """``{"all_black"}``, ``{"saturated"}`` or an empty set: the frame checks :meth:`FeatureExtractor.extract` makes."""
+    return _flags(np.asarray(frame), params or ExtractionParams())
+
+
 def _flags(frame: np.ndarray, p: ExtractionParams) -> set:
     flags = set()
     brightest = cv2.minMaxLoc(frame)[1]

@@ -59,7 +59,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         base = AnalysisParams()
         params = replace(base, tracking=replace(base.tracking, min_length_frames=min(30, max(2, n // 3))))
         for method in ("features", "flow"):
-            r = analyze_frames(frames, calibration=cal, method=method, params=params)
+            r = analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind)
             ev = evaluate_tracking(r, truth)
             t = r.timing
             full_rows.append(

@@ -1,0 +1,56 @@
+"""The analysis removes glass-fixed shading over ridges and valleys (processing.glass_shading), and says so."""
+
+import numpy as np
+import pytest
+
+from experiments.analysis import AnalysisParams, _surface_kind, _without_glass_shading
+from processing.calibration import Calibration
+
+CAL = Calibration(px_per_mm=62.0)
+
+
+def _sliding_stripes(n=24, shape=(96, 128), step_px=3.0, band=True):
+    """Stripes (27 px period) sliding along y under a dark band fixed on the glass (rows 40-56)."""
+    y, x = np.mgrid[0 : shape[0], 0 : shape[1]].astype(float)
+    gain = np.ones(shape)
+    if band:
+        gain[40:56] = 0.5
+    frames = []
+    for k in range(n):
+        texture = 0.5 + 0.4 * np.cos(2 * np.pi * (y - step_px * k + 0.2 * x) / 27.0)
+        frames.append(np.clip(200 * gain * texture + 20, 0, 255).astype(np.uint8))
+    return frames
+
+
+def test_glass_fixed_band_is_removed_on_a_ridge_or_valley_only():
+    frames = _sliding_stripes()
+    out, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="valley")
+    assert status.startswith("applied")
+    contrast = lambda f, rows: float(np.std(f[rows].astype(float)))  # noqa: E731
+    raw_ratio = contrast(frames[5], slice(42, 54)) / contrast(frames[5], slice(70, 90))
+    new_ratio = contrast(out[5], slice(42, 54)) / contrast(out[5], slice(70, 90))
+    assert raw_ratio < 0.6 and 0.8 < new_ratio < 1.25  # the band's texture gets the same contrast as elsewhere
+    same, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="flat")
+    assert same is frames and status.startswith("off")
+    forced, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(glass_shading=True),
+                                            surface=None)
+    assert status.startswith("applied")
+
+
+def test_static_skin_and_bad_frames_are_passed_on_untouched():
+    still = [_sliding_stripes(n=1)[0]] * 10
+    out, status = _without_glass_shading(still, calibration=CAL, params=AnalysisParams(glass_shading=True),
+                                         surface="ridge")
+    assert out is still and status.startswith("not applied") and "moved too little" in status
+    frames = _sliding_stripes()
+    frames[7] = np.zeros_like(frames[7])  # an all-black frame in the middle stays all black (extraction flags it)
+    out, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="ridge")
+    assert status.startswith("applied") and not out[7].any()
+
+
+def test_surface_kind_from_simulated_and_recorded_metadata():
+    assert _surface_kind({"surface": "ridge"}) == "ridge"
+    assert _surface_kind({"surface": {"kind": "valley", "width_mm": 3.0}}) == "valley"
+    assert _surface_kind({}) is None
+    with pytest.raises(Exception, match="glass_shading_smooth_mm"):
+        AnalysisParams(glass_shading_smooth_mm=0)
