@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 
 from drivers.session_file import open_session
@@ -56,7 +57,9 @@ class AnalysisParams:
     ``glass_shading`` removes brightness patterns that stay on the prism while the skin slides
     (:mod:`processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias every motion
     estimate towards zero there): True / False, or None (default) for "when the session's surface is not flat"
-    (its metadata ``surface``). ``glass_shading_smooth_mm`` smooths its per-pixel maps.
+    (its metadata ``surface``). ``glass_shading_smooth_mm`` smooths its per-pixel maps across the shape and
+    ``glass_shading_along_shape_mm`` along it (the axis of least shading variation); a sequence whose skin moved
+    less than ``glass_shading_min_motion`` (temporal over spatial contrast) is left as it is.
     """
 
     tracking: TrackingParams = field(default_factory=lambda: TrackingParams(smoothing_radius_frames=0, max_gap_frames=3))
@@ -73,11 +76,14 @@ class AnalysisParams:
     extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
     glass_shading: bool | None = None
     glass_shading_smooth_mm: float = 0.025
+    glass_shading_along_shape_mm: float = 0.13
+    glass_shading_min_motion: float = 1.1
 
     def __post_init__(self) -> None:
         if not self.spans or any(int(s) < 1 for s in self.spans):
             raise InvalidInputError(f"spans must be positive frame counts, got {self.spans!r}")
-        for name in ("max_edge_mm", "profile_strip_mm", "profile_step_mm", "glass_shading_smooth_mm"):
+        for name in ("max_edge_mm", "profile_strip_mm", "profile_step_mm", "glass_shading_smooth_mm",
+                     "glass_shading_along_shape_mm"):
             if not getattr(self, name) > 0:
                 raise InvalidInputError(f"{name} must be positive, got {getattr(self, name)!r}")
         if int(self.flow_stride) < 1:
@@ -417,8 +423,20 @@ def _without_glass_shading(frames, *, calibration: Calibration, params: Analysis
         return frames, "off" if params.glass_shading is False else f"off (surface {surface or 'unknown'})"
     checks = params.extraction or ExtractionParams()
     good = [k for k, f in enumerate(frames) if not frame_flags(f, checks)]
+    if len(good) < 2:
+        return frames, f"not applied: {len(good)} usable frame(s)"
+    # A ruled surface's shading varies across the shape only: smooth its maps much more along the shape (less of
+    # the fingerprint left in them), whichever image axis that is.
+    mean = cv2.GaussianBlur(np.mean([frames[k] for k in good], axis=0, dtype=np.float32), (0, 0), calibration.px(0.15))
+    along_x = float(np.mean(np.abs(np.diff(mean, axis=1)))) < float(np.mean(np.abs(np.diff(mean, axis=0))))
+    fine = calibration.px(params.glass_shading_smooth_mm)
+    coarse = calibration.px(params.glass_shading_along_shape_mm)
     try:
-        shading = glass_shading([frames[k] for k in good], smooth_px=calibration.px(params.glass_shading_smooth_mm))
+        shading = glass_shading(
+            [frames[k] for k in good],
+            smooth_px=(coarse, fine) if along_x else (fine, coarse),
+            min_motion_ratio=params.glass_shading_min_motion,
+        )
     except InsufficientDataError as exc:
         return frames, f"not applied: {exc}"
     out = list(frames)
