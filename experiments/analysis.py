@@ -239,17 +239,23 @@ def measure_flow(
     """Dense flow between consecutive frames; longer spans chain the fields along the skin points."""
     n = len(frames)
     flow = DenseFlow(calibration=calibration, params=params.flow)
-    fields: list[FlowField] = []
     flags = [""] * n
     t0 = time.perf_counter()
-    prev = np.asarray(frames[0]) if n else None
-    for k in _progress(range(1, n), progress, "flow"):
-        cur = np.asarray(frames[k])
-        f = flow.compute(prev, cur, frame_a=k - 1, frame_b=k)
-        fields.append(f)
+    bar = None
+    if progress:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        bar = tqdm(total=max(n - 1, 0), desc="flow", unit="frame", file=sys.stderr, leave=False)
+    try:
+        # Each frame prepared once, runs of pairs on params.workers threads (same fields as pair by pair).
+        fields = flow.compute_sequence(frames, threads=max(1, int(params.workers)),
+                                       on_field=(lambda _f: bar.update(1)) if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
+    for f in fields:
         if f.status != "ok":
-            flags[k - 1] = f.status
-        prev = cur
+            flags[f.frame_a] = f.status
     t_flow = time.perf_counter() - t0
     t0 = time.perf_counter()
     samples = [_rectified_sample(f.motion(), mapping, calibration) for f in fields]
