@@ -133,6 +133,23 @@ class MovieSpec(_Strict):
     force_ceiling_n: float = Field(default=5.0, gt=0, le=50)
 
 
+class CalibrationSpec(_Strict):
+    """Geometric calibration of the session (seed 3.4), done once before the first trial and stored in every
+    trial's session file so the analysis measures on the skin.
+
+    ``source`` is a grid image, a session file of the (moving) grid, or a calibration JSON written by
+    ``skinstretch calibrate``; a relative path is relative to the protocol file. The other fields are those of
+    ``skinstretch calibrate``. A fit that cannot be trusted stops the session before any trial is recorded.
+    """
+
+    source: str = Field(min_length=1)
+    surface: Literal["auto", "flat", "ridge", "valley"] = "auto"
+    spacing_mm: float = Field(default=0.5, gt=0, le=10)
+    dot_diameter_mm: float = Field(default=0.2, gt=0, le=5)
+    max_frames: int = Field(default=10, ge=1, le=1000)
+    max_rms_px: float = Field(default=0.5, gt=0)
+
+
 class Protocol(_Strict):
     """A whole experiment session (see module docstring)."""
 
@@ -147,6 +164,7 @@ class Protocol(_Strict):
     record: RecordSpec = RecordSpec()
     analysis: AnalysisSpec = AnalysisSpec()
     movie: Optional[MovieSpec] = None
+    calibration: Optional[CalibrationSpec] = None
 
     @field_validator("camera_mode")
     @classmethod
@@ -340,7 +358,12 @@ def parse_rig(text: str, *, source: str = "<rig>") -> Rig:
 def load_protocol(path: str | os.PathLike) -> Protocol:
     """Load and validate a protocol YAML file (raises ConfigError with file:line: field: message)."""
     text, source = _read(path, "protocol")
-    return parse_protocol(text, source=source)
+    protocol = parse_protocol(text, source=source)
+    cal = protocol.calibration
+    if cal is not None and not Path(cal.source).is_absolute():
+        resolved = str((Path(path).parent / cal.source).resolve())
+        protocol = protocol.model_copy(update={"calibration": cal.model_copy(update={"source": resolved})})
+    return protocol
 
 
 def load_rig(path: str | os.PathLike | None) -> Rig:

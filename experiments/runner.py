@@ -39,6 +39,7 @@ from drivers.session_file import attach_truth, open_session
 from processing.calibration import Calibration
 from processing.errors import ConfigError, DeviceError, InvalidInputError, SessionFileError, SkinstretchError
 from experiments.protocol import PlannedTrial, Protocol, Rig
+from experiments.calibration_step import store_calibration
 from experiments.recorder import Recorder, RecorderStats
 
 __all__ = [
@@ -55,6 +56,7 @@ __all__ = [
 SESSION_FILE = "session.h5"
 ANALYSIS_DIR = "analysis"
 EVENT_LOG = "events.jsonl"
+CALIBRATION_FILE = "calibration.json"
 
 
 # --------------------------------------------------------------------------------------------- document log
@@ -381,6 +383,38 @@ def _print(msg: str) -> None:
     print(msg, flush=True)
 
 
+def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progress: Callable[[str], None]):
+    """The session's mapping (protocol ``calibration``): fitted once into ``sdir/calibration.json``, reused on
+    ``--resume``; None without one. An untrustworthy fit raises before any trial is recorded."""
+    spec = protocol.calibration
+    if spec is None:
+        return None
+    from experiments.calibration_step import calibrate_source, mapping_for_frames  # noqa: PLC0415
+
+    saved = sdir / CALIBRATION_FILE
+    if saved.exists():
+        mapping, summary = calibrate_source(saved)
+    else:
+        mapping, summary = calibrate_source(
+            spec.source,
+            surface=spec.surface,
+            field_width_mm=protocol.field_of_view_mm,
+            spacing_mm=spec.spacing_mm,
+            dot_diameter_mm=spec.dot_diameter_mm,
+            max_frames=spec.max_frames,
+            max_rms_px=spec.max_rms_px,
+        )
+        mode = CAMERA_MODES[protocol.camera_mode]
+        mapping_for_frames(mapping, mode.width, mode.height)  # frames larger than the grid images: fail now
+        tmp = saved.with_name(saved.name + ".partial")
+        tmp.write_text(json.dumps(mapping.to_dict(), indent=2))
+        os.replace(tmp, saved)
+    progress(f"calibration: {summary}")
+    log.emit("event", {"uid": uuid.uuid4().hex, "name": "calibration",
+                       "data": {"source": spec.source, "file": str(saved), "summary": summary}})
+    return mapping
+
+
 def run_protocol(
     protocol: Protocol,
     rig: Rig,
@@ -454,6 +488,7 @@ def run_protocol(
                     log.emit("stop", {"uid": uuid.uuid4().hex, "run_start": d["uid"], "exit_status": "abort",
                                       "reason": reason})
                     done[dirname] = {"exit_status": "abort", "reason": reason}
+            mapping = _session_calibration(protocol, sdir, log, progress)
             todo = [t for t in plan if t.dirname not in done and not (sdir / t.dirname / SESSION_FILE).exists()]
             if hasattr(devices, "prepare"):
                 devices.prepare(protocol=protocol, trials=todo)
@@ -523,6 +558,13 @@ def run_protocol(
                     },
                 )
                 results.append(result)
+                if mapping is not None and path.exists():
+                    try:
+                        store_calibration(path, mapping)
+                    except SkinstretchError as exc:  # the data are kept; the analysis then measures in pixels
+                        progress(f"trial {trial.dirname}: calibration not stored ({exc})")
+                        log.emit("event", {"uid": uuid.uuid4().hex, "run_start": run_uid, "name": "calibration",
+                                           "data": {"stored": False, "reason": str(exc)}})
                 if pool is not None and result.summary.get("frames", 0) >= 2:
                     fut = pool.submit(
                         analyse_trial,
