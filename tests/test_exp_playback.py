@@ -180,3 +180,25 @@ def test_load_movie_formats(tmp_path):
     np.save(tmp_path / "bad.npy", np.zeros((4, 3)))
     with pytest.raises(SessionFileError, match="shape"):
         load_movie(tmp_path / "bad.npy")
+
+
+def test_corrector_stays_converged_over_a_long_movie():
+    # 60 s at 700 Hz of a plant with gain 0.8, offset 0.3 um and backlash 0.5 um: the estimates must stay put
+    # (an RLS whose covariance drifts from symmetric ran away after ~9 s on the display twin).
+    rng = np.random.default_rng(4)
+    corrector = ContactorCorrector()
+    t = np.arange(42_000) / 700.0
+    phase = rng.uniform(0, 2 * np.pi, (10, 10))
+    prev_cmd, direction, direction_prev = np.zeros((10, 10)), np.ones((10, 10)), np.ones((10, 10))
+    for k in range(t.size):
+        target = 20 * np.sin(2 * np.pi * 2.0 * t[k] + phase)
+        cmd = corrector.command(target)
+        step = cmd - prev_cmd
+        direction = np.where(np.abs(step) > 1e-9, np.sign(step), direction)
+        measured = 0.8 * prev_cmd + 0.3 + 0.5 * direction_prev  # the ack of frame k answers frame k - 1
+        corrector.observe_ack(FrameAck(k & 0xFF, Status.ARMED, measured + rng.normal(0, 0.05, (10, 10)), cmd, 0.0, 0.0))
+        prev_cmd, direction_prev = cmd, direction.copy()
+    np.testing.assert_allclose(corrector.gain, 0.8, atol=0.02)
+    np.testing.assert_allclose(corrector.offset_um, 0.3, atol=0.1)
+    np.testing.assert_allclose(corrector.backlash_um, 0.5, atol=0.1)
+    assert np.all(np.isfinite(corrector.P)) and np.allclose(corrector.P, corrector.P.transpose(0, 2, 1))
