@@ -395,15 +395,9 @@ def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progre
     if saved.exists():
         mapping, summary = calibrate_source(saved)
     else:
-        mapping, summary = calibrate_source(
-            spec.source,
-            surface=spec.surface,
-            field_width_mm=protocol.field_of_view_mm,
-            spacing_mm=spec.spacing_mm,
-            dot_diameter_mm=spec.dot_diameter_mm,
-            max_frames=spec.max_frames,
-            max_rms_px=spec.max_rms_px,
-        )
+        # The spec's fields are calibrate_source's options (surface, spacing, dot size, frames, residual bound).
+        options = spec.model_dump(exclude={"source"})
+        mapping, summary = calibrate_source(spec.source, field_width_mm=protocol.field_of_view_mm, **options)
         mode = CAMERA_MODES[protocol.camera_mode]
         mapping_for_frames(mapping, mode.width, mode.height)  # frames larger than the grid images: fail now
         tmp = saved.with_name(saved.name + ".partial")
