@@ -433,7 +433,10 @@ def _without_glass_shading(frames, *, calibration: Calibration, params: Analysis
         return frames, f"not applied: {len(good)} usable frame(s)"
     # A ruled surface's shading varies across the shape only: smooth its maps much more along the shape (less of
     # the fingerprint left in them), whichever image axis that is.
-    mean = cv2.GaussianBlur(np.mean([frames[k] for k in good], axis=0, dtype=np.float32), (0, 0), calibration.px(0.15))
+    total = np.zeros(np.asarray(frames[good[0]]).shape, np.float64)
+    for k in good:  # no stacked copy of the sequence
+        cv2.accumulate(np.asarray(frames[k]), total)
+    mean = cv2.GaussianBlur((total / len(good)).astype(np.float32), (0, 0), calibration.px(0.15))
     along_x = float(np.mean(np.abs(np.diff(mean, axis=1)))) < float(np.mean(np.abs(np.diff(mean, axis=0))))
     fine = calibration.px(params.glass_shading_smooth_mm)
     coarse = calibration.px(params.glass_shading_along_shape_mm)
