@@ -6,7 +6,8 @@ removes the bias the seed's eq. 4.3 has when the blob sits on a brightness gradi
 a blob is pulled toward the brighter side of the window).
 
 Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds where the
-valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`refine_minutiae`.
+valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`locate_minutiae_tips`
+(valley endings) and :func:`refine_bifurcations`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 from processing.errors import InvalidInputError
 from processing.jit import njit
 
-__all__ = ["refine_pores", "refine_minutiae", "refine_bifurcations", "locate_minutiae_tips"]
+__all__ = ["refine_pores", "refine_bifurcations", "locate_minutiae_tips"]
 
 
 @njit(nogil=True)
@@ -139,144 +140,6 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
         (1 - fy) * ((1 - fx) * img[r, c] + fx * img[r, c + 1])
         + fy * ((1 - fx) * img[r + 1, c] + fx * img[r + 1, c + 1])
     )
-
-
-@njit(nogil=True)
-def _apex(img, x0, y0, wx, wy, sign, t0, t_max, half, step):  # pragma: no cover - compiled
-    """Apex of the region ``sign * img > 0`` in direction (wx, wy): for lateral offsets d in [-half, half], walk
-    from (x0, y0) + t0 w + d v along w to the region's edge; the apex is the farthest edge point (parabola-refined
-    across). Returns (x, y, found)."""
-    vx = -wy
-    vy = wx
-    n_d = int(half / step)
-    best_t = -1e9
-    best_k = 0
-    ts = np.full(2 * n_d + 1, np.nan)
-    for kd in range(-n_d, n_d + 1):
-        d = kd * step
-        sx = x0 + t0 * wx + d * vx
-        sy = y0 + t0 * wy + d * vy
-        prev = sign * _bilinear(img, sx, sy)
-        if not prev > 0:
-            continue
-        n_t = int((t_max - t0) / step)
-        for k in range(1, n_t + 1):
-            t = t0 + k * step
-            v = sign * _bilinear(img, x0 + t * wx + d * vx, y0 + t * wy + d * vy)
-            if not v == v:
-                break
-            if v <= 0:
-                tc = t - step + step * prev / (prev - v)
-                ts[kd + n_d] = tc
-                if tc > best_t:
-                    best_t = tc
-                    best_k = kd
-                break
-            prev = v
-    if best_t < -1e8:
-        return x0, y0, False
-    # Parabola through the best lateral sample and its neighbours, when both exist.
-    d_best = best_k * step
-    i = best_k + n_d
-    if 0 < i < 2 * n_d and ts[i - 1] == ts[i - 1] and ts[i + 1] == ts[i + 1]:
-        a = ts[i - 1]
-        b = ts[i]
-        c = ts[i + 1]
-        den = a - 2 * b + c
-        if den < 0:
-            off = 0.5 * (a - c) / den
-            if abs(off) <= 1:
-                d_best += off * step
-                best_t = b - 0.25 * (a - c) * off
-    return x0 + best_t * wx + d_best * vx, y0 + best_t * wy + d_best * vy, True
-
-
-@njit(nogil=True)
-def _refine_minutiae(img, xs, ys, ux, uy, is_end, back, reach, half):  # pragma: no cover - compiled
-    n = xs.size
-    ox = xs.copy()
-    oy = ys.copy()
-    ok = np.zeros(n, np.bool_)
-    step = 0.25
-    for k in range(n):
-        if is_end[k]:
-            # The bright valley narrows to its tip: start inside the valley, walk toward the tip.
-            x, y, found = _apex(img, xs[k], ys[k], ux[k], uy[k], 1.0, -back, reach, half, step)
-        else:
-            # The dark ridge between the fork's arms narrows to its tip: start inside that ridge, walk back
-            # toward the fork.
-            x, y, found = _apex(img, xs[k], ys[k], -ux[k], -uy[k], -1.0, -2.0 * reach, reach, half, step)
-        if found:
-            ox[k] = x
-            oy[k] = y
-            ok[k] = True
-    return ox, oy, ok
-
-
-def refine_minutiae(
-    excess: np.ndarray,
-    *,
-    x: np.ndarray,
-    y: np.ndarray,
-    direction_deg: np.ndarray,
-    is_ending: np.ndarray,
-    reach_px: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel minutia positions where the valley (or ridge) actually ends in the grey image.
-
-    The skeleton places an ending where thinning stopped eroding and a bifurcation where the thinned branches
-    meet; both depend on the valley width and are off the true minutia by a few pixels. In the grey image a
-    minutia is where the valley's bright centre line ends (ending) or where the dark ridge between the two
-    arms of a fork ends (bifurcation). So:
-
-    Near a minutia every iso-intensity line of the print runs into the minutia point (it is a phase
-    singularity), so the valley's bright region (ending) or the ridge's dark region between the arms
-    (bifurcation) is a wedge whose apex is the minutia. The refinement finds that apex: from inside the region,
-    rays parallel to the minutia axis at lateral offsets every 1/4 px are walked (bilinear interpolation, 1/4 px
-    steps) to the threshold crossing (``excess = 0``, linear interpolation); the farthest crossing is the apex,
-    refined across by a parabola through its neighbours.
-
-    Parameters
-    ----------
-    excess : (H, W) float32
-        Smoothed frame minus the binarization threshold (positive on valleys and pores).
-    x, y : (M,) float
-        Skeleton positions.
-    direction_deg : (M,) float
-        Feature-table orientation (degrees, y up). Endings point into their valley; bifurcations bisect their
-        smallest angle, i.e. point between the two arms toward the ridge that ends there.
-    is_ending : (M,) bool
-    reach_px : float
-        How far along the axis (both ways) the crossing is searched.
-
-    Returns
-    -------
-    x, y : (M,) float64
-        Refined positions (unchanged where not refined).
-    refined : (M,) bool
-        False where the orientation is unknown or no crossing was found.
-    """
-    img, _, x, y = _check(excess, excess, x, y, reach_px)
-    direction = np.asarray(direction_deg, dtype=np.float64)
-    is_ending = np.asarray(is_ending, dtype=np.bool_)
-    if direction.shape != x.shape or is_ending.shape != x.shape:
-        raise InvalidInputError(f"direction_deg and is_ending must have the shape of x {x.shape}")
-    known = np.isfinite(direction)
-    a = np.radians(np.where(known, direction, 0.0))
-    # Feature-table angles have y up; image rows go down.
-    ux, uy = np.cos(a), -np.sin(a)
-    # Endings point into their valley: the tip is the other way.
-    ux = np.where(is_ending, -ux, ux)
-    uy = np.where(is_ending, -uy, uy)
-    back = max(reach_px / 3.0, 1.5)
-    rx, ry, ok = _refine_minutiae(
-        img, x, y, np.ascontiguousarray(ux), np.ascontiguousarray(uy), is_ending, back, float(reach_px), float(reach_px)
-    )
-    ok &= known
-    rx = np.where(ok, rx, x)
-    ry = np.where(ok, ry, y)
-    return rx, ry, ok
-
 
 
 @njit(nogil=True)
