@@ -19,7 +19,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-import cv2
 import numpy as np
 
 from drivers.session_file import open_session
@@ -429,21 +428,11 @@ def _without_glass_shading(frames, *, calibration: Calibration, params: Analysis
         return frames, "off" if params.glass_shading is False else f"off (surface {surface or 'unknown'})"
     checks = params.extraction or ExtractionParams()
     good = [k for k, f in enumerate(frames) if not frame_flags(f, checks)]
-    if len(good) < 2:
-        return frames, f"not applied: {len(good)} usable frame(s)"
-    # A ruled surface's shading varies across the shape only: smooth its maps much more along the shape (less of
-    # the fingerprint left in them), whichever image axis that is.
-    total = np.zeros(np.asarray(frames[good[0]]).shape, np.float64)
-    for k in good:  # no stacked copy of the sequence
-        cv2.accumulate(np.asarray(frames[k]), total)
-    mean = cv2.GaussianBlur((total / len(good)).astype(np.float32), (0, 0), calibration.px(0.15))
-    along_x = float(np.mean(np.abs(np.diff(mean, axis=1)))) < float(np.mean(np.abs(np.diff(mean, axis=0))))
-    fine = calibration.px(params.glass_shading_smooth_mm)
-    coarse = calibration.px(params.glass_shading_along_shape_mm)
-    try:
+    try:  # InsufficientDataError: fewer than 2 usable frames, or skin that barely moved
         shading = glass_shading(
             [frames[k] for k in good],
-            smooth_px=(coarse, fine) if along_x else (fine, coarse),
+            smooth_px=calibration.px(params.glass_shading_smooth_mm),
+            along_shape_px=calibration.px(params.glass_shading_along_shape_mm),
             min_motion_ratio=params.glass_shading_min_motion,
         )
     except InsufficientDataError as exc:
@@ -508,7 +497,8 @@ def analyze_frames(
     t_derive = time.perf_counter() - t0
     total = time.perf_counter() - t_start
     timing = dict(m.timing)
-    timing.update({"glass_shading_s": t_shading, "derive_s": t_derive, "total_s": total, "frames_per_s": n / total if total > 0 else float("nan")})
+    timing.update({"glass_shading_s": t_shading, "derive_s": t_derive, "total_s": total,
+                   "frames_per_s": n / total if total > 0 else float("nan")})
     pairs, motion = _motion_table(m.samples)
     ft = d["fingertip"]
     win = d.get("window")

@@ -50,6 +50,7 @@ def glass_shading(
     frames: Sequence[np.ndarray],
     *,
     smooth_px: float | tuple[float, float] = 1.5,
+    along_shape_px: float | None = None,
     level: float = 160.0,
     contrast: float = 45.0,
     floor_fraction: float = 0.25,
@@ -67,6 +68,9 @@ def glass_shading(
         only across the shape, i.e. along the sliding direction, so it can be smoothed much more along the shape:
         on valleyL (sliding along y) ``(8, 1.5)`` keeps the profile correlation of ``1.5`` and halves the damage
         to the 11-frame edge strain of flatL.
+    along_shape_px : float, optional
+        Find the shape's direction from the sequence mean instead (the image axis along which it varies least)
+        and smooth along it by this much, across it by ``smooth_px`` (a single value then).
     level, contrast : float
         Output grey level of the glass-fixed mean and output contrast of one standard deviation.
     floor_fraction : float
@@ -105,6 +109,16 @@ def glass_shading(
     n = float(len(frames))
     mean = total / n
     std = np.sqrt(np.maximum(total_sq / n - mean * mean, 0.0))
+    if along_shape_px is not None:
+        if np.ndim(smooth_px) != 0 or not (np.isfinite(along_shape_px) and along_shape_px > 0):
+            raise InvalidInputError(
+                f"along_shape_px needs a positive value and a single smooth_px, got {along_shape_px!r}, {smooth_px!r}"
+            )
+        # A ruled surface's shading varies across the shape only: smooth much more along it (less of the
+        # fingerprint left in the maps), whichever image axis that is.
+        coarse = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), float(along_shape_px))
+        along_x = float(np.mean(np.abs(np.diff(coarse, axis=1)))) < float(np.mean(np.abs(np.diff(coarse, axis=0))))
+        sx, sy = (along_shape_px, smooth_px) if along_x else (smooth_px, along_shape_px)
     mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     # Spatial contrast of the texture in the first frame (local std over ~ a ridge period).
