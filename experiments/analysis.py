@@ -414,7 +414,7 @@ def derive(
     return out
 
 
-def _without_glass_shading(frames, *, calibration: Calibration, params: AnalysisParams, surface: str | None):
+def without_glass_shading(frames, *, calibration: Calibration, params: AnalysisParams, surface: str | None):
     """Frames with the glass-fixed shading removed when asked (see :class:`AnalysisParams`), and what was done.
 
     All-black and saturated frames are left out of the statistics and passed on untouched (extraction flags them).
@@ -443,7 +443,7 @@ def _without_glass_shading(frames, *, calibration: Calibration, params: Analysis
     return out, f"applied (motion ratio {shading.motion_ratio:.2f})"
 
 
-def _surface_kind(metadata: dict) -> str | None:
+def surface_kind(metadata: dict) -> str | None:
     """The surface of a session's metadata: a simulated scene's "ridge", or a protocol's {"kind": "ridge", ...}."""
     surface = metadata.get("surface")
     if isinstance(surface, dict):
@@ -488,7 +488,7 @@ def analyze_frames(
         raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n}")
     image_shape = tuple(int(v) for v in np.asarray(frames[0]).shape)
     t_start = time.perf_counter()
-    frames, shading_status = _without_glass_shading(frames, calibration=calibration, params=params, surface=surface)
+    frames, shading_status = without_glass_shading(frames, calibration=calibration, params=params, surface=surface)
     t_shading = time.perf_counter() - t_start
     measure = measure_features if method == "features" else measure_flow
     m = measure(frames, calibration=calibration, params=params, mapping=mapping, progress=progress)
@@ -593,7 +593,7 @@ def analyze_session(
         frames = session.read_frames()
         mapping = _mapping_of(session)
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
-        surface = _surface_kind(session.metadata)
+        surface = surface_kind(session.metadata)
     r = analyze_frames(
         frames,
         calibration=calibration,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from experiments.analysis import AnalysisParams, _surface_kind, _without_glass_shading
+from experiments.analysis import AnalysisParams, surface_kind, without_glass_shading
 from processing.calibration import Calibration
 
 CAL = Calibration(px_per_mm=62.0)
@@ -24,7 +24,7 @@ def _sliding_stripes(n=24, shape=(96, 128), step_px=3.0, band=True):
 
 def test_glass_fixed_band_is_removed_on_a_ridge_or_valley_only():
     frames = _sliding_stripes()
-    out, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="valley")
+    out, status = without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="valley")
     assert status.startswith("applied")
     contrast = lambda f, rows: float(np.std(f[rows].astype(float)))  # noqa: E731
     raw_ratio = contrast(frames[5], slice(42, 54)) / contrast(frames[5], slice(70, 90))
@@ -32,30 +32,30 @@ def test_glass_fixed_band_is_removed_on_a_ridge_or_valley_only():
     assert raw_ratio < 0.6 and 0.8 < new_ratio < 1.25  # the band's texture gets the same contrast as elsewhere
     # the same scene turned a quarter (band varying along x): the step finds the shape's axis by itself
     turned = [np.ascontiguousarray(f.T) for f in frames]
-    out_t, status = _without_glass_shading(turned, calibration=CAL, params=AnalysisParams(), surface="valley")
+    out_t, status = without_glass_shading(turned, calibration=CAL, params=AnalysisParams(), surface="valley")
     assert status.startswith("applied")
     assert 0.8 < contrast(out_t[5].T, slice(42, 54)) / contrast(out_t[5].T, slice(70, 90)) < 1.25
-    same, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="flat")
+    same, status = without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="flat")
     assert same is frames and status.startswith("off")
-    forced, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(glass_shading=True),
+    forced, status = without_glass_shading(frames, calibration=CAL, params=AnalysisParams(glass_shading=True),
                                             surface=None)
     assert status.startswith("applied")
 
 
 def test_static_skin_and_bad_frames_are_passed_on_untouched():
     still = [_sliding_stripes(n=1)[0]] * 10
-    out, status = _without_glass_shading(still, calibration=CAL, params=AnalysisParams(glass_shading=True),
+    out, status = without_glass_shading(still, calibration=CAL, params=AnalysisParams(glass_shading=True),
                                          surface="ridge")
     assert out is still and status.startswith("not applied") and "moved too little" in status
     frames = _sliding_stripes()
     frames[7] = np.zeros_like(frames[7])  # an all-black frame in the middle stays all black (extraction flags it)
-    out, status = _without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="ridge")
+    out, status = without_glass_shading(frames, calibration=CAL, params=AnalysisParams(), surface="ridge")
     assert status.startswith("applied") and not out[7].any()
 
 
 def test_surface_kind_from_simulated_and_recorded_metadata():
-    assert _surface_kind({"surface": "ridge"}) == "ridge"
-    assert _surface_kind({"surface": {"kind": "valley", "width_mm": 3.0}}) == "valley"
-    assert _surface_kind({}) is None
+    assert surface_kind({"surface": "ridge"}) == "ridge"
+    assert surface_kind({"surface": {"kind": "valley", "width_mm": 3.0}}) == "valley"
+    assert surface_kind({}) is None
     with pytest.raises(Exception, match="glass_shading_smooth_mm"):
         AnalysisParams(glass_shading_smooth_mm=0)

@@ -47,7 +47,7 @@ def _pattern_ok(profile: dict) -> str:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from experiments.analysis import AnalysisParams, _without_glass_shading, analyze_frames, stretch_profile
+    from experiments.analysis import AnalysisParams, analyze_frames, stretch_profile, without_glass_shading
     from experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
     from processing.flow import DenseFlow, sample_dense_flow
     from processing.tracking import MotionSample
@@ -96,7 +96,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
                 ]
             )
         # The same pairs, and the same frames (glass-fixed shading removed as our pipeline does), for every method.
-        shaded, _ = _without_glass_shading(frames, calibration=cal, params=params, surface=sc.surface.kind)
+        shaded, _ = without_glass_shading(frames, calibration=cal, params=params, surface=sc.surface.kind)
         frames = np.asarray(shaded)
         pairs = np.linspace(0, n - 2, n_peer_pairs).round().astype(int)
         ours = DenseFlow(calibration=cal, params=params.flow)
