@@ -60,6 +60,25 @@ def test_tip_is_independent_of_the_skeleton_start_point():
     assert np.ptp(rx) < 0.05 and np.ptp(ry) < 0.05
 
 
+def test_second_pass_anchors_the_tip_to_itself_on_a_curved_narrowing_valley():
+    # One pass takes its profiles relative to the skeleton start, so on a curved valley that narrows toward its
+    # tip the result depends on the start; the second pass starts from the tip and forgets it.
+    yy, xx = np.mgrid[0:50, 0:90].astype(np.float64)
+    centre = 24.0 + 0.004 * (xx - 50.0) ** 2
+    width = 2.0 + 0.03 * np.clip(60.0 - xx, 0.0, None)
+    img = (40.0 * np.exp(-((yy - centre) ** 2) / (2 * width**2)) / (1.0 + np.exp((xx - 50.3) / 1.5)) - 10.0)
+    img = img.astype(np.float32)
+    kw = dict(x=np.array([44.0, 46.0, 47.0, 48.0, 49.0]), y=np.array([24.0, 25.0, 23.0, 24.0, 24.0]),
+              direction_deg=np.array([180.0, 175.0, 185.0, 190.0, 178.0]), is_ending=np.ones(5, bool), reach_px=9.0)
+    x1, y1, ok1 = locate_minutiae_tips(img, iterations=1, **kw)
+    x2, y2, ok2 = locate_minutiae_tips(img, **kw)  # default: two passes
+    assert ok1.all() and ok2.all()
+    assert np.hypot(np.ptp(x1), np.ptp(y1)) > 0.2
+    assert np.hypot(np.ptp(x2), np.ptp(y2)) < 0.05
+    with pytest.raises(InvalidInputError, match="iterations"):
+        locate_minutiae_tips(img, iterations=0, **kw)
+
+
 def test_tip_leaves_unknown_orientation_and_missing_valleys_alone():
     img = _valley_ending(50.0, 24.0)
     flat = np.full_like(img, -5.0)  # no valley at all: nothing above the local mean
@@ -101,9 +120,12 @@ def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
     x0, y0, ok0 = refine_bifurcations(_fork(30.0, 30.0), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
     x1, y1, ok1 = refine_bifurcations(_fork(30.4, 29.7), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
     assert ok0.all() and ok1.all()
-    assert np.ptp(x0) < 0.1 and np.ptp(y0) < 0.1  # start point (1-2 px apart) nearly forgotten after 8 steps
+    assert np.ptp(x0) < 0.1 and np.ptp(y0) < 0.1  # start point (1-2 px apart) nearly forgotten after 12 steps
     assert np.mean(x1 - x0) == pytest.approx(0.4, abs=0.05)
     assert np.mean(y1 - y0) == pytest.approx(-0.3, abs=0.05)
+    # threshold=None: the image is already the excess (what the extractor passes).
+    xe, ye, oke = refine_bifurcations(_fork(30.0, 30.0) - thr, threshold=None, x=starts_x, y=starts_y, radius_px=8.0)
+    assert oke.all() and np.allclose(xe, x0, atol=1e-4) and np.allclose(ye, y0, atol=1e-4)
 
 
 def _naive_thin(binary):
