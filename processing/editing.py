@@ -241,6 +241,9 @@ def remove_short_spurs(
     angles with the two other valleys at the bifurcation are within ``max_deviation_deg`` of 90 degrees. The spur
     and its ending are deleted and the bifurcation re-evaluated (it becomes a plain valley point). When the spur is
     longer than ``min_length_px``, a pore is added at its tip. Returns an edited copy.
+
+    Beyond the seed: the spur may also leave a crossing of four valleys where a bridge (4.8.4) continues it
+    straight on, the last pore of a row of pores across the ridges (see :func:`remove_bridges`).
     """
     lo = _positive(min_length_px, "min_length_px")
     hi = _positive(max_length_px, "max_length_px")
@@ -252,13 +255,13 @@ def remove_short_spurs(
         if not g.edge_alive[e] or g.edge_length[e] >= hi:
             continue
         a, b = g.edge_a[e], g.edge_b[e]
-        if g.degree(a) == 1 and g.degree(b) == 3:
+        if g.degree(a) == 1 and g.degree(b) in (3, 4):
             end, bif = a, b
-        elif g.degree(b) == 1 and g.degree(a) == 3:
+        elif g.degree(b) == 1 and g.degree(a) in (3, 4):
             end, bif = b, a
         else:
             continue
-        if not _perpendicular(g, bif, e, orientation_px=orientation_px, max_dev=dev):
+        if not _bridge_end(g, bif, e, orientation_px=orientation_px, max_dev=dev):
             continue
         tip = (g.node_x[end], g.node_y[end])
         g.remove_edge(e)
@@ -283,6 +286,12 @@ def remove_bridges(
     [``min_length_px``, ``max_length_px``] and all four angles with the neighbouring valleys within
     ``max_deviation_deg`` of 90 degrees. It is deleted, a pore is added at its centre of mass and both
     bifurcations are re-evaluated. Returns an edited copy.
+
+    Beyond the seed: a row of pores across several ridges, each wide enough to join its two valleys in the binary
+    image, makes a chain of bridges that cross each valley at one point, i.e. nodes of four valleys. A bridge may
+    also end at such a crossing when one of the crossing's valleys continues it straight on (within
+    ``max_deviation_deg``) and the other two are perpendicular to it; the crossing keeps three valleys and the
+    next bridge of the chain is taken on the next pass. Passes repeat until nothing changes.
     """
     lo = _positive(min_length_px, "min_length_px")
     hi = _positive(max_length_px, "max_length_px")
@@ -290,28 +299,56 @@ def remove_bridges(
         raise InvalidInputError(f"min_length_px ({lo}) must be below max_length_px ({hi})")
     dev = _angle_limit(max_deviation_deg, "max_deviation_deg")
     g = graph.copy()
-    for e in g.alive_edges():
-        if not g.edge_alive[e]:
-            continue
-        a, b = g.edge_a[e], g.edge_b[e]
-        length = g.edge_length[e]
-        if a == b or not (lo <= length <= hi) or g.degree(a) != 3 or g.degree(b) != 3:
-            continue
-        if not (
-            _perpendicular(g, a, e, orientation_px=orientation_px, max_dev=dev)
-            and _perpendicular(g, b, e, orientation_px=orientation_px, max_dev=dev)
-        ):
-            continue
-        path = g.edge_path[e]
-        if len(path):
-            cx, cy = path[:, 0].mean(), path[:, 1].mean()
-        else:
-            cx, cy = (g.node_x[a] + g.node_x[b]) / 2, (g.node_y[a] + g.node_y[b]) / 2
-        g.remove_edge(e)
-        g.settle(a)
-        g.settle(b)
-        g.add_pore(cx, cy)
+    changed = True
+    while changed:
+        changed = False
+        for e in g.alive_edges():
+            if not g.edge_alive[e]:
+                continue
+            a, b = g.edge_a[e], g.edge_b[e]
+            length = g.edge_length[e]
+            if a == b or not (lo <= length <= hi):
+                continue
+            if not (
+                _bridge_end(g, a, e, orientation_px=orientation_px, max_dev=dev)
+                and _bridge_end(g, b, e, orientation_px=orientation_px, max_dev=dev)
+            ):
+                continue
+            path = g.edge_path[e]
+            if len(path):
+                cx, cy = path[:, 0].mean(), path[:, 1].mean()
+            else:
+                cx, cy = (g.node_x[a] + g.node_x[b]) / 2, (g.node_y[a] + g.node_y[b]) / 2
+            g.remove_edge(e)
+            g.settle(a)
+            g.settle(b)
+            g.add_pore(cx, cy)
+            changed = True
     return g
+
+
+def _bridge_end(g: SkeletonGraph, node: int, edge: int, *, orientation_px: int, max_dev: float) -> bool:
+    """Whether ``node`` can end the bridge ``edge``: a bifurcation of three valleys with the bridge perpendicular to
+    the other two, or a crossing of four where one valley continues the bridge straight on (within ``max_dev``)
+    and the bridge is perpendicular to the other two."""
+    d = g.degree(node)
+    if d == 3:
+        return _perpendicular(g, node, edge, orientation_px=orientation_px, max_dev=max_dev)
+    if d != 4:
+        return False
+    sx, sy, _ = branch_direction(g, node, edge, n_px=orientation_px)
+    if sx == 0 and sy == 0:
+        return False
+    angles = []
+    for other in g.node_edges[node]:
+        if other == edge:
+            continue
+        ox, oy, _ = branch_direction(g, node, other, n_px=orientation_px)
+        if ox == 0 and oy == 0:
+            return False
+        angles.append(math.degrees(math.acos(max(-1.0, min(1.0, sx * ox + sy * oy)))))
+    angles.sort()
+    return angles[2] >= 180.0 - max_dev and all(abs(t - 90.0) <= max_dev for t in angles[:2])
 
 
 # ------------------------------------------------------------------------------------------------- 4.8.5 / 4.8.6

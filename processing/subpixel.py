@@ -383,6 +383,7 @@ def locate_minutiae_tips(
     half_width_px: float = 6.0,
     n_centres: int = 15,
     iterations: int = 2,
+    back_px: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel minutiae from the grey-level profile along and across their valley (or ridge), not the skeleton.
 
@@ -461,16 +462,24 @@ def locate_minutiae_tips(
     ux = np.ascontiguousarray(-np.cos(a))
     uy = np.ascontiguousarray(np.sin(a))
     rx, ry, ok = x.copy(), y.copy(), np.zeros(x.shape, dtype=bool)
-    back = max(reach_px / 3.0, 1.5)
+    back = max(reach_px / 3.0, 1.5) if back_px is None else float(back_px)
     for sel, sign, t0 in ((is_ending, 1.0, -back), (~is_ending, -1.0, -reach_px)):
         idx = np.flatnonzero(sel & known)
         if idx.size == 0:
             continue
         sx, sy = x[idx], y[idx]
         found = np.zeros(idx.size, dtype=bool)
-        for _ in range(iterations):
+        for it in range(iterations):
             ox, oy, o = _tips(img, sx, sy, ux[idx], uy[idx], sign, float(t0), float(reach_px), float(half_width_px),
                               int(n_centres), 1.5)
+            if it == 0 and not o.all():
+                # The start (t0 behind the skeleton position) may already lie past the crossing: a faint valley
+                # whose smoothed excess reaches zero before the skeleton ends. Those start reach_px further back,
+                # so that the same crossing is found in every frame instead of none in some.
+                r = np.flatnonzero(~o)
+                rx2, ry2, o2 = _tips(img, sx[r], sy[r], ux[idx][r], uy[idx][r], sign, float(t0 - reach_px),
+                                     float(reach_px), float(half_width_px), int(n_centres), 1.5)
+                ox[r], oy[r], o[r] = rx2, ry2, o2
             sx, sy = np.where(o, ox, sx), np.where(o, oy, sy)
             found |= o
         rx[idx], ry[idx], ok[idx] = sx, sy, found

@@ -79,6 +79,17 @@ def test_second_pass_anchors_the_tip_to_itself_on_a_curved_narrowing_valley():
         locate_minutiae_tips(img, iterations=0, **kw)
 
 
+def test_tip_is_found_when_the_skeleton_ends_past_it():
+    # A faint valley's smoothed excess can reach zero before its skeleton ends: the first start already lies past
+    # the crossing. It is searched again from further back, and lands where a normal start does.
+    img = _valley_ending(50.3, 24.4)
+    kw = dict(y=np.array([24.0]), direction_deg=np.array([180.0]), is_ending=np.array([True]), reach_px=9.0)
+    x0, y0, ok0 = locate_minutiae_tips(img, x=np.array([47.0]), **kw)
+    x1, y1, ok1 = locate_minutiae_tips(img, x=np.array([56.0]), **kw)  # 5.7 px past the tip, start 3 px back
+    assert ok0[0] and ok1[0]
+    assert x1[0] == pytest.approx(x0[0], abs=0.02) and y1[0] == pytest.approx(y0[0], abs=0.02)
+
+
 def test_tip_leaves_unknown_orientation_and_missing_valleys_alone():
     img = _valley_ending(50.0, 24.0)
     flat = np.full_like(img, -5.0)  # no valley at all: nothing above the local mean

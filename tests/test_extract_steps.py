@@ -6,7 +6,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from processing.calibration import Calibration
-from processing.editing import feature_density_mask, heal_broken_valleys, line_pixels, remove_short_valleys
+from processing.editing import (
+    feature_density_mask,
+    heal_broken_valleys,
+    line_pixels,
+    remove_bridges,
+    remove_short_spurs,
+    remove_short_valleys,
+)
 from processing.errors import InvalidInputError
 from processing.extraction import ExtractionParams, FeatureExtractor, extract_features
 from processing.feature_table import FEATURE_DTYPE, FeatureKind
@@ -135,6 +142,52 @@ def test_short_valley_becomes_pore():
     g = remove_short_valleys(trace_skeleton(sk), max_length_px=CAL.px(0.2))
     assert not g.alive_nodes() and g.pore_alive == [True]
     assert g.pore_x[0] == pytest.approx(23.5) and g.pore_y[0] == pytest.approx(15.0)
+
+
+def _valleys_and_cross_line(rows, line_from, line_to, x=60):
+    """Horizontal valleys at ``rows`` and one vertical line at column ``x`` from row ``line_from`` to ``line_to``."""
+    sk = np.zeros((100, 120), np.uint8)
+    for r in rows:
+        sk[r, 5:115] = 1
+    sk[line_from : line_to + 1, x] = 1
+    return trace_skeleton(sk)
+
+
+BRIDGE = dict(min_length_px=CAL.px(0.1), max_length_px=CAL.px(1.0), max_deviation_deg=60.0, orientation_px=10)
+SPUR = dict(min_length_px=CAL.px(0.1), max_length_px=CAL.px(0.3), max_deviation_deg=60.0, orientation_px=10)
+
+
+def test_bridge_between_two_valleys_becomes_a_pore():
+    g = remove_bridges(_valleys_and_cross_line((30, 55), 30, 55), **BRIDGE)
+    assert _kinds(g) == [FeatureKind.VALLEY_ENDING] * 4
+    assert g.pore_alive == [True] and g.pore_x[0] == pytest.approx(60.0) and 40 < g.pore_y[0] < 45
+
+
+def test_a_row_of_bridges_across_several_valleys_becomes_pores():
+    # Pores in a row across the ridges, each joining its two valleys: the line crosses the middle valleys
+    # (nodes of four valleys). Every bridge of the chain goes, each leaving a pore.
+    g0 = _valleys_and_cross_line((20, 40, 60, 80), 20, 80)
+    assert _kinds(g0).count(FeatureKind.VALLEY_BIFURCATION) == 4
+    g = remove_bridges(g0, **BRIDGE)
+    assert _kinds(g) == [FeatureKind.VALLEY_ENDING] * 8
+    assert sum(g.pore_alive) == 3
+    assert sorted(round(y) for y, a in zip(g.pore_y, g.pore_alive) if a) == [30, 50, 70]
+
+
+def test_a_spur_continuing_a_bridge_through_a_crossing_goes_then_the_bridges():
+    g = remove_short_spurs(_valleys_and_cross_line((20, 40, 60), 20, 70), **SPUR)  # last 10 px: a spur
+    g = remove_bridges(g, **BRIDGE)
+    assert _kinds(g) == [FeatureKind.VALLEY_ENDING] * 6
+    assert sum(g.pore_alive) == 3  # the spur tip (10 px > 0.1 mm) and the two bridges
+
+
+def test_a_true_crossing_of_oblique_valleys_is_not_a_bridge():
+    sk = np.zeros((100, 120), np.uint8)
+    sk[50, 5:115] = 1
+    for i in range(-40, 41):
+        sk[50 + i, 60 + i] = 1  # 45 degrees: neither perpendicular nor a bridge's continuation
+    g = remove_bridges(trace_skeleton(sk), **BRIDGE)
+    assert sum(g.pore_alive) == 0
 
 
 def test_density_filter_deletes_crowded_features_per_kind():
