@@ -15,6 +15,13 @@ error code. Contactor positions travel as int8 in 0.5 um steps (+/-63.5 um cover
 >>> decoder = StreamDecoder()
 >>> [Command(p.command) for p in decoder.feed(b"garbage" + packet)]
 [<Command.IDENTIFY: 1>]
+
+Version 2 adds timed, buffered playback: ``START_MOVIE`` sets a rate and an epoch on the firmware's clock,
+``TIMED_FRAME`` carries a frame with its play tick, the firmware queues it in a bounded FIFO and applies it on its
+own timer; ``STOP_MOVIE`` / ``REST`` / ``DISARM`` flush the FIFO at once.
+
+>>> tick_time_us(700, rate_mhz=700_000)  # tick 700 at 700 Hz plays 1 s after the epoch
+1000000
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ OVERHEAD = HEADER_SIZE + CRC_SIZE
 MAX_PAYLOAD = 255
 REPLY_FLAG = 0x80
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: timed, buffered playback (START_MOVIE, TIMED_FRAME, STOP_MOVIE, READ_MOVIE)
 ROWS = COLS = 10
 N_CONTACTORS = ROWS * COLS
 POSITION_STEP_UM = 0.5  # one int8 count
@@ -45,6 +52,12 @@ DEFAULT_BAUD = 2_000_000
 DEFAULT_WATCHDOG_S = 0.050
 DEFAULT_MAX_STEP_UM = 10.0
 FIRMWARE_NAME_MAX = 32
+FIFO_DEPTH = 128  # timed frames the firmware can hold: 183 ms at 700 Hz
+TICK_LOG_DEPTH = 64  # ticks whose report (time, applied, sampled positions) waits for a reply to carry it: 91 ms
+MAX_RATE_MHZ = 700_000  # 700 Hz, the STReSS refresh rate
+MIN_RATE_MHZ = 1_000
+MAX_START_DELAY_US = 1_000_000
+NO_TICK = -1  # "none" in the signed tick fields
 
 
 class Command(enum.IntEnum):
@@ -58,6 +71,10 @@ class Command(enum.IntEnum):
     FRAME = 0x06  # payload: 100 x int8 positions (0.5 um), row-major
     REST = 0x07  # every contactor back to 0 with the firmware's soft ramp
     READ_STATUS = 0x08
+    START_MOVIE = 0x09  # payload: rate_mhz u32, n_frames u32 (0: open-ended), start_delay_us u32
+    TIMED_FRAME = 0x0A  # payload: tick u32 + 100 x int8 positions: play at tick's time on the firmware clock
+    STOP_MOVIE = 0x0B  # flush the FIFO, end the movie, hold the position
+    READ_MOVIE = 0x0C  # movie counters + the oldest unreported tick report
     NAK = 0x7F  # reply only: payload u8 error code + u8 offending command
 
 
@@ -72,6 +89,10 @@ class Status(enum.IntFlag):
     SEQUENCE_GAP = 0x0020  # at least one frame sequence number skipped since the last READ_STATUS
     SATURATED = 0x0040  # a measured position is outside the int8 encoding
     ZEROED = 0x0080  # position sensors have been re-referenced since power-up
+    MOVIE = 0x0100  # a timed movie is running (its timer ticks)
+    LATE_FRAME = 0x0200  # a timed frame arrived at or after its play time (dropped) since the last READ_STATUS
+    UNDERRUN = 0x0400  # a movie tick found no frame to play (position held) since the last READ_STATUS
+    FIFO_REJECT = 0x0800  # a timed frame was refused (FIFO full, duplicate, past the end) since the last READ_STATUS
 
 
 class NakCode(enum.IntEnum):
@@ -82,6 +103,25 @@ class NakCode(enum.IntEnum):
     NOT_ARMED = 3
     ARMED = 4  # command only allowed while disarmed
     BAD_VALUE = 5
+    MOVIE_RUNNING = 6  # an immediate FRAME while a timed movie runs
+    NO_MOVIE = 7  # a TIMED_FRAME without a movie (never started, or ended by REST / DISARM / STOP / watchdog)
+
+
+class Disposition(enum.IntEnum):
+    """What the firmware did with a timed frame (in its reply)."""
+
+    QUEUED = 0  # in the FIFO, will play at its tick
+    LATE = 1  # arrived at or after its play time: dropped, counted in late_frames
+    FIFO_FULL = 2  # tick at or beyond next_tick + FIFO_DEPTH: no room, refused (counted in fifo_rejects)
+    DUPLICATE = 3  # a frame for that tick is already queued: the first one stays (counted in fifo_rejects)
+    PAST_END = 4  # tick >= the movie's n_frames (counted in fifo_rejects)
+
+
+class TickFlags(enum.IntFlag):
+    """Flags of a tick report."""
+
+    APPLIED = 0x01  # a frame was applied at this tick (otherwise: underrun, the position was held)
+    CLAMPED = 0x02  # the firmware had to clamp that frame (range or slew)
 
 
 @dataclass(frozen=True)
@@ -365,6 +405,188 @@ def decode_nak(payload: bytes) -> tuple[int, int]:
     return payload[0], payload[1]
 
 
+# ---- timed playback (protocol version 2) ------------------------------------------------------------------------
+
+def tick_time_us(tick: int, *, rate_mhz: int) -> int:
+    """Play time of ``tick`` in whole microseconds after the movie epoch (the firmware's 1 MHz timer).
+
+    Integer arithmetic, so host and firmware agree exactly and the period never drifts: at 700 Hz the timer
+    alternates 1428 and 1429 us.
+    """
+    return (int(tick) * 1_000_000_000) // int(rate_mhz)
+
+
+def rate_to_mhz(rate_hz: float) -> int:
+    """A frame rate in Hz as the wire's millihertz, checked against 1..700 Hz."""
+    if not (isinstance(rate_hz, (int, float)) and np.isfinite(rate_hz)):
+        raise InvalidInputError(f"rate_hz must be a finite number, got {rate_hz!r}")
+    mhz = int(round(rate_hz * 1000))
+    if not MIN_RATE_MHZ <= mhz <= MAX_RATE_MHZ:
+        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
+    return mhz
+
+
+def _i32(value: int) -> int:
+    return int(max(-2**31, min(2**31 - 1, value)))
+
+
+@dataclass(frozen=True)
+class MovieStart:
+    """START_MOVIE payload: tick k plays ``start_delay_us + tick_time_us(k)`` after the command arrived."""
+
+    rate_mhz: int
+    n_frames: int  # ticks 0..n_frames-1; 0 = open-ended
+    start_delay_us: int
+
+    def __post_init__(self) -> None:
+        if not MIN_RATE_MHZ <= self.rate_mhz <= MAX_RATE_MHZ:
+            raise InvalidInputError(f"rate_mhz must be in {MIN_RATE_MHZ}..{MAX_RATE_MHZ}, got {self.rate_mhz!r}")
+        if not 0 <= self.n_frames <= 0xFFFFFFFF:
+            raise InvalidInputError(f"n_frames must be in 0..2**32-1, got {self.n_frames!r}")
+        if not 0 <= self.start_delay_us <= MAX_START_DELAY_US:
+            raise InvalidInputError(f"start_delay_us must be in 0..{MAX_START_DELAY_US}, got {self.start_delay_us!r}")
+
+    def encode(self) -> bytes:
+        return struct.pack(">III", self.rate_mhz, self.n_frames, self.start_delay_us)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "MovieStart":
+        if len(payload) != 12:
+            raise ProtocolError(f"START_MOVIE payload must be 12 bytes, got {len(payload)}")
+        try:
+            return cls(*struct.unpack(">III", payload))
+        except InvalidInputError as exc:
+            raise ProtocolError(f"START_MOVIE values out of range: {exc}") from exc
+
+
+def encode_timed_frame(tick: int, positions: bytes) -> bytes:
+    """TIMED_FRAME payload: tick u32 + the 100 encoded positions (:func:`encode_positions`)."""
+    if not 0 <= int(tick) <= 0xFFFFFFFF:
+        raise InvalidInputError(f"tick must be in 0..2**32-1, got {tick!r}")
+    if len(positions) != N_CONTACTORS:
+        raise InvalidInputError(f"positions must be {N_CONTACTORS} encoded bytes, got {len(positions)}")
+    return struct.pack(">I", int(tick)) + bytes(positions)
+
+
+def decode_timed_frame(payload: bytes) -> tuple[int, np.ndarray]:
+    """TIMED_FRAME payload -> (tick, (10, 10) um)."""
+    if len(payload) != 4 + N_CONTACTORS:
+        raise ProtocolError(f"TIMED_FRAME payload must be {4 + N_CONTACTORS} bytes, got {len(payload)}")
+    (tick,) = struct.unpack_from(">I", payload)
+    return tick, decode_positions(payload[4:])
+
+
+@dataclass(frozen=True)
+class TickReport:
+    """What happened at one movie tick: its firmware time, whether a frame was applied, the positions sampled
+    at the tick *before* that frame took effect (the response to the previous tick's frame).
+
+    ``tick == NO_TICK`` means "no report" (nothing waiting in the tick log); the other fields are then zero.
+    """
+
+    tick: int = NO_TICK
+    time_us: int = 0  # firmware clock, microseconds after the movie epoch
+    flags: TickFlags = TickFlags(0)
+    sample_um: np.ndarray = field(default_factory=lambda: np.zeros((ROWS, COLS)), repr=False)
+
+    SIZE = 4 + 4 + 1 + N_CONTACTORS
+
+    @property
+    def present(self) -> bool:
+        return self.tick >= 0
+
+    @property
+    def applied(self) -> bool:
+        return bool(self.flags & TickFlags.APPLIED)
+
+    def encode(self) -> bytes:
+        return (struct.pack(">iiB", _i32(self.tick), _i32(self.time_us), int(self.flags) & 0xFF)
+                + _encode_measured(self.sample_um))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "TickReport":
+        if len(payload) != cls.SIZE:
+            raise ProtocolError(f"tick report must be {cls.SIZE} bytes, got {len(payload)}")
+        tick, time_us, flags = struct.unpack_from(">iiB", payload)
+        if tick < NO_TICK:
+            raise ProtocolError(f"tick report has a negative tick {tick}")
+        return cls(tick, time_us, TickFlags(flags & 0x03), decode_positions(payload[9:]))
+
+
+@dataclass(frozen=True)
+class TimedFrameReply:
+    """TIMED_FRAME reply: what became of the frame, the FIFO, the firmware time of its arrival, running
+    counters, and one tick report (the oldest the firmware had not reported yet)."""
+
+    status: Status
+    tick: int  # the frame's tick (echoed)
+    disposition: Disposition
+    fifo_fill: int  # frames in the FIFO after this one was handled
+    rx_time_us: int  # firmware clock when its last byte arrived, microseconds after the epoch (negative: before)
+    late_frames: int  # running count, modulo 65536
+    underruns: int  # running count, modulo 65536
+    report: TickReport = field(repr=False)
+
+    SIZE = 2 + 4 + 1 + 1 + 4 + 2 + 2 + TickReport.SIZE
+
+    def encode(self) -> bytes:
+        return (struct.pack(">HIBBiHH", int(self.status), self.tick & 0xFFFFFFFF, int(self.disposition),
+                            min(self.fifo_fill, 255), _i32(self.rx_time_us), self.late_frames & 0xFFFF,
+                            self.underruns & 0xFFFF) + self.report.encode())
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "TimedFrameReply":
+        if len(payload) != cls.SIZE:
+            raise ProtocolError(f"timed frame reply must be {cls.SIZE} bytes, got {len(payload)}")
+        status, tick, disposition, fill, rx, late, under = struct.unpack_from(">HIBBiHH", payload)
+        if disposition not in Disposition._value2member_map_:
+            raise ProtocolError(f"timed frame reply has an unknown disposition {disposition}")
+        report = TickReport.decode(payload[cls.SIZE - TickReport.SIZE:])
+        return cls(Status(status), tick, Disposition(disposition), fill, rx, late, under, report)
+
+
+@dataclass(frozen=True)
+class MovieStatus:
+    """START_MOVIE / STOP_MOVIE / READ_MOVIE reply: the movie's counters (kept after it ends, until the next
+    START_MOVIE), the firmware time now, and one tick report (so a host can drain the tick log at the end)."""
+
+    status: Status
+    fifo_depth: int
+    fifo_fill: int
+    rate_mhz: int
+    n_frames: int
+    time_us: int  # firmware clock now, microseconds after the epoch (negative before it)
+    next_tick: int  # the next tick the timer will play (= ticks played or underrun so far)
+    frames_queued: int
+    frames_played: int
+    late_frames: int
+    underruns: int
+    fifo_rejects: int
+    reports_lost: int  # tick reports overwritten before a reply could carry them (tick log full)
+    report: TickReport = field(default_factory=TickReport, repr=False)
+
+    SIZE = 2 + 1 + 1 + 4 + 4 + 4 + 4 * 7 + TickReport.SIZE
+    _FORMAT = ">HBBIIiIIIIIII"
+
+    @property
+    def running(self) -> bool:
+        return bool(self.status & Status.MOVIE)
+
+    def encode(self) -> bytes:
+        counters = [min(int(v), 0xFFFFFFFF) for v in (self.next_tick, self.frames_queued, self.frames_played,
+                                                      self.late_frames, self.underruns, self.fifo_rejects,
+                                                      self.reports_lost)]
+        return (struct.pack(self._FORMAT, int(self.status), min(self.fifo_depth, 255), min(self.fifo_fill, 255),
+                            self.rate_mhz, self.n_frames, _i32(self.time_us), *counters) + self.report.encode())
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "MovieStatus":
+        if len(payload) != cls.SIZE:
+            raise ProtocolError(f"movie status must be {cls.SIZE} bytes, got {len(payload)}")
+        fields_ = struct.unpack_from(cls._FORMAT, payload)
+        return cls(Status(fields_[0]), *fields_[1:], report=TickReport.decode(payload[cls.SIZE - TickReport.SIZE:]))
+
+
 def link_budget(*, rate_hz: float, baud: float, bits_per_byte: int = 10) -> dict[str, float]:
     """Bytes and line occupancy of streaming at ``rate_hz`` over a UART (8N1: 10 bits a byte).
 
@@ -373,6 +595,8 @@ def link_budget(*, rate_hz: float, baud: float, bits_per_byte: int = 10) -> dict
     """
     frame_bytes = OVERHEAD + N_CONTACTORS
     ack_bytes = OVERHEAD + 2 + N_CONTACTORS
+    timed_bytes = OVERHEAD + 4 + N_CONTACTORS
+    timed_reply_bytes = OVERHEAD + TimedFrameReply.SIZE
     byte_s = bits_per_byte / baud
     return {
         "frame_bytes": frame_bytes,
@@ -382,4 +606,8 @@ def link_budget(*, rate_hz: float, baud: float, bits_per_byte: int = 10) -> dict
         "frame_utilisation": frame_bytes * byte_s * rate_hz,
         "ack_utilisation": ack_bytes * byte_s * rate_hz,
         "min_baud": frame_bytes * bits_per_byte * rate_hz,
+        "timed_frame_bytes": timed_bytes,
+        "timed_reply_bytes": timed_reply_bytes,
+        "timed_frame_utilisation": timed_bytes * byte_s * rate_hz,
+        "timed_reply_utilisation": timed_reply_bytes * byte_s * rate_hz,
     }
