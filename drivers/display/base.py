@@ -1,7 +1,13 @@
 """The tactile display interface: one small ABC, public methods validate and clamp, ``_do_*`` talk to the device.
 
 Every command passes :func:`drivers.display.safety.limit_command` in :meth:`TactileDisplay.send_frame` /
-:meth:`TactileDisplay.submit_frame` before a subclass sees it, so no concrete driver can forget the limits.
+:meth:`TactileDisplay.submit_frame` / :meth:`TactileDisplay.send_timed` before a subclass sees it, so no concrete
+driver can forget the limits.
+
+Two ways to play frames: *immediate* (:meth:`~TactileDisplay.send_frame`, :meth:`~TactileDisplay.submit_frame`:
+the display applies a frame when it arrives) and *timed* (:meth:`~TactileDisplay.start_movie` then
+:meth:`~TactileDisplay.send_timed`: each frame carries its play tick, the display buffers it and applies it on its
+own timer). A display without a firmware FIFO says so with :attr:`~TactileDisplay.supports_timed_playback`.
 """
 
 from __future__ import annotations
@@ -15,7 +21,9 @@ import numpy as np
 from processing.errors import DeviceError, InvalidInputError
 
 from .safety import LimitedCommand, limit_command, validate_limits
-from .stress_protocol import COLS, DEFAULT_MAX_STEP_UM, DEFAULT_WATCHDOG_S, RANGE_UM, ROWS, Status, StatusReport
+from .stress_protocol import (COLS, DEFAULT_MAX_STEP_UM, DEFAULT_WATCHDOG_S, MAX_START_DELAY_US, RANGE_UM, ROWS,
+                              Disposition, MovieStart, MovieStatus, Status, StatusReport, TimedFrameReply,
+                              rate_to_mhz)
 
 
 @dataclass(frozen=True)
@@ -45,6 +53,56 @@ class FrameAck:
     @property
     def round_trip_s(self) -> float:
         return self.received_at - self.sent_at
+
+
+@dataclass(frozen=True)
+class TimedFrameAck(FrameAck):
+    """A measurement from timed playback: the positions sampled at movie tick ``tick``, just before that tick's
+    frame took effect, i.e. the response to the command in force since tick - 1.
+
+    The fields keep :class:`FrameAck`'s meaning for consumers that pair consecutive acks (``measured_um`` of one
+    answers ``command_um`` of the one before, e.g. ``experiments.playback.ContactorCorrector``): ``seq`` is
+    ``tick % 256`` (consecutive records are consecutive ticks), ``command_um`` the command in force after this
+    tick (the tick's frame when ``applied``, otherwise the one held). ``sent_at`` is when the tick's frame left
+    the host (NaN if it never did), ``received_at`` when the reply carrying this report arrived.
+    """
+
+    tick: int
+    time_s: float  # firmware clock, seconds after the movie epoch
+    applied: bool  # a frame was applied at this tick (else: underrun, position held)
+
+
+@dataclass(frozen=True)
+class TimedReceipt:
+    """The display's reply to one timed frame: what became of it, the FIFO fill, when it arrived (firmware clock).
+
+    ``reply`` is the decoded wire record (:class:`~drivers.display.stress_protocol.TimedFrameReply`).
+    """
+
+    seq: int  # wire sequence number of the frame
+    tick: int
+    command_um: np.ndarray = field(repr=False)
+    reply: TimedFrameReply = field(repr=False)
+    sent_at: float  # host clock
+    received_at: float  # host clock
+
+    @property
+    def disposition(self) -> Disposition:
+        return self.reply.disposition
+
+    @property
+    def late(self) -> bool:
+        """The frame reached the display at or after its play time (dropped): a missed deadline."""
+        return self.reply.disposition == Disposition.LATE
+
+    @property
+    def rx_time_s(self) -> float:
+        """Firmware clock when the frame arrived, seconds after the movie epoch."""
+        return self.reply.rx_time_us * 1e-6
+
+    @property
+    def fifo_fill(self) -> int:
+        return self.reply.fifo_fill
 
 
 @dataclass(frozen=True)
@@ -90,6 +148,8 @@ class TactileDisplay(abc.ABC):
         self._last_command = np.zeros((ROWS, COLS))
         self._epoch = 0  # bumped whenever _last_command changes: a prepared frame is only valid in its epoch
         self._armed = False
+        self._movie: MovieStart | None = None  # the timed movie this host started (None: immediate mode)
+        self._next_tick = 0  # timed frames go out in increasing tick order
         self.acks: deque[FrameAck] = deque(maxlen=self.ACK_HISTORY)
         self.acks_received = 0
 
@@ -111,13 +171,15 @@ class TactileDisplay(abc.ABC):
     def arm(self) -> None:
         """Configure the watchdog and slew limit on the display, then enable the contactors."""
         self._do_configure(watchdog_s=self.watchdog_s, max_step_um=self.max_step_um)
+        self._movie = None
         self._do_arm()
         self._set_last(np.zeros((ROWS, COLS)))
         self._armed = True
 
     def disarm(self) -> None:
-        """Disable the contactors (the firmware brings them to rest first)."""
+        """Disable the contactors (the firmware brings them to rest first; a timed movie is flushed)."""
         self._armed = False
+        self._movie = None
         self._do_disarm()
         self._set_last(np.zeros((ROWS, COLS)))
 
@@ -128,7 +190,8 @@ class TactileDisplay(abc.ABC):
         self._do_zero()
 
     def rest(self) -> None:
-        """Send every contactor back to 0 with the firmware's soft ramp."""
+        """Send every contactor back to 0 with the firmware's soft ramp, at once (a timed movie is flushed)."""
+        self._movie = None
         self._do_rest()
         self._set_last(np.zeros((ROWS, COLS)))
 
@@ -173,6 +236,80 @@ class TactileDisplay(abc.ABC):
         seq = self._do_send_prepared(frame.wire, frame.command_um)
         self._set_last(frame.command_um)
         return seq
+
+    # ---- timed playback ----------------------------------------------------------------------------------------
+
+    @property
+    def supports_timed_playback(self) -> bool:
+        """Whether the display buffers timed frames (:meth:`start_movie`, :meth:`send_timed`)."""
+        return False
+
+    @property
+    def movie(self) -> MovieStart | None:
+        """The timed movie started by :meth:`start_movie` and not yet stopped (None: immediate mode)."""
+        return self._movie
+
+    def start_movie(self, *, rate_hz: float, n_frames: int, start_delay_s: float) -> MovieStatus:
+        """Start a timed movie: tick k plays ``start_delay_s + k / rate_hz`` after the display receives this.
+
+        Any frames still buffered from an earlier movie are flushed. The display must be armed. ``n_frames`` 0
+        means open-ended.
+        """
+        if not self._armed:
+            raise DeviceError("the display is not armed; call arm() before starting a movie")
+        if not self.supports_timed_playback:
+            raise DeviceError(f"{type(self).__name__} has no timed playback; stream frames immediately instead")
+        if not (isinstance(n_frames, (int, np.integer)) and 0 <= n_frames <= 0xFFFFFFFF):
+            raise InvalidInputError(f"n_frames must be an int in 0..2**32-1, got {n_frames!r}")
+        if not (np.isfinite(start_delay_s) and 0 <= start_delay_s <= MAX_START_DELAY_US * 1e-6):
+            raise InvalidInputError(f"start_delay_s must be in 0..{MAX_START_DELAY_US * 1e-6:g} s, "
+                                    f"got {start_delay_s!r}")
+        start = MovieStart(rate_to_mhz(rate_hz), int(n_frames), int(round(start_delay_s * 1e6)))
+        self._movie = None
+        status = self._do_start_movie(start)
+        self._movie = start
+        self._next_tick = 0
+        return status
+
+    def send_timed(self, tick: int, frame: PreparedFrame) -> int:
+        """Send a prepared frame to be played at movie tick ``tick``; returns its sequence number.
+
+        Ticks must increase (a skipped tick holds the previous frame on the display), so the slew limit the
+        frame was prepared against is the limit between consecutive *played* frames.
+        """
+        if not self._armed:
+            raise DeviceError("the display is not armed; call arm() before sending frames")
+        if self._movie is None:
+            raise DeviceError("no timed movie is running; call start_movie() first")
+        if not isinstance(frame, PreparedFrame):
+            raise InvalidInputError(f"frame must be a PreparedFrame, got {type(frame).__name__}")
+        if not (isinstance(tick, (int, np.integer)) and tick >= self._next_tick):
+            raise InvalidInputError(f"tick must be an int >= {self._next_tick} (ticks increase), got {tick!r}")
+        if self._movie.n_frames and tick >= self._movie.n_frames:
+            raise InvalidInputError(f"tick must be below the movie's n_frames {self._movie.n_frames}, got {tick}")
+        if frame.epoch != self._epoch:  # limited against a stale previous command: the slew bound would not hold
+            frame = self.prepare_frame(frame.command_um)
+        seq = self._do_send_timed(int(tick), frame.wire, frame.command_um)
+        self._set_last(frame.command_um)
+        self._next_tick = int(tick) + 1
+        return seq
+
+    def submit_timed_frame(self, tick: int, positions_um) -> int:
+        """Clamp and send one frame for movie tick ``tick`` (see :meth:`send_timed`)."""
+        return self.send_timed(tick, self.prepare_frame(positions_um))
+
+    def take_receipts(self) -> list[TimedReceipt]:
+        """Receipts of timed frames decoded since the last call (the replies are read by :meth:`collect_acks`)."""
+        return self._do_take_receipts()
+
+    def stop_movie(self) -> MovieStatus:
+        """Flush the display's FIFO and end the movie at once; the contactors hold their position."""
+        self._movie = None
+        return self._do_stop_movie()
+
+    def read_movie_status(self) -> MovieStatus:
+        """The movie's counters (kept after it ends) and one pending tick report (collected as an ack)."""
+        return self._do_read_movie_status()
 
     def _set_last(self, command_um: np.ndarray) -> None:
         self._last_command = command_um
@@ -243,6 +380,22 @@ class TactileDisplay(abc.ABC):
 
     @abc.abstractmethod
     def _do_collect_acks(self, *, wait_for: int | None, timeout_s: float) -> list[FrameAck]: ...
+
+    # timed playback: only displays with a firmware FIFO implement these (supports_timed_playback)
+    def _do_start_movie(self, start: MovieStart) -> MovieStatus:
+        raise DeviceError(f"{type(self).__name__} has no timed playback")
+
+    def _do_send_timed(self, tick: int, wire: object, command_um: np.ndarray) -> int:
+        raise DeviceError(f"{type(self).__name__} has no timed playback")
+
+    def _do_take_receipts(self) -> list[TimedReceipt]:
+        return []
+
+    def _do_stop_movie(self) -> MovieStatus:
+        raise DeviceError(f"{type(self).__name__} has no timed playback")
+
+    def _do_read_movie_status(self) -> MovieStatus:
+        raise DeviceError(f"{type(self).__name__} has no timed playback")
 
     @abc.abstractmethod
     def _do_close(self) -> None: ...

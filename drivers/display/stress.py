@@ -6,8 +6,9 @@
 
 from __future__ import annotations
 
+import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from typing import Callable
 
 import numpy as np
@@ -15,7 +16,7 @@ import numpy as np
 from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, ProtocolError
 
 from . import stress_protocol as sp
-from .base import DisplayInfo, FrameAck, TactileDisplay
+from .base import DisplayInfo, FrameAck, TactileDisplay, TimedFrameAck, TimedReceipt
 from .transports import Transport
 
 
@@ -37,7 +38,13 @@ class StressDisplay(TactileDisplay):
         Host clock (``time.perf_counter``); replaceable for tests.
     **limits
         ``range_um``, ``max_step_um``, ``watchdog_s`` (see :class:`TactileDisplay`).
+
+    Timed playback (protocol version 2): :meth:`start_movie`, :meth:`send_timed`; each TIMED_FRAME reply becomes a
+    :class:`TimedReceipt` (:meth:`take_receipts`) and, when it carries a tick report, a :class:`TimedFrameAck`
+    measurement (:meth:`collect_acks`). A version-1 firmware refuses START_MOVIE (``UNKNOWN_COMMAND``).
     """
+
+    RECEIPT_HISTORY = 8192  # receipts nobody took are dropped beyond this (counted in receipts_dropped)
 
     def __init__(self, transport: Transport, *, reply_timeout_s: float = 0.05, ack_timeout_s: float = 0.05,
                  link_timeout_s: float = 0.2, clock: Callable[[], float] = time.perf_counter, **limits) -> None:
@@ -55,8 +62,15 @@ class StressDisplay(TactileDisplay):
         self._clock = clock
         self._decoder = sp.StreamDecoder()
         self._seq = 0
-        self._outstanding: OrderedDict[int, tuple[np.ndarray, float]] = OrderedDict()
+        # seq -> (command, sent_at, tick or None for an immediate frame)
+        self._outstanding: OrderedDict[int, tuple[np.ndarray, float, int | None]] = OrderedDict()
         self._early_acks: list[FrameAck] = []
+        self._receipts: deque[TimedReceipt] = deque()
+        self.receipts_dropped = 0
+        # timed movie bookkeeping for the measurement records: what was sent for each recent tick
+        self._tick_sent: dict[int, tuple[np.ndarray, float]] = {}
+        self._in_force = np.zeros((sp.ROWS, sp.COLS))  # command in force after the last reported tick
+        self._reported_tick = sp.NO_TICK
         self._expect_since: float | None = None  # first send after the last received byte
         self._frame_refusal: str | None = None
         self.lost_acks = 0
@@ -98,6 +112,8 @@ class StressDisplay(TactileDisplay):
         for packet in self._decoder.feed(data):
             if packet.command == sp.reply_command(sp.Command.FRAME):
                 self._accept_frame_ack(packet)
+            elif packet.command == sp.reply_command(sp.Command.TIMED_FRAME):
+                self._accept_timed_reply(packet)
             elif packet.command == sp.Command.NAK and packet.seq in self._outstanding:
                 # a refused frame: the firmware is not armed any more (watchdog trip) or saw a bad frame
                 del self._outstanding[packet.seq]
@@ -113,10 +129,11 @@ class StressDisplay(TactileDisplay):
         return packets
 
     def _accept_frame_ack(self, packet: sp.Packet) -> None:
-        entry = self._outstanding.pop(packet.seq, None)
-        if entry is None:
-            return  # an ack we had written off (late) or a duplicate: nothing to pair it with
-        command, sent_at = entry
+        entry = self._outstanding.get(packet.seq)
+        if entry is None or entry[2] is not None:
+            return  # an ack we had written off (late), a duplicate, or not an immediate frame's
+        del self._outstanding[packet.seq]
+        command, sent_at, _ = entry
         try:
             status, measured = sp.decode_frame_ack(packet.payload)
         except ProtocolError:
@@ -124,10 +141,56 @@ class StressDisplay(TactileDisplay):
             return
         self._early_acks.append(FrameAck(packet.seq, status, measured, command, sent_at, self._clock()))
 
+    def _accept_timed_reply(self, packet: sp.Packet) -> None:
+        entry = self._outstanding.get(packet.seq)
+        if entry is None or entry[2] is None:
+            return  # written off, flushed by a stop, or a duplicate
+        del self._outstanding[packet.seq]
+        command, sent_at, tick = entry
+        try:
+            reply = sp.TimedFrameReply.decode(packet.payload)
+        except ProtocolError:
+            self.lost_acks += 1
+            return
+        received_at = self._clock()
+        if len(self._receipts) >= self.RECEIPT_HISTORY:
+            self._receipts.popleft()
+            self.receipts_dropped += 1
+        self._receipts.append(TimedReceipt(packet.seq, tick, command, reply, sent_at, received_at))
+        self._file_tick_report(reply.report, reply.status, received_at)
+
+    def _file_tick_report(self, report: sp.TickReport, status: sp.Status, received_at: float) -> None:
+        """Turn a tick report into a measurement record (a :class:`TimedFrameAck`) for :meth:`collect_acks`."""
+        if not report.present or report.tick <= self._reported_tick:
+            return
+        # reports come oldest first; one lost with its reply leaves the ticks in between unreported: the command
+        # in force is then the last one sent up to the tick (a lost frame is as likely as a lost reply; rare)
+        for j in range(max(self._reported_tick + 1, report.tick - 2 * sp.FIFO_DEPTH), report.tick):
+            if j in self._tick_sent:
+                self._in_force = self._tick_sent[j][0]
+        sent = self._tick_sent.get(report.tick)
+        if report.applied and sent is not None:
+            self._in_force = sent[0]
+        self._reported_tick = report.tick
+        while self._tick_sent:  # ticks were sent in increasing order: the oldest entries come first
+            oldest = next(iter(self._tick_sent))
+            if oldest > report.tick:
+                break
+            del self._tick_sent[oldest]
+        self._early_acks.append(TimedFrameAck(
+            report.tick & 0xFF, status, report.sample_um, self._in_force,
+            sent[1] if sent is not None else math.nan, received_at,
+            tick=report.tick, time_s=report.time_us * 1e-6, applied=report.applied))
+
+    def _drop_timed_outstanding(self) -> None:
+        """Frames in flight when the movie was flushed: their replies (or NAK NO_MOVIE) no longer matter."""
+        for seq in [seq for seq, entry in self._outstanding.items() if entry[2] is not None]:
+            del self._outstanding[seq]
+
     def _expire(self) -> None:
         now = self._clock()
         while self._outstanding:
-            seq, (_, sent_at) = next(iter(self._outstanding.items()))
+            seq, (_, sent_at, _) = next(iter(self._outstanding.items()))
             if now - sent_at <= self.ack_timeout_s:
                 break
             del self._outstanding[seq]
@@ -170,6 +233,7 @@ class StressDisplay(TactileDisplay):
         sp.decode_status(self._transact(sp.Command.CONFIGURE, config.encode()).payload)
 
     def _do_arm(self) -> None:
+        self._drop_timed_outstanding()
         status = sp.decode_status(self._transact(sp.Command.ARM).payload)
         if not status & sp.Status.ARMED:
             raise DeviceError(f"display did not arm (status {status!r})")
@@ -182,6 +246,7 @@ class StressDisplay(TactileDisplay):
         sp.decode_status(self._transact(sp.Command.ZERO).payload)
 
     def _do_rest(self) -> None:
+        self._drop_timed_outstanding()  # REST flushes the display's FIFO: frames in flight get NAK NO_MOVIE
         sp.decode_status(self._transact(sp.Command.REST).payload)
 
     def _do_read_status(self) -> sp.StatusReport:
@@ -195,11 +260,50 @@ class StressDisplay(TactileDisplay):
 
     def _do_send_prepared(self, wire: bytes, command_um: np.ndarray) -> int:
         seq, sent_at = self._send(sp.Command.FRAME, wire)
+        self._track(seq, command_um, sent_at, None)
+        return seq
+
+    def _track(self, seq: int, command_um: np.ndarray, sent_at: float, tick: int | None) -> None:
         if seq in self._outstanding:  # 256 frames without an ack: the old one is certainly lost
             del self._outstanding[seq]
             self.lost_acks += 1
-        self._outstanding[seq] = (command_um, sent_at)
+        self._outstanding[seq] = (command_um, sent_at, tick)
+
+    # ---- timed playback ------------------------------------------------------------------------------------------
+
+    @property
+    def supports_timed_playback(self) -> bool:
+        return True
+
+    def _movie_status(self, packet: sp.Packet) -> sp.MovieStatus:
+        status = sp.MovieStatus.decode(packet.payload)
+        self._file_tick_report(status.report, status.status, self._clock())
+        return status
+
+    def _do_start_movie(self, start: sp.MovieStart) -> sp.MovieStatus:
+        self._drop_timed_outstanding()
+        self._tick_sent.clear()
+        self._reported_tick = sp.NO_TICK
+        self._in_force = self._last_command  # what the contactors hold until tick 0
+        return self._movie_status(self._transact(sp.Command.START_MOVIE, start.encode()))
+
+    def _do_send_timed(self, tick: int, wire: bytes, command_um: np.ndarray) -> int:
+        seq, sent_at = self._send(sp.Command.TIMED_FRAME, sp.encode_timed_frame(tick, wire))
+        self._track(seq, command_um, sent_at, tick)
+        self._tick_sent[tick] = (command_um, sent_at)
         return seq
+
+    def _do_take_receipts(self) -> list[TimedReceipt]:
+        got = list(self._receipts)
+        self._receipts.clear()
+        return got
+
+    def _do_stop_movie(self) -> sp.MovieStatus:
+        self._drop_timed_outstanding()
+        return self._movie_status(self._transact(sp.Command.STOP_MOVIE))
+
+    def _do_read_movie_status(self) -> sp.MovieStatus:
+        return self._movie_status(self._transact(sp.Command.READ_MOVIE))
 
     def _do_collect_acks(self, *, wait_for: int | None, timeout_s: float) -> list[FrameAck]:
         deadline = self._clock() + timeout_s
