@@ -229,6 +229,8 @@ class TactileDisplay(abc.ABC):
         """Send a prepared frame; re-limited first if another command left since it was prepared."""
         if not self._armed:
             raise DeviceError("the display is not armed; call arm() before sending frames")
+        if self._movie is not None:
+            raise DeviceError("a timed movie is running: send_timed() its frames, or stop_movie() / rest() first")
         if not isinstance(frame, PreparedFrame):
             raise InvalidInputError(f"frame must be a PreparedFrame, got {type(frame).__name__}")
         if frame.epoch != self._epoch:  # limited against a stale previous command: the slew bound would not hold

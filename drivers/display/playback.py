@@ -632,6 +632,11 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
     if np.isnan(t_stop):
         t_stop = clock()
     rested = True
+    if outcome == "completed" and not rest_at_end:
+        try:
+            final = display.stop_movie()  # over: the display holds the last frame; frames or rest must follow
+        except DeviceError as exc:
+            outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
     if outcome != "completed" or rest_at_end:
         try:
             display.rest()  # flushes whatever is still buffered and starts the ramp now
