@@ -229,10 +229,12 @@ def play_movie(
     settle_frames: int = 0,
     progress: Callable[[str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
+    buffered: bool | None = None,
 ) -> PlaybackResult:
     """Play a (T, 10, 10) movie in micrometres at ``rate_hz``; return what was commanded and measured.
 
-    Frames are streamed by :func:`drivers.display.playback.stream_movie` (deadline-paced, pipelined acks); the
+    Frames are streamed by :func:`drivers.display.playback.stream_movie_buffered` (timed frames played by the
+    display's FIFO) or :func:`drivers.display.playback.stream_movie` (deadline-paced, pipelined acks); the
     per-frame callback feeds every new ack to the corrector, checks the force and returns the corrected command.
 
     Parameters
@@ -257,8 +259,11 @@ def play_movie(
         Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
     clock : callable
         The deadline clock, which must be the display driver's (``time.perf_counter``); replaceable in tests.
+    buffered : bool or None
+        Timed, buffered playback (True) or immediate frames (False); None: buffered for open loop on a display
+        that supports it, immediate otherwise.
     """
-    from drivers.display.playback import stream_movie  # noqa: PLC0415
+    from drivers.display.playback import stream_movie, stream_movie_buffered  # noqa: PLC0415
 
     movie = np.asarray(movie_um, dtype=float)
     if movie.ndim != 3 or movie.shape[1:] != SHAPE or movie.shape[0] < 1:
@@ -298,8 +303,14 @@ def play_movie(
     # A wider spin window leaves the callback (about 0.2 ms) inside the period instead of making frames late.
     # max_outstanding 64 (91 ms at 700 Hz) rides out a busy host; the firmware's watchdog still rests the
     # contactors after 50 ms without frames, whatever the host does.
-    report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
-                          settle_frames=0, max_outstanding=64, clock=clock)
+    if buffered is None:
+        buffered = not closed_loop and display.supports_timed_playback
+    if buffered:
+        report = stream_movie_buffered(display, movie, rate_hz=float(rate_hz), callback=callback, settle_frames=0,
+                                       clock=clock)
+    else:
+        report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
+                              settle_frames=0, max_outstanding=64, clock=clock)
     rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
     rested = report.rested and rested_now
     duration = time.perf_counter() - t0
