@@ -346,6 +346,9 @@ DEFAULT_LEAD_S = 0.080
 #: replies, so a 2 Mbaud line never holds more than ~20 ms of replies (below the driver's 50 ms ack timeout).
 DEFAULT_WINDOW = 32
 
+#: A frame whose play time is closer than this is not sent: it would reach the display late (at 2 Mbaud a timed
+#: frame takes 0.56 ms on the line, plus whatever is queued before it) and be dropped there.
+SEND_MARGIN_S = 0.002
 _MIN_WAIT_S = 20e-6  # shorter waits are not worth a system call (and never end on a manual clock's rounding)
 
 #: fate codes of :attr:`BufferedPlaybackReport.fates` besides the Disposition values
@@ -361,12 +364,15 @@ class FirmwareClock:
     stall only makes a difference larger). To follow a display crystal slower than the host's, the estimate may
     rise by ``drift_ppm`` of the elapsed time; a faster one pulls it down at once.
 
-    >>> clock = FirmwareClock(10.0, -0.05)  # START_MOVIE replied at host time 10 s, 50 ms before the epoch
+    >>> clock = FirmwareClock(10.0, -0.05)  # START_MOVIE's reply seen at 10 s; it arrived 50 ms before the epoch
     >>> clock.epoch_s
     10.05
-    >>> clock.update(10.2, 0.1495)  # a frame that arrived 149.5 ms after the epoch, reply seen at 10.2 s
+    >>> clock.update(10.0298, -0.02)  # a frame that arrived 20 ms before the epoch, its reply seen at 10.0298 s
     >>> round(clock.epoch_s, 4)
-    10.0505
+    10.0498
+    >>> clock.update(10.2, 0.1)  # a reply the host read late (stalled) changes nothing
+    >>> round(clock.epoch_s, 4)
+    10.0498
     """
 
     def __init__(self, host_time_s: float, firmware_time_s: float, *, drift_ppm: float = 200.0) -> None:
@@ -449,7 +455,9 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
     k goes out with its tick when its play time is ``lead_s`` away (on the display's clock, estimated from its
     replies), and the firmware applies it from its FIFO on its own timer. Whenever the buffered time falls to
     ``low_water_s`` the host refills it to ``lead_s``; after a host stall every frame due goes out at once (paced by
-    ``window``). A frame whose play time has already passed is not sent (it would be dropped as late).
+    ``window``). A frame whose play time is less than :data:`SEND_MARGIN_S` away is not sent (it would be dropped
+    as late). When the display does drop a late frame it holds the one before, and the next frame, limited here
+    against the dropped one, may be up to two slew steps away: the firmware's own clamp (CLAMPED) takes it then.
 
     Parameters
     ----------
@@ -578,9 +586,9 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
                 pump(min(period, max(due - now, 0.0)))
                 continue
             phases[k, 1] = clock() - fw_clock.epoch_s
-            if due <= now:
-                # its play time has passed (the host was stalled longer than the lead): the display would drop
-                # it as late; the next frame is limited against what the contactors last got
+            if due - now < SEND_MARGIN_S:
+                # its play time has (nearly) passed: the host was stalled longer than the lead and the display
+                # would drop it as late; the next frame is limited against what the contactors last got
                 skipped[k] = True
                 fates[k] = FATE_NOT_SENT
                 send_times[k] = now - fw_clock.epoch_s
