@@ -185,3 +185,31 @@ def test_ack_history_is_bounded_and_counts_every_ack():
     assert d.acks_received == 10_000
     assert len(d.acks) == TactileDisplay.ACK_HISTORY
     assert d.acks[-1].seq == 9_999 and d.acks[0].seq == 10_000 - TactileDisplay.ACK_HISTORY
+
+
+def test_timed_frames_play_from_the_fifo_at_their_ticks(rig):
+    d = rig.display
+    assert d.supports_timed_playback
+    d.zero()
+    d.arm()
+    # 250 ms between the start and tick 0: a test process starved by a busy machine still gets 20 frames across
+    status = d.start_movie(rate_hz=700, n_frames=20, start_delay_s=0.25)
+    assert status.running and status.fifo_depth == sp.FIFO_DEPTH and status.time_us == -250_000
+    for k in range(20):
+        d.submit_timed_frame(k, np.full((10, 10), 0.5 * k))
+    rig.wait(0.3)
+    d.collect_acks(timeout_s=0.05)
+    receipts = d.take_receipts()
+    assert [r.tick for r in receipts] == list(range(20))
+    assert all(r.disposition == sp.Disposition.QUEUED and r.rx_time_s < -0.1 for r in receipts)
+    final = d.read_movie_status()
+    assert (final.frames_played, final.late_frames, final.underruns, final.next_tick) == (20, 0, 0, 20)
+    assert not final.running
+    while final.report.present:  # the tick reports no frame reply was left to carry
+        final = d.read_movie_status()
+    ticks = [a.tick for a in d.collect_acks()]
+    assert ticks == sorted(ticks) and ticks[-1] == 19 and len(ticks) >= 20 - 1
+    d.rest()
+    rig.link.advance()
+    assert rig.firmware.clamped_frames == 0 and rig.firmware.benders.resting
+    assert np.all(rig.firmware.last_command_um == 0)
