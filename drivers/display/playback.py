@@ -462,8 +462,9 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
     Parameters
     ----------
     display : TactileDisplay
-        Must support timed playback; armed here if it is not armed yet. Its range / slew limits apply to every
-        frame; the slew limit holds between consecutive *played* frames.
+        Must support timed playback; armed here if it is not armed yet (better: arming here, just before the
+        movie starts, leaves no gap for the display's watchdog). Its range / slew limits apply to every frame;
+        the slew limit holds between consecutive *played* frames.
     movie_um : array_like, shape (frames, 10, 10)
         Requested positions; anything unsafe is limited by the driver (see :mod:`drivers.display.safety`).
     rate_hz : float, keyword-only
@@ -526,7 +527,8 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
     commands.fill(0.0)
     measured = np.full((n, ROWS, COLS), np.nan)
     acked = np.full(n, False)
-    play_offsets = np.array([tick_time_us(k, rate_mhz=rate_mhz) * 1e-6 for k in range(n)])
+    # the firmware's tick times (tick_time_us), exact integers: floor(k * 1e9 / rate_mhz) us
+    play_offsets = (np.arange(n, dtype=np.int64) * 1_000_000_000 // rate_mhz) * 1e-6
     send_times = np.full(n, np.nan)
     skipped = np.full(n, False)
     fates = np.full(n, FATE_UNKNOWN, dtype=np.int8)
@@ -570,7 +572,7 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
     gc.disable()
     try:
         if not display.armed:
-            display.arm()
+            display.arm()  # after the allocations above: the watchdog runs from here until a frame plays
         status = display.start_movie(rate_hz=rate_hz, n_frames=n, start_delay_s=float(lead_s))
         fw_clock = FirmwareClock(clock(), status.time_us * 1e-6)
         while k < n:

@@ -155,7 +155,7 @@ def _play(display: StressDisplay, movie: np.ndarray) -> PlaybackReport:
 def _play_buffered(display: StressDisplay, movie: np.ndarray) -> BufferedPlaybackReport:
     display.identify()
     display.zero()
-    display.arm()
+    # armed inside, after its allocations: with the 50 ms safety watchdog there is no room for them in between
     report = stream_movie_buffered(display, movie, rate_hz=RATE_HZ, settle_frames=20)
     display.close()
     return report
