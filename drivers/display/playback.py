@@ -39,7 +39,7 @@ import numpy as np
 from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, SafetyStop
 
 from .base import FrameAck, TactileDisplay, TimedFrameAck, TimedReceipt
-from .stress_protocol import COLS, FIFO_DEPTH, ROWS, TICK_LOG_DEPTH, Disposition, MovieStatus, rate_to_mhz, tick_time_us
+from .stress_protocol import COLS, FIFO_DEPTH, ROWS, TICK_LOG_DEPTH, Disposition, MovieStatus, rate_to_mhz
 
 #: What :attr:`PlaybackReport.phase_times_s` columns record, per frame: top of the loop, end of the ack wait,
 #: command ready (callback + limits + encoding), end of the spin (= send time), bytes written and filed.
