@@ -134,9 +134,12 @@ def detect_background(
     if not isinstance(grid_px, (int, np.integer)) or grid_px < 1:
         raise InvalidInputError(f"grid_px must be a positive integer, got {grid_px!r}")
     h, w = smoothed.shape
-    img = smoothed.astype(np.float32, copy=False)
+    img = smoothed
     if grid_px > 1:
+        # Cell means straight from the frame's dtype (a uint8 cell mean is rounded to the grey level, 0.3 grey
+        # levels RMS, far below the thresholds): converting the whole frame to float first cost more than the rest.
         img = cv2.resize(img, (max(w // grid_px, 1), max(h // grid_px, 1)), interpolation=cv2.INTER_AREA)
+    img = img.astype(np.float32, copy=False)
     k = max(int(round(window_px / grid_px)) | 1, 1)
     k = min(k, (min(img.shape) - 1) | 1) if min(img.shape) > 1 else 1
     mean, std = local_mean_and_std(img, window_px=k)
@@ -147,7 +150,7 @@ def detect_background(
     if dilation_px > 0:
         d = 2 * int(dilation_px) + 1
         bg = cv2.dilate(bg, cv2.getStructuringElement(cv2.MORPH_RECT, (d, d)))
-    return bg.astype(bool)
+    return bg.view(bool)  # 0 / 1 bytes throughout (comparison, nearest resize, dilation)
 
 
 def binarize(
