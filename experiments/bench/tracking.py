@@ -57,6 +57,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     n_frames = 24 if options.quick else 180
     n_peer_pairs = 4 if options.quick else 16
     full_rows, pair_rows, notes = [], [], []
+    warmed: set[str] = set()
     for name in scenes:
         sc = load_scene(name)
         n = min(n_frames, sc.n_frames)
@@ -66,6 +67,13 @@ def run(options: BenchOptions) -> list[BenchTable]:
         base = AnalysisParams()
         params = replace(base, tracking=replace(base.tracking, min_length_frames=min(30, max(2, n // 3))))
         for method in ("features", "flow"):
+            if method not in warmed:
+                # Warm-up on a few frames first: compiled kernels (numba) load or compile at their first call,
+                # which a fresh checkout would otherwise charge to the first scene's frames/s.
+                short = replace(params, tracking=replace(params.tracking, min_length_frames=2))
+                analyze_frames(frames[: min(n, 6)], calibration=cal, method=method, params=short,
+                               surface=sc.surface.kind)
+                warmed.add(method)
             r = analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind)
             ev = evaluate_tracking(r, truth)
             t = r.timing
