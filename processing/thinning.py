@@ -8,7 +8,8 @@ Both are defined by tables: the 8 neighbours of a pixel form an 8-bit code (bit 
 p1 = N, p2 = NE, p3 = E, p4 = SE, p5 = S, p6 = SW, p7 = W, p8 = NW) and a 256-entry table says whether the pixel
 may be deleted. The Zhang-Suen passes run on bit-packed rows, 64 pixels per machine word, with the tables'
 conditions written as bitwise logic (about 10 times faster than a per-pixel table lookup on a 640 x 484 frame);
-the staircase passes, which are sequential, look the table up per skeleton pixel.
+the staircase passes, which are sequential, look the table up per skeleton pixel, found from the packed words one
+set bit at a time. Packing and unpacking are numpy's packbits / unpackbits.
 """
 
 from __future__ import annotations
@@ -195,53 +196,71 @@ def _zhang_suen_bits(bits, h, nw):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _pack(img, nw):  # pragma: no cover - compiled
-    """(h, nw + 2) uint64 words of the non-zero pixels of ``img``, its outer pixel ring left out (zero)."""
-    h, w = img.shape
-    bits = np.zeros((h, nw + 2), np.uint64)
-    for r in range(1, h - 1):
-        for c in range(1, w - 1):
-            if img[r, c] != 0:
-                bits[r, 1 + c // 64] |= _ONE << np.uint64(c % 64)
-    return bits
+def _staircases(out, sk, stairs):  # pragma: no cover - compiled
+    """The staircase passes (seed Figure 27) on the unpacked skeleton ``out``, in place: one pass per kernel over
+    the skeleton pixels ``sk`` (flat indices, raster order), each deletion judged on the current skeleton."""
+    w = out.shape[1]
+    f = out.ravel()
+    for s in range(4):
+        for k in range(sk.size):
+            i = sk[k]
+            if f[i] and stairs[s, _code_flat(f, i, w)]:
+                f[i] = 0
+    return out
+
+
+_DEBRUIJN = np.uint64(0x03F79D71B4CB0A89)
+#: Bit index of an isolated bit ``b`` (a power of two): ``_DEBRUIJN_INDEX[(b * _DEBRUIJN) >> 58]``.
+_DEBRUIJN_INDEX = np.zeros(64, np.int64)
+for _i in range(64):
+    _DEBRUIJN_INDEX[int(((1 << _i) * 0x03F79D71B4CB0A89 % (1 << 64)) >> 58)] = _i
 
 
 @njit(nogil=True)
-def _unpack_without_staircases(bits, h, w, stairs):  # pragma: no cover - compiled
-    """The (h, w) uint8 image of the packed skeleton ``bits``, after the staircase passes (seed Figure 27).
-
-    One in-place pass per kernel over the skeleton, in raster order, so each deletion is judged on the current
-    skeleton and connectivity is preserved.
-    """
-    out = np.zeros((h, w), np.uint8)
-    f = out.ravel()
+def _set_bits(bits, w, table):  # pragma: no cover - compiled
+    """Flat indices (raster order) of the set pixels of packed rows, one step per set bit (not per pixel)."""
+    h = bits.shape[0]
     nw = bits.shape[1] - 2
-    n_set = 0
+    n = 0
     for r in range(h):
         for j in range(1, nw + 1):
             x = bits[r, j]
             while x != _Z:
                 x &= x - _ONE
-                n_set += 1
-    sk = np.empty(n_set, np.int64)
-    n_sk = 0
+                n += 1
+    out = np.empty(n, np.int64)
+    k = 0
     for r in range(h):
         for j in range(1, nw + 1):
             x = bits[r, j]
-            i = r * w + (j - 1) * 64
+            base = r * w + (j - 1) * 64
             while x != _Z:
-                if x & _ONE:
-                    f[i] = 1
-                    sk[n_sk] = i
-                    n_sk += 1
-                x >>= _ONE
-                i += 1
-    for s in range(4):
-        for k in range(n_sk):
-            i = sk[k]
-            if f[i] and stairs[s, _code_flat(f, i, w)]:
-                f[i] = 0
+                low = x & (~x + _ONE)
+                out[k] = base + table[(low * _DEBRUIJN) >> np.uint64(58)]
+                k += 1
+                x ^= low
     return out
+
+
+def _pack_rows(binary: np.ndarray, nw: int) -> np.ndarray:
+    """(h, nw + 2) uint64 words of the non-zero pixels of ``binary`` (bit c % 64 of word 1 + c // 64), its outer
+    pixel ring left out (zero): numpy's packbits, ~6x faster than a per-pixel loop."""
+    h, w = binary.shape
+    packed = np.packbits(binary.view(np.uint8) != 0, axis=1, bitorder="little")
+    buf = np.zeros((h, (nw + 2) * 8), np.uint8)
+    buf[:, 8 : 8 + packed.shape[1]] = packed
+    bits = buf.view(np.uint64)
+    bits[0] = 0
+    bits[h - 1] = 0
+    bits[:, 1] &= ~np.uint64(1)
+    bits[:, 1 + (w - 1) // 64] &= ~(np.uint64(1) << np.uint64((w - 1) % 64))
+    return bits
+
+
+def _unpack_rows(bits: np.ndarray, w: int) -> np.ndarray:
+    """The (h, w) uint8 0/1 image of packed rows (the inverse of :func:`_pack_rows`)."""
+    nw = bits.shape[1] - 2
+    return np.ascontiguousarray(np.unpackbits(bits[:, 1 : nw + 1].view(np.uint8), axis=1, bitorder="little")[:, :w])
 
 
 def thin(binary: np.ndarray) -> np.ndarray:
@@ -277,6 +296,6 @@ def thin(binary: np.ndarray) -> np.ndarray:
     nw = (w + 63) // 64
     # Bit-packed rows: pixel c of row r is bit c % 64 of word 1 + c // 64; words 0 and nw + 1 stay zero (so do
     # the outer pixel ring and the padding bits), so the neighbour shifts need no bounds checks.
-    bits = _pack(np.ascontiguousarray(binary).view(np.uint8), nw)
+    bits = _pack_rows(np.ascontiguousarray(binary), nw)
     _zhang_suen_bits(bits, h, nw)
-    return _unpack_without_staircases(bits, h, w, _STAIRS)
+    return _staircases(_unpack_rows(bits, w), _set_bits(bits, w, _DEBRUIJN_INDEX), _STAIRS)
