@@ -17,6 +17,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from collections import abc
 from typing import Any, Sequence
 
 import numpy as np
@@ -421,7 +422,7 @@ def without_glass_shading(frames, *, calibration: Calibration, params: AnalysisP
     A sequence in which the skin barely moved is passed on untouched, and the status says why.
     """
     from processing.extraction import ExtractionParams, frame_flags  # noqa: PLC0415
-    from processing.glass_shading import glass_shading, remove_glass_shading  # noqa: PLC0415
+    from processing.glass_shading import glass_shading  # noqa: PLC0415
 
     use = params.glass_shading if params.glass_shading is not None else surface not in (None, "", "flat")
     if not use:
@@ -437,10 +438,35 @@ def without_glass_shading(frames, *, calibration: Calibration, params: AnalysisP
         )
     except InsufficientDataError as exc:
         return frames, f"not applied: {exc}"
-    out = list(frames)
-    for k in good:
-        out[k] = remove_glass_shading(frames[k], shading)
-    return out, f"applied (motion ratio {shading.motion_ratio:.2f})"
+    return _ShadedFrames(frames, shading, good), f"applied (motion ratio {shading.motion_ratio:.2f})"
+
+
+class _ShadedFrames(abc.Sequence):
+    """The frames with the glass-fixed shading removed as each is read, in the thread that reads it: the analysis'
+    extraction (or flow) threads, in parallel, instead of a serial pass over the sequence before them. Frames left
+    out of the statistics (all black, saturated) are passed on untouched."""
+
+    def __init__(self, frames: Sequence[np.ndarray], shading, good: Sequence[int]) -> None:
+        self._frames = frames
+        self._shading = shading
+        self._good = np.zeros(len(frames), dtype=bool)
+        self._good[list(good)] = True
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, k):
+        from processing.glass_shading import remove_glass_shading  # noqa: PLC0415
+
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(f"frame {k} out of range for {len(self)} frames")
+        frame = self._frames[k]
+        return remove_glass_shading(frame, self._shading) if self._good[k] else frame
 
 
 def surface_kind(metadata: dict) -> str | None:

@@ -148,5 +148,6 @@ def remove_glass_shading(frame: np.ndarray, shading: GlassShading) -> np.ndarray
         )
     out = cv2.subtract(frame, shading.offset, dtype=cv2.CV_32F)
     out = cv2.multiply(out, shading.gain)
-    out += shading.level
-    return np.clip(out, 0, 255).round().astype(np.uint8)
+    # + level, rounded (half to even, as numpy's round) and saturated to uint8 in one pass: numpy's clip, round
+    # and astype took 4x longer.
+    return cv2.add(out, float(shading.level), dtype=cv2.CV_8U)

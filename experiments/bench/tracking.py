@@ -105,7 +105,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
             )
         # The same pairs, and the same frames (glass-fixed shading removed as our pipeline does), for every method.
         shaded, _ = without_glass_shading(frames, calibration=cal, params=params, surface=sc.surface.kind)
-        frames = np.asarray(shaded)
+        frames = np.stack([shaded[k] for k in range(len(shaded))])
         pairs = np.linspace(0, n - 2, n_peer_pairs).round().astype(int)
         ours = DenseFlow(calibration=cal, params=params.flow)
         methods = {"ours flow": None}
