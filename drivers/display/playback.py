@@ -317,13 +317,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     finally:
         if gc_was_enabled:
             gc.enable()
-    rested = True
-    if outcome != "completed" or rest_at_end:
-        try:
-            display.rest()
-        except DeviceError as exc:
-            rested = False  # the firmware watchdog returns the contactors to rest
-            error = error or f"rest failed: {exc}"
+    rested, error = _rest_unless(display, outcome == "completed" and not rest_at_end, error)
     lateness = (send_times[:sent] - deadlines[:sent])[~skipped[:sent]]
     return PlaybackReport(
         outcome=outcome, error=error, rested=rested, rate_hz=float(rate_hz), frames_total=n, frames_played=sent,
@@ -332,6 +326,18 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         missed_deadlines=int(np.sum(lateness > tolerance) + skipped[:sent].sum()), miss_tolerance_s=tolerance,
         lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames, clock_origin_s=t0,
         phase_times_s=phases[:sent], thread_cpu_s=cpu[:sent] - cpu[0] if sent else cpu[:0])
+
+
+def _rest_unless(display: TactileDisplay, skip: bool, error: str | None) -> tuple[bool, str | None]:
+    """Send REST at the end of a movie unless ``skip``; returns (rested, error). A failed REST is reported in
+    ``error`` (unless an earlier error is there) and leaves the firmware's watchdog to rest the contactors."""
+    if skip:
+        return True, error
+    try:
+        display.rest()
+    except DeviceError as exc:
+        return False, error or f"rest failed: {exc}"
+    return True, error
 
 
 # ---- timed, buffered playback -------------------------------------------------------------------------------------
@@ -641,18 +647,14 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
             gc.enable()
     if np.isnan(t_stop):
         t_stop = clock()
-    rested = True
     if outcome == "completed" and not rest_at_end:
         try:
             final = display.stop_movie()  # over: the display holds the last frame; frames or rest must follow
         except DeviceError as exc:
             outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
-    if outcome != "completed" or rest_at_end:
-        try:
-            display.rest()  # flushes whatever is still buffered and starts the ramp now
-        except DeviceError as exc:
-            rested = False  # the firmware plays out what it holds, then its watchdog rests the contactors
-            error = error or f"rest failed: {exc}"
+    # REST flushes whatever is still buffered and starts the ramp now; when it fails, the firmware plays out what it
+    # holds, then its watchdog rests the contactors.
+    rested, error = _rest_unless(display, outcome == "completed" and not rest_at_end, error)
     if outcome == "safety_stop":
         try:
             # after the stop (never before it): the counters stay readable, and the tick reports still waiting
