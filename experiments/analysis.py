@@ -37,10 +37,9 @@ from processing.display_mapping import DisplayMappingParams, tactile_movie
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.fingertip import fingertip_motion, visibility_window
 from processing.flow import DenseFlow, FlowField, FlowParams
-from processing.robust_tracking import GlobalMotionEstimator
 from processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strain
-from processing.subpixel_displacement import SubpixelParams, SubpixelRefiner
-from processing.tracking import FeatureTracker, MotionSample, TrackingParams, concatenate_features
+from processing.subpixel_displacement import SubpixelParams
+from processing.tracking import MotionSample, TrackingParams, concatenate_features
 
 METHODS = ("features", "flow")
 
@@ -52,7 +51,10 @@ class AnalysisParams:
     ``spans`` are the frame spans of the triangulation strain (seed 6.3.2: 1 and 11). ``max_edge_mm`` drops long
     hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
     profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the
-    feature triangulation's ~48 px, seed 6.3.3). ``workers`` threads extract features ahead of the tracker.
+    feature triangulation's ~48 px, seed 6.3.3). ``workers`` is the parallelism of the measurement: with
+    ``processes`` (default) the features are extracted and tracked in chunks of frames on that many worker
+    processes (:mod:`experiments.analysis_pool`; the same result as one sequential pass, started once per process,
+    about a second); otherwise ``workers`` threads extract features ahead of the tracker.
 
     ``glass_shading`` removes brightness patterns that stay on the prism while the skin slides
     (:mod:`processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias every motion
@@ -73,6 +75,7 @@ class AnalysisParams:
     profile_step_mm: float = 0.25
     flow_stride: int = 4
     workers: int = 2
+    processes: bool = True
     extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
     glass_shading: bool | None = None
     glass_shading_smooth_mm: float = 0.025
@@ -110,6 +113,7 @@ class MotionMeasurement:
     trajectories: dict[str, np.ndarray] | None = None
     flow_fields: list[FlowField] | None = None
     timing: dict[str, float] = field(default_factory=dict)
+    parallel: str = ""  # how the measurement ran (threads or worker processes), for the results' params
 
 
 def _versions() -> dict[str, str]:
@@ -157,23 +161,82 @@ def measure_features(
     mapping=None,
     progress: bool = False,
 ) -> MotionMeasurement:
-    """Extract, match, refine and chain features (seed 4, 5.1) and return their per-pair motion."""
-    from processing.extraction import ExtractionParams, FeatureExtractor
+    """Extract, match, refine and chain features (seed 4, 5.1) and return their per-pair motion.
+
+    With ``params.processes`` and ``workers >= 2`` the frames are tracked in chunks on worker processes
+    (:mod:`experiments.analysis_pool`, the same result as one sequential pass); otherwise, or if the processes
+    cannot run, on threads of this process.
+    """
+    from experiments import analysis_pool  # noqa: PLC0415
 
     n = len(frames)
-    extractor = FeatureExtractor(calibration=calibration, params=params.extraction or ExtractionParams())
-    tracker = FeatureTracker(
-        calibration=calibration,
-        params=params.tracking,
-        refiner=SubpixelRefiner(calibration=calibration, params=params.subpixel) if params.subpixel else None,
-        motion_estimator=GlobalMotionEstimator(downsample=4) if params.robust_matching else None,
+    workers = max(1, int(params.workers))
+    tracker = None
+    parallel = f"threads ({workers})"
+    overlap = int(params.tracking.max_gap_frames) + 3
+    plan = analysis_pool.chunk_plan(n, workers=workers, overlap=overlap) if params.processes else None
+    if plan is not None:
+        raw, shading, good = frames, None, None
+        if isinstance(frames, _ShadedFrames):
+            raw, shading, good = frames._frames, frames._shading, frames._good
+        bar = _bar(n, progress, "features")
+        try:
+            pt = analysis_pool.track_in_processes(
+                raw, calibration=calibration, params=params, workers=workers, plan=plan, overlap=overlap,
+                shading=shading, good=good, read_frame=lambda k: np.asarray(frames[k]),
+                on_frames=(lambda done: bar.update(done - bar.n)) if bar is not None else None,
+            )
+            tracker, tables, flags, timing = pt.tracker, pt.tables, pt.flags, pt.timing
+            parallel = f"processes ({workers}): {pt.n_chunks} chunks, {pt.n_retracked} re-tracked at their join"
+        except analysis_pool.ProcessPoolFailed as exc:
+            parallel = f"threads ({workers}): worker processes failed ({exc})"
+        finally:
+            if bar is not None:
+                bar.close()
+    if tracker is None:
+        tracker, tables, flags, timing = _track_on_threads(
+            frames, calibration=calibration, params=params, workers=workers, progress=progress
+        )
+    t0 = time.perf_counter()
+    tr = tracker.finish()
+    if mapping is not None:
+        for a, b in (("x", "y"), ("raw_x", "raw_y")):
+            xy = np.stack([getattr(tr, a), getattr(tr, b)], axis=-1)
+            ok = np.all(np.isfinite(xy), axis=-1)
+            out = np.full(xy.shape, np.nan)
+            out[ok] = _rectify(xy[ok], mapping, calibration.px_per_mm)
+            setattr(tr, a, out[..., 0])
+            setattr(tr, b, out[..., 1])
+    samples = [tr.motion(k, k + 1) for k in range(n - 1)]
+    span_samples = {int(s): [tr.motion(k, k + s) for k in range(n - s)] for s in params.spans}
+    timing["tracking_s"] += time.perf_counter() - t0
+    trajectories = {
+        name: getattr(tr, name)
+        for name in ("x", "y", "present", "raw_x", "raw_y", "feature_index", "linked", "refined", "kind")
+    }
+    return MotionMeasurement(
+        samples=samples,
+        span_samples=span_samples,
+        frame_flags=flags,
+        features=concatenate_features(tables),
+        trajectories=trajectories,
+        # image_prep_s: the tracker's per-frame image work, done on the extraction threads (or in the workers).
+        timing=timing,
+        parallel=parallel,
     )
+
+
+def _track_on_threads(frames, *, calibration: Calibration, params: AnalysisParams, workers: int, progress: bool):
+    """Extraction of the next frames, and the tracker's per-frame image work (registration and coarse-motion
+    images), on ``workers`` threads (OpenCV releases the GIL) while this thread matches and refines: frames are
+    consumed strictly in order, at most 2 * workers ahead."""
+    from experiments.analysis_pool import make_extractor, make_tracker  # noqa: PLC0415
+
+    n = len(frames)
+    extractor = make_extractor(calibration, params)
+    tracker = make_tracker(calibration, params)
     tables, flags = [], []
     t_extract = t_prepare = t_track = 0.0
-    workers = max(1, int(params.workers))
-    # Extraction of the next frames, and the tracker's per-frame image work (registration and coarse-motion
-    # images), run on worker threads (OpenCV releases the GIL) while this thread matches and refines: frames are
-    # consumed strictly in order, at most 2 * workers ahead.
     with ThreadPoolExecutor(max_workers=workers) as pool:
         pending: dict[int, Any] = {}
 
@@ -200,32 +263,7 @@ def measure_features(
             t_prepare += dt_prepare
             tables.append(feats)
             flags.append(",".join(sorted(res.flags)))
-    t0 = time.perf_counter()
-    tr = tracker.finish()
-    if mapping is not None:
-        for a, b in (("x", "y"), ("raw_x", "raw_y")):
-            xy = np.stack([getattr(tr, a), getattr(tr, b)], axis=-1)
-            ok = np.all(np.isfinite(xy), axis=-1)
-            out = np.full(xy.shape, np.nan)
-            out[ok] = _rectify(xy[ok], mapping, calibration.px_per_mm)
-            setattr(tr, a, out[..., 0])
-            setattr(tr, b, out[..., 1])
-    samples = [tr.motion(k, k + 1) for k in range(n - 1)]
-    span_samples = {int(s): [tr.motion(k, k + s) for k in range(n - s)] for s in params.spans}
-    t_chain = time.perf_counter() - t0
-    trajectories = {
-        name: getattr(tr, name)
-        for name in ("x", "y", "present", "raw_x", "raw_y", "feature_index", "linked", "refined", "kind")
-    }
-    return MotionMeasurement(
-        samples=samples,
-        span_samples=span_samples,
-        frame_flags=flags,
-        features=concatenate_features(tables),
-        trajectories=trajectories,
-        # image_prep_s: the tracker's per-frame image work, done on the extraction threads.
-        timing={"extraction_s": t_extract, "image_prep_s": t_prepare, "tracking_s": t_track + t_chain},
-    )
+    return tracker, tables, flags, {"extraction_s": t_extract, "image_prep_s": t_prepare, "tracking_s": t_track}
 
 
 def measure_flow(
@@ -295,6 +333,14 @@ def _rectified_sample(s: MotionSample, mapping, cal: Calibration) -> MotionSampl
     pa = _rectify(s.points, mapping, cal.px_per_mm)
     pb = _rectify(s.points + s.displacement, mapping, cal.px_per_mm)
     return MotionSample(s.frame_a, s.frame_b, pa, pb - pa, s.ids)
+
+
+def _bar(total: int, enabled: bool, desc: str):
+    if not enabled:
+        return None
+    from tqdm import tqdm  # noqa: PLC0415
+
+    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, leave=False)
 
 
 def _progress(it, enabled: bool, desc: str):
@@ -560,7 +606,7 @@ def analyze_frames(
         tactile_clipped=movie.clipped if movie else None,
         tactile_stretch_change=movie.stretch_change if movie else None,
         timing=timing,
-        params={**params.to_dict(), "glass_shading_status": shading_status},
+        params={**params.to_dict(), "glass_shading_status": shading_status, "parallel": m.parallel},
         versions=_versions(),
         features=m.features,
         trajectories=m.trajectories,

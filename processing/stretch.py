@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
+from processing.delaunay import delaunay_triangles
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.tracking import MotionSample
 
@@ -186,9 +187,9 @@ def triangulation_strain(
             f"frames {sample.frame_a}->{sample.frame_b}: {pa.shape[0]} distinct matched points, need at least 3"
         )
     try:
-        tri = Delaunay(pa).simplices.astype(np.int64)
+        tri = delaunay_triangles(pa)
         simplices_count = tri.shape[0]
-    except QhullError:
+    except InsufficientDataError:
         raise InsufficientDataError(
             f"frames {sample.frame_a}->{sample.frame_b}: the {pa.shape[0]} matched points are collinear"
         ) from None

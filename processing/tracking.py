@@ -497,6 +497,66 @@ class FeatureTracker:
         self._prev_frame = prepared if needs_image else None
         return matches
 
+    def continue_with(self, other: "FeatureTracker", *, overlap: int) -> bool:
+        """Append the frames that ``other`` tracked after an overlap with this tracker, if they are exactly the
+        ones this tracker would have produced; return whether it did.
+
+        ``other`` has the same parameters and was fed this tracker's last ``overlap + 1`` frames (the same
+        features and images), then the frames that follow. A tracker's state before a frame depends only on
+        the last ``max_gap_frames + 2`` frames it saw (previous displacements, features waiting to be re-linked).
+        When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
+        numbering, the same displacements, refinement flags and global shifts), its later frames are those this
+        tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
+        ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
+        frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
+        result of one sequential pass (:mod:`experiments.analysis_pool`).
+        """
+        window = int(self.params.max_gap_frames) + 2
+        if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:
+            raise InvalidInputError(
+                f"overlap must be at least {window} frames (max_gap_frames + 2) and shorter than both trackers' "
+                f"frames, got overlap {overlap} for {self._n_frames} and {other._n_frames} frames"
+            )
+        if other.params != self.params or (other.refiner is None) != (self.refiner is None):
+            raise InvalidInputError("the other tracker was built with different parameters")
+        offset = self._n_frames - 1 - overlap  # this tracker's frame = offset + other's frame
+        mine, theirs = [], []
+        for i in range(overlap - window + 1, overlap + 1):
+            ta, xa, _, da, ra = self._frames[offset + i]
+            tb, xb, _, db, rb = other._frames[i]
+            if not (np.array_equal(xa, xb) and np.array_equal(da, db, equal_nan=True) and np.array_equal(ra, rb)):
+                return False
+            if not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
+                return False
+            mine.append(ta)
+            theirs.append(tb)
+        pairs = np.unique(np.stack([np.concatenate(theirs), np.concatenate(mine)], axis=1), axis=0)
+        if np.unique(pairs[:, 0]).size != pairs.shape[0] or np.unique(pairs[:, 1]).size != pairs.shape[0]:
+            return False  # the two trackers split or joined the same features into different tracks
+        n_before = sum(k.size for k in other._track_kind[: overlap + 1])  # other's tracks started by the overlap
+        lut = np.full(other._n_tracks, -1, np.int64)
+        lut[pairs[:, 0]] = pairs[:, 1]
+        lut[n_before:] = self._n_tracks + np.arange(other._n_tracks - n_before)
+        later = [other._frames[i][0] for i in range(overlap + 1, other._n_frames)]
+        if any(np.any(lut[t] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
+            return False  # a track from before the compared frames reappears: cannot be numbered here
+        for i in range(overlap + 1, other._n_frames):
+            t, xy, _, d, r = other._frames[i]
+            self._frames.append((lut[t], xy, self._n_features, d, r))
+            self._n_features += xy.shape[0]
+        self._track_kind.extend(other._track_kind[overlap + 1 :])
+        self._n_tracks += other._n_tracks - n_before
+        self._n_frames += other._n_frames - overlap - 1
+        self.global_shifts.extend(other.global_shifts[overlap:])
+        self.pair_status.extend(other.pair_status[overlap:])
+        self._prev = other._prev
+        self._prev_tracks = lut[other._prev_tracks]
+        self._prev_disp = other._prev_disp
+        self._prev_frame = other._prev_frame
+        lost = other._lost
+        self._lost = _LostTracks(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
+        return True
+
     def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:
         if self.motion_estimator is not None and self._prev_frame is not None:
             gm = self.motion_estimator.estimate_prepared(self._prev_frame.motion, prepared.motion)
