@@ -20,7 +20,7 @@ import numpy as np
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.jit import njit
 
-__all__ = ["delaunay_triangles"]
+__all__ = ["delaunay_triangles", "triangulate_points"]
 
 _EPSILON = 2.0**-52
 _SPLITTER = 134217729.0  # 2^27 + 1
@@ -51,10 +51,18 @@ def delaunay_triangles(points: np.ndarray) -> np.ndarray:
         raise InvalidInputError("points must be finite")
     if p.shape[0] < 3:
         raise InsufficientDataError(f"{p.shape[0]} points, need at least 3 to triangulate")
-    tri = _triangulate(p[:, 0].copy(), p[:, 1].copy())
+    tri = triangulate_points(p)
     if tri.shape[0] == 0:
         raise InsufficientDataError(f"the {p.shape[0]} points are collinear: no triangle")
     return tri
+
+
+def triangulate_points(points: np.ndarray) -> np.ndarray:
+    """:func:`delaunay_triangles` without its checks, for callers whose (n, 2) float64 points are known finite and
+    distinct: (0, 3) when there is no triangle (collinear, fewer than 3 points)."""
+    if points.shape[0] < 3:
+        return np.zeros((0, 3), np.int64)
+    return _triangulate(np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]))
 
 
 # -- exact orientation -------------------------------------------------------------------------------------------

@@ -109,6 +109,10 @@ def make_features(
     return table
 
 
+_KNOWN_KIND = np.zeros(256, bool)  # indexed by the kind byte (int8 viewed as uint8)
+_KNOWN_KIND[np.array([k.value for k in FeatureKind], dtype=np.int8).view(np.uint8)] = True
+
+
 def validate_features(table: np.ndarray) -> np.ndarray:
     """Check that ``table`` is a well-formed feature table; return it unchanged or raise InvalidInputError."""
     if not isinstance(table, np.ndarray) or table.dtype != FEATURE_DTYPE:
@@ -118,11 +122,13 @@ def validate_features(table: np.ndarray) -> np.ndarray:
         raise InvalidInputError(f"features must be one-dimensional, got shape {table.shape}")
     if not (np.all(np.isfinite(table["x"])) and np.all(np.isfinite(table["y"]))):
         raise InvalidInputError("features have non-finite x or y")
-    bad_kind = ~np.isin(table["kind"], [k.value for k in FeatureKind])
-    if np.any(bad_kind):
-        raise InvalidInputError(f"features have unknown kind values {np.unique(table['kind'][bad_kind]).tolist()}")
+    kinds = table["kind"]
+    if not _KNOWN_KIND[kinds.view(np.uint8)].all():
+        bad_kind = ~_KNOWN_KIND[kinds.view(np.uint8)]
+        raise InvalidInputError(f"features have unknown kind values {np.unique(kinds[bad_kind]).tolist()}")
     known = table["orientation_known"]
-    if np.any(np.isnan(table["orientation"][known])) or np.any(np.isfinite(table["orientation"][~known])):
+    o = table["orientation"]
+    if np.any(np.isnan(o) & known) or np.any(np.isfinite(o) & ~known):
         raise InvalidInputError("orientation must be finite exactly where orientation_known is True")
     return table
 

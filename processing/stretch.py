@@ -20,7 +20,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from processing.delaunay import delaunay_triangles
+from processing.delaunay import triangulate_points
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.tracking import MotionSample
 
@@ -68,15 +68,32 @@ class TriangulationStrain:
     n_dropped: int = 0
 
 
-def _first_of_duplicates(p: np.ndarray) -> np.ndarray:
-    """Rows of ``p`` (n, 2) that are the first occurrence of their value, in increasing order (what
-    ``np.sort(np.unique(p, axis=0, return_index=True)[1])`` gives, without its structured-array sort)."""
-    order = np.lexsort((p[:, 1], p[:, 0]))
-    q = p[order]
-    new = np.ones(order.size, bool)
-    new[1:] = np.any(q[1:] != q[:-1], axis=1)
-    # lexsort is stable: within a run of equal rows the first is the smallest index.
-    return np.sort(order[new])
+@numba.njit(cache=True, nogil=True)
+def _distinct_finite(pa, d):  # pragma: no cover - compiled
+    """Rows of ``pa`` (n, 2) with finite ``pa`` and ``d`` that are the first of their value rounded to 1e-6 px, in
+    increasing order (what a lexsort of the rounded rows followed by run heads gives)."""
+    n = pa.shape[0]
+    fin = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        if np.isfinite(pa[i, 0]) and np.isfinite(pa[i, 1]) and np.isfinite(d[i, 0]) and np.isfinite(d[i, 1]):
+            fin[m] = i
+            m += 1
+    fin = fin[:m]
+    rx = np.empty(m)
+    ry = np.empty(m)
+    for k in range(m):
+        rx[k] = np.round(pa[fin[k], 0], 6)
+        ry[k] = np.round(pa[fin[k], 1], 6)
+    # Sort by (x, y); stable, so the first row of a run of equal values has the smallest index.
+    order = np.argsort(ry, kind="mergesort")
+    order = order[np.argsort(rx[order], kind="mergesort")]
+    keep = np.zeros(m, np.bool_)
+    for k in range(m):
+        j = order[k]
+        if k == 0 or rx[j] != rx[order[k - 1]] or ry[j] != ry[order[k - 1]]:
+            keep[j] = True
+    return fin[keep]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -175,24 +192,20 @@ def triangulation_strain(
     ids = np.asarray(sample.ids, dtype=np.int64).reshape(-1)
     if d.shape != pa.shape or ids.shape[0] != pa.shape[0]:
         raise InvalidInputError(f"sample arrays disagree: points {pa.shape}, displacement {d.shape}, ids {ids.shape}")
-    finite = np.all(np.isfinite(pa), axis=1) & np.all(np.isfinite(d), axis=1)
-    pa, d, ids = pa[finite], d[finite], ids[finite]
-    n_in = pa.shape[0]
-    if n_in:
-        first = _first_of_duplicates(np.round(pa, 6))
-        pa, d, ids = pa[first], d[first], ids[first]
+    n_in = int(np.count_nonzero(np.all(np.isfinite(pa), axis=1) & np.all(np.isfinite(d), axis=1)))
+    first = _distinct_finite(np.ascontiguousarray(pa), np.ascontiguousarray(d))
+    pa, d, ids = pa[first], d[first], ids[first]
     n_dropped = n_in - pa.shape[0]
     if pa.shape[0] < 3:
         raise InsufficientDataError(
             f"frames {sample.frame_a}->{sample.frame_b}: {pa.shape[0]} distinct matched points, need at least 3"
         )
-    try:
-        tri = delaunay_triangles(pa)
-        simplices_count = tri.shape[0]
-    except InsufficientDataError:
+    tri = triangulate_points(pa)  # finite and distinct here
+    simplices_count = tri.shape[0]
+    if simplices_count == 0:
         raise InsufficientDataError(
             f"frames {sample.frame_a}->{sample.frame_b}: the {pa.shape[0]} matched points are collinear"
-        ) from None
+        )
     pb = pa + d
     tri, area_a, area_b, edges, la, lb = _triangle_changes(
         pa, pb, tri, np.inf if max_edge_px is None else float(max_edge_px), float(min_area_px2), float(min_quality)
