@@ -173,7 +173,7 @@ def measure_features(
     workers = max(1, int(params.workers))
     tracker = None
     parallel = f"threads ({workers})"
-    overlap = int(params.tracking.max_gap_frames) + 3
+    overlap = int(params.tracking.max_gap_frames) + 2  # the least FeatureTracker.continue_with accepts
     plan = analysis_pool.chunk_plan(n, workers=workers, overlap=overlap) if params.processes else None
     if plan is not None:
         raw, shading, good = frames, None, None

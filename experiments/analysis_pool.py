@@ -244,9 +244,10 @@ def _track_chunk(shm_name: str, shape: tuple[int, ...], first: int, calibration,
         t_extract = t_prepare = t_track = 0.0
         for i in range(shape[0]):
             t0 = time.perf_counter()
-            image = np.array(frames[i])  # a copy: nothing may keep a view of the shared block
             if shading is not None and good[i]:
-                image = remove_glass_shading(image, shading)
+                image = remove_glass_shading(frames[i], shading)  # a new array
+            else:
+                image = np.array(frames[i])  # a copy: nothing may keep a view of the shared block
             res = extractor.extract(image, frame_index=first + i)
             t1 = time.perf_counter()
             prepared = tracker.prepare_image(image)

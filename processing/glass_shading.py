@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from processing.errors import InsufficientDataError, InvalidInputError
+from processing.jit import njit
 
 __all__ = ["GlassShading", "glass_shading", "remove_glass_shading"]
 
@@ -158,8 +159,17 @@ def remove_glass_shading(frame: np.ndarray, shading: GlassShading) -> np.ndarray
         raise InvalidInputError(
             f"frame must be a uint8 array of shape {shading.offset.shape}, got {frame.dtype} {frame.shape}"
         )
-    out = cv2.subtract(frame, shading.offset, dtype=cv2.CV_32F)
-    out = cv2.multiply(out, shading.gain)
-    # + level, rounded (half to even, as numpy's round) and saturated to uint8 in one pass: numpy's clip, round
-    # and astype took 4x longer.
-    return cv2.add(out, float(shading.level), dtype=cv2.CV_8U)
+    return _remove(frame, shading.offset, shading.gain, float(shading.level))
+
+
+@njit(nogil=True)
+def _remove(frame, offset, gain, level):  # pragma: no cover - compiled
+    """One pass: ``(frame - offset) * gain`` in float32, ``+ level`` in float64, rounded half to even and
+    saturated to uint8 (what OpenCV's subtract, multiply and add to CV_8U give, at a third of their time)."""
+    h, w = frame.shape
+    out = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            v = np.rint(np.float64((np.float32(frame[y, x]) - offset[y, x]) * gain[y, x]) + level)
+            out[y, x] = 0 if v < 0 else (255 if v > 255 else np.uint8(v))
+    return out
