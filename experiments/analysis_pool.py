@@ -44,6 +44,8 @@ __all__ = ["chunk_plan", "make_tracker", "track_in_processes", "warm_up", "shutd
 # Chunks longer than this are split further: bounded memory (each chunk's frames sit in shared memory while it
 # runs) and a progress bar that moves on long sessions.
 MAX_CHUNK_FRAMES = 240
+# Shorter sequences stay on threads: handing frames to processes costs more than it saves there.
+MIN_FRAMES = 32
 
 
 class ProcessPoolFailed(RuntimeError):
@@ -73,10 +75,10 @@ def make_extractor(calibration: Calibration, params) -> Any:
 def chunk_plan(n_frames: int, *, workers: int, overlap: int) -> list[tuple[int, int]] | None:
     """(first, last) frame of each chunk, inclusive; chunk j > 0 starts ``overlap`` frames before chunk j-1 ends.
 
-    All chunks get about the same number of frames (the first has no overlap to redo, so it owns more). None when
-    the sequence is too short for two chunks of at least ``2 * overlap + 2`` frames.
+    All chunks get about the same number of frames (the first has no overlap to redo, so it owns more). None for
+    fewer than :data:`MIN_FRAMES` frames, or too few for two chunks of at least ``2 * overlap + 2`` frames.
     """
-    if workers < 2 or overlap < 1:
+    if workers < 2 or overlap < 1 or n_frames < MIN_FRAMES:
         return None
     m = max(int(workers), math.ceil(n_frames / MAX_CHUNK_FRAMES))
     while m >= 2:
@@ -88,7 +90,7 @@ def chunk_plan(n_frames: int, *, workers: int, overlap: int) -> list[tuple[int, 
         return None
     plan, first = [], 0
     for j in range(m):
-        last = n_frames - 1 if j == m - 1 else int(round(first + size)) - 1
+        last = n_frames - 1 if j == m - 1 else int(round((j + 1) * size - j * overlap)) - 1
         plan.append((first, last))
         first = last - overlap
     return plan

@@ -505,7 +505,7 @@ class FeatureTracker:
         features and images), then the frames that follow. A tracker's state before a frame depends only on
         the last ``max_gap_frames + 2`` frames it saw (previous displacements, features waiting to be re-linked).
         When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
-        numbering, the same displacements, refinement flags and global shifts), its later frames are those this
+        numbering, the same displacements, refinement flags and, after the first, global shifts), its later frames are those this
         tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
         ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
@@ -526,7 +526,10 @@ class FeatureTracker:
             tb, xb, _, db, rb = other._frames[i]
             if not (np.array_equal(xa, xb) and np.array_equal(da, db, equal_nan=True) and np.array_equal(ra, rb)):
                 return False
-            if not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
+            # The shift of the first compared pair only steered its matching (compared above); later ones also
+            # move the features waiting to be re-linked when a pair has no match.
+            first = i == overlap - window + 1
+            if not first and not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
                 return False
             mine.append(ta)
             theirs.append(tb)
