@@ -76,9 +76,11 @@ def chunk_plan(n_frames: int, *, workers: int, overlap: int) -> list[tuple[int, 
     """(first, last) frame of each chunk, inclusive; chunk j > 0 starts ``overlap`` frames before chunk j-1 ends.
 
     All chunks get about the same number of frames (the first has no overlap to redo, so it owns more). None for
-    fewer than :data:`MIN_FRAMES` frames, or too few for two chunks of at least ``2 * overlap + 2`` frames.
+    fewer than :data:`MIN_FRAMES` frames, too few for two chunks of at least ``2 * overlap + 2`` frames, or in a
+    process that is itself a worker: the experiment runner analyses trials in a worker process while it records the
+    next one, and that analysis keeps to its threads (no pool of its own, no more cores taken from the recording).
     """
-    if workers < 2 or overlap < 1 or n_frames < MIN_FRAMES:
+    if workers < 2 or overlap < 1 or n_frames < MIN_FRAMES or mp.parent_process() is not None:
         return None
     m = max(int(workers), math.ceil(n_frames / MAX_CHUNK_FRAMES))
     while m >= 2:

@@ -161,3 +161,9 @@ def test_a_script_without_a_main_guard_runs_once(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     lines = [line for line in out.stdout.splitlines() if line.startswith("RAN")]
     assert len(lines) == 1 and "processes (2)" in lines[0], out.stdout + out.stderr[-2000:]
+
+
+def test_a_worker_process_keeps_to_threads(monkeypatch):
+    """The runner analyses trials in a worker process while recording: no nested pool there."""
+    monkeypatch.setattr(analysis_pool.mp, "parent_process", lambda: object())
+    assert analysis_pool.chunk_plan(500, workers=2, overlap=5) is None
