@@ -174,7 +174,10 @@ def measure_features(
     tracker = None
     parallel = f"threads ({workers})"
     overlap = int(params.tracking.max_gap_frames) + 2  # the least FeatureTracker.continue_with accepts
-    plan = analysis_pool.chunk_plan(n, workers=workers, overlap=overlap) if params.processes else None
+    first = np.asarray(frames[0]) if n else None
+    # Worker processes take 2-D uint8 frames (shared as one block); anything else is checked on threads.
+    plain = first is not None and first.ndim == 2 and first.dtype == np.uint8
+    plan = analysis_pool.chunk_plan(n, workers=workers, overlap=overlap) if params.processes and plain else None
     if plan is not None:
         raw, shading, good = frames, None, None
         if isinstance(frames, _ShadedFrames):
