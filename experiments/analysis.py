@@ -282,11 +282,7 @@ def measure_flow(
     flow = DenseFlow(calibration=calibration, params=params.flow)
     flags = [""] * n
     t0 = time.perf_counter()
-    bar = None
-    if progress:
-        from tqdm import tqdm  # noqa: PLC0415
-
-        bar = tqdm(total=max(n - 1, 0), desc="flow", unit="frame", file=sys.stderr, leave=False)
+    bar = _bar(max(n - 1, 0), progress, "flow")
     try:
         # Each frame prepared once, runs of pairs on params.workers threads (same fields as pair by pair).
         fields = flow.compute_sequence(frames, threads=max(1, int(params.workers)),

@@ -159,20 +159,13 @@ def _main_script_hidden():
         main.__dict__.update(saved)
 
 
-def _discard_pool() -> None:
+def shutdown(*, wait: bool = True) -> None:
+    """Stop the worker processes (they are otherwise kept for the next analysis until this process exits).
+    ``wait=False``: do not wait for them (a broken pool is dropped this way; the next analysis starts a new one)."""
     global _pool
     with _lock:
         if _pool is not None:
-            _pool.shutdown(wait=False, cancel_futures=True)
-        _pool = None
-
-
-def shutdown() -> None:
-    """Stop the worker processes (they are otherwise kept for the next analysis until this process exits)."""
-    global _pool
-    with _lock:
-        if _pool is not None:
-            _pool.shutdown(wait=True, cancel_futures=True)
+            _pool.shutdown(wait=wait, cancel_futures=True)
         _pool = None
 
 
@@ -343,7 +336,7 @@ def track_in_processes(
             try:
                 r: ChunkResult = fut.result()
             except BrokenProcessPool as exc:
-                _discard_pool()
+                shutdown(wait=False)
                 raise ProcessPoolFailed(f"a worker process died: {exc}") from exc
             finally:
                 release(shm)
