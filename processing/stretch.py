@@ -16,12 +16,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
+from typing import Sequence
+
 import numpy as np
 from scipy.spatial import cKDTree
 
-from processing.delaunay import triangulate_points
+from processing.delaunay import _triangulate
 from processing.errors import InsufficientDataError, InvalidInputError
+from processing.jit import njit
 from processing.tracking import MotionSample
 
 
@@ -68,7 +70,7 @@ class TriangulationStrain:
     n_dropped: int = 0
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _distinct_finite(pa, d):  # pragma: no cover - compiled
     """Rows of ``pa`` (n, 2) with finite ``pa`` and ``d`` that are the first of their value rounded to 1e-6 px, in
     increasing order (what a lexsort of the rounded rows followed by run heads gives)."""
@@ -96,7 +98,7 @@ def _distinct_finite(pa, d):  # pragma: no cover - compiled
     return fin[keep]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _triangle_changes(pa, pb, tri, max_edge, min_area, min_quality):
     """After the Delaunay triangulation (in place on ``tri``): orient each triangle counter-clockwise on the image,
     leave out degenerate, long and sliver triangles, and measure the areas (frames a and b, signed in b) and the
@@ -151,6 +153,186 @@ def _triangle_changes(pa, pb, tri, max_edge, min_area, min_quality):
     return tri, area_a, area_b, edges, la, lb
 
 
+# Why a pair gave no strain (:attr:`StrainBatch.status`).
+STRAIN_OK, TOO_FEW_POINTS, COLLINEAR, NO_USABLE_TRIANGLE = 0, 1, 2, 3
+
+
+@njit(nogil=True)
+def _strain_batch(points, disp, offsets, max_edge, min_area, min_quality):  # pragma: no cover - compiled
+    """The triangulation strain of every pair (rows ``offsets[i]:offsets[i + 1]`` of ``points`` and ``disp``) in
+    one call without the GIL. Output rows (``kept`` points, triangle corners, edge ends) index ``points``."""
+    n_pairs = offsets.size - 1
+    total = offsets[n_pairs]
+    status = np.zeros(n_pairs, np.int8)
+    n_distinct = np.zeros(n_pairs, np.int64)
+    n_dropped = np.zeros(n_pairs, np.int64)
+    kept = np.empty(total, np.int64)
+    kept_off = np.zeros(n_pairs + 1, np.int64)
+    # A triangulation of m points has at most 2m - 5 triangles and 3m - 6 edges.
+    tri_out = np.empty((2 * total, 3), np.int64)
+    area_a_out = np.empty(2 * total)
+    area_b_out = np.empty(2 * total)
+    tri_off = np.zeros(n_pairs + 1, np.int64)
+    edge_out = np.empty((3 * total, 2), np.int64)
+    la_out = np.empty(3 * total)
+    lb_out = np.empty(3 * total)
+    edge_off = np.zeros(n_pairs + 1, np.int64)
+    nk = nt = ne = 0
+    for i in range(n_pairs):
+        o0, o1 = offsets[i], offsets[i + 1]
+        pa_in = points[o0:o1]
+        d_in = disp[o0:o1]
+        n_in = 0
+        for k in range(o1 - o0):
+            if np.isfinite(pa_in[k, 0]) and np.isfinite(pa_in[k, 1]) and np.isfinite(d_in[k, 0]) and np.isfinite(d_in[k, 1]):
+                n_in += 1
+        first = _distinct_finite(pa_in, d_in)
+        m = first.size
+        n_distinct[i] = m
+        for k in range(m):
+            kept[nk + k] = o0 + first[k]
+        nk += m
+        kept_off[i + 1] = nk
+        n_dropped[i] = n_in - m
+        tri_off[i + 1] = nt
+        edge_off[i + 1] = ne
+        if m < 3:
+            status[i] = TOO_FEW_POINTS
+            continue
+        pa = np.empty((m, 2))
+        pb = np.empty((m, 2))
+        for k in range(m):
+            for c in range(2):
+                pa[k, c] = pa_in[first[k], c]
+                pb[k, c] = pa[k, c] + d_in[first[k], c]
+        tri = _triangulate(pa[:, 0].copy(), pa[:, 1].copy())
+        n_simplices = tri.shape[0]
+        if n_simplices == 0:
+            status[i] = COLLINEAR
+            continue
+        tri, area_a, area_b, edges, la, lb = _triangle_changes(pa, pb, tri, max_edge, min_area, min_quality)
+        n_dropped[i] += n_simplices - tri.shape[0]
+        if tri.shape[0] == 0:
+            status[i] = NO_USABLE_TRIANGLE
+            continue
+        for t in range(tri.shape[0]):
+            for c in range(3):
+                tri_out[nt, c] = o0 + first[tri[t, c]]
+            area_a_out[nt] = area_a[t]
+            area_b_out[nt] = area_b[t]
+            nt += 1
+        for e in range(edges.shape[0]):
+            edge_out[ne, 0] = o0 + first[edges[e, 0]]
+            edge_out[ne, 1] = o0 + first[edges[e, 1]]
+            la_out[ne] = la[e]
+            lb_out[ne] = lb[e]
+            ne += 1
+        tri_off[i + 1] = nt
+        edge_off[i + 1] = ne
+    return (
+        status, n_distinct, n_dropped, kept[:nk].copy(), kept_off, tri_out[:nt].copy(), area_a_out[:nt].copy(),
+        area_b_out[:nt].copy(), tri_off, edge_out[:ne].copy(), la_out[:ne].copy(), lb_out[:ne].copy(), edge_off,
+    )
+
+
+@dataclass(frozen=True)
+class StrainBatch:
+    """The triangulation strain of many frame pairs (:func:`triangulation_strains`) as flat tables.
+
+    ``points``, ``displacement`` and ``ids`` are the pairs' samples end to end; every row number below indexes
+    them, and ``*_offsets`` (P + 1 entries) delimit each pair's rows. The fields mean what the same names of
+    :class:`TriangulationStrain` mean.
+    """
+
+    frame_a: np.ndarray  # (P,) int64
+    frame_b: np.ndarray  # (P,) int64
+    n_points: np.ndarray  # (P,) int64: the sample's size
+    status: np.ndarray  # (P,) int8: STRAIN_OK, or why the pair has no strain (TOO_FEW_POINTS, COLLINEAR, ...)
+    n_distinct: np.ndarray  # (P,) int64: finite distinct points triangulated
+    n_dropped: np.ndarray  # (P,) int64
+    points: np.ndarray  # (N, 2)
+    displacement: np.ndarray  # (N, 2)
+    ids: np.ndarray  # (N,)
+    kept: np.ndarray  # (K,) rows triangulated
+    kept_offsets: np.ndarray
+    triangles: np.ndarray  # (T, 3) rows, counter-clockwise on the image in frame a
+    triangle_offsets: np.ndarray
+    area: np.ndarray
+    area_change: np.ndarray
+    flipped: np.ndarray
+    edges: np.ndarray  # (E, 2) rows, (low, high)
+    edge_offsets: np.ndarray
+    edge_length: np.ndarray
+    edge_change: np.ndarray
+
+    def failure(self, i: int) -> str | None:
+        """Why pair ``i`` has no strain, or None when it has one."""
+        code = int(self.status[i])
+        if code == STRAIN_OK:
+            return None
+        pair, n = f"frames {int(self.frame_a[i])}->{int(self.frame_b[i])}", int(self.n_distinct[i])
+        if code == TOO_FEW_POINTS:
+            return f"{pair}: {n} distinct matched points, need at least 3"
+        if code == COLLINEAR:
+            return f"{pair}: the {n} matched points are collinear"
+        return f"{pair}: no usable triangle (points nearly collinear or too far apart)"
+
+
+def triangulation_strains(
+    samples: Sequence[MotionSample],
+    *,
+    max_edge_px: float | None = None,
+    min_area_px2: float = 1.0,
+    min_quality: float = 0.1,
+) -> StrainBatch:
+    """:func:`triangulation_strain` of every sample in one compiled call (no GIL held: a caller can run several
+    batches on threads). A pair that has no strain carries the reason (:meth:`StrainBatch.failure`) instead of
+    raising."""
+    pts, disp, ids = [], [], []
+    for s in samples:
+        p = np.asarray(s.points, dtype=np.float64).reshape(-1, 2)
+        d = np.asarray(s.displacement, dtype=np.float64).reshape(-1, 2)
+        i = np.asarray(s.ids, dtype=np.int64).reshape(-1)
+        if d.shape != p.shape or i.shape[0] != p.shape[0]:
+            raise InvalidInputError(
+                f"sample arrays disagree: points {p.shape}, displacement {d.shape}, ids {i.shape}"
+            )
+        pts.append(p)
+        disp.append(d)
+        ids.append(i)
+    counts = np.array([p.shape[0] for p in pts], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    points = np.concatenate(pts) if pts else np.zeros((0, 2))
+    displacement = np.concatenate(disp) if disp else np.zeros((0, 2))
+    (status, n_distinct, n_dropped, kept, kept_off, tri, area_a, area_b, tri_off, edges, la, lb,
+     edge_off) = _strain_batch(
+        points, displacement, offsets, np.inf if max_edge_px is None else float(max_edge_px), float(min_area_px2),
+        float(min_quality),
+    )
+    return StrainBatch(
+        frame_a=np.array([int(s.frame_a) for s in samples], dtype=np.int64),
+        frame_b=np.array([int(s.frame_b) for s in samples], dtype=np.int64),
+        n_points=counts,
+        status=status,
+        n_distinct=n_distinct,
+        n_dropped=n_dropped,
+        points=points,
+        displacement=displacement,
+        ids=np.concatenate(ids) if ids else np.zeros(0, np.int64),
+        kept=kept,
+        kept_offsets=kept_off,
+        triangles=tri,
+        triangle_offsets=tri_off,
+        area=area_a,
+        area_change=area_b / area_a - 1.0,
+        flipped=area_b <= 0,
+        edges=edges,
+        edge_offsets=edge_off,
+        edge_length=la,
+        edge_change=lb / la - 1.0,
+    )
+
+
 def triangulation_strain(
     sample: MotionSample,
     *,
@@ -187,47 +369,25 @@ def triangulation_strain(
     >>> np.allclose(r.edge_change, 0.02), np.allclose(r.area_change, 1.02**2 - 1)
     (True, True)
     """
-    pa = np.asarray(sample.points, dtype=np.float64).reshape(-1, 2)
-    d = np.asarray(sample.displacement, dtype=np.float64).reshape(-1, 2)
-    ids = np.asarray(sample.ids, dtype=np.int64).reshape(-1)
-    if d.shape != pa.shape or ids.shape[0] != pa.shape[0]:
-        raise InvalidInputError(f"sample arrays disagree: points {pa.shape}, displacement {d.shape}, ids {ids.shape}")
-    n_in = int(np.count_nonzero(np.all(np.isfinite(pa), axis=1) & np.all(np.isfinite(d), axis=1)))
-    first = _distinct_finite(np.ascontiguousarray(pa), np.ascontiguousarray(d))
-    pa, d, ids = pa[first], d[first], ids[first]
-    n_dropped = n_in - pa.shape[0]
-    if pa.shape[0] < 3:
-        raise InsufficientDataError(
-            f"frames {sample.frame_a}->{sample.frame_b}: {pa.shape[0]} distinct matched points, need at least 3"
-        )
-    tri = triangulate_points(pa)  # finite and distinct here
-    simplices_count = tri.shape[0]
-    if simplices_count == 0:
-        raise InsufficientDataError(
-            f"frames {sample.frame_a}->{sample.frame_b}: the {pa.shape[0]} matched points are collinear"
-        )
-    pb = pa + d
-    tri, area_a, area_b, edges, la, lb = _triangle_changes(
-        pa, pb, tri, np.inf if max_edge_px is None else float(max_edge_px), float(min_area_px2), float(min_quality)
-    )
-    n_dropped += int(simplices_count - tri.shape[0])
-    if tri.shape[0] == 0:
-        raise InsufficientDataError(
-            f"frames {sample.frame_a}->{sample.frame_b}: no usable triangle (points nearly collinear or too far apart)"
-        )
+    b = triangulation_strains([sample], max_edge_px=max_edge_px, min_area_px2=min_area_px2, min_quality=min_quality)
+    reason = b.failure(0)
+    if reason is not None:
+        raise InsufficientDataError(reason)
+    row = np.full(b.points.shape[0], -1, np.int64)  # input row -> row of the triangulated points
+    row[b.kept] = np.arange(b.kept.size)
     return TriangulationStrain(
         frame_a=int(sample.frame_a),
         frame_b=int(sample.frame_b),
-        ids=ids,
-        points=pa,
-        triangles=tri,
-        edges=edges,
-        edge_length=la,
-        edge_change=lb / la - 1.0,
-        area=area_a,
-        area_change=area_b / area_a - 1.0,
-        flipped=area_b <= 0,
-        n_dropped=int(n_dropped),
+        ids=b.ids[b.kept],
+        points=b.points[b.kept],
+        triangles=row[b.triangles],
+        edges=row[b.edges],
+        edge_length=b.edge_length,
+        edge_change=b.edge_change,
+        area=b.area,
+        area_change=b.area_change,
+        flipped=b.flipped,
+        n_dropped=int(b.n_dropped[0]),
     )
 
 

@@ -186,3 +186,30 @@ def test_tactile_movie_resets_contactors_out_of_view():
     movie = tactile_movie(samples, fingertip=ft, window=win2, calibration=CAL, image_shape=(400, 400))
     assert movie.reset[1:, :, -1].all()  # right-hand column beyond the image
     assert not movie.reset[1:, :, 0].any()
+
+
+def test_a_batch_gives_each_pair_what_triangulation_strain_gives():
+    from processing.stretch import COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, triangulation_strains
+
+    rng = np.random.default_rng(3)
+    good = [_sample(_points(60, seed=k), rng.normal(0, 0.5, (60, 2)), a=k, b=k + 1) for k in range(4)]
+    line = np.column_stack([np.arange(10.0), 2 * np.arange(10.0)])
+    samples = [good[0], _sample(line, np.zeros((10, 2)), a=7, b=8), good[1],
+               _sample(np.zeros((0, 2)), np.zeros((0, 2)), a=9, b=10), good[2], good[3]]
+    b = triangulation_strains(samples, max_edge_px=80.0)
+    assert b.status.tolist() == [STRAIN_OK, COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, STRAIN_OK, STRAIN_OK]
+    assert b.failure(1) == "frames 7->8: the 10 matched points are collinear"
+    assert b.failure(3) == "frames 9->10: 0 distinct matched points, need at least 3"
+    for i, s in enumerate(samples):
+        if b.status[i] != STRAIN_OK:
+            continue
+        one = triangulation_strain(s, max_edge_px=80.0)
+        e = slice(b.edge_offsets[i], b.edge_offsets[i + 1])
+        t = slice(b.triangle_offsets[i], b.triangle_offsets[i + 1])
+        np.testing.assert_array_equal(b.ids[b.edges[e]], one.ids[one.edges])
+        np.testing.assert_array_equal(b.points[b.triangles[t]], one.points[one.triangles])
+        np.testing.assert_array_equal(b.edge_change[e], one.edge_change)
+        np.testing.assert_array_equal(b.area_change[t], one.area_change)
+        np.testing.assert_array_equal(b.flipped[t], one.flipped)
+    with pytest.raises(InvalidInputError, match="disagree"):
+        triangulation_strains([MotionSample(0, 1, np.zeros((3, 2)), np.zeros((2, 2)), np.arange(3))])
