@@ -37,7 +37,7 @@ from processing.display_mapping import DisplayMappingParams, tactile_movie
 from processing.errors import InsufficientDataError, InvalidInputError
 from processing.fingertip import fingertip_motion, visibility_window
 from processing.flow import DenseFlow, FlowField, FlowParams
-from processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strain
+from processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strains
 from processing.subpixel_displacement import SubpixelParams
 from processing.tracking import MotionSample, TrackingParams, concatenate_features
 
@@ -351,41 +351,30 @@ def _progress(it, enabled: bool, desc: str):
 
 
 def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px: float) -> SpanStrain:
-    """Triangulation strain of every pair of one span; pairs that cannot give one carry the reason."""
+    """Triangulation strain of every pair of one span (one compiled call for all of them, see
+    :func:`~processing.stretch.triangulation_strains`); pairs that cannot give one carry the reason."""
     pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
-    done: list[tuple[int, Any]] = []
+    measured = [i for i, s in enumerate(samples) if not isinstance(s, str)]
     for i, s in enumerate(samples):
         if isinstance(s, str):
             pairs[i] = (i, i + span, 0, s.encode()[:96])
-            continue
-        pairs[i]["frame_a"], pairs[i]["frame_b"], pairs[i]["n_points"] = s.frame_a, s.frame_b, len(s)
-        try:
-            t = triangulation_strain(s, max_edge_px=max_edge_px)
-        except InsufficientDataError as exc:
-            pairs[i]["status"] = str(exc).encode()[:96]
-            continue
-        pairs[i]["status"] = b"ok"
-        done.append((i, t))
-    # The edge and triangle tables are filled once for all pairs (field by field over concatenated arrays).
-    edges = np.zeros(sum(t.edges.shape[0] for _, t in done), dtype=EDGE_DTYPE)
-    tris = np.zeros(sum(t.triangles.shape[0] for _, t in done), dtype=TRIANGLE_DTYPE)
-    if done:
-        edges["pair"] = np.repeat([i for i, _ in done], [t.edges.shape[0] for _, t in done])
-        ends = np.concatenate([t.ids[t.edges] for _, t in done])
-        edges["id_a"], edges["id_b"] = ends[:, 0], ends[:, 1]
-        xy = np.concatenate([t.points[t.edges].reshape(-1, 4) for _, t in done])  # xa, ya, xb, yb
-        edges["xa"], edges["ya"], edges["xb"], edges["yb"] = xy.T
-        edges["length"] = np.concatenate([t.edge_length for _, t in done])
-        edges["change"] = np.concatenate([t.edge_change for _, t in done])
-        tris["pair"] = np.repeat([i for i, _ in done], [t.triangles.shape[0] for _, t in done])
-        corners = np.concatenate([t.ids[t.triangles] for _, t in done])
-        tris["id_a"], tris["id_b"], tris["id_c"] = corners.T
-        xy = np.concatenate([t.points[t.triangles].reshape(-1, 6) for _, t in done])  # x0, y0, x1, y1, x2, y2
-        for j in range(3):
-            tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
-        tris["area"] = np.concatenate([t.area for _, t in done])
-        tris["change"] = np.concatenate([t.area_change for _, t in done])
-        tris["flipped"] = np.concatenate([t.flipped for _, t in done])
+    b = triangulation_strains([samples[i] for i in measured], max_edge_px=max_edge_px)
+    where = np.asarray(measured, dtype=np.int64)
+    pairs["frame_a"][where], pairs["frame_b"][where], pairs["n_points"][where] = b.frame_a, b.frame_b, b.n_points
+    pairs["status"][where] = [b"ok" if r is None else r.encode()[:96] for r in map(b.failure, range(where.size))]
+    # The edge and triangle tables are filled field by field over the batch's flat arrays.
+    edges = np.zeros(b.edges.shape[0], dtype=EDGE_DTYPE)
+    edges["pair"] = np.repeat(where, np.diff(b.edge_offsets))
+    edges["id_a"], edges["id_b"] = b.ids[b.edges].T
+    edges["xa"], edges["ya"], edges["xb"], edges["yb"] = b.points[b.edges].reshape(-1, 4).T
+    edges["length"], edges["change"] = b.edge_length, b.edge_change
+    tris = np.zeros(b.triangles.shape[0], dtype=TRIANGLE_DTYPE)
+    tris["pair"] = np.repeat(where, np.diff(b.triangle_offsets))
+    tris["id_a"], tris["id_b"], tris["id_c"] = b.ids[b.triangles].T
+    xy = b.points[b.triangles].reshape(-1, 6)  # x0, y0, x1, y1, x2, y2
+    for j in range(3):
+        tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
+    tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
     return SpanStrain(span, pairs, edges, tris)
 
 
@@ -440,10 +429,14 @@ def derive(
     except InsufficientDataError as exc:
         win = None
         out["window_status"] = str(exc)
-    out["strain"] = {
-        int(s): span_strain(m.span_samples[int(s)], span=int(s), max_edge_px=calibration.px(params.max_edge_mm))
-        for s in params.spans
-    }
+    spans = [int(s) for s in params.spans]
+
+    def strain(span: int) -> SpanStrain:
+        return span_strain(m.span_samples[span], span=span, max_edge_px=calibration.px(params.max_edge_mm))
+
+    # The spans on threads: each is one compiled call that releases the GIL.
+    with ThreadPoolExecutor(max_workers=max(1, min(len(spans), int(params.workers)))) as pool:
+        out["strain"] = dict(zip(spans, pool.map(strain, spans)))
     axis = sliding_axis(ft.position) if profile_axis is None else int(profile_axis)
     length = image_shape[1] if axis == 0 else image_shape[0]
     step = calibration.px(params.profile_step_mm)
@@ -476,7 +469,8 @@ def without_glass_shading(frames, *, calibration: Calibration, params: AnalysisP
     good = [k for k, f in enumerate(frames) if not frame_flags(f, checks)]
     try:  # InsufficientDataError: fewer than 2 usable frames, or skin that barely moved
         shading = glass_shading(
-            [frames[k] for k in good],
+            frames,
+            use=good,
             smooth_px=calibration.px(params.glass_shading_smooth_mm),
             along_shape_px=calibration.px(params.glass_shading_along_shape_mm),
             min_motion_ratio=params.glass_shading_min_motion,
