@@ -49,8 +49,9 @@ class GlassShading:
 
 
 def glass_shading(
-    frames: Sequence[np.ndarray],
+    frames: Sequence[np.ndarray] | np.ndarray,
     *,
+    use: Sequence[int] | None = None,
     smooth_px: float | tuple[float, float] = 1.5,
     along_shape_px: float | None = None,
     level: float = 160.0,
@@ -62,8 +63,10 @@ def glass_shading(
 
     Parameters
     ----------
-    frames : sequence of (H, W) uint8 arrays
-        The whole sequence (at least 2 frames).
+    frames : sequence of (H, W) uint8 arrays, or an (N, H, W) uint8 array
+        The whole sequence.
+    use : sequence of int, optional
+        The frames to take the statistics from (at least 2; default all), e.g. without all-black or saturated ones.
     smooth_px : float or (float, float)
         Gaussian smoothing (standard deviation, px; one value or (along x, along y)) of the mean and standard
         deviation maps: it removes what is left of the texture in them. The shading of a ridge or a valley varies
@@ -89,37 +92,28 @@ def glass_shading(
     InsufficientDataError
         Fewer than 2 frames, or a sequence in which the skin did not move enough.
     """
-    if len(frames) < 2:
-        raise InsufficientDataError(f"glass shading needs at least 2 frames, got {len(frames)}")
+    use = np.arange(len(frames), dtype=np.int64) if use is None else np.asarray(use, dtype=np.int64).reshape(-1)
+    if use.size and (use.min() < 0 or use.max() >= len(frames)):
+        raise InvalidInputError(f"use holds frame numbers outside 0..{len(frames) - 1}")
+    if use.size < 2:
+        raise InsufficientDataError(f"glass shading needs at least 2 frames, got {use.size}")
     sx, sy = (smooth_px, smooth_px) if np.ndim(smooth_px) == 0 else tuple(smooth_px)
     for name, v in (("smooth_px", sx), ("smooth_px", sy), ("contrast", contrast), ("floor_fraction", floor_fraction)):
         if not (np.isfinite(v) and v > 0):
             raise InvalidInputError(f"{name} must be positive, got {smooth_px if name == 'smooth_px' else v!r}")
     if not (np.isfinite(min_motion_ratio) and min_motion_ratio >= 0):
         raise InvalidInputError(f"min_motion_ratio must be non-negative, got {min_motion_ratio!r}")
-    first = np.asarray(frames[0])
+    first = np.asarray(frames[int(use[0])])
     if first.ndim != 2 or first.dtype != np.uint8:
         raise InvalidInputError(f"frames must be 2-D uint8 arrays, got {first.dtype} {first.shape}")
-    for k, f in enumerate(frames):
-        f = np.asarray(f)
-        if f.shape != first.shape or f.dtype != np.uint8:
-            raise InvalidInputError(f"frames[{k}] is {f.dtype} {f.shape}, expected uint8 {first.shape}")
-
-    def sums(part: range) -> tuple[np.ndarray, np.ndarray]:
-        total = np.zeros(first.shape, np.float64)
-        total_sq = np.zeros(first.shape, np.float64)
-        for k in part:
+    stacked = isinstance(frames, np.ndarray) and frames.ndim == 3
+    if not stacked:
+        for k in use.tolist():
             f = np.asarray(frames[k])
-            cv2.accumulate(f, total)
-            cv2.accumulateSquare(f, total_sq)
-        return total, total_sq
-
-    # Two halves on two threads (OpenCV releases the GIL); the sums are exact in float64 either way.
-    half = len(frames) // 2
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        (t1, q1), (t2, q2) = pool.map(sums, (range(half), range(half, len(frames))))
-    total, total_sq = t1 + t2, q1 + q2
-    n = float(len(frames))
+            if f.shape != first.shape or f.dtype != np.uint8:
+                raise InvalidInputError(f"frames[{k}] is {f.dtype} {f.shape}, expected uint8 {first.shape}")
+    total, total_sq = _sequence_sums(frames, use, first.shape)
+    n = float(use.size)
     mean = total / n
     std = np.sqrt(np.maximum(total_sq / n - mean * mean, 0.0))
     if along_shape_px is not None:
@@ -150,6 +144,52 @@ def glass_shading(
     floor = floor_fraction * float(np.percentile(std, 90))
     gain = (contrast / np.maximum(std, max(floor, 1e-3))).astype(np.float32)
     return GlassShading(offset=mean, gain=gain, level=float(level), motion_ratio=ratio)
+
+
+def _sequence_sums(frames, use: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel sum and sum of squares of ``frames[use]`` (exact: integers, returned as float64), on two
+    threads (row halves; the kernel releases the GIL). A sequence that is not one array is stacked 64 frames at a
+    time."""
+    total = np.zeros(shape, np.float64)
+    total_sq = np.zeros(shape, np.float64)
+    if isinstance(frames, np.ndarray) and frames.ndim == 3:
+        blocks = [(np.ascontiguousarray(frames) if not frames.flags.c_contiguous else frames, use)]
+    else:
+        blocks = (
+            (np.stack([np.asarray(frames[k]) for k in use[i : i + 64].tolist()]), np.arange(min(64, use.size - i)))
+            for i in range(0, use.size, 64)
+        )
+    h = shape[0]
+    halves = [(0, h // 2), (h // 2, h)]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for block, rows in blocks:
+            list(pool.map(lambda r: _add_sums(block, rows, r[0], r[1], total, total_sq), halves))
+    return total, total_sq
+
+
+@njit(nogil=True)
+def _add_sums(frames, use, y0, y1, total, total_sq):  # pragma: no cover - compiled
+    """Add the sums over ``frames[use]`` of rows ``y0:y1`` to ``total`` and ``total_sq``; 16 rows at a time, their
+    integer accumulators staying in cache while every frame passes (~10 ms for 180 frames of 640x484, against
+    ~30-70 ms for OpenCV's accumulate into float64 maps)."""
+    w = frames.shape[2]
+    band = 16
+    acc = np.zeros((band, w), np.int64)
+    acc2 = np.zeros((band, w), np.int64)
+    for yb in range(y0, y1, band):
+        ye = min(yb + band, y1)
+        acc[:] = 0
+        acc2[:] = 0
+        for k in use:
+            for y in range(yb, ye):
+                for x in range(w):
+                    v = np.int64(frames[k, y, x])
+                    acc[y - yb, x] += v
+                    acc2[y - yb, x] += v * v
+        for y in range(yb, ye):
+            for x in range(w):
+                total[y, x] += acc[y - yb, x]
+                total_sq[y, x] += acc2[y - yb, x]
 
 
 def remove_glass_shading(frame: np.ndarray, shading: GlassShading) -> np.ndarray:

@@ -67,3 +67,23 @@ def test_a_still_finger_is_refused_and_bad_input_is_named():
     g = glass_shading(_frames())
     with pytest.raises(InvalidInputError, match="shape"):
         remove_glass_shading(np.zeros((4, 4), np.uint8), g)
+
+
+def test_statistics_of_an_array_a_list_and_a_chosen_subset_agree():
+    """The compiled sums are exact: an (N, H, W) array, a list (stacked 64 frames at a time) and ``use`` give the
+    statistics of the frames chosen, bit for bit."""
+    frames = _frames()
+    use = [k for k in range(N) if k % 5]  # e.g. without all-black frames
+    a = glass_shading(np.stack(frames), use=use)
+    b = glass_shading(frames, use=use)
+    c = glass_shading([frames[k] for k in use])
+    for g in (b, c):
+        np.testing.assert_array_equal(g.offset, a.offset)
+        np.testing.assert_array_equal(g.gain, a.gain)
+    chosen = np.stack([frames[k] for k in use]).astype(np.float64)
+    mean = cv2.GaussianBlur(chosen.mean(axis=0).astype(np.float32), (0, 0), 1.5)
+    np.testing.assert_allclose(a.offset, mean, atol=1e-4)
+    with pytest.raises(InvalidInputError, match="use holds"):
+        glass_shading(frames, use=[0, N])
+    with pytest.raises(InsufficientDataError, match="at least 2"):
+        glass_shading(frames, use=[3])
