@@ -46,6 +46,13 @@ __all__ = ["chunk_plan", "make_tracker", "track_in_processes", "warm_up", "shutd
 MAX_CHUNK_FRAMES = 240
 # Shorter sequences stay on threads: handing frames to processes costs more than it saves there.
 MIN_FRAMES = 32
+# Frame blocks in shared memory are kept for the next analysis, up to this many bytes in all: writing a frame into a
+# block the first time costs the kernel a page fault per 4 KiB page, on this 2-core VM 16-90 ms for 92 frames of
+# 640x484 (it varies with how recently the memory was used), against 4 ms into a block already written once.
+MAX_KEPT_BYTES = 256 * 2**20
+# Room left free in /dev/shm: a block written beyond the room of its file system kills this process (SIGBUS),
+# so a chunk that does not fit goes to threads instead (containers often mount a 64 MB /dev/shm).
+SHM_MARGIN_BYTES = 16 * 2**20
 
 
 class ProcessPoolFailed(RuntimeError):
@@ -160,13 +167,72 @@ def _main_script_hidden():
 
 
 def shutdown(*, wait: bool = True) -> None:
-    """Stop the worker processes (they are otherwise kept for the next analysis until this process exits).
-    ``wait=False``: do not wait for them (a broken pool is dropped this way; the next analysis starts a new one)."""
+    """Stop the worker processes (they are otherwise kept for the next analysis until this process exits) and free
+    the kept frame blocks. ``wait=False``: do not wait for them (a broken pool is dropped this way; the next analysis
+    starts a new one)."""
     global _pool
     with _lock:
         if _pool is not None:
             _pool.shutdown(wait=wait, cancel_futures=True)
         _pool = None
+        while _kept_blocks:
+            _free_block(_kept_blocks.pop())
+
+
+# -- frame blocks in shared memory -------------------------------------------------------------------------------
+
+_kept_blocks: list[shared_memory.SharedMemory] = []  # written once already, no worker using them (under _lock)
+
+
+def _shm_room() -> int | None:
+    """Bytes free in /dev/shm (where POSIX shared memory lives on Linux), or None where it cannot be told."""
+    try:
+        st = os.statvfs("/dev/shm")
+    except (OSError, AttributeError):
+        return None
+    return int(st.f_bavail) * int(st.f_frsize)
+
+
+def _take_block(nbytes: int) -> shared_memory.SharedMemory:
+    """A block of at least ``nbytes``: the smallest kept one that fits, or a new one if /dev/shm has room for it."""
+    with _lock:
+        fitting = [b for b in _kept_blocks if b.size >= nbytes]
+        if fitting:
+            block = min(fitting, key=lambda b: b.size)
+            _kept_blocks.remove(block)
+            return block
+    room = _shm_room()
+    if room is not None and nbytes + SHM_MARGIN_BYTES > room:
+        raise ProcessPoolFailed(
+            f"/dev/shm has {room / 2**20:.0f} MB free, a chunk of frames needs {nbytes / 2**20:.0f} MB "
+            f"(+{SHM_MARGIN_BYTES / 2**20:.0f} MB margin)"
+        )
+    try:
+        return shared_memory.SharedMemory(create=True, size=int(nbytes))
+    except OSError as exc:
+        raise ProcessPoolFailed(f"could not create a shared frame block of {nbytes} bytes: {exc}") from exc
+
+
+def _keep_block(block: shared_memory.SharedMemory) -> None:
+    """Keep a block no worker uses any more for the next analysis (the largest ones, up to MAX_KEPT_BYTES)."""
+    with _lock:
+        _kept_blocks.append(block)
+        _kept_blocks.sort(key=lambda b: b.size, reverse=True)
+        total = 0
+        for b in list(_kept_blocks):
+            if total + b.size > MAX_KEPT_BYTES:
+                _kept_blocks.remove(b)
+                _free_block(b)
+            else:
+                total += b.size
+
+
+def _free_block(block: shared_memory.SharedMemory) -> None:
+    block.close()
+    try:
+        block.unlink()
+    except FileNotFoundError:  # already gone (another process cleaned up)
+        pass
 
 
 atexit.register(shutdown)
@@ -302,7 +368,7 @@ def track_in_processes(
     def submit(j: int) -> None:
         first, last = plan[j]
         shape = (last - first + 1, *shape0)
-        shm = shared_memory.SharedMemory(create=True, size=int(np.prod(shape)))
+        shm = _take_block(int(np.prod(shape)))
         blocks.append(shm)
         block = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
         for i in range(shape[0]):
@@ -317,10 +383,13 @@ def track_in_processes(
         fut = pool.submit(_track_chunk, shm.name, shape, first, calibration, params, shading, good[first : last + 1])
         pending[j] = (fut, shm)
 
-    def release(shm: shared_memory.SharedMemory) -> None:
-        shm.close()
-        shm.unlink()
+    def release(shm: shared_memory.SharedMemory, *, keep: bool) -> None:
+        """``keep``: no worker uses the block any more (its chunk returned), so the next analysis may reuse it."""
         blocks.remove(shm)
+        if keep:
+            _keep_block(shm)
+        else:
+            _free_block(shm)
 
     tracker = None
     tables: list = []
@@ -336,10 +405,13 @@ def track_in_processes(
             try:
                 r: ChunkResult = fut.result()
             except BrokenProcessPool as exc:
+                release(shm, keep=False)
                 shutdown(wait=False)
                 raise ProcessPoolFailed(f"a worker process died: {exc}") from exc
-            finally:
-                release(shm)
+            except BaseException:
+                release(shm, keep=False)
+                raise
+            release(shm, keep=True)
             if j + ahead < len(plan):
                 submit(j + ahead)
             for k, v in r.timing.items():
@@ -362,6 +434,6 @@ def track_in_processes(
     finally:
         for fut, _shm in pending.values():
             fut.cancel()
-        for shm in list(blocks):
-            release(shm)
+        for shm in list(blocks):  # a chunk still running may read its block: never reuse those
+            release(shm, keep=False)
     return ProcessTracking(tracker, tables, flags, timing, len(plan), retracked)

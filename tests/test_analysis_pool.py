@@ -167,3 +167,31 @@ def test_a_worker_process_keeps_to_threads(monkeypatch):
     """The runner analyses trials in a worker process while recording: no nested pool there."""
     monkeypatch.setattr(analysis_pool.mp, "parent_process", lambda: object())
     assert analysis_pool.chunk_plan(500, workers=2, overlap=5) is None
+
+
+def test_frame_blocks_are_reused_by_the_next_analysis_and_freed_at_shutdown(ridge_session):
+    s = ridge_session
+    kw = dict(calibration=s.calibration, surface="ridge", params=_params(2, True))
+    analysis_pool.shutdown()
+    first = analyze_frames(s.frames, **kw)
+    kept = {b.name for b in analysis_pool._kept_blocks}
+    assert len(kept) == 2  # one per chunk, written once
+    again = analyze_frames(s.frames, **kw)
+    assert {b.name for b in analysis_pool._kept_blocks} == kept  # the same blocks served the second analysis
+    _assert_same_results(again, first)
+    analysis_pool.shutdown()
+    assert analysis_pool._kept_blocks == []
+    for name in kept:  # unlinked: nothing left in /dev/shm
+        with pytest.raises(FileNotFoundError):
+            analysis_pool.shared_memory.SharedMemory(name=name)
+
+
+def test_a_full_dev_shm_falls_back_to_threads_before_writing(ridge_session, monkeypatch):
+    """Writing past a small /dev/shm (containers mount 64 MB) would kill the process with SIGBUS."""
+    analysis_pool.shutdown()
+    monkeypatch.setattr(analysis_pool, "_shm_room", lambda: 20 * 2**20)
+    s = ridge_session
+    r = analyze_frames(s.frames, calibration=s.calibration, params=_params(2, True), surface="ridge")
+    assert r.params["parallel"].startswith("threads (2): worker processes failed (/dev/shm has 20 MB free")
+    assert r.trajectories["present"].any()
+    assert analysis_pool._kept_blocks == []
