@@ -421,35 +421,37 @@ def derive(
 ) -> dict[str, Any]:
     """Everything computed from the measured motion (seed 5.2-5.4)."""
     out: dict[str, Any] = {}
-    ft = fingertip_motion(m.samples, n_frames=n_frames)
-    out["fingertip"] = ft
-    try:
-        win = visibility_window(ft, image_shape=image_shape)
-        out["window"] = win
-    except InsufficientDataError as exc:
-        win = None
-        out["window_status"] = str(exc)
     spans = [int(s) for s in params.spans]
 
     def strain(span: int) -> SpanStrain:
         return span_strain(m.span_samples[span], span=span, max_edge_px=calibration.px(params.max_edge_mm))
 
-    # The spans on threads: each is one compiled call that releases the GIL.
+    # The spans on threads, each one compiled call that releases the GIL, while this thread does the rest.
     with ThreadPoolExecutor(max_workers=max(1, min(len(spans), int(params.workers)))) as pool:
-        out["strain"] = dict(zip(spans, pool.map(strain, spans)))
-    axis = sliding_axis(ft.position) if profile_axis is None else int(profile_axis)
-    length = image_shape[1] if axis == 0 else image_shape[0]
-    step = calibration.px(params.profile_step_mm)
-    positions = np.arange(step, length - step / 2, step)
-    out["profile_axis"] = axis
-    out["profile"] = stretch_profile(
-        m.samples, ft.displacement, axis=axis, positions=positions, strip_px=calibration.px(params.profile_strip_mm)
-    )
-    if win is not None:
-        out["movie"] = tactile_movie(
-            m.samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape, params=params.display,
-            motion_axis=axis,
+        strains = pool.map(strain, spans)
+        ft = fingertip_motion(m.samples, n_frames=n_frames)
+        out["fingertip"] = ft
+        try:
+            win = visibility_window(ft, image_shape=image_shape)
+            out["window"] = win
+        except InsufficientDataError as exc:
+            win = None
+            out["window_status"] = str(exc)
+        axis = sliding_axis(ft.position) if profile_axis is None else int(profile_axis)
+        length = image_shape[1] if axis == 0 else image_shape[0]
+        step = calibration.px(params.profile_step_mm)
+        positions = np.arange(step, length - step / 2, step)
+        out["profile_axis"] = axis
+        out["profile"] = stretch_profile(
+            m.samples, ft.displacement, axis=axis, positions=positions,
+            strip_px=calibration.px(params.profile_strip_mm),
         )
+        if win is not None:
+            out["movie"] = tactile_movie(
+                m.samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape,
+                params=params.display, motion_axis=axis,
+            )
+        out["strain"] = dict(zip(spans, strains))
     return out
 
 
