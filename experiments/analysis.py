@@ -211,7 +211,8 @@ def measure_features(
             setattr(tr, a, out[..., 0])
             setattr(tr, b, out[..., 1])
     samples = [tr.motion(k, k + 1) for k in range(n - 1)]
-    span_samples = {int(s): [tr.motion(k, k + s) for k in range(n - s)] for s in params.spans}
+    span_samples = {int(s): samples if int(s) == 1 else [tr.motion(k, k + s) for k in range(n - s)]
+                    for s in params.spans}
     timing["tracking_s"] += time.perf_counter() - t0
     trajectories = {
         name: getattr(tr, name)

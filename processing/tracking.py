@@ -756,7 +756,12 @@ def concatenate_features(tables: list[np.ndarray]) -> np.ndarray:
     """The concatenated feature table that :attr:`Trajectories.feature_index` points into (frame set per table)."""
     if not tables:
         return np.zeros(0, dtype=FEATURE_DTYPE)
-    out = np.concatenate([validate_features(t) for t in tables])
+    for k, t in enumerate(tables):  # the cheap checks per table, the value checks once on the whole
+        if not isinstance(t, np.ndarray) or t.dtype != FEATURE_DTYPE or t.ndim != 1:
+            raise InvalidInputError(
+                f"feature table {k} must be a 1-D structured array of FEATURE_DTYPE, got {getattr(t, 'dtype', type(t))}"
+            )
+    out = validate_features(np.concatenate(tables))
     sizes = [t.shape[0] for t in tables]
     out["frame"] = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
     out["id"] = np.arange(out.shape[0])
