@@ -23,19 +23,11 @@ import cv2
 import numpy as np
 
 from processing.calibration import Calibration
-from processing.editing import (
-    border_mask,
-    feature_density_mask,
-    heal_broken_valleys,
-    outside_border,
-    remove_bridges,
-    remove_short_spurs,
-    remove_short_valleys,
-)
+from processing.editing import border_mask, edit_graph, feature_density_mask, outside_border
 from processing.errors import InvalidInputError
 from processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
-from processing.minutiae import SkeletonGraph, node_orientation, trace_skeleton
+from processing.minutiae import GraphArrays, edit_with_room, graph_features, trace_arrays
 from processing.pores import detect_blob_pores
 from processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
 from processing.subpixel import locate_minutiae_tips, refine_bifurcations, refine_pores
@@ -270,46 +262,19 @@ def _counts(kinds: np.ndarray) -> dict[str, int]:
     return {KIND_NAMES[k.value]: int(np.count_nonzero(kinds == k.value)) for k in FeatureKind}
 
 
-def _graph_counts(g: SkeletonGraph) -> dict[str, int]:
-    degrees = [len(edges) for edges, alive in zip(g.node_edges, g.node_alive) if alive]
-    ends = degrees.count(1)
-    bifs = len(degrees) - ends - degrees.count(2) - degrees.count(0)
+def _graph_counts(row: np.ndarray) -> dict[str, int]:
+    """Counts per kind from a row of :func:`processing.editing.edit_graph`'s counts (endings, bifurcations, pores)."""
+    ends, bifs, pores = row.tolist()
     return {
         KIND_NAMES[FeatureKind.VALLEY_ENDING]: ends,
         KIND_NAMES[FeatureKind.VALLEY_BIFURCATION]: bifs,
-        KIND_NAMES[FeatureKind.PORE]: int(sum(g.pore_alive)),
+        KIND_NAMES[FeatureKind.PORE]: pores,
     }
 
 
-def _graph_features(g: SkeletonGraph, orient_n: int):
-    xs, ys, ks, os_, sz = [], [], [], [], []
-    ending, bifurcation = int(FeatureKind.VALLEY_ENDING), int(FeatureKind.VALLEY_BIFURCATION)
-    node_x, node_y, node_edges = g.node_x, g.node_y, g.node_edges
-    for n, alive in enumerate(g.node_alive):
-        if not alive:
-            continue
-        d = len(node_edges[n])
-        if d == 2 or d == 0:
-            continue
-        xs.append(node_x[n])
-        ys.append(node_y[n])
-        ks.append(ending if d == 1 else bifurcation)
-        os_.append(node_orientation(g, n, n_px=orient_n))
-        sz.append(0.0)
-    for k, alive in enumerate(g.pore_alive):
-        if alive:
-            xs.append(g.pore_x[k])
-            ys.append(g.pore_y[k])
-            ks.append(int(FeatureKind.PORE))
-            os_.append(math.nan)
-            sz.append(g.pore_size[k])
-    return (
-        np.asarray(xs, dtype=np.float64),
-        np.asarray(ys, dtype=np.float64),
-        np.asarray(ks, dtype=np.int8),
-        np.asarray(os_, dtype=np.float64),
-        np.asarray(sz, dtype=np.float64),
-    )
+def _graph_features(g: GraphArrays, orient_n: int):
+    """x, y, kind, orientation and size of the graph's minutiae (in node order) then pores (compiled)."""
+    return graph_features(g, n_px=orient_n)
 
 
 def frame_flags(frame: np.ndarray, params: ExtractionParams | None = None) -> set:
@@ -427,37 +392,22 @@ class FeatureExtractor:
             valleys = binary
             pore_x = pore_y = pore_d = np.zeros(0)
         skeleton = thin(valleys)  # 4.6
-        g = trace_skeleton(skeleton)  # 4.7
-        g.add_pores(pore_x, pore_y, sizes=pore_d)
-
+        rules = dict(  # 4.8.1-4.8.4, each when switched on
+            orientation_px=q.orient_n,
+            short_valley_px=q.short_valley if p.remove_short_valleys else None,
+            heal=(q.heal_dist, p.heal_max_angle_deg) if p.heal_broken_valleys else None,
+            spurs=(q.spur_min, q.spur_max, p.spur_max_deviation_deg) if p.remove_short_spurs else None,
+            bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
+        )
+        g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
+            lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
+            lambda g: edit_graph(g, **rules),
+        )
         counts: OrderedDict[str, dict[str, int]] = OrderedDict()
-        counts["initial"] = _graph_counts(g)
-        if p.remove_short_valleys:  # 4.8.1
-            g = remove_short_valleys(g, max_length_px=q.short_valley)
-            counts["short_valleys"] = _graph_counts(g)
-        if p.heal_broken_valleys:  # 4.8.2
-            g = heal_broken_valleys(
-                g, max_distance_px=q.heal_dist, max_angle_deg=p.heal_max_angle_deg, orientation_px=q.orient_n
-            )
-            counts["healing"] = _graph_counts(g)
-        if p.remove_short_spurs:  # 4.8.3
-            g = remove_short_spurs(
-                g,
-                min_length_px=q.spur_min,
-                max_length_px=q.spur_max,
-                max_deviation_deg=p.spur_max_deviation_deg,
-                orientation_px=q.orient_n,
-            )
-            counts["short_spurs"] = _graph_counts(g)
-        if p.remove_bridges:  # 4.8.4
-            g = remove_bridges(
-                g,
-                min_length_px=q.bridge_min,
-                max_length_px=q.bridge_max,
-                max_deviation_deg=p.bridge_max_deviation_deg,
-                orientation_px=q.orient_n,
-            )
-            counts["bridges"] = _graph_counts(g)
+        done = (True, p.remove_short_valleys, p.heal_broken_valleys, p.remove_short_spurs, p.remove_bridges)
+        for name, on, row in zip(STEP_NAMES, done, step_rows):
+            if on:
+                counts[name] = _graph_counts(row)
         x, y, kind, orient, size = _graph_features(g, q.orient_n)
         keep = np.ones(x.size, dtype=bool)
         if p.filter_feature_density:  # 4.8.5
