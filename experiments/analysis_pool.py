@@ -15,7 +15,8 @@ the sequential one either way, which the tests check.
 
 The pool is started once per process (forkserver: workers are forked from a clean server that has imported the
 pipeline, never from this possibly multi-threaded process) and kept for later analyses; :func:`warm_up` starts it
-ahead of time, :func:`shutdown` stops it.
+ahead of time, :func:`shutdown` stops it. The shared-memory blocks that carry the frames to the workers are kept
+for the next analysis too (:data:`MAX_KEPT_BYTES`), and a chunk that /dev/shm has no room for goes to threads.
 """
 
 from __future__ import annotations
