@@ -177,12 +177,15 @@ def shutdown(*, wait: bool = True) -> None:
             _pool.shutdown(wait=wait, cancel_futures=True)
         _pool = None
         while _kept_blocks:
-            _free_block(_kept_blocks.pop())
+            block = _kept_blocks.pop()
+            if os.getpid() == _blocks_pid:
+                _free_block(block)
 
 
 # -- frame blocks in shared memory -------------------------------------------------------------------------------
 
 _kept_blocks: list[shared_memory.SharedMemory] = []  # written once already, no worker using them (under _lock)
+_blocks_pid = os.getpid()  # a child forked from this process inherits the list but must not unlink the blocks
 
 
 def _shm_room() -> int | None:
@@ -409,6 +412,9 @@ def track_in_processes(
                 release(shm, keep=False)
                 shutdown(wait=False)
                 raise ProcessPoolFailed(f"a worker process died: {exc}") from exc
+            except OSError as exc:  # e.g. the worker could not open the frame block: threads can still do it
+                release(shm, keep=False)
+                raise ProcessPoolFailed(f"a worker process could not track its chunk: {exc!r}") from exc
             except BaseException:
                 release(shm, keep=False)
                 raise

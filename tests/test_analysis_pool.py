@@ -195,3 +195,20 @@ def test_a_full_dev_shm_falls_back_to_threads_before_writing(ridge_session, monk
     assert r.params["parallel"].startswith("threads (2): worker processes failed (/dev/shm has 20 MB free")
     assert r.trajectories["present"].any()
     assert analysis_pool._kept_blocks == []
+
+
+def test_a_worker_that_cannot_open_its_frames_falls_back_to_threads(ridge_session, monkeypatch):
+    """An OS error in a worker (its frame block gone) is the pool's failure, not the analysis': threads take over."""
+    real = analysis_pool._take_block
+
+    def gone(nbytes):
+        block = real(nbytes)
+        block.unlink()  # the worker will not find it by name
+        return block
+
+    monkeypatch.setattr(analysis_pool, "_take_block", gone)
+    s = ridge_session
+    r = analyze_frames(s.frames, calibration=s.calibration, params=_params(2, True), surface="ridge")
+    assert r.params["parallel"].startswith("threads (2): worker processes failed (a worker process could not track")
+    assert r.trajectories["present"].any()
+    analysis_pool.shutdown()
