@@ -380,3 +380,16 @@ def test_settle_merges_the_two_valleys_left_at_a_node():
     assert np.array_equal(g.edge_path[-1], expected) and g.edge_length[-1] == length
     assert g.node_edges[a][-1] == n_edges and g.node_edges[b][-1] == n_edges
     _assert_consistent(g)
+
+
+def test_an_edit_that_never_fits_raises_instead_of_looping():
+    from processing.minutiae import GraphCapacityError
+
+    rooms = []
+
+    def never(arrays):
+        raise GraphCapacityError("test: never enough")
+
+    with pytest.raises(GraphCapacityError):
+        edit_with_room(lambda room: rooms.append(room) or room, never)
+    assert rooms == [4**k for k in range(7)]
