@@ -254,7 +254,8 @@ def play_movie(
     path : path-like, optional
         Session file recording target, command, measured positions and force (streams ``display_target``,
         ``display_command``, ``display_measured``, ``force``), written after the movie so the deadline path
-        never waits on the disk.
+        never waits on the disk. A movie interrupted by an exception (Ctrl-C, a failing force sensor) still writes
+        what it played, without measured positions, in a session marked failed with the exception.
     settle_frames : int
         Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
     clock : callable
@@ -278,10 +279,13 @@ def play_movie(
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
     forces = np.full((n, 6), np.nan)
     host_t = np.full(n, np.nan)
+    intended = np.full((n, *SHAPE), np.nan)  # the host's command of each frame (kept for an interrupted movie)
     seen = [display.acks_received]
+    done = [0]  # frames whose callback completed (they were sent unless the movie was interrupted just then)
 
     def callback(k: int, command: np.ndarray, latest) -> np.ndarray | None:
         host_t[k] = time.time()
+        intended[k] = command
         if force is not None:
             wrench = force.latest()
             if wrench is not None:
@@ -290,6 +294,7 @@ def play_movie(
                 if fz > force_ceiling_n:
                     raise SafetyStop(f"normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N")
         if corrector is None:
+            done[0] = k + 1
             return None
         new = display.acks_received - seen[0]
         if new:
@@ -297,7 +302,10 @@ def play_movie(
             for i in range(max(len(acks) - new, 0), len(acks)):  # bounded history: at most its length is new
                 corrector.observe_ack(acks[i])  # near the deque's end: O(1)
             seen[0] = display.acks_received
-        return corrector.command(command)
+        corrected = corrector.command(command)
+        intended[k] = corrected
+        done[0] = k + 1
+        return corrected
 
     t0 = time.perf_counter()
     # A wider spin window leaves the callback (about 0.2 ms) inside the period instead of making frames late.
@@ -305,12 +313,22 @@ def play_movie(
     # contactors after 50 ms without frames, whatever the host does.
     if buffered is None:
         buffered = not closed_loop and display.supports_timed_playback
-    if buffered:
-        report = stream_movie_buffered(display, movie, rate_hz=float(rate_hz), callback=callback, settle_frames=0,
-                                       clock=clock)
-    else:
-        report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
-                              settle_frames=0, max_outstanding=64, clock=clock)
+    try:
+        if buffered:
+            report = stream_movie_buffered(display, movie, rate_hz=float(rate_hz), callback=callback,
+                                           settle_frames=0, clock=clock)
+        else:
+            report = stream_movie(display, movie, rate_hz=float(rate_hz), callback=callback, spin_s=0.0008,
+                                  settle_frames=0, max_outstanding=64, clock=clock)
+    except BaseException as exc:
+        # Ctrl-C or a bug in the middle of the movie: the streamer has rested the contactors; disarm them too and
+        # keep what was played (targets, the host's commands, forces; no measurements) before re-raising.
+        _to_rest(display)
+        if path is not None:
+            _record_interrupted(path, exc, played=done[0], movie=movie, host_t=host_t, intended=intended,
+                                forces=forces, closed_loop=closed_loop, rate_hz=float(rate_hz), metadata=metadata,
+                                force_ceiling_n=force_ceiling_n, started=t0)
+        raise
     rested_now = _to_rest(display)  # always: disarm even when the link is gone (the watchdog rests it)
     rested = report.rested and rested_now
     duration = time.perf_counter() - t0
@@ -387,6 +405,26 @@ def _record_playback(path, result: PlaybackResult, t: np.ndarray, forces: np.nda
         writer.fail(result.stopped)
     else:
         writer.close()
+
+
+def _record_interrupted(path, exc: BaseException, *, played, movie, host_t, intended, forces, closed_loop, rate_hz,
+                        metadata, force_ceiling_n, started) -> None:
+    """The log of a movie cut short by an exception: the frames whose callback completed, with the host's commands
+    (before the driver's limits) and no measured positions; the session is marked failed with the exception."""
+    k = int(played)
+    reason = f"interrupted: {type(exc).__name__}: {exc}"
+    result = PlaybackResult(
+        closed_loop=closed_loop, frames_total=movie.shape[0], frames_played=k, target_um=movie[:k],
+        command_um=intended[:k], measured_um=np.full((k, *SHAPE), np.nan), force_n=np.abs(forces[:k, 2]),
+        stopped=reason, rested=False, duration_s=time.perf_counter() - started, path=Path(path),
+        extra={"rate_hz": rate_hz},
+    )
+    try:
+        _record_playback(path, result, host_t[:k], forces[:k],
+                         metadata={**dict(metadata or {}), "command_source": "host, before the driver's limits"},
+                         force_ceiling_n=force_ceiling_n)
+    except Exception:  # noqa: BLE001 - the original exception matters more; the file says what it holds
+        pass
 
 
 def _to_rest(display: TactileDisplay) -> bool:

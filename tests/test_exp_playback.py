@@ -202,3 +202,40 @@ def test_corrector_stays_converged_over_a_long_movie():
     np.testing.assert_allclose(corrector.offset_um, 0.3, atol=0.1)
     np.testing.assert_allclose(corrector.backlash_um, 0.5, atol=0.1)
     assert np.all(np.isfinite(corrector.P)) and np.allclose(corrector.P, corrector.P.transpose(0, 2, 1))
+
+
+class BrokenForce:
+    """A force sensor whose driver fails after some frames (a bug, a lost connection raising an unexpected error)."""
+
+    def __init__(self, after):
+        self.after, self.k = after, 0
+
+    def latest(self):
+        self.k += 1
+        if self.k > self.after:
+            raise RuntimeError("sensor driver crashed")
+        return np.array([0.0, 0.0, 1.5, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("closed_loop", [True, False])
+def test_an_interrupted_movie_keeps_what_it_played_with_the_contactors_at_rest(tmp_path, closed_loop):
+    display = PlantDisplay()
+    movie = _movie(300)
+    with pytest.raises(RuntimeError, match="sensor driver crashed"):
+        _play(display, movie, force=BrokenForce(after=120), closed_loop=closed_loop, buffered=False,
+              path=tmp_path / "pb.h5", metadata={"trial": 7})
+    assert display.rested and not display.armed
+    with open_session(tmp_path / "pb.h5") as s:
+        assert s.status == "failed" and "interrupted: RuntimeError: sensor driver crashed" in s.status_reason
+        assert s.metadata["trial"] == 7 and s.metadata["command_source"].startswith("host")
+        t, target = s.read_stream("display_target")
+        assert target.shape == (120, 10, 10) and np.all(np.diff(t) >= 0)
+        np.testing.assert_array_equal(target, movie[:120].astype(np.float32))
+        _, cmd = s.read_stream("display_command")
+        assert np.all(np.isfinite(cmd))
+        if not closed_loop:
+            np.testing.assert_array_equal(cmd, target)
+        _, measured = s.read_stream("display_measured")
+        assert np.all(np.isnan(measured))
+        _, force = s.read_stream("force")
+        assert force.shape == (120, 6) and np.all(force[:, 2] == 1.5)
