@@ -7,11 +7,13 @@ an entry that every later ``processing.pores`` import fails to load, with ``Modu
 'pores'`` from the first call. Parallel test workers writing the same entry can likewise leave one unreadable.
 
 Here an entry that cannot be loaded is treated as missing: the kernel is compiled again and the entry rewritten.
-A failure to write the cache (read-only checkout) only costs the compilation next time.
+A failure to write the cache (read-only checkout) only costs the compilation next time. An entry is also keyed on
+the compiled functions it calls from other files, which numba's own key leaves out (:func:`_callee_fingerprint`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 
 import numba
@@ -25,8 +27,51 @@ except ImportError:  # pragma: no cover - depends on the installed numba
 __all__ = ["njit"]
 
 
+def _callee_fingerprint(py_func) -> str:
+    """A hash of the compiled functions ``py_func`` calls (found among its globals, recursively): their bytecode,
+    constants and the plain values they read from their modules.
+
+    numba keys a cache entry on the function's own bytecode and invalidates it when the function's file changes,
+    but a compiled callee from another file is linked into the entry: after an edit of that file the caller would
+    keep running the old callee (``processing.stretch`` calls ``processing.delaunay``'s triangulation). With this
+    fingerprint in the key, such an entry is a miss and is compiled again.
+    """
+    parts: list[bytes] = []
+    seen: set[int] = set()
+
+    def visit(func) -> None:
+        code = getattr(func, "__code__", None)
+        if code is None or id(code) in seen:
+            return
+        seen.add(id(code))
+        glb = getattr(func, "__globals__", {})
+        for name in code.co_names:
+            value = glb.get(name)
+            target = getattr(value, "py_func", None)  # a numba dispatcher
+            if target is not None:
+                parts.append(f"{name}:{target.__module__}.{target.__qualname__}".encode())
+                parts.append(target.__code__.co_code)
+                parts.append(repr([c for c in target.__code__.co_consts if not hasattr(c, "co_code")]).encode())
+                visit(target)
+            elif func is not py_func and isinstance(value, (int, float, bool, str, bytes, tuple)):
+                # A callee's module constants are frozen into the caller's code (the caller's own are covered by
+                # its file's stamp).
+                parts.append(f"{name}={value!r}".encode())
+
+    visit(py_func)
+    return hashlib.sha256(b"\0".join(parts)).hexdigest()
+
+
 class _TolerantCache(FunctionCache or object):
-    """numba's per-function disk cache, with load and save failures turned into cache misses."""
+    """numba's per-function disk cache, with load and save failures turned into cache misses, and entries keyed
+    also on the compiled functions they call (:func:`_callee_fingerprint`)."""
+
+    def _index_key(self, sig, codegen):
+        key = super()._index_key(sig, codegen)
+        try:
+            return (*key[:-1], (*key[-1], _callee_fingerprint(self._py_func)))
+        except Exception:  # noqa: BLE001 - an unusual function: numba's own key (its file stamp still applies)
+            return key
 
     def load_overload(self, sig, target_context):
         try:

@@ -291,3 +291,43 @@ def test_compiled_density_filter_matches_a_kd_tree_reference():
     got = feature_density_mask(x, y, kind, radius_px=4.0, max_count=3)
     assert 0 < np.count_nonzero(~ref) < 300
     np.testing.assert_array_equal(got, ref)
+
+
+def test_disk_cache_of_a_caller_is_recompiled_when_its_callee_in_another_file_changes(tmp_path):
+    # numba links a compiled callee into its caller's cache entry but only checks the caller's own file: an edit of
+    # the callee's file (e.g. processing/delaunay.py under processing/stretch.py) would otherwise leave the old
+    # callee running until the caller's file changed.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    callee = "from processing.jit import njit\n\nSCALE = {scale}\n\n\n@njit(nogil=True)\ndef inner(x):\n    return {body}\n"
+    (pkg / "caller.py").write_text(
+        "from processing.jit import njit\nfrom pkg.callee import inner\n\n\n@njit(nogil=True)\n"
+        "def outer(x):\n    return inner(x) + 1\n"
+    )
+
+    def run():
+        out = subprocess.run(
+            [sys.executable, "-c", "from pkg.caller import outer; print(outer(10))"],
+            # No .pyc: Python would reuse a stale one for a file rewritten within the same second at the same size.
+            env={"PYTHONPATH": f"{tmp_path}:{root}", "PATH": "/usr/bin:/bin", "PYTHONDONTWRITEBYTECODE": "1"},
+            capture_output=True, text=True, timeout=120,
+        )
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip()
+
+    (pkg / "callee.py").write_text(callee.format(scale=2, body="2 * x"))
+    assert run() == "21"
+    assert run() == "21"  # from the cache
+    assert any((pkg / "__pycache__").glob("caller.outer-*.nbi"))
+    (pkg / "callee.py").write_text(callee.format(scale=2, body="3 * x"))  # the callee's code changes
+    assert run() == "31"
+    (pkg / "callee.py").write_text(callee.format(scale=5, body="SCALE * x"))
+    assert run() == "51"
+    (pkg / "callee.py").write_text(callee.format(scale=7, body="SCALE * x"))  # only a constant it reads changes
+    assert run() == "71"
