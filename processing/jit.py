@@ -51,15 +51,25 @@ def _callee_fingerprint(py_func) -> str:
             if target is not None:
                 parts.append(f"{name}:{target.__module__}.{target.__qualname__}".encode())
                 parts.append(target.__code__.co_code)
-                parts.append(repr([c for c in target.__code__.co_consts if not hasattr(c, "co_code")]).encode())
+                parts.append(_canonical([c for c in target.__code__.co_consts if not hasattr(c, "co_code")]).encode())
                 visit(target)
             elif func is not py_func and isinstance(value, (int, float, bool, str, bytes, tuple)):
                 # A callee's module constants are frozen into the caller's code (the caller's own are covered by
                 # its file's stamp).
-                parts.append(f"{name}={value!r}".encode())
+                parts.append(f"{name}={_canonical(value)}".encode())
 
     visit(py_func)
     return hashlib.sha256(b"\0".join(parts)).hexdigest()
+
+
+def _canonical(value) -> str:
+    """``repr`` that is the same in every process: set constants (``x in {"a", "b"}``) iterate in an order that
+    changes with the string hash seed."""
+    if isinstance(value, (set, frozenset)):
+        return "{" + ",".join(sorted(_canonical(v) for v in value)) + "}"
+    if isinstance(value, (list, tuple)):
+        return "(" + ",".join(_canonical(v) for v in value) + ")"
+    return repr(value)
 
 
 class _TolerantCache(FunctionCache or object):
