@@ -406,19 +406,17 @@ def track_in_processes(
             submit(j)
         for j in range(len(plan)):
             fut, shm = pending.pop(j)
+            returned = False
             try:
                 r: ChunkResult = fut.result()
+                returned = True
             except BrokenProcessPool as exc:
-                release(shm, keep=False)
                 shutdown(wait=False)
                 raise ProcessPoolFailed(f"a worker process died: {exc}") from exc
             except OSError as exc:  # e.g. the worker could not open the frame block: threads can still do it
-                release(shm, keep=False)
                 raise ProcessPoolFailed(f"a worker process could not track its chunk: {exc!r}") from exc
-            except BaseException:
-                release(shm, keep=False)
-                raise
-            release(shm, keep=True)
+            finally:
+                release(shm, keep=returned)
             if j + ahead < len(plan):
                 submit(j + ahead)
             for k, v in r.timing.items():

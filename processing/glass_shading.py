@@ -153,7 +153,7 @@ def _sequence_sums(frames, use: np.ndarray, shape: tuple[int, int]) -> tuple[np.
     total = np.zeros(shape, np.float64)
     total_sq = np.zeros(shape, np.float64)
     if isinstance(frames, np.ndarray) and frames.ndim == 3:
-        blocks = [(np.ascontiguousarray(frames) if not frames.flags.c_contiguous else frames, use)]
+        blocks = [(np.ascontiguousarray(frames), use)]
     else:
         blocks = (
             (np.stack([np.asarray(frames[k]) for k in use[i : i + 64].tolist()]), np.arange(min(64, use.size - i)))

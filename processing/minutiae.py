@@ -207,37 +207,31 @@ def _trace_graph(src, pore_x, pore_y, pore_size, room):  # pragma: no cover - co
         n_sk += f[i]
     offs = np.array([-w, -w + 1, 1, w + 1, w, w - 1, -1, -w - 1])
     pix = np.empty(n_sk, np.int64)
-    # Neighbour counts, kept in the skeleton bytes as 1 + count (the words already read are not read again).
-    n_node_px = 0
-    node_px_deg = 0
-    n_iso = 0
     k = 0
     for j in range(n8):
         wd = words[j]
         while wd != 0:
             low = wd & (~wd + np.uint64(1))
             wd ^= low
-            i = 8 * j + np.int64((low * np.uint64(0x0001020304050607)) >> np.uint64(56))
-            pix[k] = i
+            pix[k] = 8 * j + np.int64((low * np.uint64(0x0001020304050607)) >> np.uint64(56))
             k += 1
-            c = _neighbours(f, i, offs)
-            f[i] = 1 + c
-            if c == 1 or c >= 3:
-                n_node_px += 1
-                node_px_deg += c
-            elif c == 0:
-                n_iso += 1
     for i in range(n8 * 8, n):
         if f[i]:
             pix[k] = i
             k += 1
-            c = _neighbours(f, i, offs)
-            f[i] = 1 + c
-            if c == 1 or c >= 3:
-                n_node_px += 1
-                node_px_deg += c
-            elif c == 0:
-                n_iso += 1
+    # Neighbour counts, kept in the skeleton bytes as 1 + count (still non-zero for the pixels counted later).
+    n_node_px = 0
+    node_px_deg = 0
+    n_iso = 0
+    for k in range(n_sk):
+        i = pix[k]
+        c = _neighbours(f, i, offs)
+        f[i] = 1 + c
+        if c == 1 or c >= 3:
+            n_node_px += 1
+            node_px_deg += c
+        elif c == 0:
+            n_iso += 1
     node_px = np.empty(n_node_px, np.int64)
     r = 0
     for k in range(n_sk):
