@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 
 @dataclass(frozen=True)

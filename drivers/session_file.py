@@ -13,7 +13,7 @@ Writing
 Reading
 -------
 :func:`open_session` returns a :class:`Session`; anything that is not a readable skinstretch session raises
-:class:`processing.errors.SessionFileError` with a message naming the file and what is wrong.
+:class:`skinstretch.drivers.errors.SessionFileError` with a message naming the file and what is wrong.
 """
 
 from __future__ import annotations
@@ -29,9 +29,10 @@ from typing import Any, Iterator, Mapping
 import h5py
 import numpy as np
 
-from drivers.camera_modes import CameraMode
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError, SessionFileError
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 FORMAT_NAME = "skinstretch-session"
 FORMAT_VERSION = 1
@@ -52,7 +53,7 @@ class SessionTruth:
     feature_id : (F,) int64
         Stable id of every true feature (minutia or pore).
     feature_kind : (F,) int8
-        :class:`processing.feature_table.FeatureKind` value of each feature.
+        :class:`skinstretch.processing.feature_table.FeatureKind` value of each feature.
     feature_x, feature_y : (N, F) float64
         Sub-pixel position of every feature in every frame.
     feature_visible : (N, F) bool
@@ -453,8 +454,8 @@ def _calibration_from_attrs(path: Path, px_per_mm: float, mapping_json: str) -> 
     if not mapping_json:
         return Calibration(px_per_mm=px_per_mm)
     # Imported here: only sessions that carry a mapping need the calibration module (scipy, OpenCV).
-    from processing.errors import CalibrationError
-    from processing.geometric_calibration import mapping_from_dict
+    from skinstretch.processing.errors import CalibrationError
+    from skinstretch.processing.geometric_calibration import mapping_from_dict
 
     try:
         mapping = mapping_from_dict(json.loads(mapping_json))

@@ -1,6 +1,6 @@
 """What every streaming device shares: life cycle, one worker thread, a bounded queue, errors handed to the reader.
 
-:class:`drivers.camera.base.Camera` and :class:`drivers.forcesensor.base.ForceSensor` both own a device that
+:class:`skinstretch.drivers.camera.base.Camera` and :class:`skinstretch.drivers.forcesensor.base.ForceSensor` both own a device that
 produces items (frames, force samples) on its own clock. A dedicated worker thread moves them into a bounded
 queue so that a slow reader never stalls the device; when the worker fails, its exception is queued *after* the
 items acquired before it, so the reader gets every item and then the error. Subclasses say what their items are
@@ -15,7 +15,9 @@ import threading
 from abc import ABC, abstractmethod
 from typing import Any, Callable
 
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
+
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["StreamingDevice"]
 

@@ -2,7 +2,7 @@
 
 ``analyze_session(session_path, outdir, method=..., params=..., progress=...)`` reads the session, measures
 motion between consecutive frames (tracked features refined to sub-pixel, or the dense flow grid), then derives
-everything else from those per-pair :class:`~processing.tracking.MotionSample` s: fingertip motion and the
+everything else from those per-pair :class:`~skinstretch.processing.tracking.MotionSample` s: fingertip motion and the
 visibility window (seed 5.2), triangulation strain at each span (5.3.1), the stretch profile along the sliding
 direction (5.3.2, Figure 94) and the tactile movie (5.4). It writes ``OUTDIR/results.h5`` and
 ``OUTDIR/summary.json`` (see ``docs/results-format.md``) and returns the results path.
@@ -22,8 +22,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.session_file import open_session
-from experiments.results_file import (
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.results_file import (
     EDGE_DTYPE,
     MOTION_DTYPE,
     PAIR_DTYPE,
@@ -32,14 +32,14 @@ from experiments.results_file import (
     SpanStrain,
     write_results,
 )
-from processing.calibration import Calibration
-from processing.display_mapping import DisplayMappingParams, tactile_movie
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.fingertip import fingertip_motion, visibility_window
-from processing.flow import DenseFlow, FlowField, FlowParams
-from processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strains
-from processing.subpixel_displacement import SubpixelParams
-from processing.tracking import MotionSample, TrackingParams, concatenate_features
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.display_mapping import DisplayMappingParams, tactile_movie
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.fingertip import fingertip_motion, visibility_window
+from skinstretch.processing.flow import DenseFlow, FlowField, FlowParams
+from skinstretch.processing.stretch import horizontal_stretch_profile, mean_profile, triangulation_strains
+from skinstretch.processing.displacement_refinement import SubpixelParams
+from skinstretch.processing.tracking import MotionSample, TrackingParams, concatenate_features
 
 METHODS = ("features", "flow")
 
@@ -53,11 +53,11 @@ class AnalysisParams:
     profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the
     feature triangulation's ~48 px, seed 6.3.3). ``workers`` is the parallelism of the measurement: with
     ``processes`` (default) the features are extracted and tracked in chunks of frames on that many worker
-    processes (:mod:`experiments.analysis_pool`; the same result as one sequential pass, started once per process,
+    processes (:mod:`skinstretch.experiments.analysis_pool`; the same result as one sequential pass, started once per process,
     about a second); otherwise ``workers`` threads extract features ahead of the tracker.
 
     ``glass_shading`` removes brightness patterns that stay on the prism while the skin slides
-    (:mod:`processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias every motion
+    (:mod:`skinstretch.processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias every motion
     estimate towards zero there): True / False, or None (default) for "when the session's surface is not flat"
     (its metadata ``surface``). ``glass_shading_smooth_mm`` smooths its per-pixel maps across the shape and
     ``glass_shading_along_shape_mm`` along it (the axis of least shading variation); a sequence whose skin moved
@@ -76,7 +76,7 @@ class AnalysisParams:
     flow_stride: int = 4
     workers: int = 2
     processes: bool = True
-    extraction: Any = None  # processing.extraction.ExtractionParams (None = its defaults)
+    extraction: Any = None  # skinstretch.processing.extraction.ExtractionParams (None = its defaults)
     glass_shading: bool | None = None
     glass_shading_smooth_mm: float = 0.025
     glass_shading_along_shape_mm: float = 0.13
@@ -141,7 +141,7 @@ def _versions() -> dict[str, str]:
 def _mapping_of(session) -> Any:
     if not session.mapping_json:
         return None
-    from processing.geometric_calibration import mapping_from_dict
+    from skinstretch.processing.geometric_calibration import mapping_from_dict
 
     return mapping_from_dict(json.loads(session.mapping_json))
 
@@ -164,10 +164,10 @@ def measure_features(
     """Extract, match, refine and chain features (seed 4, 5.1) and return their per-pair motion.
 
     With ``params.processes`` and ``workers >= 2`` the frames are tracked in chunks on worker processes
-    (:mod:`experiments.analysis_pool`, the same result as one sequential pass); otherwise, or if the processes
+    (:mod:`skinstretch.experiments.analysis_pool`, the same result as one sequential pass); otherwise, or if the processes
     cannot run, on threads of this process.
     """
-    from experiments import analysis_pool  # noqa: PLC0415
+    from skinstretch.experiments import analysis_pool  # noqa: PLC0415
 
     n = len(frames)
     workers = max(1, int(params.workers))
@@ -234,7 +234,7 @@ def _track_on_threads(frames, *, calibration: Calibration, params: AnalysisParam
     """Extraction of the next frames, and the tracker's per-frame image work (registration and coarse-motion
     images), on ``workers`` threads (OpenCV releases the GIL) while this thread matches and refines: frames are
     consumed strictly in order, at most 2 * workers ahead."""
-    from experiments.analysis_pool import make_extractor, make_tracker  # noqa: PLC0415
+    from skinstretch.experiments.analysis_pool import make_extractor, make_tracker  # noqa: PLC0415
 
     n = len(frames)
     extractor = make_extractor(calibration, params)
@@ -353,7 +353,7 @@ def _progress(it, enabled: bool, desc: str):
 
 def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px: float) -> SpanStrain:
     """Triangulation strain of every pair of one span (one compiled call for all of them, see
-    :func:`~processing.stretch.triangulation_strains`); pairs that cannot give one carry the reason."""
+    :func:`~skinstretch.processing.stretch.triangulation_strains`); pairs that cannot give one carry the reason."""
     pairs = np.zeros(len(samples), dtype=PAIR_DTYPE)
     measured = [i for i, s in enumerate(samples) if not isinstance(s, str)]
     for i, s in enumerate(samples):
@@ -462,8 +462,8 @@ def without_glass_shading(frames, *, calibration: Calibration, params: AnalysisP
     All-black and saturated frames are left out of the statistics and passed on untouched (extraction flags them).
     A sequence in which the skin barely moved is passed on untouched, and the status says why.
     """
-    from processing.extraction import ExtractionParams, frame_flags  # noqa: PLC0415
-    from processing.glass_shading import glass_shading  # noqa: PLC0415
+    from skinstretch.processing.extraction import ExtractionParams, frame_flags  # noqa: PLC0415
+    from skinstretch.processing.glass_shading import glass_shading  # noqa: PLC0415
 
     use = params.glass_shading if params.glass_shading is not None else surface not in (None, "", "flat")
     if not use:
@@ -498,7 +498,7 @@ class _ShadedFrames(abc.Sequence):
         return len(self._frames)
 
     def __getitem__(self, k):
-        from processing.glass_shading import remove_glass_shading  # noqa: PLC0415
+        from skinstretch.processing.glass_shading import remove_glass_shading  # noqa: PLC0415
 
         if isinstance(k, slice):
             return [self[i] for i in range(*k.indices(len(self)))]

@@ -8,7 +8,7 @@ the chunks are joined in order.
 
 A chunk after the first starts ``overlap`` frames early. Its tracker has then seen the same recent frames as the
 previous chunk's tracker at the join, and when the two agree on them bit for bit
-(:meth:`processing.tracking.FeatureTracker.continue_with`), the later frames are exactly those one sequential
+(:meth:`skinstretch.processing.tracking.FeatureTracker.continue_with`), the later frames are exactly those one sequential
 tracker would have produced. When they do not agree (rare: a relinked feature whose history starts before the
 overlap), this process tracks that chunk's frames itself, from the features the worker extracted: the result is
 the sequential one either way, which the tests check.
@@ -37,8 +37,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["chunk_plan", "make_tracker", "track_in_processes", "warm_up", "shutdown", "ProcessPoolFailed"]
 
@@ -61,10 +61,10 @@ class ProcessPoolFailed(RuntimeError):
 
 
 def make_tracker(calibration: Calibration, params) -> Any:
-    """The analysis' :class:`~processing.tracking.FeatureTracker` for ``params`` (an ``AnalysisParams``)."""
-    from processing.robust_tracking import GlobalMotionEstimator  # noqa: PLC0415
-    from processing.subpixel_displacement import SubpixelRefiner  # noqa: PLC0415
-    from processing.tracking import FeatureTracker  # noqa: PLC0415
+    """The analysis' :class:`~skinstretch.processing.tracking.FeatureTracker` for ``params`` (an ``AnalysisParams``)."""
+    from skinstretch.processing.global_motion import GlobalMotionEstimator  # noqa: PLC0415
+    from skinstretch.processing.displacement_refinement import SubpixelRefiner  # noqa: PLC0415
+    from skinstretch.processing.tracking import FeatureTracker  # noqa: PLC0415
 
     return FeatureTracker(
         calibration=calibration,
@@ -75,7 +75,7 @@ def make_tracker(calibration: Calibration, params) -> Any:
 
 
 def make_extractor(calibration: Calibration, params) -> Any:
-    from processing.extraction import ExtractionParams, FeatureExtractor  # noqa: PLC0415
+    from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor  # noqa: PLC0415
 
     return FeatureExtractor(calibration=calibration, params=params.extraction or ExtractionParams())
 
@@ -271,9 +271,9 @@ def _worker_init() -> None:
 
 def _exercise_pipeline() -> None:
     """Extract and track two small synthetic prints (ridges with endings, forks and pores) once."""
-    from processing.calibration import Calibration  # noqa: PLC0415
+    from skinstretch.processing.pixel_scale import Calibration  # noqa: PLC0415
 
-    from experiments.analysis import AnalysisParams  # noqa: PLC0415
+    from skinstretch.experiments.analysis import AnalysisParams  # noqa: PLC0415
 
     cal = Calibration(px_per_mm=62.0)
     params = AnalysisParams()
@@ -301,7 +301,7 @@ class ChunkResult:
 
 
 def _track_chunk(shm_name: str, shape: tuple[int, ...], first: int, calibration, params, shading, good) -> ChunkResult:
-    from processing.glass_shading import remove_glass_shading  # noqa: PLC0415
+    from skinstretch.processing.glass_shading import remove_glass_shading  # noqa: PLC0415
 
     shm = shared_memory.SharedMemory(name=shm_name)
     try:

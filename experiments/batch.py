@@ -2,7 +2,7 @@
 
 The seed analysed one sequence at a time and suggested that "averaging measurements over a large number of image
 sequences could also reduce the noise and expose the effect of shapes" (seed 7.2.4). :func:`analyze_many` runs
-:func:`experiments.runner.analyse_trial` on every session as a Dask task — on a local cluster by default, or on
+:func:`skinstretch.experiments.runner.analyse_trial` on every session as a Dask task — on a local cluster by default, or on
 an existing one (``scheduler="tcp://host:8786"``) — and a session that fails is reported in the table without
 stopping the others. The summary table has one row per session (subject, surface, status, timing, strain
 percentiles) and Figure 94 is averaged over the sessions of each surface.
@@ -24,8 +24,9 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from drivers.session_file import open_session
-from processing.errors import InvalidInputError, SessionFileError, SkinstretchError
+from skinstretch.drivers.session_file import open_session
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InvalidInputError, SkinstretchError
 
 __all__ = ["BatchRow", "BatchResult", "analyze_many", "find_sessions", "average_profiles"]
 
@@ -100,7 +101,7 @@ def _describe(path: Path) -> dict[str, str]:
 
 def _task(session: str, outdir: str, method: str, options: dict[str, Any]) -> dict[str, Any]:
     """One Dask task: analyse, and turn any failure into a value (the batch goes on)."""
-    from experiments.runner import analyse_trial  # noqa: PLC0415 - imported in the worker
+    from skinstretch.experiments.runner import analyse_trial  # noqa: PLC0415 - imported in the worker
 
     try:
         out = analyse_trial(session, outdir, method, options)
@@ -180,7 +181,7 @@ def analyze_many(
     method : {"features", "flow"}
         Analysis method.
     options : dict, optional
-        :class:`experiments.analysis.AnalysisParams` fields.
+        :class:`skinstretch.experiments.analysis.AnalysisParams` fields.
     """
     if method not in ("features", "flow"):
         raise InvalidInputError(f"method must be 'features' or 'flow', got {method!r}")
@@ -236,7 +237,7 @@ def analyze_many(
     averaged = {surface: average_profiles(profs) for surface, profs in sorted(by_surface.items()) if profs}
     figure = None
     if averaged:
-        from experiments.figures.chapter6 import stretch_profile_figure  # noqa: PLC0415
+        from skinstretch.experiments.figures.chapter6 import stretch_profile_figure  # noqa: PLC0415
 
         fig = stretch_profile_figure(
             {f"{s} (n={len(by_surface[s])})": (x, m) for s, (x, m, sd, n) in averaged.items()},
@@ -254,7 +255,7 @@ def analyze_many(
 
 
 def _fill(row: BatchRow, by_surface: dict[str, list]) -> None:
-    from experiments.results_file import read_results  # noqa: PLC0415
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
     r = read_results(row.results)
     row.n_frames = r.n_frames

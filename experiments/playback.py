@@ -25,11 +25,12 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from drivers.camera_modes import CAMERA_MODES
-from drivers.display.base import TactileDisplay
-from processing.calibration import Calibration
-from drivers.session_file import SessionWriter, open_session
-from processing.errors import DeviceError, InvalidInputError, SafetyStop, SessionFileError
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.display.base import TactileDisplay
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.session_file import SessionWriter, open_session
+from skinstretch.drivers.errors import DeviceError, SafetyStop, SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
     "ContactorCorrector",
@@ -233,8 +234,8 @@ def play_movie(
 ) -> PlaybackResult:
     """Play a (T, 10, 10) movie in micrometres at ``rate_hz``; return what was commanded and measured.
 
-    Frames are streamed by :func:`drivers.display.playback.stream_movie_buffered` (timed frames played by the
-    display's FIFO) or :func:`drivers.display.playback.stream_movie` (deadline-paced, pipelined acks); the
+    Frames are streamed by :func:`skinstretch.drivers.display.movie_stream.stream_movie_buffered` (timed frames played by the
+    display's FIFO) or :func:`skinstretch.drivers.display.movie_stream.stream_movie` (deadline-paced, pipelined acks); the
     per-frame callback feeds every new ack to the corrector, checks the force and returns the corrected command.
 
     Parameters
@@ -264,7 +265,7 @@ def play_movie(
         Timed, buffered playback (True) or immediate frames (False); None: buffered for open loop on a display
         that supports it, immediate otherwise.
     """
-    from drivers.display.playback import stream_movie, stream_movie_buffered  # noqa: PLC0415
+    from skinstretch.drivers.display.movie_stream import stream_movie, stream_movie_buffered  # noqa: PLC0415
 
     movie = np.asarray(movie_um, dtype=float)
     if movie.ndim != 3 or movie.shape[1:] != SHAPE or movie.shape[0] < 1:
@@ -451,7 +452,7 @@ def load_movie(source: str | os.PathLike) -> tuple[np.ndarray, float | None]:
     if not p.exists():
         raise SessionFileError(f"{p}: no such movie file or results directory")
     if p.is_dir() or (p.suffix == ".h5" and _is_results(p)):
-        from experiments.results_file import read_results  # noqa: PLC0415
+        from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
         results = read_results(p)
         if results.tactile_positions_um is None:

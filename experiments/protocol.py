@@ -6,7 +6,7 @@ camera mode (seed 3.3), and the sequence is analysed afterwards; optionally a ta
 display (seed 5.4, 6.4).
 
 A *rig* says which device is real and which is simulated; everything is simulated unless the rig says otherwise.
-:mod:`experiments.rig` is the only module that turns a rig into device objects.
+:mod:`skinstretch.experiments.rig` is the only module that turns a rig into device objects.
 
 Both files are loaded with their line numbers kept (``yaml.compose``), so every error names the file, the line and
 the field, e.g. ``protocol.yaml:12: trials[1].duration_s: Input should be greater than 0``.
@@ -21,8 +21,8 @@ from typing import Any, Literal, Optional, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from drivers.camera_modes import CAMERA_MODES
-from processing.errors import ConfigError
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.processing.errors import ConfigError
 
 __all__ = [
     "Subject",
@@ -375,7 +375,7 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 
 
 def bundled_protocol(name: str) -> Path:
-    """Path of a protocol shipped in :mod:`experiments.protocols` (e.g. ``demo``)."""
+    """Path of a protocol shipped in :mod:`skinstretch.experiments.protocols` (e.g. ``demo``)."""
     p = Path(__file__).with_name("protocols") / f"{name}.yaml"
     if not p.exists():
         raise ConfigError(f"no bundled protocol {name!r} (looked for {p})")

@@ -2,7 +2,7 @@
 
 Acquisition threads (camera loop, force sensor, display feedback) never touch the file: they put frames and
 samples on a bounded queue, and one writer thread per session writes them through
-:class:`drivers.session_file.SessionWriter`, whose datasets are created up front and which runs in HDF5 SWMR mode.
+:class:`skinstretch.drivers.session_file.SessionWriter`, whose datasets are created up front and which runs in HDF5 SWMR mode.
 The file is flushed at least every ``flush_interval_s`` (0.025 s) — after writes and also when the queue is idle —
 so a SIGKILL loses at most the last ~0.1 s and leaves a file that opens and reads as incomplete (shared FACTS:
 recording crash test).
@@ -26,10 +26,10 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from drivers.camera_modes import CameraMode
-from drivers.session_file import STATUS_COMPLETE, STATUS_FAILED, SessionWriter
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.session_file import STATUS_COMPLETE, STATUS_FAILED, SessionWriter
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["Recorder", "RecorderStats", "describe_os_error"]
 

@@ -1,7 +1,7 @@
 """A self-contained HTML report of a recorded (or simulated) session: figures as base64 PNG, numbers, parameters,
 versions, and — for simulated sessions — the measurements against the simulator's ground truth.
 
-:func:`build_report` takes a session directory written by :mod:`experiments.runner` (trials with their
+:func:`build_report` takes a session directory written by :mod:`skinstretch.experiments.runner` (trials with their
 ``session.h5`` and ``analysis/results.h5``, the event log, ``playback/``) and writes one HTML file with no
 external resource. A part that cannot be drawn says why in the report instead of vanishing (STYLE: failures are
 values).
@@ -22,9 +22,9 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from drivers.session_file import open_session
-from processing.errors import SkinstretchError
-from experiments.figures import chapter6 as fig6
+from skinstretch.drivers.session_file import open_session
+from skinstretch.processing.errors import SkinstretchError
+from skinstretch.experiments.figures import chapter6 as fig6
 
 __all__ = ["TrialEntry", "build_report", "collect_trials", "trial_figures"]
 
@@ -41,7 +41,7 @@ class TrialEntry:
 
 def collect_trials(session_dir: str | Path) -> list[TrialEntry]:
     """Every trial of a runner's session directory, in order, with the stop summary of the event log."""
-    from experiments.runner import ANALYSIS_DIR, EVENT_LOG, SESSION_FILE, finished_trials, read_events  # noqa: PLC0415
+    from skinstretch.experiments.runner import ANALYSIS_DIR, EVENT_LOG, SESSION_FILE, finished_trials, read_events  # noqa: PLC0415
 
     sdir = Path(session_dir)
     stops = finished_trials(read_events(sdir / EVENT_LOG))
@@ -174,8 +174,8 @@ def _chained_motion(r, frame_a: int, frame_b: int) -> dict[int, np.ndarray]:
 
 def _patch_change(r, frame_a: int, frame_b: int, *, spacing_mm: float = 1.0, radius_mm: float = 1.0):
     """Skin-patch area change (seed 5.3.2, Figure 61) on a 1 mm grid from the chained feature motion."""
-    from processing.stretch import local_movement, patch_area_change  # noqa: PLC0415
-    from processing.tracking import MotionSample  # noqa: PLC0415
+    from skinstretch.processing.stretch import local_movement, patch_area_change  # noqa: PLC0415
+    from skinstretch.processing.tracking import MotionSample  # noqa: PLC0415
 
     mot = _chained_motion(r, frame_a, frame_b)
     if len(mot) < 4:
@@ -243,7 +243,7 @@ def _edge_series(r, span: int, *, limit: float) -> str:
 
 def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, dict[str, Any]]:
     """HTML of one trial and the numbers other sections reuse (profile, evaluation, movie)."""
-    from experiments.results_file import read_results  # noqa: PLC0415
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
     parts = [f"<h2>Trial {_esc(entry.name)}</h2>"]
     info: dict[str, Any] = {"name": entry.name}
@@ -304,7 +304,7 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
 
 
 def _truth_section(r, session, info: dict[str, Any]) -> str:
-    from experiments.evaluation.tracking import TruthField, evaluate_tracking, profile_correlation  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_tracking, profile_correlation  # noqa: PLC0415
 
     truth = session.truth
     ev = evaluate_tracking(r, truth)
@@ -371,7 +371,7 @@ def build_report(
 ) -> Path:
     """Write the HTML report of a session directory (or of explicit ``trials``) and return its path.
 
-    ``playbacks``: :class:`experiments.playback.PlaybackResult` s to show (e.g. open and closed loop);
+    ``playbacks``: :class:`skinstretch.experiments.playback.PlaybackResult` s to show (e.g. open and closed loop);
     ``extra_figures``: (figure, caption) pairs added at the end (e.g. the truth overlay).
     """
     t0 = time.perf_counter()

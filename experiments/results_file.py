@@ -17,7 +17,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from processing.errors import SessionFileError
+from skinstretch.drivers.errors import SessionFileError
 
 FORMAT_NAME = "skinstretch-results"
 FORMAT_VERSION = 1

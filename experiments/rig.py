@@ -1,15 +1,15 @@
 """Build the devices of a rig: the ONLY place in skinstretch that chooses a real or a simulated device.
 
-A :class:`experiments.protocol.Rig` names, for the camera, the force sensor and the display, either ``sim`` (the
+A :class:`skinstretch.experiments.protocol.Rig` names, for the camera, the force sensor and the display, either ``sim`` (the
 default) or the real driver. :class:`RigDevices` turns it into objects the runner and playback use through small,
 uniform adapters:
 
-* ``camera_for(trial=, protocol=, n_frames=)`` -> a :class:`drivers.camera.base.Camera`-like object whose
+* ``camera_for(trial=, protocol=, n_frames=)`` -> a :class:`skinstretch.drivers.camera.base.Camera`-like object whose
   ``start()`` opens it in the protocol's mode and ``stop()`` releases it. A simulated camera renders the trial's
   surface (``Surface.scene_name``: ``flatL``, ``ridgeL``, ``valleyL``...) with the scene simulator.
 * ``force`` -> a :class:`ForceSource` (``begin``/``end``/``read_block``/``latest``), or None.
 * ``display`` -> a :class:`DisplayAdapter` (``rest``, ``measured_positions_um``) and ``display_device()`` the
-  :class:`drivers.display.base.TactileDisplay` itself, for playback.
+  :class:`skinstretch.drivers.display.base.TactileDisplay` itself, for playback.
 
 Device modules are imported when a device is built, so a rig that does not use Aravis never imports ``gi``.
 """
@@ -22,16 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from drivers.camera_modes import CAMERA_MODES
-from processing.errors import DeviceError, InvalidInputError
-from experiments.protocol import Rig
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.experiments.protocol import Rig
 
 __all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "sim_display_url", "subset_truth"]
 
 
 def subset_truth(truth, rows: np.ndarray):
     """The truth of the recorded frames only: ``rows`` are source frame indices (from the frame ids)."""
-    from drivers.session_file import SessionTruth  # noqa: PLC0415
+    from skinstretch.drivers.session_file import SessionTruth  # noqa: PLC0415
 
     rows = np.asarray(rows, dtype=np.int64)
     per_frame = {"feature_x", "feature_y", "feature_visible", "displacement", "displacement_valid", "rigid", "strain"}
@@ -49,7 +50,7 @@ _sim_names = itertools.count()
 
 def render_scene(scene_yaml: str, seed: int):
     """Render every frame of a scene and its ground truth (runs in a worker process for a simulated camera)."""
-    from simulators.scene import SceneRenderer, parse_scene  # noqa: PLC0415
+    from skinstretch.simulators.scene import SceneRenderer, parse_scene  # noqa: PLC0415
 
     scene = parse_scene(scene_yaml, source="<trial scene>")
     renderer = SceneRenderer(scene, seed=seed)
@@ -143,8 +144,8 @@ class ForceSource:
 
 
 def _read_drain(sensor: Any, timeout_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """A :class:`drivers.forcesensor.base.ForceSensor`: wait for one sample, then take all that are queued."""
-    from processing.errors import DeviceTimeoutError  # noqa: PLC0415
+    """A :class:`skinstretch.drivers.forcesensor.base.ForceSensor`: wait for one sample, then take all that are queued."""
+    from skinstretch.drivers.errors import DeviceTimeoutError  # noqa: PLC0415
 
     try:
         first = sensor.read(timeout_s=timeout_s)
@@ -204,20 +205,20 @@ def sim_display_url(*, seed: int = 0, load_n_per_mm: float = 0.15, faults: str =
 
     ``load_n_per_mm`` is the finger's lateral stiffness on every contactor (the bender deflects less under it).
     """
-    from simulators import stresssim  # noqa: PLC0415 - simulators are imported only for a sim rig
+    from skinstretch.simulators import stress_links  # noqa: PLC0415 - simulators are imported only for a sim rig
 
     if not (np.isfinite(load_n_per_mm) and load_n_per_mm >= 0):
         raise InvalidInputError(f"load_n_per_mm must be >= 0, got {load_n_per_mm!r}")
-    stresssim.register_url_handler()
-    link = stresssim.make_link(seed=seed, faults=faults)
+    stress_links.register_url_handler()
+    link = stress_links.make_link(seed=seed, faults=faults)
     link.firmware.benders.set_load(load_n_per_mm)
-    return stresssim.attach(name or f"rig{next(_sim_names)}", link)
+    return stress_links.attach(name or f"rig{next(_sim_names)}", link)
 
 
 def make_display(url: str, **options: Any):
-    """A :class:`drivers.display.stress.StressDisplay` on a serial port or pyserial URL."""
-    from drivers.display.stress import StressDisplay  # noqa: PLC0415
-    from drivers.display.transports import SerialTransport  # noqa: PLC0415
+    """A :class:`skinstretch.drivers.display.stress.StressDisplay` on a serial port or pyserial URL."""
+    from skinstretch.drivers.display.stress import StressDisplay  # noqa: PLC0415
+    from skinstretch.drivers.display.transports import SerialTransport  # noqa: PLC0415
 
     baud = int(options.pop("baudrate", 2_000_000))
     return StressDisplay(SerialTransport(url, baudrate=baud), **options)
@@ -289,7 +290,7 @@ class RigDevices:
         if spec.kind == "sim":
             return self._sim_camera(trial=trial, protocol=protocol, n_frames=n_frames, mode=mode)
         if spec.kind == "aravis":
-            from drivers.camera.aravis import AravisCamera  # noqa: PLC0415
+            from skinstretch.drivers.camera.aravis import AravisCamera  # noqa: PLC0415
 
             if self._aravis is None:
                 self._aravis = AravisCamera.fake(**spec.options) if spec.device == "Fake_1" else AravisCamera(
@@ -297,11 +298,11 @@ class RigDevices:
                 )
             return _TrialCamera(self._aravis, mode, keep_open=True)
         if spec.kind == "replay":
-            from drivers.camera.replay import ReplayCamera  # noqa: PLC0415
+            from skinstretch.drivers.camera.replay import ReplayCamera  # noqa: PLC0415
 
             return _TrialCamera(ReplayCamera(spec.device, **spec.options), mode)
         if spec.kind == "v4l2":
-            from drivers.camera.v4l2 import V4L2Camera  # noqa: PLC0415
+            from skinstretch.drivers.camera.v4l2 import V4L2Camera  # noqa: PLC0415
 
             device: int | str = int(spec.device) if spec.device and spec.device.isdigit() else (spec.device or 0)
             return _TrialCamera(V4L2Camera(device, **spec.options), mode)
@@ -315,7 +316,7 @@ class RigDevices:
         (faster sliding, closer to the seed's 2.8-5.3 mm/s, seed 6.1).
         """
         try:
-            from simulators.scene import load_scene  # noqa: PLC0415
+            from skinstretch.simulators.scene import load_scene  # noqa: PLC0415
         except ImportError as exc:
             raise DeviceError(f"the simulated camera is not available ({exc})") from None
         mode = CAMERA_MODES[protocol.camera_mode]
@@ -358,7 +359,7 @@ class RigDevices:
 
     def _sim_camera(self, *, trial, protocol, n_frames: int, mode):
         """A simulated camera streaming the trial's surface at the camera's real rate, with the ground truth."""
-        from simulators.camera import SimulatedCamera  # noqa: PLC0415
+        from skinstretch.simulators.simulated_camera import SimulatedCamera  # noqa: PLC0415
 
         spec = self.rig.camera
         future = self._renders.pop((trial.dirname, n_frames), None)
@@ -391,10 +392,10 @@ class RigDevices:
         spec = self.rig.force
         if spec.kind == "none":
             return None
-        from drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
+        from skinstretch.drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
 
         if spec.kind == "sim":
-            from simulators.netft import NetFTSimulator, normal_force_wrench  # noqa: PLC0415
+            from skinstretch.simulators.netft_box import NetFTSimulator, normal_force_wrench  # noqa: PLC0415
 
             opts = dict(spec.options)
             force_n = float(opts.pop("normal_force_n", 1.5))  # a fingertip pressing lightly (seed 6.3.3)

@@ -34,13 +34,14 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from drivers.camera_modes import CAMERA_MODES, CameraMode
-from drivers.session_file import attach_truth, open_session
-from processing.calibration import Calibration
-from processing.errors import ConfigError, DeviceError, InvalidInputError, SessionFileError, SkinstretchError
-from experiments.protocol import PlannedTrial, Protocol, Rig
-from experiments.calibration_step import store_calibration
-from experiments.recorder import Recorder, RecorderStats
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.session_file import attach_truth, open_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import DeviceError, SessionFileError
+from skinstretch.processing.errors import ConfigError, InvalidInputError, SkinstretchError
+from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
+from skinstretch.experiments.skin_mapping_step import store_calibration
+from skinstretch.experiments.recorder import Recorder, RecorderStats
 
 __all__ = [
     "EventLog",
@@ -143,9 +144,9 @@ def session_dir(protocol: Protocol, datadir: str | os.PathLike) -> Path:
 def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[str, Any]) -> dict[str, Any]:
     """Analyse one recorded trial (runs in a worker process); returns a JSON-able summary.
 
-    Imports :mod:`experiments.analysis` here, in the worker, so the recording process never pays for it.
+    Imports :mod:`skinstretch.experiments.analysis` here, in the worker, so the recording process never pays for it.
     """
-    from experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - worker-side import
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - worker-side import
 
     t0 = time.perf_counter()
     params = AnalysisParams(**dict(options)) if options else None
@@ -367,7 +368,7 @@ def record_trial(
 
 def _attach_truth(path: Path, truth) -> None:
     """Store a simulated camera's ground truth, row k for recorded frame k (frame ids index the source)."""
-    from experiments.rig import subset_truth  # noqa: PLC0415
+    from skinstretch.experiments.rig import subset_truth  # noqa: PLC0415
 
     try:
         with open_session(path) as s:
@@ -389,7 +390,7 @@ def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progre
     spec = protocol.calibration
     if spec is None:
         return None
-    from experiments.calibration_step import calibrate_source, mapping_for_frames  # noqa: PLC0415
+    from skinstretch.experiments.skin_mapping_step import calibrate_source, mapping_for_frames  # noqa: PLC0415
 
     saved = sdir / CALIBRATION_FILE
     if saved.exists():
@@ -440,7 +441,7 @@ def run_protocol(
     play_movie : bool, optional
         Play ``protocol.movie`` at the end (if any).
     devices : optional
-        Pre-built devices (:class:`experiments.rig.RigDevices`); default: built from ``rig``.
+        Pre-built devices (:class:`skinstretch.experiments.rig.RigDevices`); default: built from ``rig``.
     writer_factory : callable, optional
         Passed to every :class:`Recorder` (fault injection in tests).
     analysis_workers : int, optional
@@ -462,7 +463,7 @@ def run_protocol(
         do_analysis = analyse
     own_devices = devices is None
     if devices is None:
-        from experiments.rig import RigDevices  # noqa: PLC0415 - rig imports the device modules
+        from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415 - rig imports the device modules
 
         devices = RigDevices(rig)
     pool = _spawn_pool(analysis_workers) if do_analysis else None
@@ -589,7 +590,7 @@ def run_protocol(
                     },
                 )
             if play_movie and protocol.movie is not None and devices.display is not None:
-                from experiments.playback import play_protocol_movie  # noqa: PLC0415
+                from skinstretch.experiments.playback import play_protocol_movie  # noqa: PLC0415
 
                 try:
                     run.playback = play_protocol_movie(protocol, sdir, devices=devices, progress=progress)

@@ -2,5 +2,5 @@
 
 Nothing in this package does file I/O, plotting, or imports ``drivers``, ``simulators`` or ``experiments``.
 Parameters are given in physical units (mm, degrees, frames) and converted to pixels once, through a
-:class:`processing.calibration.Calibration`.
+:class:`skinstretch.processing.pixel_scale.Calibration`.
 """

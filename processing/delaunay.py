@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.jit import njit
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.jit import njit
 
 __all__ = ["delaunay_triangles", "triangulate_points"]
 

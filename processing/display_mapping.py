@@ -21,10 +21,10 @@ from typing import Sequence
 
 import numpy as np
 
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from processing.fingertip import FingertipMotion, VisibilityWindow
-from processing.tracking import MotionSample
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
+from skinstretch.processing.tracking import MotionSample
 
 
 class HorizontalMapping(Enum):
@@ -102,7 +102,7 @@ def tactile_movie(
     Examples
     --------
     >>> import numpy as np
-    >>> from processing.fingertip import fingertip_motion, visibility_window
+    >>> from skinstretch.processing.fingertip import fingertip_motion, visibility_window
     >>> cal = Calibration(px_per_mm=20.0)
     >>> g = np.stack(np.meshgrid(np.arange(20.0, 380, 5), np.arange(20.0, 380, 5)), -1).reshape(-1, 2)
     >>> d = np.zeros_like(g); d[:, 0] = 0.01 * (g[:, 0] - 200)  # 1 % horizontal stretch about x=200

@@ -1,7 +1,7 @@
 """Feature editing (seed 4.8): syntactic rules that repair the valley skeleton, then two feature filters.
 
-The skeleton rules work on the :class:`processing.minutiae.SkeletonGraph` and each returns an edited copy (they
-run compiled on the graph's arrays, :class:`processing.minutiae.GraphArrays`, where they are implemented next to the
+The skeleton rules work on the :class:`skinstretch.processing.minutiae.SkeletonGraph` and each returns an edited copy (they
+run compiled on the graph's arrays, :class:`skinstretch.processing.minutiae.GraphArrays`, where they are implemented next to the
 graph primitives; :func:`edit_graph` runs the chain of them on the arrays, as the extraction does):
 
 - :func:`remove_short_valleys` (4.8.1): a valley bounded by two endings and shorter than ~0.2 mm is a pore.
@@ -18,7 +18,7 @@ The filters work on feature columns (x, y, kind) and return a keep mask:
 - :func:`border_mask` / :func:`outside_border` (4.8.6): features under the dilated background + image-edge mask
   are deleted.
 
-All lengths here are pixels: :mod:`processing.extraction` converts the seed's millimetres once.
+All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ import operator
 import cv2
 import numpy as np
 
-from processing.errors import InvalidInputError
-from processing.jit import njit
-from processing.minutiae import (
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
+from skinstretch.processing.minutiae import (
     GraphArrays,
     SkeletonGraph,
     _edit_from_healing,
@@ -79,7 +79,7 @@ def line_pixels(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
     return _line(operator.index(x0), operator.index(y0), operator.index(x1), operator.index(y1))
 
 
-# The rules run compiled on the graph's arrays (processing.minutiae, next to the graph primitives they are built
+# The rules run compiled on the graph's arrays (skinstretch.processing.minutiae, next to the graph primitives they are built
 # from), all through the two calls of _run_rules; the functions here check their arguments and convert the graph.
 
 
@@ -200,8 +200,8 @@ def edit_graph(
     The same result as the public functions in turn, in two compiled calls.
 
     Returns (5, 3) int64 counts of valley endings, valley bifurcations and pores, initially and after each rule (0
-    for rules that did not run). Raises :class:`processing.minutiae.GraphCapacityError` when the arrays run out of
-    room, leaving them half-edited (see :func:`processing.minutiae.edit_with_room`).
+    for rules that did not run). Raises :class:`skinstretch.processing.minutiae.GraphCapacityError` when the arrays run out of
+    room, leaving them half-edited (see :func:`skinstretch.processing.minutiae.edit_with_room`).
     """
     rules = {}
     if short_valley_px is not None:

@@ -22,16 +22,16 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
-from processing.calibration import Calibration
-from processing.editing import border_mask, edit_graph, feature_density_mask, outside_border
-from processing.errors import InvalidInputError
-from processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
-from processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
-from processing.minutiae import GraphArrays, edit_with_room, graph_features, trace_arrays
-from processing.pores import detect_blob_pores
-from processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
-from processing.subpixel import locate_minutiae_tips, refine_bifurcations, refine_pores
-from processing.thinning import thin
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.editing import border_mask, edit_graph, feature_density_mask, outside_border
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
+from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
+from skinstretch.processing.minutiae import GraphArrays, edit_with_room, graph_features, trace_arrays
+from skinstretch.processing.pores import detect_blob_pores
+from skinstretch.processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
+from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
+from skinstretch.processing.thinning import thin
 
 __all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
 
@@ -263,7 +263,7 @@ def _counts(kinds: np.ndarray) -> dict[str, int]:
 
 
 def _graph_counts(row: np.ndarray) -> dict[str, int]:
-    """Counts per kind from a row of :func:`processing.editing.edit_graph`'s counts (endings, bifurcations, pores)."""
+    """Counts per kind from a row of :func:`skinstretch.processing.editing.edit_graph`'s counts (endings, bifurcations, pores)."""
     ends, bifs, pores = row.tolist()
     return {
         KIND_NAMES[FeatureKind.VALLEY_ENDING]: ends,
@@ -305,7 +305,7 @@ class FeatureExtractor:
     Examples
     --------
     >>> import numpy as np
-    >>> from processing.calibration import Calibration
+    >>> from skinstretch.processing.pixel_scale import Calibration
     >>> ex = FeatureExtractor(calibration=Calibration(px_per_mm=62.0))
     >>> res = ex.extract(np.zeros((200, 200), np.uint8), frame_index=3)
     >>> res.ok, sorted(res.flags), len(res.features)
@@ -525,7 +525,7 @@ def extract_features(
     frame_index : int
         Written in the ``frame`` column and used for ids (``frame_index * 1_000_000 + i``).
     illumination : (H, W) float32, optional
-        Illumination map of the sequence (seed 3.5, :func:`processing.illumination.illumination_map`).
+        Illumination map of the sequence (seed 3.5, :func:`skinstretch.processing.illumination.illumination_map`).
 
     Returns
     -------

@@ -33,7 +33,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 
 class FeatureKind(IntEnum):

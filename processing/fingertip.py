@@ -12,8 +12,8 @@ from typing import Sequence
 
 import numpy as np
 
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.tracking import MotionSample
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.tracking import MotionSample
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
    the median are flagged invalid, never silently kept.
 
 Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
-:func:`processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
+:func:`skinstretch.processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ import numba
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from processing.robust_tracking import GlobalMotionEstimator
-from processing.subpixel_displacement import local_normalize
-from processing.tracking import MotionSample
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.displacement_refinement import local_normalize
+from skinstretch.processing.tracking import MotionSample
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ class FlowParams:
         Pyramid levels above full resolution on which the coupled registration also runs, coarse to fine, after
         the affine start (0: full resolution only, enough after the affine start on the seed's scenes).
     normalize_sigma_mm : float or None
-        Local contrast normalisation scale (see :func:`processing.subpixel_displacement.local_normalize`).
+        Local contrast normalisation scale (see :func:`skinstretch.processing.displacement_refinement.local_normalize`).
     """
 
     grid_step_mm: float = 0.2

@@ -19,7 +19,7 @@ length along the surface), not on a flat projection. This module does that in th
 
 The result is a :class:`GridMapping` (``image_to_surface``, ``surface_to_image``, ``px_per_mm``, ``to_dict`` /
 ``from_dict``) and a :class:`CalibrationReport` of residuals. A fit that cannot be trusted raises
-:class:`processing.errors.CalibrationError` saying why.
+:class:`skinstretch.processing.errors.CalibrationError` saying why.
 
 Coordinates
 -----------
@@ -43,7 +43,7 @@ from scipy.interpolate import BSpline
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from processing.errors import CalibrationError, InvalidInputError
+from skinstretch.processing.errors import CalibrationError, InvalidInputError
 
 MAPPING_KIND = "skinstretch-grid-mapping"
 MAPPING_VERSION = 1

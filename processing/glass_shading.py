@@ -15,7 +15,7 @@ the moving texture with the same contrast everywhere. This generalises the seed'
 
 If the skin did not move enough, the statistics would hold the texture itself and the mapping would erase it:
 :func:`glass_shading` checks that the temporal spread is comparable to the texture's spatial contrast and raises
-:class:`~processing.errors.InsufficientDataError` otherwise.
+:class:`~skinstretch.processing.errors.InsufficientDataError` otherwise.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.jit import njit
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.jit import njit
 
 __all__ = ["GlassShading", "glass_shading", "remove_glass_shading"]
 

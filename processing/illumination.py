@@ -13,8 +13,8 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from processing.calibration import Calibration
-from processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 
 __all__ = ["illumination_map", "compensate_illumination", "illumination_gain", "apply_illumination_gain"]
 
@@ -56,7 +56,7 @@ def illumination_map(
     Examples
     --------
     >>> import numpy as np
-    >>> from processing.calibration import Calibration
+    >>> from skinstretch.processing.pixel_scale import Calibration
     >>> frames = [np.full((40, 50), 100, np.uint8), np.full((40, 50), 200, np.uint8)]
     >>> float(illumination_map(frames, calibration=Calibration(px_per_mm=20.0)).mean())
     200.0

@@ -3,7 +3,7 @@
 numba's ``cache=True`` names its cache files after the source file (``pores._small_blobs-52.py311.nbi`` in
 ``processing/__pycache__``) but stores the importing module's name inside them. A kernel compiled once while its
 file was imported under another name (``pores`` from inside ``processing/``, a doctest run, a helper script) leaves
-an entry that every later ``processing.pores`` import fails to load, with ``ModuleNotFoundError: No module named
+an entry that every later ``skinstretch.processing.pores`` import fails to load, with ``ModuleNotFoundError: No module named
 'pores'`` from the first call. Parallel test workers writing the same entry can likewise leave one unreadable.
 
 Here an entry that cannot be loaded is treated as missing: the kernel is compiled again and the entry rewritten.
@@ -33,7 +33,7 @@ def _callee_fingerprint(py_func) -> str:
 
     numba keys a cache entry on the function's own bytecode and invalidates it when the function's file changes,
     but a compiled callee from another file is linked into the entry: after an edit of that file the caller would
-    keep running the old callee (``processing.stretch`` calls ``processing.delaunay``'s triangulation). With this
+    keep running the old callee (``skinstretch.processing.stretch`` calls ``skinstretch.processing.delaunay``'s triangulation). With this
     fingerprint in the key, such an entry is a miss and is compiled again.
     """
     parts: list[bytes] = []

@@ -13,9 +13,9 @@ a bifurcation bisects the smallest angle between its valleys.
 The graph is compiled (numba, without the GIL): :class:`GraphArrays` holds it in flat arrays, and the tracer, the
 orientations, the feature list and the skeleton rules of seed 4.8.1-4.8.4 all run on those arrays.
 :class:`SkeletonGraph` is the same graph in Python lists, for the public functions (:func:`trace_skeleton`,
-:func:`node_orientation`, the rules of :mod:`processing.editing`), which convert to and from the arrays.
+:func:`node_orientation`, the rules of :mod:`skinstretch.processing.editing`), which convert to and from the arrays.
 
-The rules are compiled here, not in :mod:`processing.editing` (which holds their public functions and their
+The rules are compiled here, not in :mod:`skinstretch.processing.editing` (which holds their public functions and their
 documentation), because they are built from this module's primitives: numba's disk cache checks only the source
 file of each compiled function, so compiled rules in another file would keep stale copies of the primitives after a
 change here.
@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind
-from processing.jit import njit
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
+from skinstretch.processing.jit import njit
 
 __all__ = [
     "SkeletonGraph",
@@ -699,7 +699,7 @@ def _features(G, n_px):  # pragma: no cover - compiled
 
 
 # --------------------------------------------------------------------------------------------- editing rules
-# Seed 4.8.1-4.8.4, documented with their public functions in processing.editing. The results depend on the order
+# Seed 4.8.1-4.8.4, documented with their public functions in skinstretch.processing.editing. The results depend on the order
 # of the loops, which is part of the rules: edges and nodes in id order, a pass visiting the edges alive when it
 # starts (an edge a merge creates waits for the next pass), sums in the order written.
 
@@ -803,7 +803,7 @@ def _heal_candidates(G, d_max, n_px):  # pragma: no cover - compiled
 
 @njit(nogil=True)
 def _line(x0, y0, x1, y1):  # pragma: no cover - compiled
-    """:func:`processing.editing.line_pixels`."""
+    """:func:`skinstretch.processing.editing.line_pixels`."""
     n = max(abs(x1 - x0), abs(y1 - y0))
     out = np.empty((n + 1, 2), np.int64)
     if n == 0:
@@ -1370,7 +1370,7 @@ def trace_skeleton(skeleton: np.ndarray) -> SkeletonGraph:
     Parameters
     ----------
     skeleton : (H, W) uint8
-        1 (non-zero) on the skeleton, 8-connected and near minimal (the output of :func:`processing.thinning.thin`).
+        1 (non-zero) on the skeleton, 8-connected and near minimal (the output of :func:`skinstretch.processing.thinning.thin`).
 
     Returns
     -------

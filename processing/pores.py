@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from processing.errors import InvalidInputError
-from processing.jit import njit
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
 
 __all__ = ["BlobPores", "detect_blob_pores"]
 
@@ -179,7 +179,7 @@ def detect_blob_pores(
         Foreground (valleys and pores) = non-zero.
     grey : (H, W) float32 or uint8
         Grey-level weights of eq. 4.3 (the seed uses the foreground grey image; the smoothed frame minus the
-        binarization threshold gives a less biased centre, see :mod:`processing.subpixel`).
+        binarization threshold gives a less biased centre, see :mod:`skinstretch.processing.feature_localization`).
     max_diameter_px : float
         A blob is a pore when its bounding box is narrower than this on both axes (seed: 0.25 mm).
     min_area_px : int

@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize"]
 

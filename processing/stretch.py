@@ -21,10 +21,10 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from processing.delaunay import _triangulate
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.jit import njit
-from processing.tracking import MotionSample
+from skinstretch.processing.delaunay import _triangulate
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.jit import njit
+from skinstretch.processing.tracking import MotionSample
 
 
 @dataclass(frozen=True)

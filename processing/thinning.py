@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from processing.errors import InvalidInputError
-from processing.jit import njit
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
 
 __all__ = ["thin", "zhang_suen_tables", "staircase_table", "neighbour_code"]
 

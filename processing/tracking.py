@@ -2,14 +2,14 @@
 
 Matching (seed 5.1.1): each feature of frame k-1 is looked for near its expected position in frame k. The
 expected displacement is the feature's previous displacement when it has one, otherwise the average of the
-predictions (or, with a :class:`processing.robust_tracking.GlobalMotionEstimator`, the measured global motion).
+predictions (or, with a :class:`skinstretch.processing.global_motion.GlobalMotionEstimator`, the measured global motion).
 Candidates are the features of the same kind inside a circular search window (0.3 mm); each candidate pair is
 rated by eq. 5.1, ``C = (180 - theta) / 180 + (d_max - d) / d_max`` (the orientation term is zero for pores and
 minutiae of unknown orientation), and pairs are finalised in decreasing confidence, each feature used once.
 
 Trajectories (seed 5.1.2): matches are chained into trajectories; trajectories shorter than a minimum number of
 frames (30) are rejected; positions are smoothed by a Gaussian kernel (eq. 5.2, 5.3). When a
-:class:`processing.subpixel_displacement.SubpixelRefiner` is given, each matched displacement is refined by local
+:class:`skinstretch.processing.displacement_refinement.SubpixelRefiner` is given, each matched displacement is refined by local
 image registration and a trajectory's positions are the running sum of its refined displacements, anchored to
 the mean of its extracted positions: relative motion at a few hundredths of a pixel, absolute position to the
 extraction's accuracy divided by the square root of the track length.
@@ -23,11 +23,11 @@ from functools import cached_property
 import numba
 import numpy as np
 
-from processing.calibration import Calibration
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.feature_table import FEATURE_DTYPE, validate_features
-from processing.robust_tracking import GlobalMotionEstimator, local_predictions
-from processing.subpixel_displacement import PreparedImage, SubpixelRefiner
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ class Matches:
 class MotionSample:
     """Displacements measured between two frames at points of the first: what stretch and mapping consume.
 
-    Produced by :meth:`Trajectories.motion` (tracked features) and by :mod:`processing.flow` (dense grid).
+    Produced by :meth:`Trajectories.motion` (tracked features) and by :mod:`skinstretch.processing.flow` (dense grid).
     """
 
     frame_a: int
@@ -130,7 +130,7 @@ def match_features(
 
     Examples
     --------
-    >>> from processing.feature_table import make_features
+    >>> from skinstretch.processing.feature_table import make_features
     >>> a = make_features([10.0, 50.0], [10.0, 10.0], [2, 2])
     >>> b = make_features([52.0, 12.0], [10.0, 11.0], [2, 2])
     >>> m = match_features(a, b, calibration=Calibration(px_per_mm=62.0))
@@ -363,7 +363,7 @@ class FeatureTracker:
 
     Examples
     --------
-    >>> from processing.feature_table import make_features
+    >>> from skinstretch.processing.feature_table import make_features
     >>> cal = Calibration(px_per_mm=62.0)
     >>> tracker = FeatureTracker(calibration=cal, params=TrackingParams(min_length_frames=3))
     >>> for k in range(4):
@@ -509,7 +509,7 @@ class FeatureTracker:
         tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
         ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
-        result of one sequential pass (:mod:`experiments.analysis_pool`).
+        result of one sequential pass (:mod:`skinstretch.experiments.analysis_pool`).
         """
         window = int(self.params.max_gap_frames) + 2
         if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:

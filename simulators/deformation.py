@@ -1,6 +1,6 @@
 """Motion and deformation of the fingertip skin: a forward Lagrangian field, its inverse and its gradient.
 
-Everything here is in millimetres on the unrolled contact surface (``u``, ``s``; see :mod:`simulators.optics`).
+Everything here is in millimetres on the unrolled contact surface (``u``, ``s``; see :mod:`skinstretch.simulators.ideal_optics`).
 A skin point is named by where it is in frame 0 (its *skin coordinate* ``X``); in frame k it is at
 ``x = X + d_k(X)``. Frame 0 is the reference: ``d_0 = 0`` exactly.
 
@@ -51,7 +51,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.special import erf as _erf
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def rotation_matrix(theta_deg: float) -> np.ndarray:

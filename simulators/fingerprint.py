@@ -1,7 +1,7 @@
 """A synthetic FTIR fingerprint with exact ground truth: phase-field ridges, spiral minutiae and pores.
 
 The print lives in *skin coordinates* (mm, the frame-0 surface position of each skin point, see
-:mod:`simulators.deformation`).
+:mod:`skinstretch.simulators.deformation`).
 
 Ridges (Larkin & Fletcher 2007)
 -------------------------------
@@ -43,8 +43,8 @@ from scipy import sparse
 from scipy.fft import dctn, idctn
 from scipy.ndimage import convolve, gaussian_filter, label
 
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
 
 _GRID_MM = 0.04
 _GRID_MARGIN_MM = 1.0

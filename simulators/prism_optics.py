@@ -9,13 +9,13 @@ plane's normal pointing out of the glass, into the finger. The surface is *paral
 height profile across the rulings keeps FTIR working): the point at ``v`` across the rulings sits at height
 ``h(v)`` along ``N`` (ridge: ``h > 0``, towards the finger; valley: ``h < 0``, into the plate).
 
-Surface coordinates (``simulators.optics``) are the *unrolled* ones of seed 3.4: ``u`` along ``U`` and ``s`` the arc
+Surface coordinates (``skinstretch.simulators.ideal_optics``) are the *unrolled* ones of seed 3.4: ``u`` along ``U`` and ``s`` the arc
 length of the profile curve ``(v, h(v))`` from ``v = 0`` (the centre of the field of view), both in mm.
 
 The camera looks through the prism's exit face at the contact plane at ``view_angle_deg`` (45 degrees) from its
 normal, tilted about ``U``: lengths along ``V`` are foreshortened by ``cos(45 deg)``, the sqrt(2) compression of
 seed 3.2. The compressed axis is the image ``y`` axis (rows): with square pixels this is what reproduces the seed's
-~10.3 x 10.8 mm full field on 640 x 484 pixels, and it keeps ``s`` along ``y`` as :class:`simulators.optics.
+~10.3 x 10.8 mm full field on 640 x 484 pixels, and it keeps ``s`` along ``y`` as :class:`skinstretch.simulators.ideal_optics.
 IdealOptics` does. The camera is a pinhole at ``working_distance_mm`` from the field centre (an air-equivalent
 distance: the glass path is counted as its length divided by the index, which is exact for the paraxial rays of this
 narrow, ~2 degree, field), followed by Brown-Conrady lens distortion (radial ``k1``, ``k2``, tangential ``p1``,
@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from processing.errors import InvalidInputError
-from simulators.optics import Optics
-from simulators.surfaces import RuledSurface
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.ideal_optics import Optics
+from skinstretch.simulators.surfaces import RuledSurface
 
 @dataclass(frozen=True)
 class SkewedRidgeSurface(RuledSurface):
@@ -115,7 +115,7 @@ class PrismOptics(Optics):
     width, height : int
         Image size in pixels (default: the full camera mode, 640 x 484).
     surface : RuledSurface
-        The contact surface (:mod:`simulators.surfaces`: flat, or the seed's Gaussian ridge or valley, whose 3 mm
+        The contact surface (:mod:`skinstretch.simulators.surfaces`: flat, or the seed's Gaussian ridge or valley, whose 3 mm
         width is read as 4 sigma there). Default flat.
     field_width_mm : float
         Width of flat surface seen across the image width at the field centre (seed 6.3.2: ~10.3 mm).
@@ -285,11 +285,11 @@ class PrismOptics(Optics):
 def prism_optics_for_scene(scene, **overrides) -> PrismOptics:
     """PrismOptics seeing a scene's contact surface with its camera mode and field of view.
 
-    ``scene`` is a :class:`simulators.scene.Scene`; ``overrides`` set any other PrismOptics parameter (distortion,
+    ``scene`` is a :class:`skinstretch.simulators.scene.Scene`; ``overrides`` set any other PrismOptics parameter (distortion,
     working distance...). Pass the result as ``optics=`` to ``SceneRenderer`` / ``render_session`` to render the
     fingertip through the prism rather than the ideal flat view.
     """
-    from drivers.camera_modes import camera_mode
+    from skinstretch.drivers.camera_modes import camera_mode
 
     mode = camera_mode(scene.camera.mode)
     surface = RuledSurface(

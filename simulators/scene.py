@@ -8,7 +8,7 @@ Rendering (how frame k is made)
 -------------------------------
 1. Every image pixel is mapped to the contact surface with ``optics.image_to_surface`` (once, it never changes).
 2. The surface point is mapped back to the skin point now there by inverting ``x = X + d_k(X)``
-   (:meth:`simulators.deformation.FrameDeformation.inverse`, Newton's method) on a node grid every 8 px, which
+   (:meth:`skinstretch.simulators.deformation.FrameDeformation.inverse`, Newton's method) on a node grid every 8 px, which
    is interpolated to every pixel by separable Catmull-Rom splines (error <= 0.005 px, ~0.0003 px RMS, in the
    sliding scenes, up to 0.013 px in the last frames of the rotating ``flat1``; see the bench).
 3. The print is sampled at the skin point from a master image rendered once in skin coordinates at
@@ -41,12 +41,12 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from drivers.camera_modes import CameraMode, camera_mode as _camera_mode
-from drivers.session_file import SessionTruth, write_session
-from processing.calibration import Calibration
-from processing.errors import ConfigError, InvalidInputError
-from simulators.camera_model import CameraModel
-from simulators.deformation import (
+from skinstretch.drivers.camera_modes import CameraMode, camera_mode as _camera_mode
+from skinstretch.drivers.session_file import SessionTruth, write_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import ConfigError, InvalidInputError
+from skinstretch.simulators.sensor_model import CameraModel
+from skinstretch.simulators.deformation import (
     DeformationModel,
     FrameDeformation,
     MotionProfile,
@@ -54,9 +54,9 @@ from simulators.deformation import (
     RidgeMechanics,
     green_lagrange,
 )
-from simulators.fingerprint import Fingerprint, FingerprintParams
-from simulators.optics import IdealOptics, Optics
-from simulators.surfaces import RuledSurface
+from skinstretch.simulators.fingerprint import Fingerprint, FingerprintParams
+from skinstretch.simulators.ideal_optics import IdealOptics, Optics
+from skinstretch.simulators.surfaces import RuledSurface
 
 _NODE_STEP_PX = 8
 _TRUTH_GRID_PX = 8.0
@@ -69,7 +69,7 @@ class _Model(BaseModel):
 
 
 class CameraSpec(_Model):
-    """Camera mode, field of view and sensor effects (see :class:`simulators.camera_model.CameraModel`)."""
+    """Camera mode, field of view and sensor effects (see :class:`skinstretch.simulators.sensor_model.CameraModel`)."""
 
     mode: Literal["full", "half", "strip"] = "full"
     field_of_view_mm: float = Field(10.3, gt=1.0, le=50.0, description="width of the 640-px image on the glass")
@@ -86,7 +86,7 @@ class CameraSpec(_Model):
 
 
 class FingerprintSpec(_Model):
-    """Statistics of the synthetic print (see :class:`simulators.fingerprint.FingerprintParams`)."""
+    """Statistics of the synthetic print (see :class:`skinstretch.simulators.fingerprint.FingerprintParams`)."""
 
     ridge_period_mm: float = Field(0.43, ge=0.2, le=1.0)
     period_variation: float = Field(0.06, ge=0.0, lt=0.5)
@@ -129,7 +129,7 @@ class ContactSpec(_Model):
 
 
 class SurfaceSpec(_Model):
-    """The contact surface (see :mod:`simulators.surfaces`); varies along s (image y with ideal optics)."""
+    """The contact surface (see :mod:`skinstretch.simulators.surfaces`); varies along s (image y with ideal optics)."""
 
     kind: Literal["flat", "ridge", "valley"] = "flat"
     width_mm: float = Field(3.0, gt=0.1, le=20.0)
@@ -158,7 +158,7 @@ class MotionSpec(_Model):
 
 
 class PlasticSpec(_Model):
-    """Plastic distortion (see :class:`simulators.deformation.PlasticDistortion`)."""
+    """Plastic distortion (see :class:`skinstretch.simulators.deformation.PlasticDistortion`)."""
 
     center_mm: Pair = (0.0, 0.0)
     semi_axes_mm: Pair = (3.0, 4.0)
@@ -288,7 +288,7 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
 
 @dataclass
 class RenderedSession:
-    """A rendered sequence in memory: what :func:`drivers.session_file.write_session` takes, plus the truth."""
+    """A rendered sequence in memory: what :func:`skinstretch.drivers.session_file.write_session` takes, plus the truth."""
 
     frames: np.ndarray
     timestamps: np.ndarray

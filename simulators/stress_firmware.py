@@ -16,7 +16,7 @@ Three layers, each usable alone:
   injection (dropped / corrupted bytes, stalled link, vanished link) from a seeded generator.
 
 Time comes from a replaceable clock (:class:`RealClock` or :class:`ManualClock`) so tests are deterministic.
-Run ``python -m simulators.stress_firmware --pty-fd N`` to serve the firmware on a pty master in a separate
+Run ``python -m skinstretch.simulators.stress_firmware --pty-fd N`` to serve the firmware on a pty master in a separate
 process (the benchmark does this so the firmware's receive clock is not disturbed by the host's GIL).
 """
 
@@ -37,8 +37,9 @@ from typing import Protocol
 
 import numpy as np
 
-from drivers.display import stress_protocol as sp
-from processing.errors import InvalidInputError, ProtocolError
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.errors import ProtocolError
+from skinstretch.processing.errors import InvalidInputError
 
 FIRMWARE_NAME = "stresssim 2.0"
 
@@ -177,7 +178,7 @@ class TimedRecord:
 
     Per timed frame (in arrival order): ``ticks``, ``play_times`` (scheduled, firmware clock), ``arrivals``
     (receive clock: when its last byte arrived on the modelled line), ``handled_at`` (the clock when the simulator
-    thread actually processed it), ``dispositions`` (:class:`~drivers.display.stress_protocol.Disposition` or
+    thread actually processed it), ``dispositions`` (:class:`~skinstretch.drivers.display.stress_protocol.Disposition` or
     :data:`REFUSED`) and ``applied_at`` (the clock when the simulator computed the tick that applied it; NaN if it
     never played). Per movie tick: ``tick_times`` (scheduled), ``tick_computed_at`` and ``tick_applied``.
     A frame whose arrival is at or after its play time missed its deadline, whoever is to blame.
@@ -221,7 +222,7 @@ class StressFirmware:
     """The protocol state machine. Call :meth:`advance` with the time, :meth:`handle` for each packet.
 
     Timed playback (``docs/protocols/stress.md``, "Timed playback"): START_MOVIE sets the rate and the epoch;
-    TIMED_FRAMEs wait in a FIFO of :data:`~drivers.display.stress_protocol.FIFO_DEPTH` frames indexed by tick;
+    TIMED_FRAMEs wait in a FIFO of :data:`~skinstretch.drivers.display.stress_protocol.FIFO_DEPTH` frames indexed by tick;
     at each tick the timer samples the sensors, applies that tick's frame (firmware clamp included) or holds the
     position (underrun), and logs a tick report for the next reply to carry. ``wall_clock`` (set by the link) is
     only used to record when the simulator got to things.

@@ -4,8 +4,8 @@ Axis convention
 ---------------
 A ruled surface varies along one direction only. Its height ``h`` is a function of ``z``, the *flat* (projected)
 coordinate in mm across the ruling; along the other direction it is constant. Following
-:mod:`simulators.optics`, the unrolled surface coordinate ``s`` is the **arc length** along ``z`` and ``u`` runs
-along the ruling. With :class:`simulators.optics.IdealOptics`, ``s`` is the image **row** (y) axis: the ridge or
+:mod:`skinstretch.simulators.ideal_optics`, the unrolled surface coordinate ``s`` is the **arc length** along ``z`` and ``u`` runs
+along the ruling. With :class:`skinstretch.simulators.ideal_optics.IdealOptics`, ``s`` is the image **row** (y) axis: the ridge or
 valley is a horizontal band of the image and the finger crosses it by sliding in +y. (The seed's figures show the
 same images rotated by 90 degrees, seed 3.4 footnote, where the finger slides "left to right".)
 
@@ -24,7 +24,7 @@ from functools import cached_property
 
 import numpy as np
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 SURFACE_KINDS = ("flat", "ridge", "valley")
 

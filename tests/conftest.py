@@ -15,10 +15,10 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def sim_session():
-    """A small simulated session (scene flatL, 20 frames, seed 0) as a simulators.scene.RenderedSession.
+    """A small simulated session (scene flatL, 20 frames, seed 0) as a skinstretch.simulators.scene.RenderedSession.
 
     Shared by the whole test run: treat it as read-only.
     """
-    from simulators.scene import render_session
+    from skinstretch.simulators.scene import render_session
 
     return render_session("flatL", n_frames=20, seed=0)

@@ -1,10 +1,10 @@
-"""The analysis removes glass-fixed shading over ridges and valleys (processing.glass_shading), and says so."""
+"""The analysis removes glass-fixed shading over ridges and valleys (skinstretch.processing.glass_shading), and says so."""
 
 import numpy as np
 import pytest
 
-from experiments.analysis import AnalysisParams, surface_kind, without_glass_shading
-from processing.calibration import Calibration
+from skinstretch.experiments.analysis import AnalysisParams, surface_kind, without_glass_shading
+from skinstretch.processing.pixel_scale import Calibration
 
 CAL = Calibration(px_per_mm=62.0)
 

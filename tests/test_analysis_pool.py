@@ -1,4 +1,4 @@
-"""Feature tracking in chunks on worker processes gives exactly the sequential result (experiments.analysis_pool)."""
+"""Feature tracking in chunks on worker processes gives exactly the sequential result (skinstretch.experiments.analysis_pool)."""
 
 import subprocess
 import sys
@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiments import analysis_pool
-from experiments.analysis import AnalysisParams, analyze_frames
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from processing.feature_table import make_features
-from processing.tracking import FeatureTracker, TrackingParams
+from skinstretch.experiments import analysis_pool
+from skinstretch.experiments.analysis import AnalysisParams, analyze_frames
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import make_features
+from skinstretch.processing.tracking import FeatureTracker, TrackingParams
 
-scene = pytest.importorskip("simulators.scene")
+scene = pytest.importorskip("skinstretch.simulators.scene")
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -149,8 +149,8 @@ def test_a_script_without_a_main_guard_runs_once(tmp_path):
         import sys
         sys.path.insert(0, {str(ROOT)!r})
         from dataclasses import replace
-        from experiments.analysis import AnalysisParams, analyze_frames
-        from simulators.scene import render_session
+        from skinstretch.experiments.analysis import AnalysisParams, analyze_frames
+        from skinstretch.simulators.scene import render_session
         s = render_session("flatL", n_frames=32, seed=0)
         p = AnalysisParams(workers=2)
         p = replace(p, tracking=replace(p.tracking, min_length_frames=4))

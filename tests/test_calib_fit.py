@@ -6,21 +6,22 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera_modes import CAMERA_MODES
-from drivers.session_file import open_session, write_calibration, write_session
-from experiments.cli import main as cli_main
-from processing.calibration import Calibration
-from processing.errors import CalibrationError, InvalidInputError, SessionFileError
-from processing.geometric_calibration import (
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.session_file import open_session, write_calibration, write_session
+from skinstretch.cli import main as cli_main
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import CalibrationError, InvalidInputError
+from skinstretch.processing.geometric_calibration import (
     GridMapping,
     calibrate_grid_image,
     calibrate_grid_images,
     fit_grid_mapping,
     mapping_from_dict,
 )
-from simulators.calibration_grid import render_calibration_grid
-from simulators.prism_optics import PrismOptics
-from simulators.surfaces import RuledSurface
+from skinstretch.simulators.dot_grid_images import render_calibration_grid
+from skinstretch.simulators.prism_optics import PrismOptics
+from skinstretch.simulators.surfaces import RuledSurface
 
 KINDS = ("flat", "ridge", "valley")
 
@@ -233,7 +234,7 @@ def test_calibrate_cli_windows_a_full_frame_calibration_for_a_strip_session(fitt
 
 
 def test_a_non_gaussian_ridge_gets_a_spline_profile():
-    from simulators.prism_optics import SkewedRidgeSurface
+    from skinstretch.simulators.prism_optics import SkewedRidgeSurface
 
     optics = PrismOptics(surface=SkewedRidgeSurface(kind="ridge", center_mm=0.3))
     g = render_calibration_grid(optics, missing_fraction=0.1, n_spurious=2, seed=9)

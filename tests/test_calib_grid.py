@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from processing.errors import InvalidInputError
-from processing.geometric_calibration import INDEX_NONE, detect_dots, index_grid
-from simulators.calibration_grid import render_calibration_grid
-from simulators.prism_optics import PrismOptics
-from simulators.surfaces import RuledSurface
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.geometric_calibration import INDEX_NONE, detect_dots, index_grid
+from skinstretch.simulators.dot_grid_images import render_calibration_grid
+from skinstretch.simulators.prism_optics import PrismOptics
+from skinstretch.simulators.surfaces import RuledSurface
 
 KINDS = ("flat", "ridge", "valley")
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from processing.errors import InvalidInputError
-from simulators.prism_optics import PrismOptics, prism_optics_for_scene
-from simulators.surfaces import RuledSurface
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.prism_optics import PrismOptics, prism_optics_for_scene
+from skinstretch.simulators.surfaces import RuledSurface
 
 KINDS = ("flat", "ridge", "valley")
 
@@ -76,7 +76,7 @@ def test_invalid_parameters_are_named():
 
 
 def test_optics_for_a_scene_uses_its_surface_and_field():
-    scene_mod = pytest.importorskip("simulators.scene")
+    scene_mod = pytest.importorskip("skinstretch.simulators.scene")
     scene = scene_mod.load_scene("ridgeL")
     optics = prism_optics_for_scene(scene, k1=0.0)
     assert optics.surface.kind == "ridge"

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.camera.aravis import AravisCamera, aravis_available
-from drivers.camera_modes import CAMERA_MODES, CameraMode
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.camera.aravis import AravisCamera, aravis_available
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
 
 pytestmark = [
     pytest.mark.aravis,

@@ -12,19 +12,19 @@ import time
 import numpy as np
 import pytest
 
-from drivers.camera.base import Camera, DeviceError, Frame
-from drivers.camera_modes import CAMERA_MODES
-from drivers.session_file import write_session
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from simulators.camera import SimulatedCamera
-from simulators.gige_camera import FakeGigECamera
+from skinstretch.drivers.camera.base import Camera, DeviceError, Frame
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.session_file import write_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.simulated_camera import SimulatedCamera
+from skinstretch.simulators.gige_fake_camera import FakeGigECamera
 
 STRIP = CAMERA_MODES["strip"]
 
 
 def _aravis_or_skip():
-    from drivers.camera.aravis import aravis_available
+    from skinstretch.drivers.camera.aravis import aravis_available
 
     if not aravis_available():
         pytest.skip("Aravis GObject bindings not importable (gir1.2-aravis-0.8 + PyGObject)")
@@ -65,15 +65,15 @@ def camera(request, tmp_path) -> Camera:
         cam = SimulatedCamera(_ramp_source, STRIP)
     elif kind == "aravis-fake":
         _aravis_or_skip()
-        from drivers.camera.aravis import AravisCamera
+        from skinstretch.drivers.camera.aravis import AravisCamera
 
         cam = AravisCamera.fake()
     elif kind == "aravis-gv-loopback":
-        from drivers.camera.aravis import AravisCamera
+        from skinstretch.drivers.camera.aravis import AravisCamera
 
         cam = AravisCamera(request.getfixturevalue("gv_camera_address"))
     else:
-        from drivers.camera.replay import ReplayCamera
+        from skinstretch.drivers.camera.replay import ReplayCamera
 
         frames = np.stack([_ramp_source(k) for k in range(40)])
         path = write_session(

@@ -8,12 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera.base import EndOfStreamError, ManualClock
-from drivers.camera.replay import ReplayCamera
-from drivers.camera_modes import CAMERA_MODES
-from drivers.session_file import write_session
-from processing.calibration import Calibration
-from processing.errors import DeviceTimeoutError, InvalidInputError, SessionFileError
+from skinstretch.drivers.camera.base import EndOfStreamError, ManualClock
+from skinstretch.drivers.camera.replay import ReplayCamera
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.session_file import write_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import DeviceTimeoutError, SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 STRIP = CAMERA_MODES["strip"]
 

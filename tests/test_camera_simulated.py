@@ -8,10 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers.camera.base import EndOfStreamError, FrameIdUnwrapper, ManualClock
-from drivers.camera_modes import CAMERA_MODES, CameraMode
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
-from simulators.camera import CameraFaults, SimulatedCamera
+from skinstretch.drivers.camera.base import EndOfStreamError, FrameIdUnwrapper, ManualClock
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.simulated_camera import CameraFaults, SimulatedCamera
 
 MODE = CameraMode("tiny", 32, 24, 100.0)
 
@@ -175,7 +176,7 @@ def test_frame_id_unwrapper_handles_gige_wrap_and_gaps():
 
 def test_from_scene_streams_the_scene_renderer():
     """The scene renderer's frames, in order, looped (renderer built once: it takes seconds to set up)."""
-    scene_module = pytest.importorskip("simulators.scene")
+    scene_module = pytest.importorskip("skinstretch.simulators.scene")
     scene = scene_module.load_scene("flatL").model_copy(update={"n_frames": 3})
     renderer = scene_module.SceneRenderer(scene, seed=0)
     clock = ManualClock()

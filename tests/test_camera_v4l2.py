@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.camera.v4l2 import V4L2Camera, v4l2_devices
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.camera.v4l2 import V4L2Camera, v4l2_devices
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def test_arguments_are_checked():

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError, SkinstretchError
-from processing.feature_table import FEATURE_DTYPE, FeatureKind, empty_features, make_features, validate_features
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError, SkinstretchError
+from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind, empty_features, make_features, validate_features
 
 
 def test_calibration_converts_once():

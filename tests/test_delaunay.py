@@ -1,11 +1,11 @@
-"""The compiled Delaunay triangulation (processing.delaunay) against Qhull."""
+"""The compiled Delaunay triangulation (skinstretch.processing.delaunay) against Qhull."""
 
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from processing.delaunay import delaunay_triangles
-from processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.delaunay import delaunay_triangles
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 
 
 def _set(tri):

@@ -15,16 +15,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import drivers.display.playback as playback_module
-from drivers.display import stress_protocol as sp
-from drivers.display.base import TactileDisplay, TimedFrameAck
-from drivers.display.playback import (DEFAULT_LEAD_S, FATE_NOT_SENT, BufferedPlaybackReport, stream_movie,
+import skinstretch.drivers.display.movie_stream as playback_module
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.display.base import TactileDisplay, TimedFrameAck
+from skinstretch.drivers.display.movie_stream import (DEFAULT_LEAD_S, FATE_NOT_SENT, BufferedPlaybackReport, stream_movie,
                                       stream_movie_buffered)
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import SerialTransport
-from processing.errors import DeviceError, InvalidInputError, ProtocolError, SafetyStop
-from simulators import stresssim
-from simulators.stress_firmware import REFUSED, ManualClock, StressFirmware
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import SerialTransport
+from skinstretch.drivers.errors import DeviceError, ProtocolError, SafetyStop
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
+from skinstretch.simulators.stress_firmware import REFUSED, ManualClock, StressFirmware
 
 PERIOD = 1 / 700
 _names = itertools.count()
@@ -42,21 +43,21 @@ class TickingClock(ManualClock):
 @pytest.fixture
 def twin():
     """make(clock=None, faults="", **driver options) -> (display, link) on the in-process stresssim link."""
-    stresssim.register_url_handler()
+    stress_links.register_url_handler()
     made = []
 
     def make(clock=None, faults="", **options):
         clock = clock or TickingClock()
-        link = stresssim.make_link(clock=clock, seed=5, faults=faults)
+        link = stress_links.make_link(clock=clock, seed=5, faults=faults)
         name = f"buffered{next(_names)}"
-        display = StressDisplay(SerialTransport(stresssim.attach(name, link)), clock=clock.now, **options)
+        display = StressDisplay(SerialTransport(stress_links.attach(name, link)), clock=clock.now, **options)
         made.append((display, name))
         return display, link
 
     yield make
     for display, name in made:
         display.close()
-        stresssim.detach(name)
+        stress_links.detach(name)
 
 
 def _wave(n, amplitude=20.0):
@@ -445,10 +446,10 @@ anything = st.floats(allow_nan=True, allow_infinity=True, width=64)
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 def test_buffered_playback_never_puts_an_unsafe_frame_on_the_wire(movie, max_step_um, correction):
     clock = ManualClock()
-    stresssim.register_url_handler()
-    link = stresssim.make_link(clock=clock, seed=1)
+    stress_links.register_url_handler()
+    link = stress_links.make_link(clock=clock, seed=1)
     name = f"buffered{next(_names)}"
-    display = StressDisplay(SerialTransport(stresssim.attach(name, link)), clock=clock.now, max_step_um=max_step_um)
+    display = StressDisplay(SerialTransport(stress_links.attach(name, link)), clock=clock.now, max_step_um=max_step_um)
     wire = sp.StreamDecoder()
     frames = []
     real_write = link.host_write
@@ -464,7 +465,7 @@ def test_buffered_playback_never_puts_an_unsafe_frame_on_the_wire(movie, max_ste
                                        callback=lambda k, c, a: c + correction if k % 3 else None)
     finally:
         display.close()
-        stresssim.detach(name)
+        stress_links.detach(name)
     assert report.completed
     ticks = [t for t, _ in frames]
     assert ticks == list(range(len(movie)))

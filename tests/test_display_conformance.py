@@ -8,12 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from drivers.display import stress_protocol as sp
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import SerialTransport, UsbTransport
-from processing.errors import DeviceError, InvalidInputError
-from simulators import stresssim
-from simulators.stress_firmware import ManualClock, PacedLink, StressFirmware
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
+from skinstretch.simulators.stress_firmware import ManualClock, PacedLink, StressFirmware
 
 _names = itertools.count()
 # long enough that a test process starved by a busy CI machine does not trip it by accident
@@ -34,18 +35,18 @@ class Rig:
 @pytest.fixture(params=["url", "pty", "usb"])
 def rig(request):
     kind = request.param
-    stresssim.register_url_handler()
+    stress_links.register_url_handler()
     if kind == "url":
         clock = ManualClock()
-        link = stresssim.make_link(clock=clock, seed=3)
+        link = stress_links.make_link(clock=clock, seed=3)
         name = f"conformance{next(_names)}"
-        display = StressDisplay(SerialTransport(stresssim.attach(name, link)), clock=clock.now, watchdog_s=WATCHDOG_S)
+        display = StressDisplay(SerialTransport(stress_links.attach(name, link)), clock=clock.now, watchdog_s=WATCHDOG_S)
         yield Rig(display, link, clock.advance)
         display.close()
-        stresssim.detach(name)
+        stress_links.detach(name)
     elif kind == "pty":
-        link = stresssim.make_link(seed=3)
-        server = stresssim.start_pty_firmware(link)
+        link = stress_links.make_link(seed=3)
+        server = stress_links.start_pty_firmware(link)
         display = StressDisplay(SerialTransport(server.port), reply_timeout_s=0.5, watchdog_s=WATCHDOG_S)
         yield Rig(display, link, time.sleep)
         display.close()
@@ -53,8 +54,8 @@ def rig(request):
         assert server.error is None
     else:
         # real time: the transport's reader thread keeps a bulk read pending, as libusb would
-        link = PacedLink.usb_high_speed(StressFirmware(seed=3, t0=time.perf_counter()), clock=stresssim.RealClock())
-        display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), reply_timeout_s=0.5,
+        link = PacedLink.usb_high_speed(StressFirmware(seed=3, t0=time.perf_counter()), clock=stress_links.RealClock())
+        display = StressDisplay(UsbTransport(backend=stress_links.StressUsbBackend(link)), reply_timeout_s=0.5,
                                 watchdog_s=WATCHDOG_S)
         yield Rig(display, link, time.sleep)
         display.close()
@@ -164,8 +165,8 @@ def test_bad_arguments_are_refused_by_name(rig):
 
 
 def test_ack_history_is_bounded_and_counts_every_ack():
-    from drivers.display.base import FrameAck, TactileDisplay
-    from drivers.display.stress_protocol import Status
+    from skinstretch.drivers.display.base import FrameAck, TactileDisplay
+    from skinstretch.drivers.display.stress_protocol import Status
 
     class _AckSource(TactileDisplay):
         """Only the base class's ack bookkeeping is exercised: each collect returns 1000 new acks."""

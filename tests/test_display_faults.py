@@ -9,13 +9,14 @@ import tty
 import numpy as np
 import pytest
 
-from drivers.display import stress_protocol as sp
-from drivers.display.playback import stream_movie
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import SerialTransport, UsbTransport
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, SafetyStop
-from simulators import stresssim
-from simulators.stress_firmware import LinkFaults, ManualClock, PacedLink, StressFirmware
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.display.movie_stream import stream_movie
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, SafetyStop
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
+from skinstretch.simulators.stress_firmware import LinkFaults, ManualClock, PacedLink, StressFirmware
 
 _names = itertools.count()
 
@@ -26,8 +27,8 @@ def _movie(n=120, amplitude=20.0):
 
 
 def _url_display(link, **kw):
-    stresssim.register_url_handler()
-    return StressDisplay(SerialTransport(stresssim.attach(f"faults{next(_names)}", link)), **kw)
+    stress_links.register_url_handler()
+    return StressDisplay(SerialTransport(stress_links.attach(f"faults{next(_names)}", link)), **kw)
 
 
 # a test process starved on a busy machine must not trip the watchdog before the fault under test
@@ -45,7 +46,7 @@ def _assert_firmware_rests(link, wait):
 
 
 def test_vanished_url_link_mid_movie_stops_keeps_data_and_watchdog_rests():
-    link = stresssim.make_link(faults="vanish_after:40", seed=5)
+    link = stress_links.make_link(faults="vanish_after:40", seed=5)
     display = _url_display(link, watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
     report = stream_movie(display, _movie(), rate_hz=RATE_HZ)
     assert report.outcome == "link_failure" and "lost" in report.error
@@ -56,8 +57,8 @@ def test_vanished_url_link_mid_movie_stops_keeps_data_and_watchdog_rests():
 
 
 def test_vanished_pty_mid_movie():
-    link = stresssim.make_link(faults="vanish_after:40", seed=5)
-    server = stresssim.start_pty_firmware(link)
+    link = stress_links.make_link(faults="vanish_after:40", seed=5)
+    server = stress_links.start_pty_firmware(link)
     try:
         display = StressDisplay(SerialTransport(server.port), watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
         report = stream_movie(display, _movie(), rate_hz=RATE_HZ)
@@ -70,20 +71,20 @@ def test_vanished_pty_mid_movie():
 
 
 def test_vanished_usb_device_mid_movie():
-    link = PacedLink.usb_high_speed(StressFirmware(seed=5, t0=time.perf_counter()), clock=stresssim.RealClock(),
+    link = PacedLink.usb_high_speed(StressFirmware(seed=5, t0=time.perf_counter()), clock=stress_links.RealClock(),
                                     faults=LinkFaults(vanish_after_frames=40))
-    display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), watchdog_s=WATCHDOG_S,
+    display = StressDisplay(UsbTransport(backend=stress_links.StressUsbBackend(link)), watchdog_s=WATCHDOG_S,
                             ack_timeout_s=0.5)
     report = stream_movie(display, _movie(), rate_hz=RATE_HZ)
     assert report.outcome == "link_failure" and "usb" in report.error
     assert report.frames_played >= 40
     _assert_firmware_rests(link, time.sleep)
     with pytest.raises(DeviceError, match="no USB device"):
-        UsbTransport(backend=stresssim.StressUsbBackend(link))
+        UsbTransport(backend=stress_links.StressUsbBackend(link))
 
 
 def test_stalled_link_is_detected_within_the_outstanding_window():
-    link = stresssim.make_link(faults="stall_after:30", seed=2)
+    link = stress_links.make_link(faults="stall_after:30", seed=2)
     display = _url_display(link, watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
     t0 = time.perf_counter()
     report = stream_movie(display, _movie(300), rate_hz=RATE_HZ, max_outstanding=16)
@@ -96,7 +97,7 @@ def test_stalled_link_is_detected_within_the_outstanding_window():
 
 def test_corrupted_and_dropped_bytes_are_survived_and_counted():
     # ~0.1 % of bytes damaged: about one exchange (frame 107 + ack 109 bytes) in five is lost
-    link = stresssim.make_link(faults="corrupt:0.0007,drop:0.0003", seed=11)
+    link = stress_links.make_link(faults="corrupt:0.0007,drop:0.0003", seed=11)
     display = _url_display(link, watchdog_s=WATCHDOG_S)
     report = stream_movie(display, _movie(300), rate_hz=RATE_HZ)
     assert report.outcome == "completed" and report.frames_played == 300
@@ -110,7 +111,7 @@ def test_corrupted_and_dropped_bytes_are_survived_and_counted():
 
 def test_firmware_that_stops_answering_gives_a_timeout():
     clock = ManualClock()
-    link = stresssim.make_link(clock=clock)
+    link = stress_links.make_link(clock=clock)
     display = _url_display(link, clock=clock.now)
     display.identify()
     link.stall()
@@ -122,7 +123,7 @@ def test_firmware_that_stops_answering_gives_a_timeout():
 
 def test_garbled_and_truncated_requests_are_skipped_by_the_firmware():
     clock = ManualClock()
-    link = stresssim.make_link(clock=clock)
+    link = stress_links.make_link(clock=clock)
     display = _url_display(link, clock=clock.now)
     frame = sp.encode_packet(seq=200, command=sp.Command.FRAME, payload=bytes(100))
     bad = bytearray(frame)
@@ -138,7 +139,7 @@ def test_garbled_and_truncated_requests_are_skipped_by_the_firmware():
 
 def test_lost_ack_raises_for_that_frame_only():
     clock = ManualClock()
-    link = stresssim.make_link(clock=clock)
+    link = stress_links.make_link(clock=clock)
     display = _url_display(link, clock=clock.now, watchdog_s=1.0)
     display.arm()
     display.send_frame(np.zeros((10, 10)))
@@ -152,7 +153,7 @@ def test_lost_ack_raises_for_that_frame_only():
 
 
 def test_callback_safety_stop_rests_the_display():
-    link = stresssim.make_link(seed=4)
+    link = stress_links.make_link(seed=4)
     display = _url_display(link, watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
 
     def ceiling(index, command, ack):
@@ -171,7 +172,7 @@ def test_callback_safety_stop_rests_the_display():
 
 
 def test_unknown_url_options_and_fault_specs_are_refused():
-    stresssim.register_url_handler()
+    stress_links.register_url_handler()
     with pytest.raises(DeviceError, match="unknown stresssim URL options"):
         SerialTransport("stresssim://?speed=9")
     with pytest.raises(InvalidInputError, match="faults item"):

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from drivers.display import stress_protocol as sp
-from processing.errors import InvalidInputError
-from simulators import stresssim
-from simulators.stress_firmware import (BenderArray, BenderParameters, LinkFaults, ManualClock, PacedLink,
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
+from skinstretch.simulators.stress_firmware import (BenderArray, BenderParameters, LinkFaults, ManualClock, PacedLink,
                                         StressFirmware)
 
 QUIET = BenderParameters(gain_spread=0.0, offset_spread_um=0.0, noise_um=0.0)
@@ -113,4 +113,4 @@ def test_fault_spec_parsing():
     with pytest.raises(InvalidInputError):
         LinkFaults(drop_rate=2.0)
     with pytest.raises(InvalidInputError):
-        stresssim.make_link(baud=12)
+        stress_links.make_link(baud=12)

@@ -6,24 +6,24 @@ import time
 import numpy as np
 import pytest
 
-from drivers.display.playback import PHASES, find_stalls, stream_movie
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import SerialTransport
-from processing.errors import InvalidInputError
-from simulators import stresssim
+from skinstretch.drivers.display.movie_stream import PHASES, find_stalls, stream_movie
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import SerialTransport
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
 
 _names = itertools.count()
 
 
 @pytest.fixture
 def sim():
-    stresssim.register_url_handler()
-    link = stresssim.make_link(seed=7)
+    stress_links.register_url_handler()
+    link = stress_links.make_link(seed=7)
     name = f"playback{next(_names)}"
-    display = StressDisplay(SerialTransport(stresssim.attach(name, link)), watchdog_s=0.3, ack_timeout_s=0.5)
+    display = StressDisplay(SerialTransport(stress_links.attach(name, link)), watchdog_s=0.3, ack_timeout_s=0.5)
     yield display, link
     display.close()
-    stresssim.detach(name)
+    stress_links.detach(name)
 
 
 def test_movie_is_played_acked_and_position_error_reported(sim):

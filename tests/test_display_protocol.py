@@ -5,8 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.display import stress_protocol as sp
-from processing.errors import InvalidInputError, ProtocolError
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.errors import ProtocolError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def test_crc_is_ccitt_false_check_value():

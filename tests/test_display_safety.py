@@ -8,14 +8,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import drivers.display.safety as safety_module
-import drivers.display.stress_protocol as protocol_module
-from drivers.display import stress_protocol as sp
-from drivers.display.safety import limit_command, rest_ramp
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import Transport
-from processing.errors import InvalidInputError
-from simulators.stress_firmware import StressFirmware
+import skinstretch.drivers.display.safety as safety_module
+import skinstretch.drivers.display.stress_protocol as protocol_module
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.display.safety import limit_command, rest_ramp
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import Transport
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.stress_firmware import StressFirmware
 
 anything = st.floats(allow_nan=True, allow_infinity=True, width=64)
 frames = hnp.arrays(np.float64, (10, 10), elements=anything)

@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from drivers.session_file import write_session
-from experiments.batch import analyze_many, average_profiles, find_sessions
-from processing.errors import InvalidInputError
+from skinstretch.drivers.session_file import write_session
+from skinstretch.experiments.batch import analyze_many, average_profiles, find_sessions
+from skinstretch.processing.errors import InvalidInputError
 
 
 @pytest.fixture
 def batch_dir(tmp_path, rng):
-    from drivers.camera_modes import CameraMode
-    from processing.calibration import Calibration
+    from skinstretch.drivers.camera_modes import CameraMode
+    from skinstretch.processing.pixel_scale import Calibration
 
     d = tmp_path / "in"
     (d / "s01").mkdir(parents=True)
@@ -30,8 +30,8 @@ def _fake_analyse_trial(session_path, outdir, method, options):
     """Stands in for the (slow, JIT-compiled) analysis: a valid results file with a known profile."""
     from pathlib import Path
 
-    from drivers.session_file import open_session
-    from experiments.results_file import MOTION_DTYPE, PAIR_DTYPE, Results, write_results
+    from skinstretch.drivers.session_file import open_session
+    from skinstretch.experiments.results_file import MOTION_DTYPE, PAIR_DTYPE, Results, write_results
 
     with open_session(session_path) as s:  # a broken session fails here, as the real analysis would
         n, h, w = s.shape
@@ -51,9 +51,9 @@ def _fake_analyse_trial(session_path, outdir, method, options):
 
 
 def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch):
-    import experiments.runner
+    import skinstretch.experiments.runner
 
-    monkeypatch.setattr(experiments.runner, "analyse_trial", _fake_analyse_trial)
+    monkeypatch.setattr(skinstretch.experiments.runner, "analyse_trial", _fake_analyse_trial)
     msgs = []
     result = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", options={"spans": (1,)},
                           progress=msgs.append)
@@ -73,7 +73,7 @@ def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch)
 
 
 def good_px_per_mm(batch_dir):
-    from drivers.session_file import open_session
+    from skinstretch.drivers.session_file import open_session
 
     with open_session(batch_dir / "s01" / "a.h5") as s:
         return s.calibration.px_per_mm

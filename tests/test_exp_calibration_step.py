@@ -6,13 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.session_file import open_session
-from experiments.calibration_step import calibrate_source, mapping_for_frames
-from experiments.protocol import Rig, load_protocol
-from experiments.runner import CALIBRATION_FILE, read_events, run_protocol
-from processing.errors import CalibrationError, ConfigError
-from simulators.calibration_grid import render_calibration_grid
-from simulators.prism_optics import PrismOptics
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.skin_mapping_step import calibrate_source, mapping_for_frames
+from skinstretch.experiments.protocol import Rig, load_protocol
+from skinstretch.experiments.runner import CALIBRATION_FILE, read_events, run_protocol
+from skinstretch.processing.errors import CalibrationError, ConfigError
+from skinstretch.simulators.dot_grid_images import render_calibration_grid
+from skinstretch.simulators.prism_optics import PrismOptics
 
 PROTOCOL = """\
 name: calib
@@ -69,7 +69,7 @@ def test_bad_calibration_sources_are_named(tmp_path):
     with pytest.raises(CalibrationError, match="bad.json"):
         calibrate_source(bad)
     with pytest.raises(ConfigError, match="calibration"):
-        from experiments.protocol import parse_protocol
+        from skinstretch.experiments.protocol import parse_protocol
 
         parse_protocol(PROTOCOL.format(source="''"), source="<t>")
 

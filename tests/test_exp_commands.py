@@ -2,7 +2,7 @@
 
 import json
 
-from experiments.cli import main
+from skinstretch.cli import main
 
 PROTOCOL = """\
 name: cli
@@ -46,7 +46,7 @@ def test_evaluate_refuses_to_score_rectified_motion_against_image_truth(tmp_path
     import h5py
     import pytest
 
-    scene = pytest.importorskip("simulators.scene")
+    scene = pytest.importorskip("skinstretch.simulators.scene")
     session = tmp_path / "flat.h5"
     scene.simulate_to_file("flatL", session, n_frames=4, seed=2)
     out = tmp_path / "res"

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from experiments.figures.chapter6 import (
+from skinstretch.experiments.figures.chapter6 import (
     contactor_positions_figure,
     edge_change_series_figure,
     figure_to_png,
@@ -14,7 +14,7 @@ from experiments.figures.chapter6 import (
     stretch_profile_figure,
     trajectory_length_figure,
 )
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -4,11 +4,12 @@ force ceiling and a link failure stop the movie with every contactor at rest."""
 import numpy as np
 import pytest
 
-from drivers.display.base import DisplayInfo, FrameAck, TactileDisplay
-from drivers.display.stress_protocol import Status
-from drivers.session_file import open_session
-from experiments.playback import ContactorCorrector, load_movie, play_movie
-from processing.errors import DeviceError, InvalidInputError, SessionFileError
+from skinstretch.drivers.display.base import DisplayInfo, FrameAck, TactileDisplay
+from skinstretch.drivers.display.stress_protocol import Status
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.playback import ContactorCorrector, load_movie, play_movie
+from skinstretch.drivers.errors import DeviceError, SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 
 class PlantDisplay(TactileDisplay):

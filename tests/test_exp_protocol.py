@@ -2,8 +2,8 @@
 
 import pytest
 
-from experiments.protocol import Rig, bundled_protocol, load_protocol, load_rig, parse_protocol, parse_rig
-from processing.errors import ConfigError
+from skinstretch.experiments.protocol import Rig, bundled_protocol, load_protocol, load_rig, parse_protocol, parse_rig
+from skinstretch.processing.errors import ConfigError
 
 GOOD = """\
 name: p1
@@ -80,7 +80,7 @@ def test_rig_errors_name_line():
 def test_bundled_rigs_load():
     from pathlib import Path
 
-    import experiments.protocol as mod
+    import skinstretch.experiments.protocol as mod
 
     folder = Path(mod.__file__).with_name("protocols")
     assert load_rig(folder / "rig-sim.yaml").all_simulated

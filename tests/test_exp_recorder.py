@@ -5,11 +5,11 @@ import errno
 import numpy as np
 import pytest
 
-from drivers.camera_modes import CAMERA_MODES, CameraMode
-from drivers.session_file import SessionWriter, open_session
-from experiments.recorder import Recorder
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.session_file import SessionWriter, open_session
+from skinstretch.experiments.recorder import Recorder
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
 
 MODE = CameraMode("tiny", 32, 24, 100.0)
 CAL = Calibration(px_per_mm=62.0)

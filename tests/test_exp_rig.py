@@ -4,12 +4,12 @@ STReSS firmware twin with the Net F/T twin: closed loop beats open loop, force c
 import numpy as np
 import pytest
 
-from drivers.session_file import open_session
-from experiments.playback import play_movie
-from experiments.protocol import DeviceSpec, Rig, parse_protocol
-from experiments.rig import ForceSource, RigDevices, make_display, sim_display_url
-from experiments.runner import read_events, run_protocol
-from processing.errors import DeviceError
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.playback import play_movie
+from skinstretch.experiments.protocol import DeviceSpec, Rig, parse_protocol
+from skinstretch.experiments.rig import ForceSource, RigDevices, make_display, sim_display_url
+from skinstretch.experiments.runner import read_events, run_protocol
+from skinstretch.drivers.errors import DeviceError
 
 PROTOCOL = """\
 name: rigtest
@@ -111,7 +111,7 @@ def test_v4l2_camera_in_a_rig_file():
     assert rig.camera.kind == "v4l2" and not rig.all_simulated
     proto = parse_protocol(PROTOCOL, source="<test>")
     cam = RigDevices(rig).camera_for(trial=None, protocol=proto, n_frames=2)
-    from drivers.camera.v4l2 import V4L2Camera
+    from skinstretch.drivers.camera.v4l2 import V4L2Camera
 
     assert isinstance(cam.camera, V4L2Camera)
     # No such device here: a clear device error naming it, not a hang or a crash in OpenCV.

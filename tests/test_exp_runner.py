@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.session_file import SessionWriter, open_session
-from experiments.protocol import parse_protocol
-from experiments.runner import finished_trials, read_events, run_protocol, session_dir
-from experiments.protocol import Rig
-from processing.errors import ConfigError, DeviceError
+from skinstretch.drivers.session_file import SessionWriter, open_session
+from skinstretch.experiments.protocol import parse_protocol
+from skinstretch.experiments.runner import finished_trials, read_events, run_protocol, session_dir
+from skinstretch.experiments.protocol import Rig
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -117,7 +118,7 @@ class FakeDevices:
         return {"camera": "fake", "force": "fake", "display": "fake"}
 
     def camera_for(self, *, trial, protocol, n_frames):
-        from drivers.camera_modes import CAMERA_MODES
+        from skinstretch.drivers.camera_modes import CAMERA_MODES
 
         fail = self.fail_at if trial.index == self.fail_trial else None
         return FakeCamera(CAMERA_MODES[protocol.camera_mode], fail_at=fail, paced=self.paced, report=self.report,
@@ -202,8 +203,8 @@ _CHILD = """
 import sys
 sys.path.insert(0, {root!r})
 from tests.test_exp_runner import FakeDevices, PROTOCOL
-from experiments.protocol import parse_protocol, Rig
-from experiments.runner import run_protocol
+from skinstretch.experiments.protocol import parse_protocol, Rig
+from skinstretch.experiments.runner import run_protocol
 p = parse_protocol(PROTOCOL % {{"d": 2.0}})
 run_protocol(p, Rig(), {out!r}, devices=FakeDevices(paced=True, report=True), progress=lambda m: None)
 """

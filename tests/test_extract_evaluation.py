@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from drivers.session_file import SessionTruth
-from experiments.evaluation.features import evaluate_features
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind, make_features
+from skinstretch.drivers.session_file import SessionTruth
+from skinstretch.experiments.evaluation.features import evaluate_features
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind, make_features
 
 
 def _truth(x, y, kind, visible):

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from experiments.figures.features import feature_overlay_figure, step_counts_figure
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from processing.extraction import extract_features
+from skinstretch.experiments.figures.features import feature_overlay_figure, step_counts_figure
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.extraction import extract_features
 
 
 def _image():

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from processing.errors import InvalidInputError
-from processing.illumination import apply_illumination_gain, compensate_illumination, illumination_gain
-from processing.subpixel import locate_minutiae_tips
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.illumination import apply_illumination_gain, compensate_illumination, illumination_gain
+from skinstretch.processing.feature_localization import locate_minutiae_tips
 
 
 def test_gain_matches_eq_3_7_up_to_rounding():
@@ -124,7 +124,7 @@ def _fork(cx, cy, shape=(60, 60)):
 
 
 def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
-    from processing.subpixel import refine_bifurcations
+    from skinstretch.processing.feature_localization import refine_bifurcations
 
     thr = np.full((60, 60), 30.0, np.float32)
     starts_x, starts_y = np.array([29.0, 31.0, 30.0]), np.array([30.0, 29.0, 31.0])
@@ -141,7 +141,7 @@ def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
 
 def _naive_thin(binary):
     """Reference: every foreground pixel checked in every sub-iteration, then the four staircase passes."""
-    from processing.thinning import neighbour_code, staircase_table, zhang_suen_tables
+    from skinstretch.processing.thinning import neighbour_code, staircase_table, zhang_suen_tables
 
     first, second = zhang_suen_tables()
     stairs = staircase_table()
@@ -167,7 +167,7 @@ def _naive_thin(binary):
 
 @pytest.mark.parametrize("density", [0.35, 0.6, 0.85])
 def test_incremental_thinning_equals_checking_every_pixel(density):
-    from processing.thinning import thin
+    from skinstretch.processing.thinning import thin
 
     rng = np.random.default_rng(7)
     b = (rng.random((40, 50)) < density).astype(np.uint8)
@@ -196,7 +196,7 @@ def _cv2_blob_pores(binary, grey, max_diameter_px, min_area_px):
 
 @pytest.mark.parametrize("density", [0.3, 0.5, 0.62])
 def test_run_based_blob_labelling_matches_opencv(density):
-    from processing.pores import detect_blob_pores
+    from skinstretch.processing.pores import detect_blob_pores
 
     rng = np.random.default_rng(3)
     binary = np.where(rng.random((90, 130)) < density, 255, 0).astype(np.uint8)
@@ -222,7 +222,7 @@ def test_disk_cache_written_under_another_module_name_is_recompiled(tmp_path):
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "kern.py").write_text(
-        "from processing.jit import njit\n\n\n@njit(nogil=True)\ndef twice(x):\n    return 2 * x\n"
+        "from skinstretch.processing.jit import njit\n\n\n@njit(nogil=True)\ndef twice(x):\n    return 2 * x\n"
     )
     env_path = {"first": f"{pkg}:{root}", "second": f"{tmp_path}:{root}"}
     calls = {"first": "import kern; print(kern.twice(21))", "second": "import pkg.kern as k; print(k.twice(21))"}
@@ -242,7 +242,7 @@ def test_disk_cache_written_under_another_module_name_is_recompiled(tmp_path):
 @pytest.mark.parametrize("shape", [(3, 3), (4, 63), (5, 64), (6, 65), (9, 128), (11, 130), (30, 200)])
 def test_bit_packed_thinning_at_word_boundaries(shape):
     # Widths around multiples of 64 exercise the shifts between packed words.
-    from processing.thinning import thin
+    from skinstretch.processing.thinning import thin
 
     rng = np.random.default_rng(shape[1])
     b = (rng.random(shape) < 0.7).astype(np.uint8)
@@ -252,7 +252,7 @@ def test_bit_packed_thinning_at_word_boundaries(shape):
 
 
 def test_blob_labelling_handles_empty_full_and_edge_blobs():
-    from processing.pores import detect_blob_pores
+    from skinstretch.processing.pores import detect_blob_pores
 
     grey = np.ones((12, 70), np.float32)
     empty = detect_blob_pores(np.zeros((12, 70), np.uint8), grey=grey, max_diameter_px=5.0)
@@ -276,7 +276,7 @@ def test_blob_labelling_handles_empty_full_and_edge_blobs():
 def test_compiled_density_filter_matches_a_kd_tree_reference():
     from scipy.spatial import cKDTree
 
-    from processing.editing import feature_density_mask
+    from skinstretch.processing.editing import feature_density_mask
 
     rng = np.random.default_rng(5)
     x, y = rng.uniform(0, 60, 300), rng.uniform(0, 60, 300)
@@ -305,9 +305,9 @@ def test_disk_cache_of_a_caller_is_recompiled_when_its_callee_in_another_file_ch
     pkg = tmp_path / "pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
-    callee = "from processing.jit import njit\n\nSCALE = {scale}\n\n\n@njit(nogil=True)\ndef inner(x):\n    return {body}\n"
+    callee = "from skinstretch.processing.jit import njit\n\nSCALE = {scale}\n\n\n@njit(nogil=True)\ndef inner(x):\n    return {body}\n"
     (pkg / "caller.py").write_text(
-        "from processing.jit import njit\nfrom pkg.callee import inner\n\n\n@njit(nogil=True)\n"
+        "from skinstretch.processing.jit import njit\nfrom pkg.callee import inner\n\n\n@njit(nogil=True)\n"
         "def outer(x):\n    return inner(x) + 1\n"
     )
 

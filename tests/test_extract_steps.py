@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from processing.calibration import Calibration
-from processing.editing import (
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.editing import (
     feature_density_mask,
     heal_broken_valleys,
     line_pixels,
@@ -14,15 +14,15 @@ from processing.editing import (
     remove_short_spurs,
     remove_short_valleys,
 )
-from processing.errors import InvalidInputError
-from processing.extraction import ExtractionParams, FeatureExtractor, extract_features
-from processing.feature_table import FEATURE_DTYPE, FeatureKind
-from processing.illumination import compensate_illumination, illumination_map
-from processing.minutiae import node_kind, node_orientation, trace_skeleton
-from processing.pores import detect_blob_pores
-from processing.preprocess import binarize, detect_background, local_mean
-from processing.subpixel import refine_pores
-from processing.thinning import thin
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor, extract_features
+from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind
+from skinstretch.processing.illumination import compensate_illumination, illumination_map
+from skinstretch.processing.minutiae import node_kind, node_orientation, trace_skeleton
+from skinstretch.processing.pores import detect_blob_pores
+from skinstretch.processing.preprocess import binarize, detect_background, local_mean
+from skinstretch.processing.feature_localization import refine_pores
+from skinstretch.processing.thinning import thin
 
 PPM = 62.0
 CAL = Calibration(px_per_mm=PPM)

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.forcesensor.netft import (
+from skinstretch.drivers.forcesensor.netft import (
     RECORD_SIZE,
     RdtCommand,
     RdtRecord,
@@ -23,7 +23,8 @@ from drivers.forcesensor.netft import (
     ft_to_counts,
     parse_calibration,
 )
-from processing.errors import InvalidInputError, ProtocolError
+from skinstretch.drivers.errors import ProtocolError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def test_request_bytes_match_the_ati_layout():

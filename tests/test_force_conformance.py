@@ -1,5 +1,5 @@
 """One conformance suite for every ForceSensor available here: the Net F/T driver against its simulator, in
-the same process and as a separate program (``python -m simulators.netft``)."""
+the same process and as a separate program (``python -m skinstretch.simulators.netft_box``)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers.forcesensor.base import FORCE_SAMPLE_DTYPE, ForceSample, ForceSensor
-from drivers.forcesensor.netft import NetFTSensor
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
-from simulators.netft import NetFTSimulator, normal_force_wrench
+from skinstretch.drivers.forcesensor.base import FORCE_SAMPLE_DTYPE, ForceSample, ForceSensor
+from skinstretch.drivers.forcesensor.netft import NetFTSensor
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.netft_box import NetFTSimulator, normal_force_wrench
 
 FORCE_N = 1.5
 
@@ -27,7 +28,7 @@ def sensor(request) -> ForceSensor:
         sim.close()
     else:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "simulators.netft", "--port", "0", "--rate", "500", "--force", str(FORCE_N)],
+            [sys.executable, "-m", "skinstretch.simulators.netft_box", "--port", "0", "--rate", "500", "--force", str(FORCE_N)],
             stdout=subprocess.PIPE,
             text=True,
         )

@@ -9,9 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from drivers.forcesensor.netft import NetFTSensor
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError
-from simulators.netft import NetFTFaults, NetFTSimulator, normal_force_wrench
+from skinstretch.drivers.forcesensor.netft import NetFTSensor
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.netft_box import NetFTFaults, NetFTSimulator, normal_force_wrench
 
 
 def _sensor_for(sim, **kwargs) -> NetFTSensor:

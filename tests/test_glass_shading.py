@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.glass_shading import glass_shading, remove_glass_shading
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.glass_shading import glass_shading, remove_glass_shading
 
 H, W, N, STEP = 200, 160, 80, 0.5
 

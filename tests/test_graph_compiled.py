@@ -1,4 +1,4 @@
-"""The compiled skeleton graph (processing.minutiae.GraphArrays) and the skeleton rules that run on it.
+"""The compiled skeleton graph (skinstretch.processing.minutiae.GraphArrays) and the skeleton rules that run on it.
 
 The rules were list-based Python; they now run compiled on flat arrays with the same results to the bit. These tests
 cover what the port added: the numerics that must match Python's and numpy's, degenerate and large skeletons, the
@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from processing.editing import (
+from skinstretch.processing.editing import (
     edit_graph,
     heal_broken_valleys,
     line_pixels,
@@ -21,9 +21,9 @@ from processing.editing import (
     remove_short_spurs,
     remove_short_valleys,
 )
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind
-from processing.minutiae import (
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
+from skinstretch.processing.minutiae import (
     GraphArrays,
     GraphCapacityError,
     SkeletonGraph,
@@ -37,7 +37,7 @@ from processing.minutiae import (
     trace_arrays,
     trace_skeleton,
 )
-from processing.thinning import thin
+from skinstretch.processing.thinning import thin
 
 N_PX = 10
 HEAL = dict(max_distance_px=37.2, max_angle_deg=30.0, orientation_px=N_PX)
@@ -383,7 +383,7 @@ def test_settle_merges_the_two_valleys_left_at_a_node():
 
 
 def test_an_edit_that_never_fits_raises_instead_of_looping():
-    from processing.minutiae import GraphCapacityError
+    from skinstretch.processing.minutiae import GraphCapacityError
 
     rooms = []
 

@@ -11,10 +11,11 @@ import h5py
 import numpy as np
 import pytest
 
-from drivers.camera_modes import CAMERA_MODES
-from drivers.session_file import SessionTruth, SessionWriter, open_session, write_session
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError, SessionFileError
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.session_file import SessionTruth, SessionWriter, open_session, write_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 MODE = CAMERA_MODES["strip"]
 CAL = Calibration(px_per_mm=62.0)
@@ -154,9 +155,9 @@ def test_sigkill_while_recording_loses_at_most_last_flush(tmp_path):
     script = textwrap.dedent(
         f"""
         import numpy as np, time
-        from drivers.camera_modes import CAMERA_MODES
-        from drivers.session_file import SessionWriter
-        from processing.calibration import Calibration
+        from skinstretch.drivers.camera_modes import CAMERA_MODES
+        from skinstretch.drivers.session_file import SessionWriter
+        from skinstretch.processing.pixel_scale import Calibration
         mode = CAMERA_MODES["strip"]
         w = SessionWriter({str(path)!r}, camera_mode=mode, calibration=Calibration(62.0), flush_interval_s=0.02)
         frame = np.zeros((mode.height, mode.width), np.uint8)

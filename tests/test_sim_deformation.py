@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from processing.errors import InvalidInputError
-from simulators.deformation import (
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators.deformation import (
     DeformationModel,
     MotionProfile,
     PlasticDistortion,
     RidgeMechanics,
     green_lagrange,
 )
-from simulators.surfaces import RuledSurface
+from skinstretch.simulators.surfaces import RuledSurface
 
 
 def _model(**kw):

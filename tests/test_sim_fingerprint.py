@@ -6,10 +6,10 @@ import pytest
 from scipy import ndimage as ndi
 from skimage.morphology import skeletonize
 
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind
-from simulators.fingerprint import Fingerprint, FingerprintParams
-from simulators.scene import SceneRenderer, load_scene
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
+from skinstretch.simulators.fingerprint import Fingerprint, FingerprintParams
+from skinstretch.simulators.scene import SceneRenderer, load_scene
 
 
 @pytest.fixture(scope="module")

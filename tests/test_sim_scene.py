@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from drivers.session_file import open_session
-from processing.errors import ConfigError, InvalidInputError
-from simulators.scene import SCENE_NAMES, SceneRenderer, load_scene, parse_scene, render_session
+from skinstretch.drivers.session_file import open_session
+from skinstretch.processing.errors import ConfigError, InvalidInputError
+from skinstretch.simulators.scene import SCENE_NAMES, SceneRenderer, load_scene, parse_scene, render_session
 
 
 def _flat_uniform(name="flatL", n=16, **update):
@@ -141,7 +141,7 @@ def test_scene_errors_name_file_field_and_line(tmp_path):
 
 
 def test_cli_writes_a_readable_session(tmp_path, capsys):
-    from experiments.cli import main
+    from skinstretch.cli import main
 
     out = tmp_path / "s.h5"
     assert main(["simulate", "flatS", "-o", str(out), "--frames", "3", "--seed", "2", "--noise", "1.5", "--no-progress"]) == 0
@@ -156,7 +156,7 @@ def test_cli_writes_a_readable_session(tmp_path, capsys):
 
 
 def test_render_session_round_trips_through_a_file(tmp_path, sim_session):
-    from simulators.scene import simulate_to_file
+    from skinstretch.simulators.scene import simulate_to_file
 
     path = simulate_to_file("flatL", tmp_path / "f.h5", n_frames=20, seed=0)
     with open_session(path) as s:
@@ -165,7 +165,7 @@ def test_render_session_round_trips_through_a_file(tmp_path, sim_session):
 
 
 def test_renders_through_prism_optics():
-    prism = pytest.importorskip("simulators.prism_optics")
+    prism = pytest.importorskip("skinstretch.simulators.prism_optics")
     optics = prism.PrismOptics(field_width_mm=6.1)
     r = SceneRenderer(load_scene("flatS").model_copy(update={"n_frames": 3}), seed=0, optics=optics)
     frame = r.render_frame(2)
@@ -177,7 +177,7 @@ def test_renders_through_prism_optics():
 
 
 def test_camera_noise_has_the_stated_sigma():
-    from simulators.camera_model import CameraModel
+    from skinstretch.simulators.sensor_model import CameraModel
 
     cam = CameraModel(blur_sigma_px=0.0, noise_sigma=2.0, shot_noise_gain=0.05)
     img = np.full((484, 640), 100.3, np.float32)

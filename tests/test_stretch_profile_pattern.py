@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.stretch import StretchProfile, horizontal_stretch_profile, mean_profile, profile_pattern
-from processing.tracking import MotionSample
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.stretch import StretchProfile, horizontal_stretch_profile, mean_profile, profile_pattern
+from skinstretch.processing.tracking import MotionSample
 
 
 def _sample(x, d):
@@ -82,9 +82,9 @@ def test_profile_pattern_orders_the_lobes_along_the_sliding_direction():
 
 def _true_pattern(name, n_frames):
     """Seed Figure 94 from the simulator's true motion of a short session (no rendering needed)."""
-    from experiments.analysis import stretch_profile
-    from experiments.evaluation.tracking import TruthField
-    from simulators.scene import SceneRenderer, load_scene
+    from skinstretch.experiments.analysis import stretch_profile
+    from skinstretch.experiments.evaluation.tracking import TruthField
+    from skinstretch.simulators.scene import SceneRenderer, load_scene
 
     r = SceneRenderer(load_scene(name), seed=0)
     tf = TruthField(r.truth(n_frames))
@@ -110,9 +110,9 @@ def test_true_profile_compresses_before_a_ridge_and_expands_after_it_reversed_fo
 @pytest.fixture(scope="module")
 def measured():
     """The feature method on short rendered sessions, evaluated against their truth."""
-    from experiments.analysis import AnalysisParams, analyze_frames
-    from experiments.evaluation.tracking import TruthField, evaluate_profile
-    from simulators.scene import render_session
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames
+    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_profile
+    from skinstretch.simulators.scene import render_session
 
     base = AnalysisParams()
     params = replace(base, tracking=replace(base.tracking, min_length_frames=10))

@@ -1,12 +1,12 @@
-"""The dense method (processing.flow) on exact synthetic fingerprints."""
+"""The dense method (skinstretch.processing.flow) on exact synthetic fingerprints."""
 
 import numpy as np
 import pytest
 
-from processing.calibration import Calibration
-from processing.errors import InvalidInputError
-from processing.flow import DenseFlow, FlowParams, grid_strain, sample_dense_flow
-from processing.stretch import triangulation_strain
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.flow import DenseFlow, FlowParams, grid_strain, sample_dense_flow
+from skinstretch.processing.stretch import triangulation_strain
 from tests.test_track_support import affine_field, render
 
 CAL = Calibration(px_per_mm=62.0)

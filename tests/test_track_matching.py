@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from processing.calibration import Calibration
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.feature_table import empty_features, make_features
-from processing.robust_tracking import GlobalMotionEstimator, local_predictions
-from processing.subpixel_displacement import SubpixelParams, SubpixelRefiner
-from processing.tracking import FeatureTracker, TrackingParams, match_features, smooth_positions
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.feature_table import empty_features, make_features
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.displacement_refinement import SubpixelParams, SubpixelRefiner
+from skinstretch.processing.tracking import FeatureTracker, TrackingParams, match_features, smooth_positions
 from tests.test_track_support import affine_field, moving_features, render
 
 CAL = Calibration(px_per_mm=62.0)

@@ -5,16 +5,17 @@ import json
 import numpy as np
 import pytest
 
-from experiments.analysis import AnalysisParams, analyze_frames, analyze_session, chain_flows
-from experiments.cli import main
-from experiments.results_file import read_results, write_results
-from processing.calibration import Calibration
-from processing.errors import InsufficientDataError, InvalidInputError, SessionFileError
-from processing.flow import DenseFlow
-from processing.tracking import TrackingParams
+from skinstretch.experiments.analysis import AnalysisParams, analyze_frames, analyze_session, chain_flows
+from skinstretch.cli import main
+from skinstretch.experiments.results_file import read_results, write_results
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.flow import DenseFlow
+from skinstretch.processing.tracking import TrackingParams
 from tests.test_track_support import affine_field, render
 
-scene = pytest.importorskip("simulators.scene")
+scene = pytest.importorskip("skinstretch.simulators.scene")
 
 N_FRAMES = 8
 

@@ -5,18 +5,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from processing.calibration import Calibration
-from processing.display_mapping import DisplayMappingParams, HorizontalMapping, tactile_movie
-from processing.errors import InsufficientDataError, InvalidInputError
-from processing.fingertip import fingertip_motion, visibility_window
-from processing.stretch import (
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.display_mapping import DisplayMappingParams, HorizontalMapping, tactile_movie
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.fingertip import fingertip_motion, visibility_window
+from skinstretch.processing.stretch import (
     horizontal_stretch_profile,
     local_movement,
     mean_profile,
     patch_area_change,
     triangulation_strain,
 )
-from processing.tracking import MotionSample
+from skinstretch.processing.tracking import MotionSample
 
 CAL = Calibration(px_per_mm=20.0)
 
@@ -189,7 +189,7 @@ def test_tactile_movie_resets_contactors_out_of_view():
 
 
 def test_a_batch_gives_each_pair_what_triangulation_strain_gives():
-    from processing.stretch import COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, triangulation_strains
+    from skinstretch.processing.stretch import COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, triangulation_strains
 
     rng = np.random.default_rng(3)
     good = [_sample(_points(60, seed=k), rng.normal(0, 0.5, (60, 2)), a=k, b=k + 1) for k in range(4)]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from processing.feature_table import make_features
+from skinstretch.processing.feature_table import make_features
 
 
 def pattern(x: np.ndarray, y: np.ndarray, *, period: float = 27.0, seed: int = 0) -> np.ndarray:

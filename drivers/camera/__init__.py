@@ -1,14 +1,14 @@
-"""Cameras: the :class:`~drivers.camera.base.Camera` interface and its drivers.
+"""Cameras: the :class:`~skinstretch.drivers.camera.base.Camera` interface and its drivers.
 
-* :class:`drivers.camera.aravis.AravisCamera`: GigE Vision / USB3 Vision cameras through Aravis (optional
+* :class:`skinstretch.drivers.camera.aravis.AravisCamera`: GigE Vision / USB3 Vision cameras through Aravis (optional
   system package; import it from its module).
-* :class:`drivers.camera.v4l2.V4L2Camera`: Video4Linux2 devices through OpenCV.
-* :class:`drivers.camera.replay.ReplayCamera`: session files, image sequences and video files, replayed.
+* :class:`skinstretch.drivers.camera.v4l2.V4L2Camera`: Video4Linux2 devices through OpenCV.
+* :class:`skinstretch.drivers.camera.replay.ReplayCamera`: session files, image sequences and video files, replayed.
 
-The simulated camera lives in :mod:`simulators.camera` (drivers never import simulators).
+The simulated camera lives in :mod:`skinstretch.simulators.simulated_camera` (drivers never import simulators).
 """
 
-from drivers.camera.base import (
+from skinstretch.drivers.camera.base import (
     Camera,
     CameraStats,
     Clock,

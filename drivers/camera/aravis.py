@@ -18,9 +18,10 @@ import time
 
 import numpy as np
 
-from drivers.camera.base import Camera, Frame, FrameIdUnwrapper
-from drivers.camera_modes import CameraMode
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.camera.base import Camera, Frame, FrameIdUnwrapper
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["AravisCamera", "aravis_available", "load_aravis"]
 

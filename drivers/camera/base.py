@@ -25,9 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.camera_modes import CameraMode, camera_mode
-from drivers.streaming import StreamingDevice
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.camera_modes import CameraMode, camera_mode
+from skinstretch.drivers.streaming import StreamingDevice
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
     "Camera",

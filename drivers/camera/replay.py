@@ -1,4 +1,4 @@
-"""Replay recorded images through the :class:`~drivers.camera.base.Camera` interface.
+"""Replay recorded images through the :class:`~skinstretch.drivers.camera.base.Camera` interface.
 
 Sources:
 
@@ -9,7 +9,7 @@ Sources:
 Frames come out at the recorded rate (``rate_hz=None``: the session's host time stamps, the video's frame rate),
 at a chosen rate, or as fast as they are read (``rate_hz=math.inf``). Unlike a live camera a replay never drops a
 frame: a slow reader simply slows the replay. After the last frame :meth:`read` raises
-:class:`~drivers.camera.base.EndOfStreamError` (unless ``loop=True``). Colour images are converted to grey.
+:class:`~skinstretch.drivers.camera.base.EndOfStreamError` (unless ``loop=True``). Colour images are converted to grey.
 """
 
 from __future__ import annotations
@@ -24,10 +24,11 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from drivers.camera.base import Camera, Clock, EndOfStreamError, Frame, MonotonicClock
-from drivers.camera_modes import CameraMode
-from drivers.session_file import open_session
-from processing.errors import DeviceError, InvalidInputError, SessionFileError
+from skinstretch.drivers.camera.base import Camera, Clock, EndOfStreamError, Frame, MonotonicClock
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.session_file import open_session
+from skinstretch.drivers.errors import DeviceError, SessionFileError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["ReplayCamera"]
 

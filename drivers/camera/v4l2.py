@@ -14,9 +14,10 @@ import time
 import cv2
 import numpy as np
 
-from drivers.camera.base import Camera, Frame
-from drivers.camera_modes import CameraMode
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.camera.base import Camera, Frame
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["V4L2Camera", "v4l2_devices"]
 

@@ -13,7 +13,7 @@
 """
 
 from .base import DisplayInfo, FrameAck, PreparedFrame, TactileDisplay, TimedFrameAck, TimedReceipt
-from .playback import BufferedPlaybackReport, PlaybackReport, stream_movie, stream_movie_buffered
+from .movie_stream import BufferedPlaybackReport, PlaybackReport, stream_movie, stream_movie_buffered
 from .safety import LimitedCommand, limit_command
 from .stress import StressDisplay
 from .transports import SerialTransport, Transport, UsbTransport

@@ -1,6 +1,6 @@
 """The tactile display interface: one small ABC, public methods validate and clamp, ``_do_*`` talk to the device.
 
-Every command passes :func:`drivers.display.safety.limit_command` in :meth:`TactileDisplay.send_frame` /
+Every command passes :func:`skinstretch.drivers.display.safety.limit_command` in :meth:`TactileDisplay.send_frame` /
 :meth:`TactileDisplay.submit_frame` / :meth:`TactileDisplay.send_timed` before a subclass sees it, so no concrete
 driver can forget the limits.
 
@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.errors import DeviceError
+
+from skinstretch.processing.errors import InvalidInputError
 
 from .safety import LimitedCommand, limit_command, validate_limits
 from .stress_protocol import (COLS, DEFAULT_MAX_STEP_UM, DEFAULT_WATCHDOG_S, MAX_START_DELAY_US, RANGE_UM, ROWS,
@@ -61,7 +63,7 @@ class TimedFrameAck(FrameAck):
     frame took effect, i.e. the response to the command in force since tick - 1.
 
     The fields keep :class:`FrameAck`'s meaning for consumers that pair consecutive acks (``measured_um`` of one
-    answers ``command_um`` of the one before, e.g. ``experiments.playback.ContactorCorrector``): ``seq`` is
+    answers ``command_um`` of the one before, e.g. ``skinstretch.experiments.playback.ContactorCorrector``): ``seq`` is
     ``tick % 256`` (consecutive records are consecutive ticks), ``command_um`` the command in force after this
     tick (the tick's frame when ``applied``, otherwise the one held). ``sent_at`` is when the tick's frame left
     the host (NaN if it never did), ``received_at`` when the reply carrying this report arrived.
@@ -76,7 +78,7 @@ class TimedFrameAck(FrameAck):
 class TimedReceipt:
     """The display's reply to one timed frame: what became of it, the FIFO fill, when it arrived (firmware clock).
 
-    ``reply`` is the decoded wire record (:class:`~drivers.display.stress_protocol.TimedFrameReply`).
+    ``reply`` is the decoded wire record (:class:`~skinstretch.drivers.display.stress_protocol.TimedFrameReply`).
     """
 
     seq: int  # wire sequence number of the frame

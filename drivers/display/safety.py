@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 from .stress_protocol import COLS, POSITION_STEP_UM, RANGE_UM, ROWS
 

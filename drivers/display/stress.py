@@ -13,7 +13,9 @@ from typing import Callable
 
 import numpy as np
 
-from processing.errors import DeviceError, DeviceTimeoutError, InvalidInputError, ProtocolError
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError
+
+from skinstretch.processing.errors import InvalidInputError
 
 from . import stress_protocol as sp
 from .base import DisplayInfo, FrameAck, TactileDisplay, TimedFrameAck, TimedReceipt

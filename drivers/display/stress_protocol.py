@@ -33,7 +33,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from processing.errors import InvalidInputError, ProtocolError
+from skinstretch.drivers.errors import ProtocolError
+
+from skinstretch.processing.errors import InvalidInputError
 
 SYNC = b"\xa5\x5a"
 HEADER_SIZE = 5  # sync (2) + len + seq + cmd
@@ -274,7 +276,7 @@ def encode_positions(positions_um: np.ndarray) -> bytes:
     if a.shape != (ROWS, COLS):
         raise InvalidInputError(f"positions_um must have shape (10, 10), got {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise InvalidInputError("positions_um must be finite (clamp with drivers.display.safety first)")
+        raise InvalidInputError("positions_um must be finite (clamp with skinstretch.drivers.display.safety first)")
     counts = np.rint(a / POSITION_STEP_UM)
     if np.any(np.abs(counts) > POSITION_CODE_MAX):
         raise InvalidInputError(f"positions_um outside +/-{POSITION_CODE_MAX * POSITION_STEP_UM} um: "

@@ -1,6 +1,6 @@
 """Byte transports a display owns (never inherits): a serial port (pyserial URL) or a USB bulk pair (pyusb).
 
-A transport moves bytes and nothing else. Link failures become :class:`processing.errors.DeviceError`; a read
+A transport moves bytes and nothing else. Link failures become :class:`skinstretch.drivers.errors.DeviceError`; a read
 that times out returns ``b""`` (the protocol layer decides what a missing reply means).
 """
 
@@ -14,9 +14,11 @@ import select
 import threading
 import time
 
-from processing.errors import DeviceError, InvalidInputError
+from skinstretch.drivers.errors import DeviceError
 
 #: pid.codes test VID/PID: the STReSS prototype has no USB identity of its own; a real build would get one.
+
+from skinstretch.processing.errors import InvalidInputError
 STRESS_USB_VENDOR_ID = 0x1209
 STRESS_USB_PRODUCT_ID = 0x0001
 STRESS_USB_EP_OUT = 0x01

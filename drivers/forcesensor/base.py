@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.streaming import StreamingDevice
-from processing.errors import InvalidInputError
+from skinstretch.drivers.streaming import StreamingDevice
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["FORCE_SAMPLE_DTYPE", "ForceSample", "ForceSensor", "ForceStats"]
 

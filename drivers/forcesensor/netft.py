@@ -29,8 +29,9 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.forcesensor.base import ForceSample, ForceSensor
-from processing.errors import DeviceError, InvalidInputError, ProtocolError
+from skinstretch.drivers.forcesensor.base import ForceSample, ForceSensor
+from skinstretch.drivers.errors import DeviceError, ProtocolError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
     "RDT_HEADER",
@@ -253,7 +254,7 @@ class NetFTSensor(ForceSensor):
     Parameters
     ----------
     host : str
-        The box's IP address (or 127.0.0.1 for :class:`simulators.netft.NetFTSimulator`).
+        The box's IP address (or 127.0.0.1 for :class:`skinstretch.simulators.netft_box.NetFTSimulator`).
     port : int
         RDT port (49152 on the box).
     counts_per_force, counts_per_torque : float
@@ -266,9 +267,9 @@ class NetFTSensor(ForceSensor):
 
     Examples
     --------
-    Against the simulated box (:mod:`simulators.netft`):
+    Against the simulated box (:mod:`skinstretch.simulators.netft_box`):
 
-    >>> from simulators.netft import NetFTSimulator, normal_force_wrench
+    >>> from skinstretch.simulators.netft_box import NetFTSimulator, normal_force_wrench
     >>> with NetFTSimulator(rate_hz=1000, wrench=normal_force_wrench(lambda t: 2.0)) as box:
     ...     host, port = box.address
     ...     with NetFTSensor(host, port=port) as sensor:

@@ -1,6 +1,6 @@
 """Bench section ``calibration``: geometric calibration through flat, ridge and valley surfaces (seed 3.4, 7.2.1).
 
-Grid images are rendered through :class:`simulators.prism_optics.PrismOptics` (45-degree view, perspective, lens
+Grid images are rendered through :class:`skinstretch.simulators.prism_optics.PrismOptics` (45-degree view, perspective, lens
 distortion, the surface's height profile) with 10 % of the dots missing and a few spurious specks; the fitted
 mapping is compared with the optics' exact inverse over the whole field. A grid only fixes the surface frame up to
 a rigid motion of the unrolled plane, so each error is measured after the best rigid (rotation + translation)
@@ -15,12 +15,12 @@ import time
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
-from experiments.bench import BenchOptions, BenchTable
-from processing.errors import CalibrationError
-from processing.geometric_calibration import calibrate_grid_images, detect_dots
-from simulators.calibration_grid import render_calibration_grid
-from simulators.prism_optics import PrismOptics, SkewedRidgeSurface
-from simulators.surfaces import RuledSurface
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.processing.errors import CalibrationError
+from skinstretch.processing.geometric_calibration import calibrate_grid_images, detect_dots
+from skinstretch.simulators.dot_grid_images import render_calibration_grid
+from skinstretch.simulators.prism_optics import PrismOptics, SkewedRidgeSurface
+from skinstretch.simulators.surfaces import RuledSurface
 
 SECTION = "calibration"
 DESCRIPTION = "grid calibration through the prism: mapping error vs truth, fake strain of a rigid slide, dots"
@@ -181,8 +181,8 @@ def _scene_chain_table(fitted: dict, options: BenchOptions) -> BenchTable:
     columns = ["positions measured with", "features", "Delaunay edges", "RMS strain %", "max |strain| %",
                f"<= {TARGET_STRAIN_PCT:g} %"]
     try:
-        from simulators.scene import SceneRenderer, load_scene
-        from simulators.prism_optics import prism_optics_for_scene
+        from skinstretch.simulators.scene import SceneRenderer, load_scene
+        from skinstretch.simulators.prism_optics import prism_optics_for_scene
 
         scene = load_scene("ridgeL")
         scene = scene.model_copy(update={

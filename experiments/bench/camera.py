@@ -12,12 +12,12 @@ import time
 
 import numpy as np
 
-from drivers.camera.base import Camera
-from drivers.camera_modes import CAMERA_MODES, CameraMode
-from experiments.bench import BenchOptions, BenchTable
-from processing.errors import DeviceError
-from simulators.camera import SimulatedCamera
-from simulators.gige_camera import FakeGigECamera
+from skinstretch.drivers.camera.base import Camera
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.drivers.errors import DeviceError
+from skinstretch.simulators.simulated_camera import SimulatedCamera
+from skinstretch.simulators.gige_fake_camera import FakeGigECamera
 
 SECTION = "camera"
 DESCRIPTION = "camera acquisition: seed modes and a 500 Hz burst, lost frames and CPU (Aravis fake, GigE loopback, sim)"
@@ -69,7 +69,7 @@ def _stream(camera: Camera, mode: CameraMode, seconds: float) -> list:
 
 
 def _aravis_rows(seconds: float, notes: list[str]) -> list[list]:
-    from drivers.camera.aravis import AravisCamera, aravis_available
+    from skinstretch.drivers.camera.aravis import AravisCamera, aravis_available
 
     if not aravis_available():
         notes.append("Aravis bindings not importable: Aravis rows skipped")

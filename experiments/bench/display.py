@@ -26,15 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.display import stress_protocol as sp
-from drivers.display.playback import (DEFAULT_LEAD_S, PHASES, BufferedPlaybackReport, PlaybackReport, find_stalls,
+from skinstretch.drivers.display import stress_protocol as sp
+from skinstretch.drivers.display.movie_stream import (DEFAULT_LEAD_S, PHASES, BufferedPlaybackReport, PlaybackReport, find_stalls,
                                       stream_movie, stream_movie_buffered)
-from drivers.display.stress import StressDisplay
-from drivers.display.transports import SerialTransport, UsbTransport
-from experiments.bench import BenchOptions, BenchTable
-from processing.errors import InvalidInputError
-from simulators import stresssim
-from simulators.stress_firmware import PacedLink, RealClock, StressFirmware
+from skinstretch.drivers.display.stress import StressDisplay
+from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.simulators import stress_links
+from skinstretch.simulators.stress_firmware import PacedLink, RealClock, StressFirmware
 
 SECTION = "display"
 DESCRIPTION = "STReSS playback at 700 Hz: missed deadlines, period jitter (host and firmware clock), position error"
@@ -234,7 +234,7 @@ def _buffered_row(name: str, report: BufferedPlaybackReport, record: dict[str, n
 def run(options: BenchOptions) -> list[BenchTable]:
     seconds = options.seconds or (3.0 if options.quick else 60.0)
     movie = travelling_wave(int(seconds * RATE_HZ))
-    stresssim.register_url_handler()
+    stress_links.register_url_handler()
     rows, grids, notes = [], {}, []
     workdir = Path(options.workdir) if options.workdir else Path(tempfile.gettempdir())
     workdir.mkdir(parents=True, exist_ok=True)
@@ -251,12 +251,12 @@ def run(options: BenchOptions) -> list[BenchTable]:
                                      (load_before, _load())))
 
     def url_link(name: str, *, finger_load: bool) -> tuple:
-        link = stresssim.make_link(seed=1)
+        link = stress_links.make_link(seed=1)
         if finger_load:  # skin as stiff as a bender, half of it, on the centre of the array
             load = np.zeros((sp.ROWS, sp.COLS))
             load[3:7, 3:7] = 0.25
             link.firmware.benders.set_load(load)
-        return link, stresssim.attach(name, link)
+        return link, stress_links.attach(name, link)
 
     with _RealtimePriority() as priority:
         # 0. the same deadline loop with no display at all: what the machine alone costs
@@ -271,14 +271,14 @@ def run(options: BenchOptions) -> list[BenchTable]:
             link, url = url_link("bench_url", finger_load=finger_load)
             report = _play(StressDisplay(SerialTransport(url), **DRIVER_OPTIONS), movie)
             played(name, report, link.firmware.frame_times, load_before)
-            stresssim.detach("bench_url")
+            stress_links.detach("bench_url")
 
             load_before = _load()
             link, url = url_link("bench_url", finger_load=finger_load)
             report = _play_buffered(StressDisplay(SerialTransport(url), **BUFFERED_DRIVER_OPTIONS), movie)
             link.advance()
             played_buffered(name, report, link.firmware.timed.as_arrays(), load_before)
-            stresssim.detach("bench_url")
+            stress_links.detach("bench_url")
             if finger_load:
                 grids["stresssim:// + load 0.25 N/mm on rows/cols 3-6, buffered"] = report
             else:
@@ -290,7 +290,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
             load_before = _load()
             record = workdir / f"display-firmware-{os.getpid()}.npz"
             options_ = BUFFERED_DRIVER_OPTIONS if buffered else DRIVER_OPTIONS
-            with stresssim.FirmwareProcess(record_path=record, seed=1) as firmware:
+            with stress_links.FirmwareProcess(record_path=record, seed=1) as firmware:
                 display = StressDisplay(SerialTransport(firmware.port), **options_)
                 report = (_play_buffered if buffered else _play)(display, movie)
             records = firmware.records()
@@ -306,7 +306,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
             load_before = _load()
             link = PacedLink.usb_high_speed(StressFirmware(seed=1, t0=time.perf_counter()), clock=RealClock())
             options_ = BUFFERED_DRIVER_OPTIONS if buffered else DRIVER_OPTIONS
-            display = StressDisplay(UsbTransport(backend=stresssim.StressUsbBackend(link)), **options_)
+            display = StressDisplay(UsbTransport(backend=stress_links.StressUsbBackend(link)), **options_)
             report = (_play_buffered if buffered else _play)(display, movie)
             link.advance()
             if buffered:

@@ -2,14 +2,14 @@
 
 Per scene: frames/s for a sequence (single thread and a 2-thread pool), and recall / precision / localisation
 RMSE / repeatability of minutiae and pores against the simulator's truth (matching rules in
-:mod:`experiments.evaluation.features`).
+:mod:`skinstretch.experiments.evaluation.features`).
 """
 
 from __future__ import annotations
 
 import time
 
-from experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.bench import BenchOptions, BenchTable
 
 SECTION = "features"
 DESCRIPTION = "feature extraction and editing (seed ch. 4): frames/s, recall, precision, localisation, repeatability"
@@ -35,10 +35,10 @@ _PASSES = 3
 def _scene_row(name: str, n_frames: int) -> list:
     import numpy as np
 
-    from experiments.evaluation.features import evaluate_features
-    from processing.editing import border_mask
-    from processing.extraction import FeatureExtractor
-    from simulators.scene import load_scene, render_session
+    from skinstretch.experiments.evaluation.features import evaluate_features
+    from skinstretch.processing.editing import border_mask
+    from skinstretch.processing.extraction import FeatureExtractor
+    from skinstretch.simulators.scene import load_scene, render_session
 
     scene = load_scene(name).model_copy(update={"n_frames": n_frames})
     rs = render_session(scene, n_frames=n_frames, seed=0)

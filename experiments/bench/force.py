@@ -1,6 +1,6 @@
 """Bench section ``force``: ATI Net F/T RDT streaming on loopback against the simulated box.
 
-The simulator runs as a separate program (``python -m simulators.netft``), as a real box would be a separate
+The simulator runs as a separate program (``python -m skinstretch.simulators.netft_box``), as a real box would be a separate
 machine, so the CPU column is the driver's alone. Speed: achieved sample rate and driver CPU use. Error: samples
 lost (sequence gaps; the target is zero at 1 kHz), reordered, garbled, and the force error against the load the
 box applies (constant normal force here; the counts quantise it to 1e-6 N).
@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from drivers.forcesensor.netft import NetFTSensor
-from experiments.bench import BenchOptions, BenchTable
-from simulators.netft import NetFTFaults, NetFTSimulator, normal_force_wrench
+from skinstretch.drivers.forcesensor.netft import NetFTSensor
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.simulators.netft_box import NetFTFaults, NetFTSimulator, normal_force_wrench
 
 SECTION = "force"
 DESCRIPTION = "Net F/T RDT over loopback UDP: 1 kHz and 7 kHz, lost/reordered samples, force error, driver CPU"
@@ -59,7 +59,7 @@ def _stream(sensor: NetFTSensor, seconds: float, truth) -> tuple[list, float]:
 
 def _subprocess_row(rate_hz: float, seconds: float) -> list:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "simulators.netft", "--port", "0", "--rate", str(rate_hz), "--force", str(FORCE_N)],
+        [sys.executable, "-m", "skinstretch.simulators.netft_box", "--port", "0", "--rate", str(rate_hz), "--force", str(FORCE_N)],
         stdout=subprocess.PIPE,
         text=True,
     )

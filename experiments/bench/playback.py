@@ -1,6 +1,6 @@
 """Bench section ``playback``: open- against closed-loop tactile movie playback on the simulated STReSS.
 
-The firmware twin (``simulators.stress_firmware``: first-order lag, play-operator hysteresis, seeded gain
+The firmware twin (``skinstretch.simulators.stress_firmware``: first-order lag, play-operator hysteresis, seeded gain
 spread, finger load as a lateral stiffness in series with each bender) is driven through the real driver over its
 paced serial link at 700 Hz. The same movie (10x10 sinusoids, 10-30 um, 2 Hz, random phases — a stand-in for a
 measured movie with the same bandwidth) is played open loop and closed loop at several finger loads. Reported:
@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.bench import BenchOptions, BenchTable
-from experiments.playback import fit_movie, play_movie
-from experiments.rig import make_display, sim_display_url
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.playback import fit_movie, play_movie
+from skinstretch.experiments.rig import make_display, sim_display_url
 
 SECTION = "playback"
 DESCRIPTION = "tactile movie on the simulated STReSS (hysteresis, finger load): RMS error open vs closed loop"

@@ -2,7 +2,7 @@
 
 For each camera mode (640x484 @60 Hz, 640x100 @220 Hz) and each camera (the simulated camera streaming
 pre-rendered fingerprint-like frames in real time; Aravis's in-process fake camera when the bindings import),
-frames go through :class:`experiments.recorder.Recorder` into an SWMR session file for ``seconds`` (10 minutes
+frames go through :class:`skinstretch.experiments.recorder.Recorder` into an SWMR session file for ``seconds`` (10 minutes
 by default, 5 s with ``--quick``). Reported: frames written, frames dropped (frame-id gaps, camera drops and
 recorder drops), CPU use of this process, bytes written and rate, the deepest writer queue, and an integrity
 check (every frame id present once, sampled frames read back identical).
@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.camera_modes import CAMERA_MODES
-from drivers.session_file import open_session
-from experiments.bench import BenchOptions, BenchTable
-from experiments.recorder import Recorder
-from processing.calibration import Calibration
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.recorder import Recorder
+from skinstretch.processing.pixel_scale import Calibration
 
 SECTION = "recording"
 DESCRIPTION = "crash-safe recording at 640x484@60 and 640x100@220: dropped frames, CPU, bytes (sim + Aravis fake)"
@@ -38,12 +38,12 @@ def _pattern_frames(mode, n: int = 32) -> np.ndarray:
 
 
 def _cameras(mode):
-    from simulators.camera import SimulatedCamera  # noqa: PLC0415 - experiments pick the simulated device
+    from skinstretch.simulators.simulated_camera import SimulatedCamera  # noqa: PLC0415 - experiments pick the simulated device
 
     frames = _pattern_frames(mode)
     yield "simulated", lambda: SimulatedCamera(frames.__getitem__, mode, n_frames=len(frames), loop=True)
     try:
-        from drivers.camera.aravis import AravisCamera, aravis_available  # noqa: PLC0415
+        from skinstretch.drivers.camera.aravis import AravisCamera, aravis_available  # noqa: PLC0415
     except ImportError:
         return
     if aravis_available():

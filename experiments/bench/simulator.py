@@ -22,14 +22,14 @@ import time
 import numpy as np
 from scipy import ndimage as ndi
 
-from experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.bench import BenchOptions, BenchTable
 
 SECTION = "simulator"
 DESCRIPTION = "scene simulator: frames/s per scene and truth self-consistency"
 
 
 def _warp_residual(scene, k: int) -> float:
-    from simulators.scene import SceneRenderer
+    from skinstretch.simulators.scene import SceneRenderer
 
     camera = scene.camera.model_copy(update={"vignetting": 0.0, "illumination_tilt": 0.0})
     r = SceneRenderer(scene.model_copy(update={"n_frames": k + 1, "camera": camera}), seed=0, noise=0)
@@ -74,7 +74,7 @@ def _fidelity(name: str, oversample: int, n_frames: int) -> tuple[float, float, 
     frames/s of that oversampling."""
     import cv2
 
-    from simulators.scene import SceneRenderer, load_scene
+    from skinstretch.simulators.scene import SceneRenderer, load_scene
 
     scene = load_scene(name)
     fp = scene.fingerprint.model_copy(update={"ridge_contrast_variation": 0.0, "ridge_texture": 0.0})
@@ -105,7 +105,7 @@ def _fidelity(name: str, oversample: int, n_frames: int) -> tuple[float, float, 
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from simulators.scene import SCENE_NAMES, SceneRenderer, load_scene
+    from skinstretch.simulators.scene import SCENE_NAMES, SceneRenderer, load_scene
 
     names = list(options.scenes or (["flatL", "ridgeS"] if options.quick else SCENE_NAMES))
     n_frames = 30 if options.quick else 180

@@ -3,7 +3,7 @@
 For each scene: our feature method (extraction, matching, sub-pixel refinement, strain) and our dense flow method
 on the whole sequence, then, on the same subset of frame pairs, our flow and OpenCV's DIS (medium preset),
 DeepFlow and Farneback, all judged against the simulator's truth field the same way
-(:mod:`experiments.evaluation.tracking`).
+(:mod:`skinstretch.experiments.evaluation.tracking`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.bench import BenchOptions, BenchTable
 
 SECTION = "tracking"
 DESCRIPTION = "skin motion and strain: our feature and flow methods vs DIS, DeepFlow, Farneback (speed and error)"
@@ -47,11 +47,11 @@ def _pattern_ok(profile: dict) -> str:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from experiments.analysis import AnalysisParams, analyze_frames, stretch_profile, without_glass_shading
-    from experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
-    from processing.flow import DenseFlow, sample_dense_flow
-    from processing.tracking import MotionSample
-    from simulators.scene import load_scene, render_session
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames, stretch_profile, without_glass_shading
+    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
+    from skinstretch.processing.flow import DenseFlow, sample_dense_flow
+    from skinstretch.processing.tracking import MotionSample
+    from skinstretch.simulators.scene import load_scene, render_session
 
     scenes = list(options.scenes or (["ridgeL"] if options.quick else SCENES))
     n_frames = 24 if options.quick else 180
@@ -68,7 +68,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         params = replace(base, tracking=replace(base.tracking, min_length_frames=min(30, max(2, n // 3))))
         if not warmed and params.processes and params.workers >= 2:
             # The feature method's worker processes start once per process (then kept): not a per-session cost.
-            from experiments.analysis_pool import warm_up  # noqa: PLC0415
+            from skinstretch.experiments.analysis_pool import warm_up  # noqa: PLC0415
 
             notes.append(f"feature method: its {params.workers} worker processes were started before timing "
                          f"({warm_up(params.workers):.1f} s, once per process; kept for later analyses)")
@@ -182,7 +182,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     notes.append(
         "profile corr: measured vs true profile (n/a on a flat surface: its truth has no pattern); amp = RMS of the "
         "profile in %; pattern = compression before a ridge and expansion after it (reversed for a valley), as the "
-        "truth; on ridge/valley scenes glass-fixed shading is removed first (processing.glass_shading)"
+        "truth; on ridge/valley scenes glass-fixed shading is removed first (skinstretch.processing.glass_shading)"
     )
     notes.append(
         "feature method: 'extract fps' = extraction alone on one core (each of the 2 worker processes extracts and "

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("session", type=Path, nargs="+",
                    help="session file (HDF5) recorded or simulated by skinstretch; several files or a directory "
-                   "run a batch on Dask (experiments.batch.analyze_many)")
+                   "run a batch on Dask (skinstretch.experiments.batch.analyze_many)")
     p.add_argument("--scheduler", default=None,
                    help="batch: address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("-o", "--output", dest="outdir", type=Path, required=True, help="output directory")
@@ -43,10 +43,10 @@ def parse_spans(text: str) -> tuple[int, ...]:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - keeps --help fast
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - keeps --help fast
 
     if len(args.session) > 1 or args.session[0].is_dir():
-        from experiments.batch import analyze_many  # noqa: PLC0415
+        from skinstretch.experiments.batch import analyze_many  # noqa: PLC0415
 
         options = {"spans": parse_spans(args.span)}
         result = analyze_many(args.session, args.outdir, scheduler=args.scheduler, method=args.method, options=options)

@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-import experiments.bench as _bench
-from experiments.bench import BenchOptions
+import skinstretch.experiments.bench as _bench
+from skinstretch.experiments.bench import BenchOptions
 
 
 def available_sections() -> dict[str, object]:

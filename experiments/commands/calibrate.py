@@ -12,9 +12,9 @@ import json
 import sys
 from pathlib import Path
 
-from drivers.camera_modes import FIELD_OF_VIEW_MM
-from processing.errors import InvalidInputError
-from processing.geometric_calibration import SURFACE_KINDS
+from skinstretch.drivers.camera_modes import FIELD_OF_VIEW_MM
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.geometric_calibration import SURFACE_KINDS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from experiments.calibration_step import calibrate_source, store_calibration  # noqa: PLC0415
+    from skinstretch.experiments.skin_mapping_step import calibrate_source, store_calibration  # noqa: PLC0415
 
     if args.max_frames < 1:
         raise InvalidInputError(f"--max-frames must be >= 1, got {args.max_frames}")

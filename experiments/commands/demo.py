@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from processing.errors import SkinstretchError
-from experiments.protocol import Rig, bundled_protocol, load_protocol
+from skinstretch.processing.errors import SkinstretchError
+from skinstretch.experiments.protocol import Rig, bundled_protocol, load_protocol
 
 import argparse
 
@@ -40,8 +40,8 @@ class DemoResult:
 
 
 def _truth_figure(out_png: Path):
-    """One frame of ridgeL with its true features (experiments.figures.truth, by the simulator engineer)."""
-    from experiments.figures.truth import truth_figure  # noqa: PLC0415
+    """One frame of ridgeL with its true features (skinstretch.experiments.figures.truth, by the simulator engineer)."""
+    from skinstretch.experiments.figures.truth import truth_figure  # noqa: PLC0415
 
     return truth_figure("ridgeL", 90, path=out_png)
 
@@ -50,7 +50,7 @@ def _fallback_truth_figure(ridge_session: Path, out_png: Path):
     """The same picture drawn here from the recorded ridge session's truth (used if the truth module is absent)."""
     from matplotlib.figure import Figure  # noqa: PLC0415
 
-    from drivers.session_file import open_session  # noqa: PLC0415
+    from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
 
     with open_session(ridge_session) as s:
         img = s.frame(0)
@@ -74,10 +74,10 @@ def _fallback_truth_figure(ridge_session: Path, out_png: Path):
 
 def run_demo(outdir: str | Path, *, progress: Callable[[str], None] = print, analysis_workers: int = 2) -> DemoResult:
     """Run the whole demo into ``outdir`` (a new session directory each run) and return where things are."""
-    from experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
-    from experiments.report import build_report  # noqa: PLC0415
-    from experiments.rig import RigDevices  # noqa: PLC0415
-    from experiments.runner import run_protocol  # noqa: PLC0415
+    from skinstretch.experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
+    from skinstretch.experiments.report import build_report  # noqa: PLC0415
+    from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415
+    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415
 
     t0 = time.perf_counter()
     outdir = Path(outdir)

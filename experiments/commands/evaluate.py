@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from processing.errors import SessionFileError
+from skinstretch.drivers.errors import SessionFileError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,9 +39,9 @@ def _clean(v: Any) -> Any:
 
 def evaluate(outdir: Path, session: Path | None = None) -> dict[str, Any]:
     """The evaluation dictionary (see ``skinstretch evaluate --help``)."""
-    from drivers.session_file import open_session  # noqa: PLC0415
-    from experiments.evaluation.tracking import evaluate_tracking  # noqa: PLC0415
-    from experiments.results_file import read_results  # noqa: PLC0415
+    from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.tracking import evaluate_tracking  # noqa: PLC0415
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
     r = read_results(outdir)
     spath = Path(session) if session is not None else Path(r.session_path)
@@ -53,7 +53,7 @@ def evaluate(outdir: Path, session: Path | None = None) -> dict[str, Any]:
     out["features"] = None
     if r.features is not None:
         try:
-            from experiments.evaluation.features import evaluate_features  # noqa: PLC0415
+            from skinstretch.experiments.evaluation.features import evaluate_features  # noqa: PLC0415
         except ImportError:
             pass
         else:

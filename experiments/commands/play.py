@@ -30,9 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
-    from experiments.protocol import DeviceSpec, Rig  # noqa: PLC0415
-    from experiments.rig import RigDevices  # noqa: PLC0415
+    from skinstretch.experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
+    from skinstretch.experiments.protocol import DeviceSpec, Rig  # noqa: PLC0415
+    from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415
 
     movie, rate = load_movie(args.movie)
     movie, scale = fit_movie(movie * args.gain, peak_um=args.peak_um)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from experiments.protocol import bundled_protocol, load_protocol, load_rig
+from skinstretch.experiments.protocol import bundled_protocol, load_protocol, load_rig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
+    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
 
     path = Path(args.protocol)
     if not path.exists() and "/" not in args.protocol and not args.protocol.endswith(".yaml"):

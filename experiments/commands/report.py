@@ -17,8 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from experiments.report import build_report  # noqa: PLC0415
-    from processing.errors import SessionFileError  # noqa: PLC0415
+    from skinstretch.experiments.report import build_report  # noqa: PLC0415
+    from skinstretch.drivers.errors import SessionFileError  # noqa: PLC0415
 
     if not args.session_dir.is_dir():
         raise SessionFileError(f"{args.session_dir}: not a session directory")

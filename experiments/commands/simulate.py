@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so that `skinstretch --help` stays fast.
-    from simulators.scene import load_scene, simulate_to_file
+    from skinstretch.simulators.scene import load_scene, simulate_to_file
 
     if args.frames is not None and args.frames < 1:
         raise InvalidInputError(f"--frames must be a positive integer, got {args.frames}")

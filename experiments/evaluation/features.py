@@ -31,9 +31,9 @@ from typing import Mapping
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from drivers.session_file import SessionTruth
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind, validate_features
+from skinstretch.drivers.session_file import SessionTruth
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind, validate_features
 
 __all__ = ["evaluate_features", "GROUPS"]
 

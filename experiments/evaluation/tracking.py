@@ -20,10 +20,10 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
-from drivers.session_file import SessionTruth
-from experiments.results_file import Results
-from processing.errors import InvalidInputError
-from processing.tracking import MotionSample
+from skinstretch.drivers.session_file import SessionTruth
+from skinstretch.experiments.results_file import Results
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.tracking import MotionSample
 
 
 class TruthField:
@@ -156,7 +156,7 @@ def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tup
 def true_profile(r: Results, tf: TruthField, *, strip_px: float):
     """The seed Figure 94 profile computed by the analysis code from the true motion of the truth grid's skin points
     (every consecutive pair, the results' axis and positions)."""
-    from experiments.analysis import stretch_profile
+    from skinstretch.experiments.analysis import stretch_profile
 
     samples, ft = [], []
     for k in range(r.n_frames - 1):
@@ -187,14 +187,14 @@ def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str
     """The ``"profile"`` part of ``skinstretch evaluate``: correlation with the truth and the pattern (seed 6.3.2).
 
     ``amplitude``/``true_amplitude`` are the RMS of the measured/true profile (fractions per frame pair; one strip
-    width from the ends of the valid positions left out, see :func:`processing.stretch.profile_pattern`) and
+    width from the ends of the valid positions left out, see :func:`skinstretch.processing.stretch.profile_pattern`) and
     ``compression_first``/``true_compression_first`` whether its compression lobe comes before its expansion lobe
     in the sliding direction (the seed: True for a ridge, False for a valley). On a flat surface the true profile
     has no pattern, so ``correlation`` is not computed (null) and a ``note`` says to compare the amplitude with a
     ridge or valley session instead.
     """
-    from processing.errors import InsufficientDataError
-    from processing.stretch import StretchProfile, profile_pattern
+    from skinstretch.processing.errors import InsufficientDataError
+    from skinstretch.processing.stretch import StretchProfile, profile_pattern
 
     surface = str(tf.truth.attrs.get("surface", "unknown"))
     true = true_profile(r, tf, strip_px=strip_px)

@@ -1,7 +1,7 @@
 """The figures of the seed's chapter 6, drawn from results (never inside processing). Matplotlib, Agg backend.
 
-Every function takes plain arrays or the typed results of :mod:`processing.stretch` /
-:mod:`processing.display_mapping` and returns a :class:`matplotlib.figure.Figure` (no pyplot state, so figures
+Every function takes plain arrays or the typed results of :mod:`skinstretch.processing.stretch` /
+:mod:`skinstretch.processing.display_mapping` and returns a :class:`matplotlib.figure.Figure` (no pyplot state, so figures
 can be made from worker threads). Grey levels follow the seed: white / black = +/- ``limit`` (e.g. 5 % over one
 frame pair, 15 % over 11 frames, 50 % for the display's stretch fields).
 
@@ -28,7 +28,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-from processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
     "measurements_figure",

@@ -14,8 +14,8 @@ matplotlib.use("Agg")  # noqa: E402 - figures are files, never windows
 import numpy as np
 from matplotlib.figure import Figure
 
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind, validate_features
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind, validate_features
 
 __all__ = ["feature_overlay_figure", "step_counts_figure"]
 
@@ -44,7 +44,7 @@ def feature_overlay_figure(
     image : (H, W) uint8
         The grey frame.
     features : FEATURE_DTYPE array
-        Features of that frame (:func:`processing.extraction.extract_features`).
+        Features of that frame (:func:`skinstretch.processing.extraction.extract_features`).
     skeleton, binary : (H, W) arrays, optional
         Drawn in red (skeleton) and as a translucent overlay (binary), like seed Figure 67(b).
     truth_xy : (T, 2) array, optional

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from processing.errors import InvalidInputError
-from processing.feature_table import FeatureKind
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
 
 _MARKERS = {
     FeatureKind.VALLEY_ENDING: ("o", "#ff3b30", "valley ending"),
@@ -46,7 +46,7 @@ def truth_figure(scene: str = "ridgeL", frame: int = 90, *, seed: int = 0, noise
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from simulators.scene import SceneRenderer, load_scene
+    from skinstretch.simulators.scene import SceneRenderer, load_scene
 
     sc = load_scene(scene)
     if not 0 <= frame < sc.n_frames:

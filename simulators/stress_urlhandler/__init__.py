@@ -1,2 +1,2 @@
 """pyserial URL handlers of the simulators (added to ``serial.protocol_handler_packages`` by
-:func:`simulators.stresssim.register_url_handler`)."""
+:func:`skinstretch.simulators.stress_links.register_url_handler`)."""

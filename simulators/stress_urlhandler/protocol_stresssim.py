@@ -1,5 +1,5 @@
-"""``stresssim://`` for :func:`serial.serial_for_url`: the STReSS firmware simulator (see simulators.stresssim)."""
+"""``stresssim://`` for :func:`serial.serial_for_url`: the STReSS firmware simulator (see skinstretch.simulators.stress_links)."""
 
-from simulators.stresssim import StressSimSerial as Serial
+from skinstretch.simulators.stress_links import StressSimSerial as Serial
 
 __all__ = ["Serial"]

@@ -1,0 +1,25 @@
+"""Errors of devices and session files (rooted in :class:`skinstretch.processing.errors.SkinstretchError`)."""
+
+from __future__ import annotations
+
+from skinstretch.processing.errors import SkinstretchError
+
+
+class SessionFileError(SkinstretchError):
+    """A session or results file is missing, truncated, corrupt, foreign, or of an unsupported version."""
+
+
+class DeviceError(SkinstretchError):
+    """A device failed: link lost, timeout, protocol violation, fault reported by the firmware."""
+
+
+class DeviceTimeoutError(DeviceError, TimeoutError):
+    """A device did not answer within its deadline."""
+
+
+class ProtocolError(DeviceError):
+    """Bytes on a wire do not follow the protocol (bad framing, CRC, length, sequence)."""
+
+
+class SafetyStop(DeviceError):
+    """Playback was stopped to protect the subject (force ceiling, link failure); contactors were sent to rest."""

@@ -1,0 +1,648 @@
+"""The session file: one HDF5 file per recorded or simulated trial (format documented in docs/session-format.md).
+
+Everything in skinstretch reads and writes sessions through this module: the scene simulator, the recorder, the
+replay camera and the analysis. Datasets are created up front (resizable along time) so that a recorder can
+write in HDF5 SWMR mode, which survives a SIGKILL with nothing lost (see shared FACTS: recording crash test).
+
+Writing
+-------
+* :class:`SessionWriter` streams frames (and optional sample streams such as force or display feedback) into a
+  file in SWMR mode, flushing at least every ``flush_interval_s``.
+* :func:`write_session` writes a whole in-memory session at once (the scene simulator uses it).
+
+Reading
+-------
+:func:`open_session` returns a :class:`Session`; anything that is not a readable skinstretch session raises
+:class:`skinstretch.drivers.errors.SessionFileError` with a message naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import h5py
+import numpy as np
+
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InvalidInputError
+
+FORMAT_NAME = "skinstretch-session"
+FORMAT_VERSION = 1
+
+STATUS_RECORDING = 0
+STATUS_COMPLETE = 1
+STATUS_FAILED = 2
+STATUS_NAMES = {STATUS_RECORDING: "recording", STATUS_COMPLETE: "complete", STATUS_FAILED: "failed"}
+_REASON_LEN = 512
+
+
+@dataclass
+class SessionTruth:
+    """Ground truth of a simulated session (all positions in image pixels, x = column, y = row).
+
+    Attributes
+    ----------
+    feature_id : (F,) int64
+        Stable id of every true feature (minutia or pore).
+    feature_kind : (F,) int8
+        :class:`skinstretch.processing.feature_table.FeatureKind` value of each feature.
+    feature_x, feature_y : (N, F) float64
+        Sub-pixel position of every feature in every frame.
+    feature_visible : (N, F) bool
+        False when the feature is out of view or out of contact in that frame (its position is still the
+        true skin position, projected).
+    grid_x : (GX,) float64, grid_y : (GY,) float64
+        Grid of frame-0 image positions (px, spacing <= 8 px) at which the displacement field is given.
+    displacement : (N, GY, GX, 2) float32
+        Lagrangian displacement (dx, dy) in px of the skin point that is at (grid_x, grid_y) in frame 0:
+        its position in frame k is (grid_x + dx, grid_y + dy).
+    displacement_valid : (N, GY, GX) bool
+        Whether that skin point is in view and in contact in frame k.
+    rigid : (N, 3) float64
+        Fingertip rigid motion relative to frame 0: tx, ty in px and rotation theta in degrees
+        (counter-clockwise on the image, about ``rigid_center``).
+    rigid_center : (2,) float64
+        Centre (x, y) of the rotation in frame-0 pixels.
+    strain : (N, GY, GX, 3) float32
+        Green-Lagrange strain (Exx, Eyy, Exy) of frame k relative to frame 0 at the grid points, in image axes.
+    attrs : dict
+        Free scalar/string attributes (scene name, scene YAML, seed, noise...).
+    """
+
+    feature_id: np.ndarray
+    feature_kind: np.ndarray
+    feature_x: np.ndarray
+    feature_y: np.ndarray
+    feature_visible: np.ndarray
+    grid_x: np.ndarray
+    grid_y: np.ndarray
+    displacement: np.ndarray
+    displacement_valid: np.ndarray
+    rigid: np.ndarray
+    rigid_center: np.ndarray
+    strain: np.ndarray
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    _ARRAYS = (
+        "feature_id",
+        "feature_kind",
+        "feature_x",
+        "feature_y",
+        "feature_visible",
+        "grid_x",
+        "grid_y",
+        "displacement",
+        "displacement_valid",
+        "rigid",
+        "rigid_center",
+        "strain",
+    )
+
+    def validate(self, n_frames: int) -> None:
+        f = np.asarray(self.feature_id).shape[0]
+        gy, gx = np.asarray(self.grid_y).size, np.asarray(self.grid_x).size
+        expected = {
+            "feature_kind": (f,),
+            "feature_x": (n_frames, f),
+            "feature_y": (n_frames, f),
+            "feature_visible": (n_frames, f),
+            "displacement": (n_frames, gy, gx, 2),
+            "displacement_valid": (n_frames, gy, gx),
+            "rigid": (n_frames, 3),
+            "rigid_center": (2,),
+            "strain": (n_frames, gy, gx, 3),
+        }
+        for name, shape in expected.items():
+            got = np.asarray(getattr(self, name)).shape
+            if got != shape:
+                raise InvalidInputError(f"truth.{name} has shape {got}, expected {shape}")
+        if len(self.grid_x) > 1 and np.max(np.diff(self.grid_x)) > 8 + 1e-9:
+            raise InvalidInputError("truth.grid_x spacing must be at most 8 px")
+        if len(self.grid_y) > 1 and np.max(np.diff(self.grid_y)) > 8 + 1e-9:
+            raise InvalidInputError("truth.grid_y spacing must be at most 8 px")
+
+
+# --------------------------------------------------------------------------------------------------- writing
+
+
+def _json_attr(value: Mapping[str, Any] | None) -> str:
+    return json.dumps(dict(value or {}), sort_keys=True, default=str)
+
+
+def _create_layout(
+    f: h5py.File,
+    *,
+    height: int,
+    width: int,
+    camera_mode: CameraMode,
+    calibration: Calibration,
+    metadata: Mapping[str, Any] | None,
+    streams: Mapping[str, tuple[tuple[int, ...], Any]] | None,
+    n_frames: int,
+    compression: str | None,
+) -> None:
+    """Create every group, attribute and dataset of a session up front (SWMR forbids creating them later)."""
+    f.attrs["format"] = FORMAT_NAME
+    f.attrs["format_version"] = FORMAT_VERSION
+    f.attrs["created_unix"] = time.time()
+    f.attrs["metadata_json"] = _json_attr(metadata)
+    cam = f.create_group("camera")
+    cam.attrs["mode"] = camera_mode.name
+    cam.attrs["width"] = camera_mode.width
+    cam.attrs["height"] = camera_mode.height
+    cam.attrs["fps"] = camera_mode.fps
+    cal = f.create_group("calibration")
+    cal.attrs["px_per_mm"] = calibration.px_per_mm
+    mapping = getattr(calibration, "mapping", None)
+    cal.attrs["mapping_json"] = json.dumps(mapping.to_dict()) if mapping is not None else ""
+    f.create_dataset(
+        "frames",
+        shape=(n_frames, height, width),
+        maxshape=(None, height, width),
+        dtype=np.uint8,
+        chunks=(1, height, width),
+        compression=compression,
+    )
+    for name, dtype in (("timestamps", np.float64), ("device_timestamps", np.float64), ("frame_ids", np.int64)):
+        f.create_dataset(name, shape=(n_frames,), maxshape=(None,), dtype=dtype, chunks=(4096,))
+    f.create_dataset("status", data=np.int8(STATUS_RECORDING))
+    f.create_dataset("status_reason", data=np.bytes_(b"".ljust(_REASON_LEN)), dtype=f"S{_REASON_LEN}")
+    sg = f.create_group("streams")
+    for name, (tail, dtype) in (streams or {}).items():
+        g = sg.create_group(name)
+        tail = tuple(int(t) for t in tail)
+        g.create_dataset("t", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(4096,))
+        chunk_rows = max(1, min(4096, (1 << 20) // max(1, int(np.prod(tail or (1,))) * np.dtype(dtype).itemsize)))
+        g.create_dataset("data", shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(chunk_rows, *tail))
+
+
+class SessionWriter:
+    """Stream frames and samples into a new session file in HDF5 SWMR mode.
+
+    The file is flushed at least every ``flush_interval_s`` seconds of wall time, so a process killed at any
+    moment loses at most that much data and leaves a file that opens (its status then reads "recording",
+    which :class:`Session` reports as incomplete).
+
+    Parameters
+    ----------
+    path : path-like
+        File to create; an existing file is an error (recordings are never overwritten).
+    camera_mode : CameraMode
+        Size and rate of the frames.
+    calibration : Calibration
+        Pixel scale (and mapping, if fitted) of the frames.
+    metadata : mapping, optional
+        Free JSON-serialisable metadata (subject, surface, protocol, trial...).
+    streams : mapping name -> (sample shape, dtype), optional
+        Extra time-stamped sample streams, e.g. ``{"force": ((6,), "f8")}``.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        camera_mode: CameraMode,
+        calibration: Calibration,
+        metadata: Mapping[str, Any] | None = None,
+        streams: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
+        flush_interval_s: float = 0.05,
+        compression: str | None = None,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            raise InvalidInputError(f"session file {self.path} already exists; recordings are never overwritten")
+        self._height, self._width = camera_mode.height, camera_mode.width
+        self._flush_interval = float(flush_interval_s)
+        self._file = h5py.File(self.path, "w", libver="latest")
+        try:
+            _create_layout(
+                self._file,
+                height=self._height,
+                width=self._width,
+                camera_mode=camera_mode,
+                calibration=calibration,
+                metadata=metadata,
+                streams=streams,
+                n_frames=0,
+                compression=compression,
+            )
+            self._file.swmr_mode = True
+        except BaseException:
+            self._file.close()
+            raise
+        self._frames = self._file["frames"]
+        self._ts = self._file["timestamps"]
+        self._dts = self._file["device_timestamps"]
+        self._ids = self._file["frame_ids"]
+        self._n = 0
+        self._stream_n: dict[str, int] = {name: 0 for name in (streams or {})}
+        self._last_flush = time.monotonic()
+        self._closed = False
+
+    @property
+    def n_frames(self) -> int:
+        return self._n
+
+    def append_frame(
+        self, frame: np.ndarray, *, timestamp: float, frame_id: int, device_timestamp: float = math.nan
+    ) -> None:
+        """Append one uint8 frame of the mode's size with its host timestamp (s) and camera frame id."""
+        if frame.dtype != np.uint8 or frame.shape != (self._height, self._width):
+            raise InvalidInputError(
+                f"frame must be uint8 of shape {(self._height, self._width)}, got {frame.dtype} {frame.shape}"
+            )
+        n = self._n
+        # Time stamps first, frame last: a reader trusts only rows present in all three (see n_frames).
+        for ds, value in ((self._ts, timestamp), (self._dts, device_timestamp), (self._ids, frame_id)):
+            ds.resize((n + 1,))
+            ds[n] = value
+        self._frames.resize((n + 1, self._height, self._width))
+        self._frames[n] = frame
+        self._n = n + 1
+        self._maybe_flush()
+
+    def append_frames(
+        self, frames: np.ndarray, *, timestamps: np.ndarray, frame_ids: np.ndarray, device_timestamps: np.ndarray
+    ) -> None:
+        """Append k frames at once (k, H, W) uint8: one resize per dataset instead of one per frame."""
+        frames = np.asarray(frames)
+        k = frames.shape[0] if frames.ndim == 3 else -1
+        if frames.dtype != np.uint8 or frames.shape[1:] != (self._height, self._width):
+            raise InvalidInputError(
+                f"frames must be uint8 of shape (k, {self._height}, {self._width}), got {frames.dtype} {frames.shape}"
+            )
+        cols = [np.asarray(v).reshape(-1) for v in (timestamps, device_timestamps, frame_ids)]
+        if any(c.shape[0] != k for c in cols):
+            raise InvalidInputError(f"timestamps, device_timestamps and frame_ids must each hold {k} values")
+        n = self._n
+        # Time stamps first, frames last, as in append_frame.
+        for ds, values in zip((self._ts, self._dts, self._ids), cols):
+            ds.resize((n + k,))
+            ds[n : n + k] = values
+        self._frames.resize((n + k, self._height, self._width))
+        self._frames[n : n + k] = frames
+        self._n = n + k
+        self._maybe_flush()
+
+    def append_samples(self, stream: str, t: np.ndarray | float, data: np.ndarray) -> None:
+        """Append samples (``t`` of shape (k,), ``data`` of shape (k, *sample_shape)) to a declared stream."""
+        if stream not in self._stream_n:
+            raise InvalidInputError(f"stream {stream!r} was not declared when the session was created")
+        g = self._file["streams"][stream]
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        data = np.asarray(data)
+        if data.shape[1:] != g["data"].shape[1:] and data.shape == g["data"].shape[1:]:
+            data = data[None]
+        if data.shape[0] != t.shape[0] or data.shape[1:] != g["data"].shape[1:]:
+            raise InvalidInputError(
+                f"stream {stream!r}: got t {t.shape} and data {data.shape}, expected (k,) and (k, *{g['data'].shape[1:]})"
+            )
+        n, k = self._stream_n[stream], t.shape[0]
+        g["data"].resize((n + k, *g["data"].shape[1:]))
+        g["data"][n : n + k] = data
+        g["t"].resize((n + k,))
+        g["t"][n : n + k] = t
+        self._stream_n[stream] = n + k
+        self._maybe_flush()
+
+    def _maybe_flush(self) -> None:
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_interval:
+            self.flush()
+            self._last_flush = now
+
+    def flush(self) -> None:
+        """Write everything buffered to the file (readers in SWMR mode then see it)."""
+        self._file.flush()
+
+    def close(self, *, status: int = STATUS_COMPLETE, reason: str = "") -> None:
+        """Mark the session complete (or failed, with a reason) and close the file. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
+            self._file["status"][()] = np.int8(status)
+            self._file.flush()
+        finally:
+            self._file.close()
+
+    def fail(self, reason: str) -> None:
+        """Close the session marked failed with ``reason``; the data written so far is kept."""
+        self.close(status=STATUS_FAILED, reason=reason)
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is None:
+            self.close()
+        else:
+            self.fail(f"{exc_type.__name__}: {exc}")
+
+
+def write_session(
+    path: str | os.PathLike,
+    frames: np.ndarray,
+    *,
+    timestamps: np.ndarray,
+    camera_mode: CameraMode,
+    calibration: Calibration,
+    frame_ids: np.ndarray | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    truth: SessionTruth | None = None,
+    overwrite: bool = False,
+    compression: str | None = None,
+) -> Path:
+    """Write a complete in-memory session (e.g. a simulated one) to ``path`` and return the path.
+
+    Frames are stored uncompressed by default: camera noise leaves lzf nothing to gain (54 vs 55 MB for a
+    180-frame 640x484 scene) at 10x the write time. ``compression`` ("lzf", "gzip") is there for noise-free data.
+    """
+    path = Path(path)
+    frames = np.asarray(frames)
+    if frames.dtype != np.uint8 or frames.ndim != 3:
+        raise InvalidInputError(f"frames must be uint8 of shape (N, H, W), got {frames.dtype} {frames.shape}")
+    n, h, w = frames.shape
+    timestamps = np.asarray(timestamps, dtype=np.float64)
+    if timestamps.shape != (n,):
+        raise InvalidInputError(f"timestamps must have shape ({n},), got {timestamps.shape}")
+    frame_ids = np.arange(n, dtype=np.int64) if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
+    if frame_ids.shape != (n,):
+        raise InvalidInputError(f"frame_ids must have shape ({n},), got {frame_ids.shape}")
+    if truth is not None:
+        truth.validate(n)
+    if path.exists() and not overwrite:
+        raise InvalidInputError(f"{path} exists; pass overwrite=True to replace it")
+    tmp = path.with_name(path.name + ".partial")
+    with h5py.File(tmp, "w", libver="latest") as f:
+        _create_layout(
+            f,
+            height=h,
+            width=w,
+            camera_mode=camera_mode,
+            calibration=calibration,
+            metadata=metadata,
+            streams=None,
+            n_frames=n,
+            compression=compression,
+        )
+        f["frames"][...] = frames
+        f["timestamps"][...] = timestamps
+        f["device_timestamps"][...] = timestamps
+        f["frame_ids"][...] = frame_ids
+        if truth is not None:
+            _write_truth(f, truth)
+        f["status"][()] = np.int8(STATUS_COMPLETE)
+    os.replace(tmp, path)
+    return path
+
+
+def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
+    g = f.create_group("truth")
+    for key, value in truth.attrs.items():
+        g.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
+    for name in SessionTruth._ARRAYS:
+        arr = np.asarray(getattr(truth, name))
+        big = arr.ndim >= 3  # the per-frame fields: lzf keeps ~10 % off at half gzip's time (noisy floats)
+        g.create_dataset(name, data=arr, compression="lzf" if big else None)
+
+
+def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
+    """Add the ground truth of a simulated *recorded* session to its closed file (the truth of frame k of the
+    file must be row k of ``truth``). A file that already has a truth is an error."""
+    path = Path(path)
+    with h5py.File(path, "r+", libver="latest") as f:
+        if "truth" in f:
+            raise InvalidInputError(f"{path} already has a ground truth")
+        n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
+        truth.validate(n)
+        _write_truth(f, truth)
+    return path
+
+
+def write_calibration(path: str | os.PathLike, calibration: Calibration) -> Path:
+    """Store a calibration (pixel scale and fitted mapping, seed 3.4) into an existing, closed session file.
+
+    The file is opened read-write (not SWMR): a recorder must have closed it. Returns the path.
+    """
+    path = Path(path)
+    if not isinstance(calibration, Calibration):
+        raise InvalidInputError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+    open_session(path).close()  # refuse anything that is not a readable session, saying why
+    mapping = calibration.mapping
+    mapping_json = json.dumps(mapping.to_dict()) if mapping is not None else ""
+    try:
+        with h5py.File(path, "r+", libver="latest") as f:
+            f["calibration"].attrs["px_per_mm"] = calibration.px_per_mm
+            f["calibration"].attrs["mapping_json"] = mapping_json
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot open the session to write its calibration ({exc})") from None
+    return path
+
+
+def _calibration_from_attrs(path: Path, px_per_mm: float, mapping_json: str) -> Calibration:
+    """The session's Calibration, with its fitted pixel-to-skin mapping rebuilt when one is stored."""
+    if not mapping_json:
+        return Calibration(px_per_mm=px_per_mm)
+    # Imported here: only sessions that carry a mapping need the calibration module (scipy, OpenCV).
+    from skinstretch.processing.errors import CalibrationError
+    from skinstretch.processing.geometric_calibration import mapping_from_dict
+
+    try:
+        mapping = mapping_from_dict(json.loads(mapping_json))
+    except (json.JSONDecodeError, CalibrationError, InvalidInputError) as exc:
+        raise SessionFileError(f"{path}: /calibration mapping_json is not a valid mapping ({exc})") from None
+    return Calibration(px_per_mm=px_per_mm, mapping=mapping)
+
+
+# --------------------------------------------------------------------------------------------------- reading
+
+
+class Session:
+    """A session file opened for reading (use :func:`open_session`). Closes on ``close()`` or ``with``."""
+
+    def __init__(self, path: Path, f: h5py.File) -> None:
+        self.path = path
+        self._f = f
+        try:
+            self._frames = f["frames"]
+            self._ts = f["timestamps"]
+            self._dts = f["device_timestamps"]
+            self._ids = f["frame_ids"]
+            cam = f["camera"].attrs
+            self.camera_mode = CameraMode(
+                str(cam["mode"]), int(cam["width"]), int(cam["height"]), float(cam["fps"])
+            )
+            cal = f["calibration"].attrs
+            self.mapping_json: str = str(cal.get("mapping_json", ""))
+            self.calibration = _calibration_from_attrs(path, float(cal["px_per_mm"]), self.mapping_json)
+            self.metadata: dict[str, Any] = json.loads(str(f.attrs.get("metadata_json", "{}")))
+            self._status = int(f["status"][()])
+            raw_reason = f["status_reason"][()]
+            self.status_reason = bytes(raw_reason).rstrip(b" \x00").decode("utf-8", "replace")
+        except (KeyError, ValueError, TypeError, OSError) as exc:
+            raise SessionFileError(f"{path}: session file is missing or has a damaged part ({exc})") from None
+
+    # -- summary
+    @property
+    def n_frames(self) -> int:
+        """Frames with all of image, timestamp and id written (a killed recording may leave ragged ends)."""
+        try:
+            self._frames.refresh()
+            self._ts.refresh()
+            self._ids.refresh()
+        except (AttributeError, RuntimeError, OSError, ValueError):
+            pass
+        return int(min(self._frames.shape[0], self._ts.shape[0], self._ids.shape[0]))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.n_frames, int(self._frames.shape[1]), int(self._frames.shape[2]))
+
+    @property
+    def status(self) -> str:
+        """'complete', 'failed' or 'recording' (a file still 'recording' when not open elsewhere is incomplete)."""
+        return STATUS_NAMES.get(self._status, f"unknown({self._status})")
+
+    @property
+    def complete(self) -> bool:
+        return self._status == STATUS_COMPLETE
+
+    # -- data
+    def frame(self, index: int) -> np.ndarray:
+        n = self.n_frames
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {n} frames in {self.path}")
+        return self._read(lambda: self._frames[index % n])
+
+    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        n = self.n_frames
+        stop = n if stop is None else min(stop, n)
+        return self._read(lambda: self._frames[start:stop])
+
+    def iter_frames(self, batch: int = 32) -> Iterator[np.ndarray]:
+        n = self.n_frames
+        for start in range(0, n, batch):
+            yield from self.read_frames(start, min(start + batch, n))
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._read(lambda: self._ts[: self.n_frames])
+
+    @property
+    def device_timestamps(self) -> np.ndarray:
+        return self._read(lambda: self._dts[: self.n_frames])
+
+    @property
+    def frame_ids(self) -> np.ndarray:
+        return self._read(lambda: self._ids[: self.n_frames])
+
+    def stream_names(self) -> list[str]:
+        return sorted(self._f["streams"].keys()) if "streams" in self._f else []
+
+    def read_stream(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(t, data) of a sample stream, trimmed to the rows written in both."""
+        if name not in self.stream_names():
+            raise SessionFileError(f"{self.path}: no stream {name!r} (has {self.stream_names()})")
+        g = self._f["streams"][name]
+
+        def read():
+            k = min(g["t"].shape[0], g["data"].shape[0])
+            return g["t"][:k], g["data"][:k]
+
+        return self._read(read)
+
+    @property
+    def has_truth(self) -> bool:
+        return "truth" in self._f
+
+    @property
+    def truth(self) -> SessionTruth:
+        """Ground truth of a simulated session; SessionFileError when the session has none."""
+        if not self.has_truth:
+            raise SessionFileError(f"{self.path}: session has no ground truth (it was not simulated)")
+        g = self._f["truth"]
+
+        def read():
+            arrays = {name: g[name][()] for name in SessionTruth._ARRAYS}
+            attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in g.attrs.items()}
+            return SessionTruth(**arrays, attrs=attrs)
+
+        try:
+            return self._read(read)
+        except KeyError as exc:
+            raise SessionFileError(f"{self.path}: truth part is incomplete ({exc})") from None
+
+    @property
+    def h5(self) -> h5py.File:
+        """The underlying h5py file, for extensions that store their own groups."""
+        return self._f
+
+    def _read(self, fn):
+        try:
+            return fn()
+        except (OSError, RuntimeError) as exc:
+            raise SessionFileError(f"{self.path}: cannot read data, file truncated or corrupt ({exc})") from None
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Session({str(self.path)!r}, frames={self.n_frames}, mode={self.camera_mode.name}, {self.status})"
+
+
+def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
+    """Open a session file for reading, or raise SessionFileError saying why it cannot be read.
+
+    ``swmr=True`` reads a file a recorder is still writing.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SessionFileError(f"{path}: no such session file")
+    if path.is_dir():
+        raise SessionFileError(f"{path}: is a directory, not a session file")
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if head != b"\x89HDF\r\n\x1a\n":
+        raise SessionFileError(f"{path}: not an HDF5 file, so not a skinstretch session")
+    try:
+        f = h5py.File(path, "r", swmr=True, libver="latest") if swmr else h5py.File(path, "r")
+    except OSError as exc:
+        if swmr or "already open for write" not in str(exc):
+            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
+        # A SWMR writer that is still running, or was killed, leaves the file marked open for writing; an SWMR
+        # reader opens it all the same and sees everything flushed (the session then reads as incomplete).
+        try:
+            f = h5py.File(path, "r", swmr=True, libver="latest")
+        except OSError as exc2:
+            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc2})") from None
+    try:
+        fmt = f.attrs.get("format")
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode()
+        if fmt != FORMAT_NAME:
+            raise SessionFileError(f"{path}: HDF5 file is not a skinstretch session (format attribute {fmt!r})")
+        version = int(f.attrs.get("format_version", -1))
+        if version != FORMAT_VERSION:
+            raise SessionFileError(
+                f"{path}: session format version {version} is not supported (this skinstretch reads {FORMAT_VERSION})"
+            )
+        return Session(path, f)
+    except BaseException:
+        f.close()
+        raise

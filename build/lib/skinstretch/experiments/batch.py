@@ -1,0 +1,275 @@
+"""Analyse many sessions at once on a Dask cluster, and summarise them across subjects and surfaces.
+
+The seed analysed one sequence at a time and suggested that "averaging measurements over a large number of image
+sequences could also reduce the noise and expose the effect of shapes" (seed 7.2.4). :func:`analyze_many` runs
+:func:`skinstretch.experiments.runner.analyse_trial` on every session as a Dask task — on a local cluster by default, or on
+an existing one (``scheduler="tcp://host:8786"``) — and a session that fails is reported in the table without
+stopping the others. The summary table has one row per session (subject, surface, status, timing, strain
+percentiles) and Figure 94 is averaged over the sessions of each surface.
+
+Outputs in ``outdir``: ``<subject>/<session>/<trial>/`` results per session, ``batch.json`` and ``batch.csv``
+(the table), ``figure94.png`` (the stretch profiles averaged per surface).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from skinstretch.drivers.session_file import open_session
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.errors import InvalidInputError, SkinstretchError
+
+__all__ = ["BatchRow", "BatchResult", "analyze_many", "find_sessions", "average_profiles"]
+
+
+@dataclass
+class BatchRow:
+    """One session of a batch: where it came from, what it is, how its analysis went."""
+
+    session: str
+    subject: str
+    surface: str
+    scene: str
+    status: str  # ok | failed
+    error: str = ""
+    results: str = ""
+    seconds: float = math.nan
+    n_frames: int = 0
+    edge_change_p5: float = math.nan
+    edge_change_p95: float = math.nan
+    profile_axis: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class BatchResult:
+    rows: list[BatchRow]
+    outdir: Path
+    table_csv: Path
+    table_json: Path
+    figure: Path | None
+    profiles: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, int]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def failed(self) -> list[BatchRow]:
+        return [r for r in self.rows if r.status != "ok"]
+
+
+def find_sessions(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Session files named directly, or found (``*.h5`` holding a session) under directories, in sorted order."""
+    out: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if p.is_dir():
+            for f in sorted(p.rglob("*.h5")):
+                if f.name == "results.h5" or "playback" in f.parts:
+                    continue
+                out.append(f)
+        elif p.exists():
+            out.append(p)
+        else:
+            raise InvalidInputError(f"paths: {p} does not exist")
+    if not out:
+        raise InvalidInputError(f"paths: no session file found in {[str(p) for p in paths]}")
+    return list(dict.fromkeys(out))
+
+
+def _describe(path: Path) -> dict[str, str]:
+    try:
+        with open_session(path) as s:
+            md = s.metadata
+            subject = md.get("subject", {})
+            subject = subject.get("id", "?") if isinstance(subject, dict) else str(subject)
+            surface = md.get("surface", {})
+            surface = surface.get("kind", "?") if isinstance(surface, dict) else str(surface)
+            return {"subject": subject or "?", "surface": surface or "?", "scene": str(md.get("scene", ""))}
+    except SessionFileError:
+        return {"subject": "?", "surface": "?", "scene": ""}
+
+
+def _task(session: str, outdir: str, method: str, options: dict[str, Any]) -> dict[str, Any]:
+    """One Dask task: analyse, and turn any failure into a value (the batch goes on)."""
+    from skinstretch.experiments.runner import analyse_trial  # noqa: PLC0415 - imported in the worker
+
+    try:
+        out = analyse_trial(session, outdir, method, options)
+        return {"ok": True, **out}
+    except Exception as exc:  # reported per session; a bug in one session must not sink the batch
+        return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _out_dir(outdir: Path, session: Path, roots: Sequence[Path]) -> Path:
+    for root in roots:
+        try:
+            rel = session.relative_to(root)
+            return outdir / rel.with_suffix("")
+        except ValueError:
+            continue
+    return outdir / session.stem
+
+
+def average_profiles(profiles: Sequence[tuple[np.ndarray, np.ndarray]], *, step_mm: float = 0.25):
+    """Average (x_mm, change) profiles of several sessions on a common grid (NaN-aware).
+
+    Returns (x, mean, std, n) with ``n`` the number of sessions contributing at each position.
+    """
+    if not profiles:
+        raise InvalidInputError("profiles: nothing to average")
+    lo = min(float(np.nanmin(x)) for x, _ in profiles)
+    hi = max(float(np.nanmax(x)) for x, _ in profiles)
+    grid = np.arange(lo, hi + step_mm / 2, step_mm)
+    stack = np.full((len(profiles), grid.size), np.nan)
+    for i, (x, ch) in enumerate(profiles):
+        x = np.asarray(x, float)
+        ch = np.asarray(ch, float)
+        ok = np.isfinite(ch)
+        if ok.sum() >= 2:
+            inside = (grid >= x[ok].min()) & (grid <= x[ok].max())
+            stack[i, inside] = np.interp(grid[inside], x[ok], ch[ok])
+    n = np.sum(np.isfinite(stack), axis=0)
+    mean = np.full(grid.size, np.nan)
+    std = np.full(grid.size, np.nan)
+    has = n > 0
+    mean[has] = np.nanmean(stack[:, has], axis=0)
+    std[has] = np.nanstd(stack[:, has], axis=0)
+    return grid, mean, std, n
+
+
+def _client(scheduler: str | None):
+    """(client, cluster) for ``scheduler``: None = a new local cluster, an address = an existing cluster."""
+    from dask.distributed import Client, LocalCluster  # noqa: PLC0415
+
+    if scheduler is None:
+        n = max(1, min(4, os.cpu_count() or 1))
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+        return Client(cluster), cluster
+    return Client(scheduler), None
+
+
+def analyze_many(
+    paths: Iterable[str | os.PathLike],
+    outdir: str | os.PathLike,
+    *,
+    scheduler: str | None = None,
+    method: str = "features",
+    options: dict[str, Any] | None = None,
+    progress: Callable[[str], None] = print,
+) -> BatchResult:
+    """Analyse every session of ``paths`` (files or directories) into ``outdir``; summarise across sessions.
+
+    Parameters
+    ----------
+    paths : iterable of path-like
+        Session files, or directories searched recursively for them.
+    outdir : path-like
+        Where results, the table and the averaged Figure 94 go.
+    scheduler : str, optional
+        None: a Dask local cluster of worker processes; an address (``tcp://host:8786``): that cluster;
+        ``"synchronous"``: no cluster, one session after the other in this process (small batches, tests).
+    method : {"features", "flow"}
+        Analysis method.
+    options : dict, optional
+        :class:`skinstretch.experiments.analysis.AnalysisParams` fields.
+    """
+    if method not in ("features", "flow"):
+        raise InvalidInputError(f"method must be 'features' or 'flow', got {method!r}")
+    t0 = time.perf_counter()
+    sessions = find_sessions(paths)
+    roots = [Path(p) for p in paths if Path(p).is_dir()]
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    jobs = [(s, _out_dir(outdir, s, roots)) for s in sessions]
+    progress(f"batch: {len(jobs)} sessions, method {method}, scheduler {scheduler or 'local cluster'}")
+    opts = dict(options or {})
+    if scheduler == "synchronous":
+        outcomes = [_task(str(s), str(o), method, opts) for s, o in jobs]
+    else:
+        from dask.distributed import as_completed  # noqa: PLC0415
+
+        client, cluster = _client(scheduler)
+        try:
+            futures = {client.submit(_task, str(s), str(o), method, opts, pure=False): k for k, (s, o) in enumerate(jobs)}
+            outcomes = [None] * len(jobs)
+            for fut in as_completed(futures):
+                k = futures[fut]
+                try:
+                    outcomes[k] = fut.result()
+                except Exception as exc:  # a worker died: this session failed, the others go on
+                    outcomes[k] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                progress(f"batch: {jobs[k][0]}: {'ok' if outcomes[k]['ok'] else 'FAILED ' + outcomes[k]['error']}")
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    rows = []
+    by_surface: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for (session, _), out in zip(jobs, outcomes):
+        row = BatchRow(session=str(session), status="ok" if out["ok"] else "failed", error=out.get("error", ""),
+                       **_describe(session))
+        if out["ok"]:
+            row.results = out["results"]
+            row.seconds = float(out["seconds"])
+            try:
+                _fill(row, by_surface)
+            except (SkinstretchError, OSError, KeyError, ValueError) as exc:
+                row.status, row.error = "failed", f"results unreadable: {type(exc).__name__}: {exc}"
+        rows.append(row)
+    table_json = outdir / "batch.json"
+    table_csv = outdir / "batch.csv"
+    table_json.write_text(json.dumps([{k: _nan_none(v) for k, v in r.as_dict().items()} for r in rows], indent=1))
+    with open(table_csv, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(BatchRow.__dataclass_fields__))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r.as_dict())
+    averaged = {surface: average_profiles(profs) for surface, profs in sorted(by_surface.items()) if profs}
+    figure = None
+    if averaged:
+        from skinstretch.experiments.figures.chapter6 import stretch_profile_figure  # noqa: PLC0415
+
+        fig = stretch_profile_figure(
+            {f"{s} (n={len(by_surface[s])})": (x, m) for s, (x, m, sd, n) in averaged.items()},
+            band={f"{s} (n={len(by_surface[s])})": (m - sd, m + sd) for s, (x, m, sd, n) in averaged.items()},
+            title="Relative change in stretch with position, averaged over sessions per surface (seed Figure 94)",
+        )
+        figure = outdir / "figure94.png"
+        fig.savefig(figure, dpi=90, bbox_inches="tight")
+    result = BatchResult(rows, outdir, table_csv, table_json, figure, averaged, time.perf_counter() - t0)
+    progress(f"batch: {len(rows) - len(result.failed)}/{len(rows)} sessions analysed in {result.seconds:.1f} s; "
+             f"table {table_csv}")
+    for r in result.failed:
+        progress(f"batch: FAILED {r.session}: {r.error}")
+    return result
+
+
+def _fill(row: BatchRow, by_surface: dict[str, list]) -> None:
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
+
+    r = read_results(row.results)
+    row.n_frames = r.n_frames
+    row.profile_axis = "x" if r.profile_axis == 0 else "y"
+    edges = [s.edges["change"] for s in r.strain.values() if s.span == 1 and s.edges.size]
+    if edges:
+        row.edge_change_p5, row.edge_change_p95 = (float(v) for v in np.percentile(np.concatenate(edges), [5, 95]))
+    change = np.where(r.profile_valid, r.profile_change, np.nan)
+    if np.any(np.isfinite(change)):
+        by_surface.setdefault(row.surface, []).append((r.profile_position / r.px_per_mm, change))
+
+
+def _nan_none(v):
+    """JSON has no NaN: missing numbers are null."""
+    if isinstance(v, float) and math.isnan(v):
+        return None
+    return v

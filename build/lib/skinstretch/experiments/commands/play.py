@@ -1,0 +1,62 @@
+"""``skinstretch play MOVIE [--display URL] [--closed-loop]``: play a tactile movie on a STReSS display.
+
+MOVIE is an analysed results directory (its tactile movie, seed 5.4), a ``.npy`` (T, 10, 10) array in micrometres
+or an ``.h5`` with a ``movie`` dataset. Without ``--display`` the movie plays on the simulated display.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("play", help="play a tactile movie on the STReSS display (closed loop with --closed-loop)",
+                       description=__doc__.split("\n\n", 1)[1])
+    p.add_argument("movie", type=Path, help="results directory, .npy or .h5 movie")
+    p.add_argument("--display", default=None,
+                   help="serial port or pyserial URL of the display (default: a simulated display)")
+    p.add_argument("--closed-loop", action="store_true", help="correct each contactor from its measured position")
+    p.add_argument("--compare", action="store_true", help="play open loop then closed loop and compare")
+    p.add_argument("--rate", type=float, default=700.0, help="display frame rate, Hz (default 700)")
+    p.add_argument("--movie-rate", type=float, default=None,
+                   help="frame rate of the movie, Hz (default: the camera rate of its session, else the --rate)")
+    p.add_argument("--gain", type=float, default=1.0, help="scale of the contactor positions")
+    p.add_argument("--peak-um", type=float, default=30.0, help="scale the movie down to this peak excursion")
+    p.add_argument("--force-ceiling", type=float, default=5.0, help="stop above this normal force, N")
+    p.add_argument("--no-force", action="store_true", help="play without the force sensor")
+    p.add_argument("-o", "--output", type=Path, default=None, help="session file recording the playback (.h5)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
+    from skinstretch.experiments.protocol import DeviceSpec, Rig  # noqa: PLC0415
+    from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415
+
+    movie, rate = load_movie(args.movie)
+    movie, scale = fit_movie(movie * args.gain, peak_um=args.peak_um)
+    source_rate = args.movie_rate or rate or args.rate
+    movie = resample_movie(movie, from_hz=source_rate, to_hz=args.rate)
+    display = DeviceSpec(kind="sim") if args.display is None else DeviceSpec(kind="stress", url=args.display)
+    rig = Rig(name="play", display=display, force=DeviceSpec(kind="none" if args.no_force else "sim"))
+    devices = RigDevices(rig)
+    print(f"movie {args.movie}: {movie.shape[0]} frames at {args.rate:g} Hz (from {source_rate:g} Hz, scale "
+          f"{scale * args.gain:.3g}), display {devices.describe()['display']}")
+    loops = [False, True] if args.compare else [args.closed_loop]
+    results = []
+    try:
+        for closed in loops:
+            path = None
+            if args.output is not None:
+                path = args.output if len(loops) == 1 else args.output.with_name(
+                    f"{args.output.stem}-{'closed' if closed else 'open'}{args.output.suffix or '.h5'}")
+            results.append(play_movie(devices.display_device(), movie, rate_hz=args.rate, closed_loop=closed,
+                                      force=devices.force, force_ceiling_n=args.force_ceiling, path=path,
+                                      settle_frames=min(150, movie.shape[0] // 4), progress=print,
+                                      metadata={"movie": str(args.movie)}))
+    finally:
+        devices.close()
+    if len(results) == 2 and results[1].rms_error_um > 0:
+        print(f"closed loop cuts the RMS error {results[0].rms_error_um / results[1].rms_error_um:.1f} times")
+    return 0 if all(r.complete for r in results) else 3

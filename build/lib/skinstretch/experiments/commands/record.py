@@ -1,0 +1,48 @@
+"""``skinstretch record PROTOCOL.yaml [--rig RIG.yaml] -o DATADIR [--resume]``: run an experiment protocol."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from skinstretch.experiments.protocol import bundled_protocol, load_protocol, load_rig
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "record",
+        help="run an experiment protocol: record every trial crash-safely, analyse after each trial",
+        description="Record the trials of PROTOCOL.yaml into DATADIR/<subject>/<session>/<trial>/session.h5, "
+        "with an append-only event log (events.jsonl). Devices come from --rig (all simulated by default).",
+    )
+    p.add_argument("protocol", help="protocol YAML file (or the name of a bundled protocol, e.g. demo)")
+    p.add_argument("--rig", default=None, help="rig YAML file: which devices are real (default: all simulated)")
+    p.add_argument("-o", "--output", "--datadir", dest="datadir", type=Path, required=True, help="data directory")
+    p.add_argument("--resume", action="store_true", help="carry on after a crash with the next unfinished trial")
+    p.add_argument("--no-analysis", action="store_true", help="record only; analyse later (skinstretch analyze)")
+    p.add_argument("--no-movie", action="store_true", help="do not play the protocol's tactile movie")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
+
+    path = Path(args.protocol)
+    if not path.exists() and "/" not in args.protocol and not args.protocol.endswith(".yaml"):
+        path = bundled_protocol(args.protocol)
+    protocol = load_protocol(path)
+    rig = load_rig(args.rig)
+    result = run_protocol(
+        protocol,
+        rig,
+        args.datadir,
+        resume=args.resume,
+        analyse=False if args.no_analysis else None,
+        play_movie=not args.no_movie,
+        protocol_text=path.read_text(),
+        rig_text=Path(args.rig).read_text() if args.rig else None,
+    )
+    print(f"session: {result.directory}")
+    for t in result.trials:
+        print(f"  {t.trial}: {t.status}" + (f" ({t.reason})" if t.reason else ""))
+    return 0 if result.ok else 1

@@ -1,0 +1,372 @@
+"""The figures of the seed's chapter 6, drawn from results (never inside processing). Matplotlib, Agg backend.
+
+Every function takes plain arrays or the typed results of :mod:`skinstretch.processing.stretch` /
+:mod:`skinstretch.processing.display_mapping` and returns a :class:`matplotlib.figure.Figure` (no pyplot state, so figures
+can be made from worker threads). Grey levels follow the seed: white / black = +/- ``limit`` (e.g. 5 % over one
+frame pair, 15 % over 11 frames, 50 % for the display's stretch fields).
+
+* :func:`measurements_figure` — seed Figures 76-93 (a)-(f): the two frames, feature flow, edge-length change,
+  triangle-area change, skin-patch area change.
+* :func:`edge_change_series_figure` — Figures 78, 81, ...: edge-length change at several positions in a sequence.
+* :func:`trajectory_length_figure` — Figure 70: distribution of trajectory lengths.
+* :func:`stretch_profile_figure` — Figure 94: horizontal stretch profile averaged over a sequence, per sequence.
+* :func:`contactor_positions_figure` — Figure 96; :func:`stretch_fields_figure` — Figure 97.
+* :func:`playback_figure` — target vs measured contactor positions, open vs closed loop (no seed equivalent).
+* :func:`figure_to_png` — PNG bytes for the HTML report.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")  # noqa: E402 - figures are files, never windows
+import numpy as np
+from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+
+from skinstretch.processing.errors import InvalidInputError
+
+__all__ = [
+    "measurements_figure",
+    "edge_change_series_figure",
+    "trajectory_length_figure",
+    "stretch_profile_figure",
+    "contactor_positions_figure",
+    "stretch_fields_figure",
+    "playback_figure",
+    "figure_to_png",
+    "draw_feature_flow",
+    "draw_edge_change",
+    "draw_area_change",
+    "draw_patch_change",
+]
+
+_CMAP = "gray"  # black = compression, white = expansion (seed convention)
+
+
+def figure_to_png(fig: Figure, *, dpi: int = 90) -> bytes:
+    """Render a figure to PNG bytes."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _norm(limit: float) -> Normalize:
+    if not (np.isfinite(limit) and limit > 0):
+        raise InvalidInputError(f"limit must be a positive fraction, got {limit!r}")
+    return Normalize(vmin=-limit, vmax=limit, clip=True)
+
+
+def _frame_axes(ax, shape: tuple[int, int], title: str) -> None:
+    ax.set_xlim(-0.5, shape[1] - 0.5)
+    ax.set_ylim(shape[0] - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title, fontsize=9)
+
+
+def _shape_lines(ax, shape_x_px: Sequence[float] | None, shape: tuple[int, int]) -> None:
+    """The seed's two dotted lines 3 mm apart marking the ridge or valley (seed 6.3.2)."""
+    if shape_x_px is None:
+        return
+    for x in shape_x_px:
+        ax.axvline(x, color="tab:orange", linestyle=":", linewidth=1.0)
+
+
+def draw_feature_flow(ax, image: np.ndarray | None, points_a: np.ndarray, points_b: np.ndarray, *,
+                      shape: tuple[int, int], title: str = "feature movement", scale: float = 1.0) -> None:
+    """Arrows from each tracked feature's position in frame a to frame b (seed Figures 76-93 (c))."""
+    pa = np.asarray(points_a, float).reshape(-1, 2)
+    pb = np.asarray(points_b, float).reshape(-1, 2)
+    if pa.shape != pb.shape:
+        raise InvalidInputError(f"points_a {pa.shape} and points_b {pb.shape} must match")
+    if image is not None:
+        ax.imshow(image, cmap="gray", vmin=0, vmax=255, alpha=0.35)
+    d = (pb - pa) * scale
+    ax.quiver(pa[:, 0], pa[:, 1], d[:, 0], -d[:, 1], angles="xy", scale_units="xy", scale=1.0, color="k",
+              width=0.003, headwidth=3)
+    ax.plot(pa[:, 0], pa[:, 1], ".", color="tab:blue", markersize=2)
+    _frame_axes(ax, shape, title + (f" (x{scale:g})" if scale != 1 else ""))
+
+
+def draw_edge_change(ax, points: np.ndarray, edges: np.ndarray, change: np.ndarray, *, shape: tuple[int, int],
+                     limit: float, title: str = "edge length change") -> None:
+    """Triangulation edges in grey levels of their relative length change (seed 5.3.1, Figure 58 (c))."""
+    p = np.asarray(points, float)
+    e = np.asarray(edges, int)
+    segs = p[e] if len(e) else np.zeros((0, 2, 2))
+    ax.set_facecolor("0.5")
+    lc = LineCollection(segs, cmap=_CMAP, norm=_norm(limit), linewidths=2.0)
+    lc.set_array(np.asarray(change, float))
+    ax.add_collection(lc)
+    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+
+
+def draw_area_change(ax, points: np.ndarray, triangles: np.ndarray, change: np.ndarray, *, shape: tuple[int, int],
+                     limit: float, flipped: np.ndarray | None = None, title: str = "triangle area change") -> None:
+    """Triangles in grey levels of their relative area change (seed 5.3.1, Figure 58 (a)); flipped ones red."""
+    p = np.asarray(points, float)
+    t = np.asarray(triangles, int)
+    ch = np.asarray(change, float)
+    ok = np.ones(len(t), bool) if flipped is None else ~np.asarray(flipped, bool)
+    ax.set_facecolor("0.5")
+    if len(t):
+        pc = PolyCollection(p[t[ok]], cmap=_CMAP, norm=_norm(limit), edgecolors="none")
+        pc.set_array(ch[ok])
+        ax.add_collection(pc)
+        if np.any(~ok):
+            ax.add_collection(PolyCollection(p[t[~ok]], facecolors="tab:red", edgecolors="none"))
+    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+
+
+def draw_patch_change(ax, centers: np.ndarray, change: np.ndarray, *, shape: tuple[int, int], limit: float,
+                      title: str = "skin patch area change") -> None:
+    """Tetragons between neighbouring patch centres in grey levels of their area change (seed Figure 61)."""
+    c = np.asarray(centers, float)
+    ch = np.asarray(change, float)
+    if c.ndim != 3 or ch.shape != (c.shape[0] - 1, c.shape[1] - 1):
+        raise InvalidInputError(f"centers {c.shape} must be (GY, GX, 2) and change (GY-1, GX-1), got {ch.shape}")
+    ax.set_facecolor("0.5")
+    quads = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, 1:], c[1:, :-1]], axis=2).reshape(-1, 4, 2)
+    flat = ch.reshape(-1)
+    ok = np.isfinite(flat)
+    pc = PolyCollection(quads[ok], cmap=_CMAP, norm=_norm(limit), edgecolors="none")
+    pc.set_array(flat[ok])
+    ax.add_collection(pc)
+    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+
+
+def measurements_figure(
+    frame_a: np.ndarray,
+    frame_b: np.ndarray,
+    *,
+    index_a: int,
+    index_b: int,
+    points_a: np.ndarray,
+    points_b: np.ndarray,
+    edges: np.ndarray,
+    edge_change: np.ndarray,
+    triangles: np.ndarray,
+    area_change: np.ndarray,
+    flipped: np.ndarray | None = None,
+    patch_centers: np.ndarray | None = None,
+    patch_change: np.ndarray | None = None,
+    limit: float = 0.05,
+    shape_x_px: Sequence[float] | None = None,
+    title: str = "",
+) -> Figure:
+    """Seed Figures 76-93: (a) frame a, (b) frame b, (c) feature movement, (d) edge length change,
+    (e) triangle area change, (f) skin patch area change. White / black = +/- ``limit``."""
+    shape = np.asarray(frame_a).shape
+    fig = Figure(figsize=(10.5, 6.2))
+    axes = fig.subplots(2, 3)
+    for ax, img, k, tag in ((axes[0, 0], frame_a, index_a, "a"), (axes[0, 1], frame_b, index_b, "b")):
+        ax.imshow(img, cmap="gray", vmin=0, vmax=255)
+        _shape_lines(ax, shape_x_px, shape)
+        _frame_axes(ax, shape, f"({tag}) frame {k}")
+    draw_feature_flow(axes[0, 2], None, points_a, points_b, shape=shape, title="(c) feature movement")
+    draw_edge_change(axes[1, 0], points_a, edges, edge_change, shape=shape, limit=limit, title="(d) edge length")
+    draw_area_change(axes[1, 1], points_a, triangles, area_change, shape=shape, limit=limit, flipped=flipped,
+                     title="(e) triangle area")
+    if patch_centers is not None and patch_change is not None:
+        draw_patch_change(axes[1, 2], patch_centers, patch_change, shape=shape, limit=limit, title="(f) patch area")
+    else:
+        axes[1, 2].set_axis_off()
+        axes[1, 2].text(0.5, 0.5, "no skin patch measurement", ha="center", va="center", fontsize=9)
+    for ax in axes[:, 0]:
+        _shape_lines(ax, shape_x_px, shape)
+    fig.suptitle(title or f"Measurements from frame {index_a} to {index_b} (white/black = +/-{limit * 100:.0f} %)",
+                 fontsize=10)
+    return fig
+
+
+def edge_change_series_figure(
+    panels: Sequence[Mapping[str, np.ndarray]], *, shape: tuple[int, int], limit: float = 0.15, title: str = ""
+) -> Figure:
+    """Seed Figures 78, 81, ...: edge-length change over a span at several positions of a sequence.
+
+    ``panels``: mappings with ``points``, ``edges``, ``edge_change``, ``frame_a``, ``frame_b``.
+    """
+    if not panels:
+        raise InvalidInputError("panels must hold at least one measurement")
+    cols = min(3, len(panels))
+    rows = int(np.ceil(len(panels) / cols))
+    fig = Figure(figsize=(3.6 * cols, 2.9 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).reshape(-1)
+    for k, (ax, p) in enumerate(zip(axes, panels)):
+        draw_edge_change(ax, p["points"], p["edges"], p["edge_change"], shape=shape, limit=limit,
+                         title=f"({chr(97 + k)}) frames {int(p['frame_a'])}-{int(p['frame_b'])}")
+    for ax in axes[len(panels):]:
+        ax.set_axis_off()
+    fig.suptitle(title or f"Edge length change (white/black = +/-{limit * 100:.0f} %)", fontsize=10)
+    return fig
+
+
+def trajectory_length_figure(lengths: np.ndarray, *, n_frames: int | None = None, title: str = "") -> Figure:
+    """Seed Figure 70: how many trajectories span how many frames."""
+    lengths = np.asarray(lengths, int).reshape(-1)
+    fig = Figure(figsize=(5.5, 3.2))
+    ax = fig.subplots()
+    if lengths.size:
+        top = int(max(lengths.max(), n_frames or 0))
+        bins = np.arange(1, top + 2) - 0.5 if top <= 60 else np.linspace(0.5, top + 0.5, 41)
+        ax.hist(lengths, bins=bins, color="0.3")
+        ax.axvline(np.median(lengths), color="tab:red", linestyle="--", label=f"median {np.median(lengths):.0f}")
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no trajectories", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("trajectory length (frames)")
+    ax.set_ylabel("trajectories")
+    ax.set_title(title or "Trajectory length distribution (seed Figure 70)", fontsize=10)
+    return fig
+
+
+def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]], *, true_profiles: Mapping[str,
+                           tuple[np.ndarray, np.ndarray]] | None = None,
+                           xlabel: str = "position along the sliding direction (mm)", title: str = "",
+                           band: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Figure:
+    """Seed Figure 94: relative change in horizontal stretch with position, averaged over a sequence.
+
+    ``profiles``: label -> (x, change as a fraction); ``true_profiles`` (optional, simulated sessions) are drawn
+    dashed; ``band``: label -> (low, high) spread across sessions. All panels share one stretch scale and each
+    title gives the RMS of its measured profile, so a flat surface's lack of pattern reads as a small amplitude
+    beside a ridge's or a valley's (seed 6.3.2), not as a shape of its own.
+    """
+    if not profiles:
+        raise InvalidInputError("profiles must hold at least one sequence")
+    n = len(profiles)
+    cols = min(3, n)
+    rows = int(np.ceil(n / cols))
+    fig = Figure(figsize=(3.8 * cols, 2.8 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False, sharey=True)).reshape(-1)
+    for k, (ax, (label, (x, ch))) in enumerate(zip(axes, profiles.items())):
+        x = np.asarray(x, float)
+        ch = np.asarray(ch, float)
+        ax.axhline(0, color="0.6", linewidth=0.8)
+        if band and label in band:
+            lo, hi = band[label]
+            ax.fill_between(x, np.asarray(lo) * 100, np.asarray(hi) * 100, color="tab:blue", alpha=0.2, linewidth=0)
+        ax.plot(x, ch * 100, "-", color="tab:blue", label="measured")
+        if true_profiles and label in true_profiles:
+            tx, tch = true_profiles[label]
+            ax.plot(np.asarray(tx, float), np.asarray(tch, float) * 100, "--", color="k", label="true")
+            ax.legend(fontsize=7)
+        finite = ch[np.isfinite(ch)]
+        rms = f", RMS {np.sqrt(np.mean(finite**2)) * 100:.3f} %" if finite.size else ""
+        ax.set_title(f"({chr(97 + k)}) {label}{rms}", fontsize=9)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel("stretch change (%)")
+        ax.yaxis.set_tick_params(labelleft=True)
+    for ax in axes[n:]:
+        ax.set_axis_off()
+    fig.suptitle(title or "Relative change in stretch with position, averaged over the sequence (seed Figure 94)",
+                 fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def contactor_positions_figure(positions_um: np.ndarray, *, frames: Sequence[int], range_um: float = 50.0,
+                               reset: np.ndarray | None = None, title: str = "") -> Figure:
+    """Seed Figure 96: contactor positions (horizontal bars from each contactor's rest position) at some frames.
+
+    ``positions_um``: (N, 10, 10); contactors pitched 1 mm; a bar of ``range_um`` spans half a pitch.
+    """
+    pos = np.asarray(positions_um, float)
+    if pos.ndim != 3:
+        raise InvalidInputError(f"positions_um must be (N, R, C), got {pos.shape}")
+    frames = [int(f) for f in frames if 0 <= int(f) < pos.shape[0]]
+    if not frames:
+        raise InvalidInputError("frames must name at least one frame of the movie")
+    cols = min(3, len(frames))
+    rows = int(np.ceil(len(frames) / cols))
+    fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    r, c = pos.shape[1:]
+    yy, xx = np.mgrid[0:r, 0:c]
+    for k, (ax, f) in enumerate(zip(axes, frames)):
+        d = pos[f] / range_um * 0.5
+        segs = np.stack([np.stack([xx, yy], -1), np.stack([xx + d, yy], -1)], axis=2).reshape(-1, 2, 2)
+        ax.add_collection(LineCollection(segs, colors="k", linewidths=2.5))
+        ax.plot(xx.ravel(), yy.ravel(), "o", color="0.6", markersize=2)
+        if reset is not None:
+            rs = np.asarray(reset, bool)[f]
+            ax.plot(xx[rs], yy[rs], "x", color="tab:red", markersize=4)
+        ax.set_xlim(-1, c)
+        ax.set_ylim(r, -1)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"({chr(97 + k)}) frame {f}", fontsize=9)
+    for ax in axes[len(frames):]:
+        ax.set_axis_off()
+    fig.suptitle(title or f"Contactor positions (bar of half a pitch = {range_um:g} um; x = reset) (seed Figure 96)",
+                 fontsize=10)
+    return fig
+
+
+def stretch_fields_figure(stretch_change: np.ndarray, *, frames: Sequence[int], limit: float = 0.5,
+                          title: str = "") -> Figure:
+    """Seed Figure 97: stretch applied between horizontally neighbouring contactors, white/black = +/- limit."""
+    sc = np.asarray(stretch_change, float)
+    if sc.ndim != 3:
+        raise InvalidInputError(f"stretch_change must be (N, R, C-1), got {sc.shape}")
+    frames = [int(f) for f in frames if 0 <= int(f) < sc.shape[0]]
+    if not frames:
+        raise InvalidInputError("frames must name at least one frame of the movie")
+    cols = min(3, len(frames))
+    rows = int(np.ceil(len(frames) / cols))
+    fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    for k, (ax, f) in enumerate(zip(axes, frames)):
+        ax.imshow(np.nan_to_num(sc[f], nan=0.0), cmap=_CMAP, norm=_norm(limit), interpolation="nearest")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"({chr(97 + k)}) frame {f}", fontsize=9)
+    for ax in axes[len(frames):]:
+        ax.set_axis_off()
+    fig.suptitle(title or f"Stretch fields applied by the display (white/black = +/-{limit * 100:.0f} %) "
+                 "(seed Figure 97)", fontsize=10)
+    return fig
+
+
+def playback_figure(runs: Mapping[str, tuple[np.ndarray, np.ndarray]], *, rate_hz: float | None = None,
+                    contactor: tuple[int, int] | None = None, title: str = "") -> Figure:
+    """Target vs measured position of one contactor (the one moving most) for each run (open / closed loop),
+    and the RMS error of every contactor.
+
+    ``runs``: label -> (target_um (k, 10, 10), measured_um (k, 10, 10)); NaN measurements are skipped.
+    """
+    if not runs:
+        raise InvalidInputError("runs must hold at least one playback")
+    first = np.asarray(next(iter(runs.values()))[0], float)
+    if contactor is None:
+        contactor = np.unravel_index(np.argmax(np.ptp(first, axis=0)), first.shape[1:])
+    i, j = contactor
+    fig = Figure(figsize=(10, 3.2 + 2.6))
+    gs = fig.add_gridspec(2, len(runs), height_ratios=[1.2, 1])
+    top = fig.add_subplot(gs[0, :])
+    for label, (target, measured) in runs.items():
+        target = np.asarray(target, float)
+        measured = np.asarray(measured, float)
+        t = np.arange(target.shape[0]) / (rate_hz or 1.0)
+        top.plot(t, measured[:, i, j], label=f"measured, {label}", linewidth=1)
+    top.plot(t[: first.shape[0]], first[:, i, j], "k--", label="target", linewidth=1)
+    top.set_xlabel("time (s)" if rate_hz else "frame")
+    top.set_ylabel(f"contactor ({i}, {j}) um")
+    top.legend(fontsize=7, ncol=3)
+    for k, (label, (target, measured)) in enumerate(runs.items()):
+        ax = fig.add_subplot(gs[1, k])
+        err = np.asarray(measured, float) - np.asarray(target, float)
+        rms = np.sqrt(np.nanmean(err ** 2, axis=0))
+        im = ax.imshow(rms, cmap="viridis", vmin=0)
+        fig.colorbar(im, ax=ax, shrink=0.8, label="RMS error (um)")
+        ax.set_title(f"{label}: RMS {np.sqrt(np.nanmean(err ** 2)):.2f} um", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(title or "Tactile movie playback: target vs measured contactor positions", fontsize=10)
+    return fig

@@ -1,0 +1,434 @@
+"""A self-contained HTML report of a recorded (or simulated) session: figures as base64 PNG, numbers, parameters,
+versions, and — for simulated sessions — the measurements against the simulator's ground truth.
+
+:func:`build_report` takes a session directory written by :mod:`skinstretch.experiments.runner` (trials with their
+``session.h5`` and ``analysis/results.h5``, the event log, ``playback/``) and writes one HTML file with no
+external resource. A part that cannot be drawn says why in the report instead of vanishing (STYLE: failures are
+values).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from skinstretch.drivers.session_file import open_session
+from skinstretch.processing.errors import SkinstretchError
+from skinstretch.experiments.figures import chapter6 as fig6
+
+__all__ = ["TrialEntry", "build_report", "collect_trials", "trial_figures"]
+
+
+@dataclass
+class TrialEntry:
+    """One trial to report: its session file and (optionally) its analysis results directory."""
+
+    name: str
+    session: Path
+    analysis: Path | None = None
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def collect_trials(session_dir: str | Path) -> list[TrialEntry]:
+    """Every trial of a runner's session directory, in order, with the stop summary of the event log."""
+    from skinstretch.experiments.runner import ANALYSIS_DIR, EVENT_LOG, SESSION_FILE, finished_trials, read_events  # noqa: PLC0415
+
+    sdir = Path(session_dir)
+    stops = finished_trials(read_events(sdir / EVENT_LOG))
+    out = []
+    for d in sorted(p for p in sdir.iterdir() if p.is_dir() and (p / SESSION_FILE).exists()):
+        res = d / ANALYSIS_DIR
+        out.append(
+            TrialEntry(
+                name=d.name,
+                session=d / SESSION_FILE,
+                analysis=res if (res / "results.h5").exists() else None,
+                summary=dict(stops.get(d.name, {}).get("summary", {})),
+            )
+        )
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ html bits
+
+
+def _esc(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _num(v: Any) -> str:
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return f"{int(v)}"
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            return "n/a"
+        a = abs(v)
+        if a == 0:
+            return "0"
+        if a >= 1000:
+            return f"{v:.0f}"
+        if a >= 1:
+            return f"{v:.3g}" if a < 100 else f"{v:.1f}"
+        return f"{v:.3g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_num(x) for x in v) + "]"
+    return _esc(v)
+
+
+def _table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:
+    head = "".join(f"<th>{_esc(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{_num(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _kv(d: dict[str, Any]) -> str:
+    return _table([(k, v) for k, v in d.items()], ["quantity", "value"])
+
+
+def _img(fig, caption: str) -> str:
+    data = base64.b64encode(fig6.figure_to_png(fig)).decode("ascii")
+    return (f'<figure><img alt="{_esc(caption)}" src="data:image/png;base64,{data}"/>'
+            f"<figcaption>{_esc(caption)}</figcaption></figure>")
+
+
+def _guard(what: str, fn: Callable[[], str]) -> str:
+    """Run one report part; a failure becomes a visible note naming the part and the reason."""
+    try:
+        return fn()
+    except (SkinstretchError, ValueError, KeyError, IndexError, OSError) as exc:
+        return f'<p class="warn">{_esc(what)}: not available ({_esc(type(exc).__name__)}: {_esc(exc)})</p>'
+
+
+_CSS = """
+body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+h1{font-size:1.5em} h2{border-bottom:1px solid #ccc;font-size:1.25em;margin-top:2em} h3{font-size:1.05em}
+table{border-collapse:collapse;margin:.5em 0;font-size:.85em} td,th{border:1px solid #ccc;padding:2px 8px}
+th{background:#f3f3f3} td{text-align:right} td:first-child{text-align:left}
+figure{margin:1em 0} img{max-width:100%} figcaption{font-size:.85em;color:#555}
+.warn{color:#a40} .ok{color:#070} pre{background:#f7f7f7;padding:.5em;font-size:.8em;overflow-x:auto}
+"""
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version(), "platform": platform.platform()}
+    for mod in ("numpy", "scipy", "h5py", "cv2", "skimage", "matplotlib", "pydantic"):
+        m = sys.modules.get(mod)
+        if m is None:
+            try:
+                m = __import__(mod)
+            except ImportError:
+                continue
+        out[mod] = str(getattr(m, "__version__", "?"))
+    try:
+        from importlib.metadata import version  # noqa: PLC0415
+
+        out["skinstretch"] = version("skinstretch")
+    except Exception:  # not installed as a distribution
+        out["skinstretch"] = "source tree"
+    return out
+
+
+# --------------------------------------------------------------------------------------------- from results
+
+
+def _points_edges(edges_tab: np.ndarray, tri_tab: np.ndarray):
+    """Rebuild (points, edge index pairs, triangle index triples) from the flat tables of one pair."""
+    ids = np.concatenate([edges_tab["id_a"], edges_tab["id_b"], tri_tab["id_a"], tri_tab["id_b"], tri_tab["id_c"]])
+    xs = np.concatenate([edges_tab["xa"], edges_tab["xb"], tri_tab["x0"], tri_tab["x1"], tri_tab["x2"]])
+    ys = np.concatenate([edges_tab["ya"], edges_tab["yb"], tri_tab["y0"], tri_tab["y1"], tri_tab["y2"]])
+    uid, first = np.unique(ids, return_index=True)
+    points = np.column_stack([xs[first], ys[first]])
+    row = {int(i): k for k, i in enumerate(uid)}
+    edges = np.array([[row[int(a)], row[int(b)]] for a, b in zip(edges_tab["id_a"], edges_tab["id_b"])], int)
+    tris = np.array([[row[int(a)], row[int(b)], row[int(c)]]
+                     for a, b, c in zip(tri_tab["id_a"], tri_tab["id_b"], tri_tab["id_c"])], int)
+    return points, edges.reshape(-1, 2), tris.reshape(-1, 3), row
+
+
+def _chained_motion(r, frame_a: int, frame_b: int) -> dict[int, np.ndarray]:
+    """id -> (x, y, dx, dy) from frame a to b, summing consecutive motions of ids present in every pair."""
+    acc: dict[int, np.ndarray] | None = None
+    for k in range(frame_a, frame_b):
+        sel = r.motion[r.motion["pair"] == k]
+        cur = {int(i): np.array([x, y, dx, dy]) for i, x, y, dx, dy in
+               zip(sel["id"], sel["x"], sel["y"], sel["dx"], sel["dy"])}
+        if acc is None:
+            acc = cur
+        else:
+            acc = {i: np.array([v[0], v[1], v[2] + cur[i][2], v[3] + cur[i][3]]) for i, v in acc.items() if i in cur}
+    return acc or {}
+
+
+def _patch_change(r, frame_a: int, frame_b: int, *, spacing_mm: float = 1.0, radius_mm: float = 1.0):
+    """Skin-patch area change (seed 5.3.2, Figure 61) on a 1 mm grid from the chained feature motion."""
+    from skinstretch.processing.stretch import local_movement, patch_area_change  # noqa: PLC0415
+    from skinstretch.processing.tracking import MotionSample  # noqa: PLC0415
+
+    mot = _chained_motion(r, frame_a, frame_b)
+    if len(mot) < 4:
+        return None, None
+    arr = np.array(list(mot.values()))
+    sample = MotionSample(frame_a, frame_b, arr[:, :2], arr[:, 2:], np.array(list(mot.keys()), np.int64))
+    ft = np.nansum(r.fingertip_displacement[frame_a:frame_b], axis=0)
+    h, w = r.image_shape
+    step = spacing_mm * r.px_per_mm
+    gx = np.arange(step / 2, w, step)
+    gy = np.arange(step / 2, h, step)
+    centers = np.stack(np.meshgrid(gx, gy), axis=-1)
+    lm = local_movement(sample, fingertip_displacement=ft, centers=centers, radius_px=radius_mm * r.px_per_mm)
+    change, _ = patch_area_change(lm.centers, lm.movement, lm.valid)
+    return centers, change
+
+
+def _triangulated_pairs(r, span: int):
+    """The strain at ``span`` and the indices of its frame pairs that gave a triangulation."""
+    s = r.strain.get(span)
+    if s is None:
+        raise KeyError(f"no strain at span {span}")
+    ok = np.nonzero(s.pairs["status"] == b"ok")[0]
+    if ok.size == 0:
+        raise ValueError(f"no frame pair at span {span} gave a triangulation")
+    return s, ok
+
+
+def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) -> str:
+    s, ok = _triangulated_pairs(r, span)
+    k = int(ok[ok.size // 2])
+    fa, fb = int(s.pairs["frame_a"][k]), int(s.pairs["frame_b"][k])
+    e = s.edges[s.edges["pair"] == k]
+    t = s.triangles[s.triangles["pair"] == k]
+    points, edges, tris, row = _points_edges(e, t)
+    mot = _chained_motion(r, fa, fb)
+    pa = np.array([points[row[i]] for i in mot if i in row]).reshape(-1, 2)
+    pb = np.array([points[row[i]] + mot[i][2:] for i in mot if i in row]).reshape(-1, 2)
+    if pa.size == 0 and mot:
+        arr = np.array(list(mot.values()))
+        pa, pb = arr[:, :2], arr[:, :2] + arr[:, 2:]
+    centers, change = _patch_change(r, fa, fb)
+    fig = fig6.measurements_figure(
+        session.frame(fa), session.frame(fb), index_a=fa, index_b=fb, points_a=pa, points_b=pb, edges=edges,
+        edge_change=e["change"], triangles=tris, area_change=t["change"], flipped=t["flipped"],
+        patch_centers=centers, patch_change=change, limit=limit, shape_x_px=shape_x_px,
+    )
+    return _img(fig, f"Measurements from frame {fa} to {fb} (span {span}; white/black = +/-{limit * 100:.0f} %), "
+                     "as seed Figures 76-93")
+
+
+def _edge_series(r, span: int, *, limit: float) -> str:
+    s, ok = _triangulated_pairs(r, span)
+    picks = ok[np.linspace(0, ok.size - 1, min(6, ok.size)).round().astype(int)]
+    panels = []
+    for k in dict.fromkeys(int(p) for p in picks):
+        e = s.edges[s.edges["pair"] == k]
+        t = s.triangles[s.triangles["pair"] == k]
+        points, edges, _, _ = _points_edges(e, t)
+        panels.append({"points": points, "edges": edges, "edge_change": e["change"],
+                       "frame_a": s.pairs["frame_a"][k], "frame_b": s.pairs["frame_b"][k]})
+    fig = fig6.edge_change_series_figure(panels, shape=r.image_shape, limit=limit)
+    return _img(fig, f"Edge length change over {span} frames at several positions (as seed Figures 78, 81...)")
+
+
+def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, dict[str, Any]]:
+    """HTML of one trial and the numbers other sections reuse (profile, evaluation, movie)."""
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
+
+    parts = [f"<h2>Trial {_esc(entry.name)}</h2>"]
+    info: dict[str, Any] = {"name": entry.name}
+    with open_session(entry.session) as session:
+        md = session.metadata
+        info["surface"] = (md.get("surface") or {}).get("kind", "?")
+        info["scene"] = md.get("scene", "")
+        rec = {
+            "status": session.status + (f" ({session.status_reason})" if session.status_reason else ""),
+            "frames": session.n_frames,
+            "camera mode": f"{session.camera_mode.name} {session.camera_mode.width}x{session.camera_mode.height}"
+                           f" @{session.camera_mode.fps:g} Hz",
+            "px per mm": session.calibration.px_per_mm,
+            "surface": json.dumps(md.get("surface", {})),
+            "instructions": md.get("instructions", ""),
+            "simulated (has truth)": session.has_truth,
+        }
+        rec.update({k: v for k, v in entry.summary.items() if k in ("dropped_frames", "mean_fps", "bytes",
+                                                                     "normal_force_mean_n", "normal_force_max_n")})
+        parts.append("<h3>Recording</h3>" + _kv(rec))
+        if entry.analysis is None:
+            parts.append('<p class="warn">No analysis results for this trial.</p>')
+            return "\n".join(parts), info
+        r = read_results(entry.analysis)
+        info["results"] = r
+        summary = {
+            "method": r.method,
+            "frames flagged": sum(1 for f in r.frame_flags if f),
+            "analysis time (s)": r.timing.get("total_s", float("nan")),
+            "frames per s": r.timing.get("frames_per_s", float("nan")),
+            "fingertip travel (px)": np.ptp(r.fingertip_position, axis=0).tolist(),
+            "profile axis": "x" if r.profile_axis == 0 else "y",
+        }
+        if r.trajectories is not None:
+            lengths = r.trajectories["present"].sum(axis=0)
+            summary["trajectories"] = int(lengths.size)
+            summary["median trajectory (frames)"] = float(np.median(lengths)) if lengths.size else 0.0
+        for span, s in sorted(r.strain.items()):
+            e = s.edges["change"]
+            summary[f"edge change p5/p95, span {span}"] = np.percentile(e, [5, 95]).tolist() if e.size else "none"
+        parts.append("<h3>Analysis</h3>" + _kv(summary))
+        parts.append(_guard("measurements over 1 frame", lambda: _measurement_panel(r, session, 1, limit=0.05)))
+        span_long = max(r.strain) if r.strain else 11
+        parts.append(_guard(f"measurements over {span_long} frames",
+                            lambda: _measurement_panel(r, session, span_long, limit=0.15)))
+        parts.append(_guard("edge length series", lambda: _edge_series(r, span_long, limit=0.15)))
+        if r.trajectories is not None:
+            parts.append(_guard("trajectory lengths", lambda: _img(
+                fig6.trajectory_length_figure(r.trajectories["present"].sum(axis=0), n_frames=r.n_frames),
+                "Trajectory length distribution (as seed Figure 70)")))
+        scale = 1.0 / r.px_per_mm
+        info["profile"] = (r.profile_position * scale, np.where(r.profile_valid, r.profile_change, np.nan))
+        if session.has_truth and truth_eval:
+            parts.append(_guard("measured vs true", lambda: _truth_section(r, session, info)))
+        if r.tactile_positions_um is not None:
+            info["movie"] = r
+    return "\n".join(parts), info
+
+
+def _truth_section(r, session, info: dict[str, Any]) -> str:
+    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_tracking, profile_correlation  # noqa: PLC0415
+
+    truth = session.truth
+    ev = evaluate_tracking(r, truth)
+    info["evaluation"] = ev
+    strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
+    _, true_change = profile_correlation(r, TruthField(truth), strip_px=strip)
+    info["true_profile"] = (r.profile_position / r.px_per_mm, np.asarray(true_change, float))
+    rows = []
+    for part in ("tracking", "strain", "profile"):
+        for k, v in ev.get(part, {}).items():
+            rows.append((f"{part}: {k}", v))
+    return "<h3>Measured vs true (simulated session)</h3>" + _table(rows, ["quantity", "value"])
+
+
+# -------------------------------------------------------------------------------------------------- report
+
+
+def _movie_section(r, name: str) -> str:
+    pos = r.tactile_positions_um
+    n = pos.shape[0]
+    frames = sorted(set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()))
+    out = [f"<h2>Tactile movie from {_esc(name)} (seed 5.4, 6.4)</h2>",
+           _kv({"frames": n, "contactors reset (fraction)": float(np.mean(r.tactile_reset)),
+                "clipped (fraction)": float(np.mean(r.tactile_clipped)),
+                "position range (um)": [float(np.min(pos)), float(np.max(pos))]})]
+    out.append(_img(fig6.contactor_positions_figure(pos, frames=frames, reset=r.tactile_reset),
+                    "Contactor positions (as seed Figure 96)"))
+    out.append(_img(fig6.stretch_fields_figure(r.tactile_stretch_change, frames=frames),
+                    "Stretch fields applied by the display (as seed Figure 97)"))
+    return "\n".join(out)
+
+
+def _playback_section(playbacks: Sequence[Any]) -> str:
+    rows = []
+    runs = {}
+    for pb in playbacks:
+        s = pb.summary()
+        label = "closed loop" if pb.closed_loop else "open loop"
+        rows.append((label, s["frames_played"], s["frames_total"], s["rms_error_um"], s["late_frames"],
+                     s["stopped"] or "-", s["rested"]))
+        runs[label] = (pb.target_um, pb.measured_um)
+    out = ["<h2>Playback on the display</h2>",
+           _table(rows, ["run", "frames played", "frames", "RMS error (um)", "late frames", "stopped", "at rest"])]
+    if len(playbacks) == 2 and all(p.rms_error_um > 0 for p in playbacks):
+        o = [p for p in playbacks if not p.closed_loop]
+        c = [p for p in playbacks if p.closed_loop]
+        if o and c and math.isfinite(o[0].rms_error_um) and math.isfinite(c[0].rms_error_um):
+            out.append(f'<p class="ok">Closed loop cuts the RMS position error {o[0].rms_error_um / c[0].rms_error_um:.1f}'
+                       " times against open loop.</p>")
+    out.append(_img(fig6.playback_figure(runs, rate_hz=playbacks[0].extra.get("rate_hz")),
+                    "Target and measured contactor positions"))
+    return "\n".join(out)
+
+
+def build_report(
+    session_dir: str | Path | None,
+    out_html: str | Path,
+    *,
+    trials: Iterable[TrialEntry] | None = None,
+    title: str = "skinstretch session report",
+    playbacks: Sequence[Any] = (),
+    extra_figures: Sequence[tuple[Any, str]] = (),
+    parameters: dict[str, Any] | None = None,
+) -> Path:
+    """Write the HTML report of a session directory (or of explicit ``trials``) and return its path.
+
+    ``playbacks``: :class:`skinstretch.experiments.playback.PlaybackResult` s to show (e.g. open and closed loop);
+    ``extra_figures``: (figure, caption) pairs added at the end (e.g. the truth overlay).
+    """
+    t0 = time.perf_counter()
+    entries = list(trials) if trials is not None else collect_trials(session_dir)
+    parts = [f"<h1>{_esc(title)}</h1>",
+             f"<p>Written {_esc(time.strftime('%Y-%m-%d %H:%M:%S'))} from {_esc(session_dir or '')}.</p>"]
+    infos = []
+    body = []
+    for entry in entries:
+        try:
+            html_part, info = trial_figures(entry)
+        except (SkinstretchError, OSError, ValueError, KeyError) as exc:
+            html_part, info = (f"<h2>Trial {_esc(entry.name)}</h2><p class=\"warn\">cannot be reported: "
+                               f"{_esc(type(exc).__name__)}: {_esc(exc)}</p>"), {"name": entry.name}
+        body.append(html_part)
+        infos.append(info)
+    # Figure 94 across trials, measured (and true when simulated)
+    profiles = {f"{i['name']} ({i.get('surface', '?')})": i["profile"] for i in infos if "profile" in i}
+    trues = {f"{i['name']} ({i.get('surface', '?')})": i["true_profile"] for i in infos if "true_profile" in i}
+    if profiles:
+        body.insert(0, "<h2>Stretch along the sliding direction, all trials (seed Figure 94)</h2>" + _guard(
+            "stretch profiles", lambda: _img(fig6.stretch_profile_figure(profiles, true_profiles=trues),
+                                             "Relative change in stretch with position, averaged over each sequence;"
+                                             " dashed: true (simulated)")))
+    evals = [(i["name"], i["evaluation"]) for i in infos if "evaluation" in i]
+    if evals:
+        rows = [(n, e["tracking"]["displacement_rmse_px"], e["tracking"]["wrong_match_rate"],
+                 e["strain"].get("edge_rmse_1"), e["strain"].get("edge_rmse_11"), e["profile"]["correlation"])
+                for n, e in evals]
+        body.insert(0, "<h2>Measured vs true (simulated sessions)</h2>" + _table(
+            rows, ["trial", "displacement RMSE (px)", "wrong matches", "edge strain RMSE span 1",
+                   "edge strain RMSE span 11", "profile correlation"]))
+    overview = [(i["name"], i.get("surface", "?"), i.get("scene", ""), "yes" if "results" in i else "no") for i in infos]
+    body.insert(0, "<h2>Trials</h2>" + _table(overview, ["trial", "surface", "scene", "analysed"]))
+    movies = [i for i in infos if "movie" in i]
+    if movies:
+        pick = next((i for i in movies if i.get("surface") == "ridge"), movies[0])
+        body.append(_guard("tactile movie", lambda: _movie_section(pick["movie"], pick["name"])))
+    if playbacks:
+        body.append(_guard("playback", lambda: _playback_section(list(playbacks))))
+    for fig, caption in extra_figures:
+        body.append(_guard(caption, lambda fig=fig, caption=caption: _img(fig, caption)))
+    params: dict[str, Any] = dict(parameters or {})
+    first = next((i["results"] for i in infos if "results" in i), None)
+    if first is not None:
+        params.setdefault("analysis parameters", first.params)
+    sdir = Path(session_dir) if session_dir else None
+    proto = sdir / "protocol.yaml" if sdir else None
+    foot = ["<h2>Parameters and versions</h2>", _kv(_versions())]
+    if proto is not None and proto.exists():
+        foot.append("<h3>Protocol</h3><pre>" + _esc(proto.read_text()) + "</pre>")
+    for k, v in params.items():
+        foot.append(f"<h3>{_esc(k)}</h3><pre>" + _esc(json.dumps(v, indent=1, default=str)) + "</pre>")
+    foot.append(f"<p>Report built in {time.perf_counter() - t0:.1f} s.</p>")
+    doc = ("<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>" + _esc(title) + "</title><style>" + _CSS
+           + "</style></head><body>" + "\n".join(parts + body + foot) + "</body></html>")
+    out = Path(out_html)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(doc, encoding="utf-8")
+    return out

@@ -1,0 +1,605 @@
+"""Run a protocol: record every trial crash-safely, log documents, analyse after each trial, play the movie.
+
+Data layout (one session file per trial)::
+
+    DATADIR/<subject>/<session>/
+        events.jsonl                      append-only document log (start / descriptor / event / stop)
+        protocol.yaml, rig.yaml           what was run, copied verbatim
+        000-flat-r1/session.h5            the trial's session file (frames, force, display state)
+        000-flat-r1/analysis/             results of the analysis (written by a separate process)
+        playback/playback.h5              the tactile movie as played and as measured (closed loop)
+
+The document log follows bluesky's model: each trial is a *run* with a ``start`` document (what is about to
+happen), a ``descriptor`` (the data keys recorded), ``event`` documents (progress, the analysis result), and a
+``stop`` document (``exit_status`` success / fail / abort and the reason). Every document is flushed and fsynced
+as it is written, so after a crash the log says exactly which trials finished. ``resume=True`` skips finished
+trials, closes the interrupted one in the log as aborted (its file is kept and reads as incomplete) and carries on
+with the next trial.
+
+Analysis runs in a separate process (``spawn``) so acquisition is never slowed by it (record-then-analyse).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import multiprocessing
+import os
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.session_file import attach_truth, open_session
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.drivers.errors import DeviceError, SessionFileError
+from skinstretch.processing.errors import ConfigError, InvalidInputError, SkinstretchError
+from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
+from skinstretch.experiments.skin_mapping_step import store_calibration
+from skinstretch.experiments.recorder import Recorder, RecorderStats
+
+__all__ = [
+    "EventLog",
+    "TrialResult",
+    "SessionRun",
+    "run_protocol",
+    "session_dir",
+    "read_events",
+    "finished_trials",
+    "analyse_trial",
+]
+
+SESSION_FILE = "session.h5"
+ANALYSIS_DIR = "analysis"
+EVENT_LOG = "events.jsonl"
+CALIBRATION_FILE = "calibration.json"
+
+
+# --------------------------------------------------------------------------------------------- document log
+
+
+class EventLog:
+    """Append-only JSON-lines log of bluesky-style documents; each line is ``{"name": ..., "doc": {...}}``.
+
+    Every document is flushed and fsynced before :meth:`emit` returns, so the log survives a SIGKILL.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = open(self.path, "a", encoding="utf-8")
+        self._lock = threading.Lock()
+
+    def emit(self, name: str, doc: Mapping[str, Any]) -> dict[str, Any]:
+        if name not in ("start", "descriptor", "event", "stop"):
+            raise InvalidInputError(f"document name must be start/descriptor/event/stop, got {name!r}")
+        doc = {"time": time.time(), **doc}
+        line = json.dumps({"name": name, "doc": doc}, sort_keys=True, default=_json_default)
+        with self._lock:
+            self._fh.write(line + "\n")
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+        return doc
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def __enter__(self) -> "EventLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating, np.bool_)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+def read_events(path: str | os.PathLike) -> list[tuple[str, dict[str, Any]]]:
+    """All documents of a log as (name, doc); a torn last line (crash mid-write) is ignored."""
+    out = []
+    p = Path(path)
+    if not p.exists():
+        return out
+    for line in p.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+            out.append((rec["name"], rec["doc"]))
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue
+    return out
+
+
+def finished_trials(events: list[tuple[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+    """Trial dirname -> its stop document, for every trial run that has one."""
+    starts = {d["uid"]: d for n, d in events if n == "start"}
+    out = {}
+    for name, doc in events:
+        if name == "stop" and doc.get("run_start") in starts:
+            trial = starts[doc["run_start"]].get("trial", {}).get("dirname")
+            if trial:
+                out[trial] = doc
+    return out
+
+
+def session_dir(protocol: Protocol, datadir: str | os.PathLike) -> Path:
+    """DATADIR/<subject>/<session> of a protocol."""
+    return Path(datadir) / protocol.subject.id / protocol.session_name
+
+
+# ----------------------------------------------------------------------------------------------- analysis
+
+
+def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    """Analyse one recorded trial (runs in a worker process); returns a JSON-able summary.
+
+    Imports :mod:`skinstretch.experiments.analysis` here, in the worker, so the recording process never pays for it.
+    """
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - worker-side import
+
+    t0 = time.perf_counter()
+    params = AnalysisParams(**dict(options)) if options else None
+    result = analyze_session(session_path, outdir, method=method, params=params)
+    return {"results": str(result), "seconds": time.perf_counter() - t0}
+
+
+def _spawn_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
+    # spawn, not fork: the recording process runs threads (writer, force reader) that fork would copy mid-state.
+    if not (isinstance(workers, int) and workers >= 1):
+        raise InvalidInputError(f"analysis_workers must be a positive int, got {workers!r}")
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+# ------------------------------------------------------------------------------------------------- trials
+
+
+@dataclass
+class TrialResult:
+    """Outcome of one trial: where its data is, its status and a summary."""
+
+    trial: str
+    path: Path
+    status: str  # complete | failed | aborted | skipped
+    reason: str = ""
+    summary: dict[str, Any] = field(default_factory=dict)
+    analysis: Path | None = None
+    analysis_error: str = ""
+
+
+@dataclass
+class SessionRun:
+    """Outcome of a whole protocol run."""
+
+    directory: Path
+    trials: list[TrialResult]
+    playback: Any = None
+    playback_error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return all(t.status in ("complete", "skipped") for t in self.trials)
+
+
+def _summarise(path: Path, stats: RecorderStats) -> dict[str, Any]:
+    """Per-trial summary from the file itself: frames, rate, dropped frames (frame-id gaps), force."""
+    out: dict[str, Any] = {"bytes": stats.bytes_written, "queue_max": stats.max_queue_depth}
+    try:
+        with open_session(path) as s:
+            ids = s.frame_ids
+            ts = s.timestamps
+            out["frames"] = int(s.n_frames)
+            out["status"] = s.status
+            out["dropped_frames"] = int(np.sum(np.maximum(np.diff(ids) - 1, 0))) if ids.size > 1 else 0
+            out["duration_s"] = float(ts[-1] - ts[0]) if ts.size > 1 else 0.0
+            out["mean_fps"] = float((ts.size - 1) / (ts[-1] - ts[0])) if ts.size > 1 and ts[-1] > ts[0] else 0.0
+            if "force" in s.stream_names():
+                _, f = s.read_stream("force")
+                if f.shape[0]:
+                    out["force_samples"] = int(f.shape[0])
+                    out["normal_force_mean_n"] = float(np.mean(f[:, 2]))
+                    out["normal_force_max_n"] = float(np.max(np.abs(f[:, 2])))
+    except SessionFileError as exc:
+        out["error"] = str(exc)
+    out["frames_dropped_queue"] = stats.frames_dropped
+    return out
+
+
+class _ForcePump(threading.Thread):
+    """Reads force blocks from the sensor while a trial runs and queues them to the recorder."""
+
+    def __init__(self, source, recorder: Recorder) -> None:
+        super().__init__(name="force-pump", daemon=True)
+        self.source = source
+        self.recorder = recorder
+        self.stop_event = threading.Event()
+        self.error: str | None = None
+
+    def run(self) -> None:
+        try:
+            while not self.stop_event.is_set() and self.recorder.failure is None:
+                t, data = self.source.read_block(timeout_s=0.2)
+                if len(t):
+                    self.recorder.put_samples("force", t, data)
+        except SkinstretchError as exc:
+            self.error = f"force sensor: {type(exc).__name__}: {exc}"
+        except OSError as exc:
+            self.error = f"force sensor: link error: {exc}"
+
+
+def record_trial(
+    trial: PlannedTrial,
+    *,
+    protocol: Protocol,
+    devices,
+    path: Path,
+    log: EventLog,
+    run_uid: str,
+    progress: Callable[[str], None],
+    writer_factory=None,
+) -> TrialResult:
+    """Record one trial into ``path``: camera frames, force samples and display state, until the duration ends,
+    the recorder fails (disk full) or a device fails. The display is sent to rest whatever happens."""
+    mode: CameraMode = CAMERA_MODES[protocol.camera_mode]
+    calibration = Calibration.from_field_of_view(mode.width, protocol.field_of_view_mm)
+    n_target = max(1, int(round(trial.spec.duration_s * mode.fps)))
+    streams: dict[str, tuple[tuple[int, ...], Any]] = {}
+    if protocol.record.force and devices.force is not None:
+        streams["force"] = ((6,), "f8")
+    if protocol.record.display and devices.display is not None:
+        streams["display_state"] = ((10, 10), "f4")
+    metadata = {
+        "protocol": protocol.name,
+        "session": protocol.session_name,
+        "subject": protocol.subject.model_dump(),
+        "trial": trial.spec.name,
+        "trial_index": trial.index,
+        "repetition": trial.repetition,
+        "direction": trial.spec.direction,
+        "instructions": trial.spec.instructions,
+        "surface": trial.surface.model_dump(),
+        "scene": trial.surface.scene_name,
+        "rig": devices.describe(),
+    }
+    log.emit(
+        "descriptor",
+        {
+            "uid": uuid.uuid4().hex,
+            "run_start": run_uid,
+            "name": "primary",
+            "data_keys": {
+                "frames": {"shape": [mode.height, mode.width], "dtype": "uint8", "source": devices.describe()["camera"]},
+                **{k: {"shape": list(v[0]), "dtype": str(v[1])} for k, v in streams.items()},
+            },
+        },
+    )
+    kwargs = {} if writer_factory is None else {"writer_factory": writer_factory}
+    recorder = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata, streams=streams, **kwargs)
+    recorder.start()
+    camera = None
+    pump = None
+    failure: str | None = None
+    seq = 0
+    try:
+        if devices.display is not None:
+            devices.display.rest()
+        camera = devices.camera_for(trial=trial, protocol=protocol, n_frames=n_target)
+        camera.start()
+        if "force" in streams:
+            devices.force.begin()
+            pump = _ForcePump(devices.force, recorder)
+            pump.start()
+        frames = 0
+        timeout = max(1.0, 20 * mode.period_s)
+        last_report = time.monotonic()
+        while frames < n_target:
+            if recorder.failure is not None:
+                failure = recorder.failure
+                break
+            if pump is not None and pump.error:
+                failure = pump.error
+                break
+            try:
+                frame = camera.read(timeout_s=timeout)
+            except DeviceError as exc:
+                if type(exc).__name__ == "EndOfStreamError":
+                    break  # a finite source (replay, simulation) ran out: the trial ends with what it gave
+                raise
+            recorder.put_frame(
+                frame.image,
+                timestamp=frame.host_timestamp_s,
+                frame_id=frame.frame_id,
+                device_timestamp=frame.device_timestamp_s,
+            )
+            if "display_state" in streams:
+                recorder.put_samples("display_state", frame.host_timestamp_s, devices.display.measured_positions_um())
+            frames += 1
+            now = time.monotonic()
+            if now - last_report >= 0.25 or frames == n_target:
+                last_report = now
+                progress(f"  {trial.dirname}: {frames}/{n_target} frames")
+                seq += 1
+                log.emit(
+                    "event",
+                    {"uid": uuid.uuid4().hex, "run_start": run_uid, "seq_num": seq, "data": {"frames": frames}},
+                )
+    except (DeviceError, OSError) as exc:
+        failure = f"device fault: {type(exc).__name__}: {exc}"
+    except SkinstretchError as exc:
+        failure = f"{type(exc).__name__}: {exc}"
+    finally:
+        if pump is not None:
+            pump.stop_event.set()
+            pump.join(2.0)
+            try:
+                devices.force.end()
+            except (SkinstretchError, OSError):
+                pass
+        if camera is not None:
+            try:
+                camera.stop()
+            except (SkinstretchError, OSError):
+                pass
+        if devices.display is not None:
+            try:
+                devices.display.rest()
+            except (SkinstretchError, OSError) as exc:
+                failure = failure or f"display did not return to rest: {exc}"
+    if failure is None and recorder.failure is not None:
+        failure = recorder.failure
+    stats = recorder.finish(failed_reason=failure)
+    truth = getattr(camera, "truth", None)
+    if truth is not None and stats.frames_written > 0:
+        _attach_truth(path, truth)
+    summary = _summarise(path, stats)
+    status = "complete" if stats.status == "complete" else "failed"
+    return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary)
+
+
+def _attach_truth(path: Path, truth) -> None:
+    """Store a simulated camera's ground truth, row k for recorded frame k (frame ids index the source)."""
+    from skinstretch.experiments.rig import subset_truth  # noqa: PLC0415
+
+    try:
+        with open_session(path) as s:
+            ids = s.frame_ids
+        rows = ids - ids[0] if ids.size else ids
+        if ids.size and rows[-1] < np.asarray(truth.feature_x).shape[0]:
+            attach_truth(path, subset_truth(truth, rows))
+    except (SessionFileError, OSError, InvalidInputError):
+        pass  # the recording stands without its truth; the report then shows no measured-vs-true section
+
+
+def _print(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progress: Callable[[str], None]):
+    """The session's mapping (protocol ``calibration``): fitted once into ``sdir/calibration.json``, reused on
+    ``--resume``; None without one. An untrustworthy fit raises before any trial is recorded."""
+    spec = protocol.calibration
+    if spec is None:
+        return None
+    from skinstretch.experiments.skin_mapping_step import calibrate_source, mapping_for_frames  # noqa: PLC0415
+
+    saved = sdir / CALIBRATION_FILE
+    if saved.exists():
+        mapping, summary = calibrate_source(saved)
+    else:
+        # The spec's fields are calibrate_source's options (surface, spacing, dot size, frames, residual bound).
+        options = spec.model_dump(exclude={"source"})
+        mapping, summary = calibrate_source(spec.source, field_width_mm=protocol.field_of_view_mm, **options)
+        mode = CAMERA_MODES[protocol.camera_mode]
+        mapping_for_frames(mapping, mode.width, mode.height)  # frames larger than the grid images: fail now
+        tmp = saved.with_name(saved.name + ".partial")
+        tmp.write_text(json.dumps(mapping.to_dict(), indent=2))
+        os.replace(tmp, saved)
+    progress(f"calibration: {summary}")
+    log.emit("event", {"uid": uuid.uuid4().hex, "name": "calibration",
+                       "data": {"source": spec.source, "file": str(saved), "summary": summary}})
+    return mapping
+
+
+def run_protocol(
+    protocol: Protocol,
+    rig: Rig,
+    datadir: str | os.PathLike,
+    *,
+    resume: bool = False,
+    analyse: bool | None = None,
+    play_movie: bool = True,
+    progress: Callable[[str], None] = _print,
+    protocol_text: str | None = None,
+    rig_text: str | None = None,
+    devices=None,
+    writer_factory=None,
+    analysis_workers: int = 1,
+) -> SessionRun:
+    """Run every trial of ``protocol`` on ``rig`` into ``datadir`` (see module docstring for the layout).
+
+    Parameters
+    ----------
+    protocol, rig : Protocol, Rig
+        What to run and with which devices.
+    datadir : path-like
+        Root of the data layout.
+    resume : bool, optional
+        Carry on after a crash: skip trials the log says finished, mark the interrupted one aborted.
+        Without it an existing session directory is an error (data are never overwritten).
+    analyse : bool, optional
+        Override ``protocol.analysis`` (None: run it after each trial when the protocol asks for it).
+    play_movie : bool, optional
+        Play ``protocol.movie`` at the end (if any).
+    devices : optional
+        Pre-built devices (:class:`skinstretch.experiments.rig.RigDevices`); default: built from ``rig``.
+    writer_factory : callable, optional
+        Passed to every :class:`Recorder` (fault injection in tests).
+    analysis_workers : int, optional
+        Processes analysing finished trials while the next ones record.
+    """
+    sdir = session_dir(protocol, datadir)
+    log_path = sdir / EVENT_LOG
+    if sdir.exists() and any(sdir.iterdir()) and not resume:
+        raise ConfigError(f"{sdir} already holds a session; pass --resume to carry on, or choose another -o")
+    sdir.mkdir(parents=True, exist_ok=True)
+    if protocol_text is not None and not (sdir / "protocol.yaml").exists():
+        (sdir / "protocol.yaml").write_text(protocol_text)
+    if rig_text is not None and not (sdir / "rig.yaml").exists():
+        (sdir / "rig.yaml").write_text(rig_text)
+    events = read_events(log_path)
+    done = finished_trials(events)
+    do_analysis = protocol.analysis.enabled and protocol.analysis.when == "after_trial"
+    if analyse is not None:
+        do_analysis = analyse
+    own_devices = devices is None
+    if devices is None:
+        from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415 - rig imports the device modules
+
+        devices = RigDevices(rig)
+    pool = _spawn_pool(analysis_workers) if do_analysis else None
+    pending: list[tuple[TrialResult, cf.Future, str]] = []
+    results: list[TrialResult] = []
+    plan = protocol.planned_trials()
+    run = SessionRun(directory=sdir, trials=results)
+    try:
+        with EventLog(log_path) as log:
+            # Runs started but never stopped were interrupted (crash, SIGKILL): close them in the log as aborted.
+            starts = [d for n, d in events if n == "start"]
+            stopped = {d.get("run_start") for n, d in events if n == "stop"}
+            for d in starts:
+                if d["uid"] not in stopped:
+                    dirname = d.get("trial", {}).get("dirname", "")
+                    reason = "interrupted: the recording process ended without closing this trial"
+                    log.emit("stop", {"uid": uuid.uuid4().hex, "run_start": d["uid"], "exit_status": "abort",
+                                      "reason": reason})
+                    done[dirname] = {"exit_status": "abort", "reason": reason}
+            mapping = _session_calibration(protocol, sdir, log, progress)
+            todo = [t for t in plan if t.dirname not in done and not (sdir / t.dirname / SESSION_FILE).exists()]
+            if hasattr(devices, "prepare"):
+                devices.prepare(protocol=protocol, trials=todo)
+            for k, trial in enumerate(plan):
+                tdir = sdir / trial.dirname
+                path = tdir / SESSION_FILE
+                if trial.dirname in done or path.exists():
+                    prior = done.get(trial.dirname, {})
+                    status = {"success": "complete", "fail": "failed", "abort": "aborted"}.get(
+                        prior.get("exit_status", ""), "aborted"
+                    )
+                    progress(f"trial {k + 1}/{len(plan)} {trial.dirname}: already {status}, skipped")
+                    results.append(TrialResult(trial.dirname, path, "skipped", reason=f"already {status}"))
+                    continue
+                tdir.mkdir(parents=True, exist_ok=True)
+                run_uid = uuid.uuid4().hex
+                log.emit(
+                    "start",
+                    {
+                        "uid": run_uid,
+                        "plan_name": "record_trial",
+                        "protocol": protocol.name,
+                        "session": protocol.session_name,
+                        "subject": protocol.subject.id,
+                        "trial": {
+                            "dirname": trial.dirname,
+                            "name": trial.spec.name,
+                            "index": trial.index,
+                            "repetition": trial.repetition,
+                            "duration_s": trial.spec.duration_s,
+                            "direction": trial.spec.direction,
+                            "instructions": trial.spec.instructions,
+                        },
+                        "surface": trial.surface.model_dump(),
+                        "camera_mode": protocol.camera_mode,
+                        "rig": devices.describe(),
+                        "path": str(path),
+                    },
+                )
+                progress(f"trial {k + 1}/{len(plan)} {trial.dirname}: {trial.spec.instructions or trial.spec.name}")
+                result = record_trial(
+                    trial,
+                    protocol=protocol,
+                    devices=devices,
+                    path=path,
+                    log=log,
+                    run_uid=run_uid,
+                    progress=progress,
+                    writer_factory=writer_factory,
+                )
+                s = result.summary
+                progress(
+                    f"trial {k + 1}/{len(plan)} {trial.dirname}: {result.status}"
+                    + (f" ({result.reason})" if result.reason else "")
+                    + f", {s.get('frames', 0)} frames, {s.get('dropped_frames', 0)} dropped, "
+                    f"{s.get('mean_fps', 0.0):.1f} fps, {s.get('bytes', 0) / 1e6:.1f} MB"
+                )
+                log.emit(
+                    "stop",
+                    {
+                        "uid": uuid.uuid4().hex,
+                        "run_start": run_uid,
+                        "exit_status": "success" if result.status == "complete" else "fail",
+                        "reason": result.reason,
+                        "summary": result.summary,
+                        "num_events": {"primary": s.get("frames", 0)},
+                    },
+                )
+                results.append(result)
+                if mapping is not None and path.exists():
+                    try:
+                        store_calibration(path, mapping)
+                    except SkinstretchError as exc:  # the data are kept; the analysis then measures in pixels
+                        progress(f"trial {trial.dirname}: calibration not stored ({exc})")
+                        log.emit("event", {"uid": uuid.uuid4().hex, "run_start": run_uid, "name": "calibration",
+                                           "data": {"stored": False, "reason": str(exc)}})
+                if pool is not None and result.summary.get("frames", 0) >= 2:
+                    fut = pool.submit(
+                        analyse_trial,
+                        str(path),
+                        str(tdir / ANALYSIS_DIR),
+                        protocol.analysis.method,
+                        protocol.analysis.options,
+                    )
+                    pending.append((result, fut, run_uid))
+            for result, fut, run_uid in pending:
+                try:
+                    out = fut.result()
+                    result.analysis = Path(out["results"])
+                    progress(f"analysis of {result.trial}: done in {out['seconds']:.1f} s -> {result.analysis}")
+                except Exception as exc:  # the worker's failure is reported, never raised into the recording
+                    result.analysis_error = f"{type(exc).__name__}: {exc}"
+                    progress(f"analysis of {result.trial}: FAILED ({result.analysis_error})")
+                log.emit(
+                    "event",
+                    {
+                        "uid": uuid.uuid4().hex,
+                        "run_start": run_uid,
+                        "seq_num": -1,
+                        "data": {
+                            "analysis": str(result.analysis) if result.analysis else None,
+                            "analysis_error": result.analysis_error,
+                        },
+                    },
+                )
+            if play_movie and protocol.movie is not None and devices.display is not None:
+                from skinstretch.experiments.playback import play_protocol_movie  # noqa: PLC0415
+
+                try:
+                    run.playback = play_protocol_movie(protocol, sdir, devices=devices, progress=progress)
+                except (SkinstretchError, OSError) as exc:
+                    run.playback_error = f"{type(exc).__name__}: {exc}"
+                    progress(f"playback: FAILED ({run.playback_error})")
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        if own_devices:
+            devices.close()
+    return run

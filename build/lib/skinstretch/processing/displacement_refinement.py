@@ -1,0 +1,267 @@
+"""Sub-pixel refinement of feature displacements by local image registration (beyond the seed, seed 7.2.2).
+
+The seed located features to the pixel and smoothed trajectories to get sub-pixel coordinates (seed 5.1.2, 6.1:
+"doubtful that the position of a feature could be known at a precision of more than +/- 1 pixel"). Here each
+matched feature's frame-to-frame displacement is refined by pyramidal Lucas-Kanade registration of a small window
+of the image around it, started from the displacement the feature matching found. The match guarantees the start
+is within a pixel or two of the truth, which keeps the window from locking onto a neighbouring ridge (the failure
+of purely local window methods on fingerprints).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class SubpixelParams:
+    """Options of :class:`SubpixelRefiner`, in mm.
+
+    Parameters
+    ----------
+    window_mm : float
+        Side of the square registration window (0.5 mm: about one ridge period either side of the feature).
+    max_correction_mm : float
+        Largest change the refinement may make to the matched displacement; beyond it the refinement is
+        rejected (flagged) and the matched displacement is kept.
+    pyramid_levels : int
+        Pyramid levels above full resolution used by the registration. 0: the match already starts the
+        registration within a pixel or two, which full resolution alone converges from (the same errors on the
+        seed's scenes as 1 level, at half the time).
+    normalize_sigma_mm : float or None
+        Scale of the local contrast normalisation applied to both images before registration (see
+        :func:`local_normalize`); None registers the raw images.
+    min_contrast : float
+        Local grey-level standard deviation below which a pixel counts as out of contact (no ridges).
+    max_no_contact_fraction : float
+        Largest fraction of a registration window that may be out of contact, in either frame.
+    """
+
+    window_mm: float = 0.5
+    max_correction_mm: float = 0.05
+    pyramid_levels: int = 0
+    normalize_sigma_mm: float | None = 0.15
+    min_contrast: float = 8.0
+    max_no_contact_fraction: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not self.window_mm > 0:
+            raise InvalidInputError(f"window_mm must be positive, got {self.window_mm!r}")
+        if not self.max_correction_mm > 0:
+            raise InvalidInputError(f"max_correction_mm must be positive, got {self.max_correction_mm!r}")
+        if not 0 <= int(self.pyramid_levels) <= 5:
+            raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
+        if self.normalize_sigma_mm is not None and not self.normalize_sigma_mm > 0:
+            raise InvalidInputError(f"normalize_sigma_mm must be positive or None, got {self.normalize_sigma_mm!r}")
+
+
+def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
+    """Local contrast normalisation ``(I - mean) / std`` over a Gaussian window, back to uint8 around 128.
+
+    FTIR illumination is fixed to the prism, not to the skin (seed 3.5: darker light on the slopes of a ridge or
+    valley, uneven lighting): as the finger slides, a skin point's brightness and contrast change, which biases
+    any brightness-constancy registration. Removing the local mean and dividing by the local spread cancels
+    smooth additive and multiplicative illumination changes.
+    """
+    if not sigma_px > 0:
+        raise InvalidInputError(f"sigma_px must be positive, got {sigma_px!r}")
+    f = np.asarray(image, dtype=np.float32)
+    mean = _smooth(f, sigma_px)
+    d = f - mean
+    std = np.sqrt(_smooth(d * d, sigma_px)) + 2.0
+    return np.clip(128.0 + 40.0 * d / std, 0, 255).astype(np.uint8)
+
+
+def _smooth(f: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Two box filters of the same variance as a Gaussian of ``sigma_px``: constant cost whatever the scale."""
+    w = max(1, int(round(np.sqrt(6.0 * sigma_px**2 + 1.0))))
+    w += 1 - w % 2
+    k = (w, w)
+    return cv2.boxFilter(cv2.boxFilter(f, -1, k, borderType=cv2.BORDER_REFLECT), -1, k, borderType=cv2.BORDER_REFLECT)
+
+
+def _smooth_half(f: np.ndarray, sigma_px: float) -> np.ndarray:
+    """:func:`_smooth` computed at half resolution and interpolated back (the result varies over ~sigma, so
+    half the samples carry it: a quarter of the box-filter work)."""
+    h, w = f.shape
+    if sigma_px < 4.0 or h < 8 or w < 8:
+        return _smooth(f, sigma_px)
+    half = cv2.resize(f, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    return cv2.resize(_smooth(half, sigma_px / 2.0), (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+@dataclass(frozen=True)
+class RefinedDisplacements:
+    """Result of a refinement: the displacement of every point, and whether it was refined."""
+
+    displacement: np.ndarray  # (n, 2) float64, px (dx, dy)
+    refined: np.ndarray  # (n,) bool: False -> the initial displacement was kept (see ``reason``)
+    residual: np.ndarray  # (n,) float64, mean absolute grey-level residual of the registration (NaN if not refined)
+
+
+class SubpixelRefiner:
+    """Refine frame-to-frame displacements of points by local Lucas-Kanade registration.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Pixel scale; the window and correction limits are converted once here.
+    params : SubpixelParams, optional
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skinstretch.processing.pixel_scale import Calibration
+    >>> rng = np.random.default_rng(0)
+    >>> a = (rng.random((120, 120)) * 255).astype(np.uint8)
+    >>> import cv2
+    >>> a = cv2.GaussianBlur(a, (0, 0), 2)
+    >>> b = np.roll(a, 1, axis=1)  # everything moves 1 px to the right
+    >>> r = SubpixelRefiner(calibration=Calibration(px_per_mm=62.0))
+    >>> out = r.refine(a, b, np.array([[60.0, 60.0]]), np.array([[0.6, 0.2]]))
+    >>> (np.round(out.displacement, 2) + 0.0).tolist()  # + 0.0: no "-0.0"
+    [[1.0, 0.0]]
+    """
+
+    def __init__(self, *, calibration: Calibration, params: SubpixelParams | None = None) -> None:
+        self.params = params or SubpixelParams()
+        self.calibration = calibration
+        self._win = calibration.odd_px(self.params.window_mm, minimum=7)
+        self._max_corr = calibration.px(self.params.max_correction_mm)
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
+
+    @property
+    def window_px(self) -> int:
+        return self._win
+
+    def prepare(self, image: np.ndarray) -> "PreparedImage":
+        """The image as :meth:`refine` wants it: normalised (when ``normalize_sigma_mm`` is set), with its
+        out-of-contact map. Call once per frame (thread-safe: the analysis calls it on the extraction threads)."""
+        image = _as_gray(image, "image")
+        sigma = self.calibration.px(self.params.normalize_sigma_mm or 0.15)
+        f = image.astype(np.float32)
+        d = f - _smooth_half(f, sigma)
+        sq = np.multiply(d, d, out=f)
+        std = np.sqrt(_smooth_half(sq, sigma), out=sq)
+        # FTIR: skin out of contact shows no ridges, a flat bright field (seed 3.1).
+        low = (std < self.params.min_contrast).view(np.uint8)
+        integral = cv2.integral(low, sdepth=cv2.CV_32S)
+        if self.params.normalize_sigma_mm is None:
+            return PreparedImage(image, integral)
+        # 128 + 40 d / (std + 2), clipped, truncated to uint8 (in place: the same operations as written out).
+        np.multiply(d, 40.0, out=d)
+        np.divide(d, np.add(std, 2.0, out=std), out=d)
+        np.add(d, 128.0, out=d)
+        norm = np.clip(d, 0, 255, out=d).astype(np.uint8)
+        return PreparedImage(norm, integral)
+
+    def refine(
+        self,
+        prev_image,
+        curr_image,
+        points: np.ndarray,
+        initial_displacement: np.ndarray,
+    ) -> RefinedDisplacements:
+        """Refine the displacement of ``points`` (frame ``prev_image``, (n, 2) x, y px) into ``curr_image``.
+
+        The images should come from :meth:`prepare` (raw arrays work too: no normalisation, no contact test).
+        Points whose window leaves the image or overlaps skin out of contact (by more than
+        ``max_no_contact_fraction``) in either frame, whose registration fails to converge, or whose correction
+        exceeds ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
+        """
+        prev_nc = curr_nc = None
+        if isinstance(prev_image, PreparedImage):
+            prev_image, prev_nc = prev_image.image, prev_image.no_contact_integral
+        if isinstance(curr_image, PreparedImage):
+            curr_image, curr_nc = curr_image.image, curr_image.no_contact_integral
+        prev_image = _as_gray(prev_image, "prev_image")
+        curr_image = _as_gray(curr_image, "curr_image")
+        if prev_image.shape != curr_image.shape:
+            raise InvalidInputError(f"images differ in shape: {prev_image.shape} vs {curr_image.shape}")
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        init = np.asarray(initial_displacement, dtype=np.float64).reshape(-1, 2)
+        if init.shape != points.shape:
+            raise InvalidInputError(f"initial_displacement has shape {init.shape}, expected {points.shape}")
+        n = points.shape[0]
+        if n == 0:
+            return RefinedDisplacements(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+        p0 = points.astype(np.float32).reshape(-1, 1, 2)
+        p1 = (points + init).astype(np.float32).reshape(-1, 1, 2)
+        out, status, err = cv2.calcOpticalFlowPyrLK(
+            prev_image,
+            curr_image,
+            p0,
+            p1.copy(),
+            winSize=(self._win, self._win),
+            maxLevel=int(self.params.pyramid_levels),
+            criteria=self._criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        d = out.reshape(-1, 2).astype(np.float64) - points
+        ok = status.reshape(-1).astype(bool) & np.all(np.isfinite(d), axis=1)
+        ok &= np.hypot(*(d - init).T) <= self._max_corr
+        h, w = prev_image.shape
+        half = self._win // 2
+        inside = (
+            (points[:, 0] >= half)
+            & (points[:, 0] <= w - 1 - half)
+            & (points[:, 1] >= half)
+            & (points[:, 1] <= h - 1 - half)
+        )
+        q = points + np.where(np.isfinite(d), d, init)
+        inside &= (q[:, 0] >= half) & (q[:, 0] <= w - 1 - half) & (q[:, 1] >= half) & (q[:, 1] <= h - 1 - half)
+        ok &= inside
+        # A window overlapping skin out of contact sees the prism's fixed, flat field there: biased toward zero.
+        limit = self.params.max_no_contact_fraction
+        for integral, where in ((prev_nc, points), (curr_nc, q)):
+            if integral is not None:
+                ok &= _window_fraction(integral, where, half) <= limit
+        disp = np.where(ok[:, None], d, init)
+        residual = np.where(ok, err.reshape(-1).astype(np.float64), np.nan)
+        return RefinedDisplacements(disp, ok, residual)
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """A frame ready for :meth:`SubpixelRefiner.refine`: registration image and integral of its no-contact mask."""
+
+    image: np.ndarray
+    no_contact_integral: np.ndarray  # int32 integral image of the no-contact mask
+
+
+def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
+    """Fraction of the (2 half + 1)^2 window around each point that is set in the mask of ``integral``."""
+    return _window_fraction_kernel(integral, np.ascontiguousarray(points, dtype=np.float64), int(half))
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_fraction_kernel(integral, points, half):
+    h, w = integral.shape[0] - 1, integral.shape[1] - 1
+    out = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        # np.round: half to even, as numpy rounds
+        c = min(max(int(np.round(points[i, 0])), 0), w - 1)
+        r = min(max(int(np.round(points[i, 1])), 0), h - 1)
+        r0, r1 = min(max(r - half, 0), h), min(max(r + half + 1, 0), h)
+        c0, c1 = min(max(c - half, 0), w), min(max(c + half + 1, 0), w)
+        total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+        out[i] = total / max((r1 - r0) * (c1 - c0), 1)
+    return out
+
+
+def _as_gray(image: np.ndarray, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise InvalidInputError(f"{name} must be a 2-D grey image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        if not np.issubdtype(image.dtype, np.number):
+            raise InvalidInputError(f"{name} must be numeric, got {image.dtype}")
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    return image

@@ -1,0 +1,768 @@
+"""Feature matching between consecutive frames and feature trajectories (seed 5.1).
+
+Matching (seed 5.1.1): each feature of frame k-1 is looked for near its expected position in frame k. The
+expected displacement is the feature's previous displacement when it has one, otherwise the average of the
+predictions (or, with a :class:`skinstretch.processing.global_motion.GlobalMotionEstimator`, the measured global motion).
+Candidates are the features of the same kind inside a circular search window (0.3 mm); each candidate pair is
+rated by eq. 5.1, ``C = (180 - theta) / 180 + (d_max - d) / d_max`` (the orientation term is zero for pores and
+minutiae of unknown orientation), and pairs are finalised in decreasing confidence, each feature used once.
+
+Trajectories (seed 5.1.2): matches are chained into trajectories; trajectories shorter than a minimum number of
+frames (30) are rejected; positions are smoothed by a Gaussian kernel (eq. 5.2, 5.3). When a
+:class:`skinstretch.processing.displacement_refinement.SubpixelRefiner` is given, each matched displacement is refined by local
+image registration and a trajectory's positions are the running sum of its refined displacements, anchored to
+the mean of its extracted positions: relative motion at a few hundredths of a pixel, absolute position to the
+extraction's accuracy divided by the square root of the track length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numba
+import numpy as np
+
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """Options of feature matching and trajectory building (seed 5.1), in mm and frames.
+
+    Parameters
+    ----------
+    search_radius_mm : float
+        Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
+    min_length_frames : int
+        Trajectories present in fewer frames are rejected (seed 5.1.2: 30).
+    smoothing_radius_frames : int
+        Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
+    smoothing_sigma_frames : float
+        Standard deviation of that kernel (seed Figure 53: 1).
+    max_gap_frames : int
+        A feature lost for at most this many frames is re-linked to its trajectory (0 = the seed's behaviour:
+        "no attempt is made to keep track of features through discontinuities").
+    max_local_deviation_mm : float
+        With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
+        refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
+        the ~0.5 mm between neighbours moves them apart by far less).
+    """
+
+    search_radius_mm: float = 0.3
+    min_length_frames: int = 30
+    smoothing_radius_frames: int = 1
+    smoothing_sigma_frames: float = 1.0
+    max_gap_frames: int = 0
+    max_local_deviation_mm: float = 0.008
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.search_radius_mm) and self.search_radius_mm > 0):
+            raise InvalidInputError(f"search_radius_mm must be positive, got {self.search_radius_mm!r}")
+        if int(self.min_length_frames) < 1:
+            raise InvalidInputError(f"min_length_frames must be >= 1, got {self.min_length_frames!r}")
+        if int(self.smoothing_radius_frames) < 0:
+            raise InvalidInputError(f"smoothing_radius_frames must be >= 0, got {self.smoothing_radius_frames!r}")
+        if self.smoothing_radius_frames > 0 and not self.smoothing_sigma_frames > 0:
+            raise InvalidInputError(f"smoothing_sigma_frames must be positive, got {self.smoothing_sigma_frames!r}")
+        if int(self.max_gap_frames) < 0:
+            raise InvalidInputError(f"max_gap_frames must be >= 0, got {self.max_gap_frames!r}")
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Matched pairs between two feature tables: row indices into each, and the eq. 5.1 confidence."""
+
+    prev_index: np.ndarray  # (m,) int64
+    curr_index: np.ndarray  # (m,) int64
+    confidence: np.ndarray  # (m,) float64
+
+    def __len__(self) -> int:
+        return int(self.prev_index.size)
+
+
+@dataclass(frozen=True)
+class MotionSample:
+    """Displacements measured between two frames at points of the first: what stretch and mapping consume.
+
+    Produced by :meth:`Trajectories.motion` (tracked features) and by :mod:`skinstretch.processing.flow` (dense grid).
+    """
+
+    frame_a: int
+    frame_b: int
+    points: np.ndarray  # (n, 2) x, y px in frame_a
+    displacement: np.ndarray  # (n, 2) px from frame_a to frame_b
+    ids: np.ndarray  # (n,) int64: track (or grid point) index, stable across pairs
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+def match_features(
+    prev: np.ndarray,
+    curr: np.ndarray,
+    *,
+    calibration: Calibration,
+    predicted_displacement: np.ndarray | None = None,
+    search_radius_mm: float = 0.3,
+) -> Matches:
+    """Match the features of two consecutive frames (seed 5.1.1).
+
+    Parameters
+    ----------
+    prev, curr : FEATURE_DTYPE arrays
+        Features of frame k-1 and frame k.
+    calibration : Calibration
+        Converts the search radius to pixels.
+    predicted_displacement : array of shape (2,) or (len(prev), 2), optional
+        Expected displacement (dx, dy) px of every feature of ``prev`` (default: none).
+    search_radius_mm : float
+        Radius of the circular search window around each expected position.
+
+    Returns
+    -------
+    Matches
+        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
+
+    Examples
+    --------
+    >>> from skinstretch.processing.feature_table import make_features
+    >>> a = make_features([10.0, 50.0], [10.0, 10.0], [2, 2])
+    >>> b = make_features([52.0, 12.0], [10.0, 11.0], [2, 2])
+    >>> m = match_features(a, b, calibration=Calibration(px_per_mm=62.0))
+    >>> m.prev_index.tolist(), m.curr_index.tolist()
+    ([0, 1], [1, 0])
+    """
+    validate_features(prev)
+    validate_features(curr)
+    if not (np.isfinite(search_radius_mm) and search_radius_mm > 0):
+        raise InvalidInputError(f"search_radius_mm must be positive, got {search_radius_mm!r}")
+    radius = calibration.px(search_radius_mm)
+    pred = _broadcast_prediction(predicted_displacement, prev.shape[0])
+    return _match(_columns(prev), _columns(curr), pred, radius)
+
+
+def _broadcast_prediction(pred, n: int) -> np.ndarray:
+    if pred is None:
+        return np.zeros((n, 2))
+    pred = np.asarray(pred, dtype=np.float64)
+    if pred.shape == (2,):
+        return np.tile(pred, (n, 1))
+    if pred.shape != (n, 2):
+        raise InvalidInputError(f"predicted_displacement must have shape (2,) or ({n}, 2), got {pred.shape}")
+    if not np.all(np.isfinite(pred)):
+        raise InvalidInputError("predicted_displacement holds non-finite values")
+    return pred
+
+
+@dataclass(frozen=True)
+class _Cols:
+    xy: np.ndarray
+    kind: np.ndarray
+    orientation: np.ndarray
+    known: np.ndarray
+
+
+def _columns(table: np.ndarray) -> _Cols:
+    return _Cols(
+        np.column_stack([table["x"], table["y"]]).astype(np.float64),
+        table["kind"].astype(np.int8),
+        table["orientation"].astype(np.float64),
+        table["orientation_known"].astype(bool),
+    )
+
+
+def _match(prev: _Cols, curr: _Cols, pred: np.ndarray, radius: float) -> Matches:
+    if prev.xy.shape[0] == 0 or curr.xy.shape[0] == 0:
+        return Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    expected = np.ascontiguousarray(prev.xy + pred, dtype=np.float64)
+    order = np.argsort(curr.xy[:, 0], kind="stable")
+    i, j, conf = _match_kernel(
+        expected,
+        prev.kind,
+        prev.orientation,
+        prev.known,
+        np.ascontiguousarray(curr.xy[order], dtype=np.float64),
+        order.astype(np.int64),
+        curr.kind,
+        curr.orientation,
+        curr.known,
+        float(radius),
+    )
+    return Matches(i, j, conf)
+
+
+@numba.njit(cache=True, nogil=True)
+def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, corient, cknown, radius):
+    """Candidates (same kind, distance <= radius from the expected position; ``cxy_sorted`` is the current
+    frame's positions sorted by x, ``corder`` their rows), rated by eq. 5.1, then finalised greedily in decreasing
+    confidence (ties: shorter distance first), each feature used once. Returns the pairs sorted by prev row."""
+    n = expected.shape[0]
+    m = cxy_sorted.shape[0]
+    r2 = radius * radius
+    cap = 16
+    ci = np.empty(cap, np.int64)
+    cj = np.empty(cap, np.int64)
+    cd = np.empty(cap, np.float64)
+    cc = np.empty(cap, np.float64)
+    k = 0
+    for a in range(n):
+        ex = expected[a, 0]
+        ey = expected[a, 1]
+        lo = np.searchsorted(cxy_sorted[:, 0], ex - radius, side="left")
+        for t in range(lo, m):
+            dx = cxy_sorted[t, 0] - ex
+            if dx > radius:
+                break
+            dy = cxy_sorted[t, 1] - ey
+            d2 = dx * dx + dy * dy
+            if d2 > r2:
+                continue
+            b = corder[t]
+            if pkind[a] != ckind[b]:
+                continue
+            d = np.sqrt(d2)
+            # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
+            orient = 0.0
+            if pknown[a] and cknown[b]:
+                dtheta = abs((porient[a] - corient[b] + 180.0) % 360.0 - 180.0)
+                orient = (180.0 - dtheta) / 180.0
+            if k == cap:
+                cap *= 2
+                ci2 = np.empty(cap, np.int64)
+                cj2 = np.empty(cap, np.int64)
+                cd2 = np.empty(cap, np.float64)
+                cc2 = np.empty(cap, np.float64)
+                ci2[:k] = ci
+                cj2[:k] = cj
+                cd2[:k] = cd
+                cc2[:k] = cc
+                ci, cj, cd, cc = ci2, cj2, cd2, cc2
+            ci[k] = a
+            cj[k] = b
+            cd[k] = d
+            cc[k] = orient + (radius - d) / radius
+            k += 1
+    ci, cj, cd, cc = ci[:k], cj[:k], cd[:k], cc[:k]
+    by_d = np.argsort(cd, kind="mergesort")
+    order = by_d[np.argsort(-cc[by_d], kind="mergesort")]
+    used_p = np.zeros(n, np.bool_)
+    used_c = np.zeros(ckind.shape[0], np.bool_)
+    owner = np.full(n, -1, np.int64)
+    for t in order:
+        a = ci[t]
+        b = cj[t]
+        if used_p[a] or used_c[b]:
+            continue
+        used_p[a] = True
+        used_c[b] = True
+        owner[a] = t
+    count = 0
+    for a in range(n):
+        if owner[a] >= 0:
+            count += 1
+    pi = np.empty(count, np.int64)
+    pj = np.empty(count, np.int64)
+    pc = np.empty(count, np.float64)
+    q = 0
+    for a in range(n):
+        t = owner[a]
+        if t >= 0:
+            pi[q] = a
+            pj[q] = cj[t]
+            pc[q] = cc[t]
+            q += 1
+    return pi, pj, pc
+
+
+@dataclass
+class Trajectories:
+    """Feature trajectories over a sequence (seed 5.1.2). Arrays are (frames, tracks); absent entries are flagged.
+
+    Attributes
+    ----------
+    x, y : (N, T) float64
+        Position px (refined and/or smoothed) of each track in each frame; NaN exactly where ``present`` is False.
+    present : (N, T) bool
+        The track's feature was found (and matched) in that frame.
+    raw_x, raw_y : (N, T) float64
+        Extracted positions (NaN where absent).
+    feature_index : (N, T) int64
+        Row of the feature in the concatenated feature table of the sequence, -1 where absent.
+    linked : (N, T) bool
+        The track's displacement from frame k-1 to k was measured (consecutive match), as opposed to a start or a
+        re-link across a gap.
+    refined : (N, T) bool
+        That displacement was refined to sub-pixel by image registration.
+    kind : (T,) int8
+        Feature kind of each track.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    present: np.ndarray
+    raw_x: np.ndarray
+    raw_y: np.ndarray
+    feature_index: np.ndarray
+    linked: np.ndarray
+    refined: np.ndarray
+    kind: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.present.shape[0])
+
+    @property
+    def n_tracks(self) -> int:
+        return int(self.present.shape[1])
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Number of frames each track is present in."""
+        return self.present.sum(axis=0)
+
+    @cached_property
+    def runs(self) -> np.ndarray:
+        """(N, T) run number of each sample: displacements are measured only within a run (linked steps).
+        Computed once (``present`` and ``linked`` are not changed after :meth:`FeatureTracker.finish`)."""
+        return np.cumsum(self.present & ~self.linked, axis=0)
+
+    def positions(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """(track indices, (n, 2) positions) of the tracks present in ``frame``."""
+        idx = np.nonzero(self.present[frame])[0]
+        return idx, np.column_stack([self.x[frame, idx], self.y[frame, idx]])
+
+    def motion(self, frame_a: int, frame_b: int) -> MotionSample:
+        """Displacements from ``frame_a`` to ``frame_b`` of the tracks present in both, linked all the way."""
+        n = self.n_frames
+        if not (0 <= frame_a < n and 0 <= frame_b < n):
+            raise InvalidInputError(f"frames ({frame_a}, {frame_b}) out of range for {n} frames")
+        runs = self.runs
+        idx = np.nonzero(self.present[frame_a] & self.present[frame_b] & (runs[frame_a] == runs[frame_b]))[0]
+        pa = np.column_stack([self.x[frame_a, idx], self.y[frame_a, idx]])
+        pb = np.column_stack([self.x[frame_b, idx], self.y[frame_b, idx]])
+        return MotionSample(int(frame_a), int(frame_b), pa, pb - pa, idx.astype(np.int64))
+
+
+class FeatureTracker:
+    """Streaming feature matcher: feed one frame's features (and optionally its image) at a time.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    params : TrackingParams, optional
+    refiner : SubpixelRefiner, optional
+        Refine each matched displacement by local image registration (needs the images).
+    motion_estimator : GlobalMotionEstimator, optional
+        Predict displacements from the measured global motion and then from matched neighbours (two passes),
+        instead of from each feature's previous displacement alone (needs the images).
+
+    Examples
+    --------
+    >>> from skinstretch.processing.feature_table import make_features
+    >>> cal = Calibration(px_per_mm=62.0)
+    >>> tracker = FeatureTracker(calibration=cal, params=TrackingParams(min_length_frames=3))
+    >>> for k in range(4):
+    ...     _ = tracker.add_frame(make_features([10.0 + 2 * k, 80.0 + 2 * k], [20.0, 40.0], [0, 2], frame=k))
+    >>> tr = tracker.finish()
+    >>> tr.n_tracks, tr.lengths.tolist()
+    (2, [4, 4])
+    """
+
+    def __init__(
+        self,
+        *,
+        calibration: Calibration,
+        params: TrackingParams | None = None,
+        refiner: SubpixelRefiner | None = None,
+        motion_estimator: GlobalMotionEstimator | None = None,
+    ) -> None:
+        self.calibration = calibration
+        self.params = params or TrackingParams()
+        self.refiner = refiner
+        self.motion_estimator = motion_estimator
+        self._radius = calibration.px(self.params.search_radius_mm)
+        self._max_deviation = calibration.px(self.params.max_local_deviation_mm)
+        self._n_frames = 0
+        self._n_tracks = 0
+        self._n_features = 0
+        self._prev: _Cols | None = None
+        self._prev_frame: FrameImages | None = None
+        self._prev_tracks = np.zeros(0, np.int64)
+        self._prev_disp = np.zeros((0, 2))
+        # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
+        self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
+        self._track_kind: list[np.ndarray] = []
+        self._lost = _LostTracks()
+        self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
+        self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
+
+    @property
+    def n_frames(self) -> int:
+        return self._n_frames
+
+    def prepare_image(self, image: np.ndarray) -> "FrameImages":
+        """The per-frame image work of :meth:`add_frame` (registration image, coarse-motion image). It depends on
+        this frame alone and is thread-safe, so the analysis runs it on its extraction threads, ahead of
+        matching."""
+        image = np.asarray(image)
+        return FrameImages(
+            refine=self.refiner.prepare(image) if self.refiner is not None else None,
+            motion=self.motion_estimator.prepare(image) if self.motion_estimator is not None else None,
+        )
+
+    def add_frame(
+        self, features: np.ndarray, *, image: np.ndarray | None = None, prepared: "FrameImages | None" = None
+    ) -> Matches:
+        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first).
+
+        ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
+        of the same image) is given instead.
+        """
+        validate_features(features)
+        needs_image = self.refiner is not None or self.motion_estimator is not None
+        if needs_image and prepared is None:
+            if image is None:
+                raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
+            prepared = self.prepare_image(image)
+        cols = _columns(features)
+        n = cols.xy.shape[0]
+        disp = np.full((n, 2), np.nan)
+        refined = np.zeros(n, bool)
+        tracks = np.full(n, -1, np.int64)
+        matches = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        if self._prev is not None:
+            prev = self._prev
+            known = np.all(np.isfinite(self._prev_disp), axis=1)
+            shift = self._prediction_shift(known, prepared)
+            pred = np.where(known[:, None], self._prev_disp, shift)
+            if self.motion_estimator is not None and self._prev_frame is not None:
+                # A previous displacement disagreeing with the measured global motion is stale (direction change).
+                stale = np.hypot(*(pred - shift).T) > self._radius / 2
+                pred[stale] = shift
+            matches = _match(prev, cols, pred, self._radius)
+            if self.motion_estimator is not None and len(matches) >= 3:
+                # Second pass: predict from matched neighbours (local structure, sticking and slipping regions).
+                d1 = cols.xy[matches.curr_index] - prev.xy[matches.prev_index]
+                pred2 = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
+                matches = _match(prev, cols, pred2, self._radius)
+            pi, ci = matches.prev_index, matches.curr_index
+            d = cols.xy[ci] - prev.xy[pi]
+            if self.refiner is not None and self._prev_frame is not None and pi.size:
+                r = self.refiner.refine(self._prev_frame.refine, prepared.refine, prev.xy[pi], d)
+                d = r.displacement
+                ok = r.refined.copy()
+                if ok.sum() >= 7:
+                    # Local consistency: skin moves smoothly, so a refined displacement far from the median of
+                    # its nearest refined neighbours is a registration failure (contact edge, lost texture).
+                    med = local_predictions(prev.xy[pi], prev.xy[pi][ok], d[ok], neighbours=7)
+                    ok &= np.hypot(*(d - med).T) <= self._max_deviation
+                refined[ci] = ok
+            disp[ci] = d
+            tracks[ci] = self._prev_tracks[pi]
+            self.global_shifts.append(shift)
+            self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
+            # Features of frame k-1 left unmatched may be re-linked within max_gap_frames (beyond the seed).
+            matched_prev = np.zeros(prev.xy.shape[0], bool)
+            matched_prev[pi] = True
+            unmatched_prev = np.flatnonzero(~matched_prev)
+            step = np.median(d, axis=0) if pi.size else shift
+            self._lost.advance(step)
+            free = np.nonzero(tracks < 0)[0]
+            if self.params.max_gap_frames > 0 and free.size and len(self._lost):
+                got_idx, got_track = self._lost.relink(cols, free, self._radius)
+                tracks[got_idx] = got_track
+            if self.params.max_gap_frames > 0 and unmatched_prev.size:
+                self._lost.add(
+                    prev.xy[unmatched_prev] + step,
+                    prev,
+                    unmatched_prev,
+                    self._prev_tracks[unmatched_prev],
+                )
+            self._lost.expire(self.params.max_gap_frames)
+        new = tracks < 0
+        tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
+        self._n_tracks += int(new.sum())
+        self._track_kind.append(cols.kind[new])
+        self._frames.append((tracks, cols.xy, self._n_features, disp, refined))
+        self._n_features += n
+        self._n_frames += 1
+        self._prev = cols
+        self._prev_tracks = tracks
+        self._prev_disp = disp
+        self._prev_frame = prepared if needs_image else None
+        return matches
+
+    def continue_with(self, other: "FeatureTracker", *, overlap: int) -> bool:
+        """Append the frames that ``other`` tracked after an overlap with this tracker, if they are exactly the
+        ones this tracker would have produced; return whether it did.
+
+        ``other`` has the same parameters and was fed this tracker's last ``overlap + 1`` frames (the same
+        features and images), then the frames that follow. A tracker's state before a frame depends only on
+        the last ``max_gap_frames + 2`` frames it saw (previous displacements, features waiting to be re-linked).
+        When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
+        numbering, the same displacements, refinement flags and, after the first, global shifts), its later frames are those this
+        tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
+        ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
+        frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
+        result of one sequential pass (:mod:`skinstretch.experiments.analysis_pool`).
+        """
+        window = int(self.params.max_gap_frames) + 2
+        if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:
+            raise InvalidInputError(
+                f"overlap must be at least {window} frames (max_gap_frames + 2) and shorter than both trackers' "
+                f"frames, got overlap {overlap} for {self._n_frames} and {other._n_frames} frames"
+            )
+        if other.params != self.params or (other.refiner is None) != (self.refiner is None):
+            raise InvalidInputError("the other tracker was built with different parameters")
+        offset = self._n_frames - 1 - overlap  # this tracker's frame = offset + other's frame
+        mine, theirs = [], []
+        for i in range(overlap - window + 1, overlap + 1):
+            ta, xa, _, da, ra = self._frames[offset + i]
+            tb, xb, _, db, rb = other._frames[i]
+            if not (np.array_equal(xa, xb) and np.array_equal(da, db, equal_nan=True) and np.array_equal(ra, rb)):
+                return False
+            # The shift of the first compared pair only steered its matching (compared above); later ones also
+            # move the features waiting to be re-linked when a pair has no match.
+            first = i == overlap - window + 1
+            if not first and not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
+                return False
+            mine.append(ta)
+            theirs.append(tb)
+        pairs = np.unique(np.stack([np.concatenate(theirs), np.concatenate(mine)], axis=1), axis=0)
+        if np.unique(pairs[:, 0]).size != pairs.shape[0] or np.unique(pairs[:, 1]).size != pairs.shape[0]:
+            return False  # the two trackers split or joined the same features into different tracks
+        n_before = sum(k.size for k in other._track_kind[: overlap + 1])  # other's tracks started by the overlap
+        lut = np.full(other._n_tracks, -1, np.int64)
+        lut[pairs[:, 0]] = pairs[:, 1]
+        lut[n_before:] = self._n_tracks + np.arange(other._n_tracks - n_before)
+        later = [other._frames[i][0] for i in range(overlap + 1, other._n_frames)]
+        if any(np.any(lut[t] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
+            return False  # a track from before the compared frames reappears: cannot be numbered here
+        for i in range(overlap + 1, other._n_frames):
+            t, xy, _, d, r = other._frames[i]
+            self._frames.append((lut[t], xy, self._n_features, d, r))
+            self._n_features += xy.shape[0]
+        self._track_kind.extend(other._track_kind[overlap + 1 :])
+        self._n_tracks += other._n_tracks - n_before
+        self._n_frames += other._n_frames - overlap - 1
+        self.global_shifts.extend(other.global_shifts[overlap:])
+        self.pair_status.extend(other.pair_status[overlap:])
+        self._prev = other._prev
+        self._prev_tracks = lut[other._prev_tracks]
+        self._prev_disp = other._prev_disp
+        self._prev_frame = other._prev_frame
+        lost = other._lost
+        self._lost = _LostTracks(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
+        return True
+
+    def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:
+        if self.motion_estimator is not None and self._prev_frame is not None:
+            gm = self.motion_estimator.estimate_prepared(self._prev_frame.motion, prepared.motion)
+            if gm.reliable:
+                return gm.shift
+        # Seed 5.1.1: features without a previous position take the average of the predicted displacements.
+        if np.any(known):
+            return np.mean(self._prev_disp[known], axis=0)
+        return np.zeros(2)
+
+    def finish(self) -> Trajectories:
+        """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far."""
+        if self._n_frames == 0:
+            raise InsufficientDataError("no frames were added to the tracker")
+        n, t = self._n_frames, self._n_tracks
+        fidx = np.full((n, t), -1, np.int64)
+        raw = np.full((n, t, 2), np.nan)
+        disp = np.full((n, t, 2), np.nan)
+        refined = np.zeros((n, t), bool)
+        for k, (tracks, xy, offset, d, ref) in enumerate(self._frames):
+            fidx[k, tracks] = offset + np.arange(tracks.size)
+            raw[k, tracks] = xy
+            disp[k, tracks] = d
+            refined[k, tracks] = ref
+        kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
+        present = fidx >= 0
+        keep = present.sum(axis=0) >= int(self.params.min_length_frames)
+        fidx, raw, disp, refined, present, kind = (
+            fidx[:, keep],
+            raw[:, keep],
+            disp[:, keep],
+            refined[:, keep],
+            present[:, keep],
+            kind[keep],
+        )
+        linked = np.all(np.isfinite(disp), axis=2) & present
+        if self.refiner is not None:
+            # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps its
+            # identity but its positions restart there, so no measured displacement spans that step.
+            linked &= refined
+        pos = _chain_positions(raw, disp, linked, present)
+        pos = smooth_positions(
+            pos,
+            present,
+            linked,
+            radius_frames=int(self.params.smoothing_radius_frames),
+            sigma_frames=float(self.params.smoothing_sigma_frames),
+        )
+        return Trajectories(
+            x=pos[..., 0],
+            y=pos[..., 1],
+            present=present,
+            raw_x=raw[..., 0],
+            raw_y=raw[..., 1],
+            feature_index=fidx,
+            linked=linked,
+            refined=refined & linked,
+            kind=kind.astype(np.int8),
+        )
+
+
+@dataclass(frozen=True)
+class FrameImages:
+    """One frame's images as :meth:`FeatureTracker.add_frame` uses them (see :meth:`FeatureTracker.prepare_image`):
+    the refiner's registration image and the motion estimator's coarse image (None without them)."""
+
+    refine: PreparedImage | None
+    motion: np.ndarray | None
+
+
+@dataclass
+class _LostTracks:
+    """Features lost by matching, kept with a predicted position for re-linking (beyond the seed)."""
+
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+    orientation: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    known: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    track: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    age: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return int(self.track.size)
+
+    def add(self, xy, cols: _Cols, rows, tracks) -> None:
+        self.xy = np.concatenate([self.xy, xy])
+        self.kind = np.concatenate([self.kind, cols.kind[rows]])
+        self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
+        self.known = np.concatenate([self.known, cols.known[rows]])
+        self.track = np.concatenate([self.track, tracks])
+        self.age = np.concatenate([self.age, np.zeros(len(rows), np.int64)])
+
+    def advance(self, step: np.ndarray) -> None:
+        self.xy = self.xy + step
+        self.age = self.age + 1
+
+    def expire(self, max_age: int) -> None:
+        self._select(self.age < max_age)
+
+    def _select(self, keep) -> None:
+        for name in ("xy", "kind", "orientation", "known", "track", "age"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    def relink(self, cols: _Cols, free: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        lost = _Cols(self.xy, self.kind, self.orientation, self.known)
+        sub = _Cols(cols.xy[free], cols.kind[free], cols.orientation[free], cols.known[free])
+        m = _match(lost, sub, np.zeros_like(self.xy), radius)
+        got_idx = free[m.curr_index]
+        got_track = self.track[m.prev_index]
+        keep = np.ones(len(self), bool)
+        keep[m.prev_index] = False
+        self._select(keep)
+        return got_idx, got_track
+
+
+def _chain_positions(raw: np.ndarray, disp: np.ndarray, linked: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
+    the run's extracted positions (equal to the extracted positions when displacements are raw differences)."""
+    n, t = present.shape
+    pos = np.full(raw.shape, np.nan)
+    if n == 0 or t == 0:
+        return pos
+    # A run starts at every present frame whose displacement from the previous frame is unknown; a linked frame
+    # always follows a present one, so a run has no hole.
+    start = present & ~linked
+    steps = np.where(linked[..., None], disp, 0.0)
+    chain = np.cumsum(steps, axis=0)
+    frame = np.arange(n)[:, None]
+    last_start = np.maximum.accumulate(np.where(start, frame, -1), axis=0)
+    cols = np.broadcast_to(np.arange(t), (n, t))
+    fr, tr = np.nonzero(present)  # frame-major order; a run's samples share (track, run number)
+    local = chain[fr, tr] - chain[last_start[fr, tr], tr]
+    run = np.cumsum(start, axis=0)[fr, tr]
+    key = cols[fr, tr] * (n + 1) + run
+    _, group, count = np.unique(key, return_inverse=True, return_counts=True)
+    resid = raw[fr, tr] - local
+    offset = np.stack([np.bincount(group, weights=resid[:, c]) for c in range(2)], axis=1) / count[:, None]
+    pos[fr, tr] = local + offset[group]
+    return pos
+
+
+def smooth_positions(
+    positions: np.ndarray,
+    present: np.ndarray,
+    linked: np.ndarray,
+    *,
+    radius_frames: int = 1,
+    sigma_frames: float = 1.0,
+) -> np.ndarray:
+    """Gaussian smoothing of trajectories along time (seed eq. 5.2, 5.3), within each linked run.
+
+    The kernel ``K(i) = exp(-i^2 / (2 sigma^2))``, ``|i| <= R`` is normalised over the samples that exist, so
+    the ends of a run are not pulled toward zero (eq. 5.3 as printed is unnormalised).
+
+    Parameters
+    ----------
+    positions : (N, T, 2) array
+    present, linked : (N, T) bool arrays
+        Where a position exists, and where it is linked to the previous frame's (runs are not smoothed across).
+    radius_frames, sigma_frames
+        R and sigma of eq. 5.2-5.3; ``radius_frames=0`` returns the positions unchanged.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[2] != 2 or positions.shape[:2] != present.shape:
+        raise InvalidInputError(f"positions must have shape (N, T, 2) matching present, got {positions.shape}")
+    if radius_frames < 0:
+        raise InvalidInputError(f"radius_frames must be >= 0, got {radius_frames!r}")
+    if radius_frames == 0 or positions.shape[0] < 2:
+        return positions.copy()
+    if not sigma_frames > 0:
+        raise InvalidInputError(f"sigma_frames must be positive, got {sigma_frames!r}")
+    n = positions.shape[0]
+    # Run label per sample: a new run begins wherever a present sample is not linked to the previous frame.
+    start = present & ~linked
+    run_id = np.cumsum(start, axis=0)
+    out = np.zeros_like(positions)
+    weight = np.zeros(present.shape)
+    filled = np.where(present[..., None], positions, 0.0)
+    for i in range(-radius_frames, radius_frames + 1):
+        k = float(np.exp(-(i * i) / (2.0 * sigma_frames**2)))
+        lo, hi = max(0, -i), min(n, n - i)  # target frames t with t + i in range
+        src = slice(lo + i, hi + i)
+        tgt = slice(lo, hi)
+        ok = present[src] & present[tgt] & (run_id[src] == run_id[tgt])
+        out[tgt] += np.where(ok[..., None], filled[src] * k, 0.0)
+        weight[tgt] += np.where(ok, k, 0.0)
+    result = np.full_like(positions, np.nan)
+    has = present & (weight > 0)
+    result[has] = out[has] / weight[has][:, None]
+    return result
+
+
+def concatenate_features(tables: list[np.ndarray]) -> np.ndarray:
+    """The concatenated feature table that :attr:`Trajectories.feature_index` points into (frame set per table)."""
+    if not tables:
+        return np.zeros(0, dtype=FEATURE_DTYPE)
+    for k, t in enumerate(tables):  # the cheap checks per table, the value checks once on the whole
+        if not isinstance(t, np.ndarray) or t.dtype != FEATURE_DTYPE or t.ndim != 1:
+            raise InvalidInputError(
+                f"feature table {k} must be a 1-D structured array of FEATURE_DTYPE, got {getattr(t, 'dtype', type(t))}"
+            )
+    out = validate_features(np.concatenate(tables))
+    sizes = [t.shape[0] for t in tables]
+    out["frame"] = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
+    out["id"] = np.arange(out.shape[0])
+    return out

@@ -1,0 +1,71 @@
+"""The calibration object every processing step uses to turn physical parameters into pixels.
+
+Parameters throughout skinstretch are given in mm (and degrees, frames), as the seed gives them. A frozen
+:class:`Calibration` converts them to pixels once, at the top of each processing function, so that nothing
+downstream ever guesses a scale. The geometric mapping from image pixels to millimetres on the skin (seed 3.4)
+is attached by :mod:`skinstretch.processing.geometric_calibration` when one was fitted; without one the image is taken as
+a flat, square-pixel view of the contact plane at ``px_per_mm``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from skinstretch.processing.errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Pixel scale of an image sequence, and optionally a fitted pixel-to-skin mapping.
+
+    Parameters
+    ----------
+    px_per_mm : float
+        Pixels per millimetre on the contact surface (seed: ~62 px/mm for the 10.3 mm full field of view).
+    mapping : object, optional
+        A fitted geometric mapping (see :mod:`skinstretch.processing.geometric_calibration`) with ``image_to_surface`` and
+        ``surface_to_image`` methods. ``None`` means the flat, square-pixel model.
+
+    Examples
+    --------
+    >>> cal = Calibration(px_per_mm=62.0)
+    >>> cal.px(2.0)
+    124.0
+    >>> cal.odd_px(2.0)
+    125
+    """
+
+    px_per_mm: float
+    mapping: Any = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.px_per_mm, (int, float)) or not math.isfinite(self.px_per_mm) or self.px_per_mm <= 0:
+            raise InvalidInputError(f"px_per_mm must be a positive finite number, got {self.px_per_mm!r}")
+        object.__setattr__(self, "px_per_mm", float(self.px_per_mm))
+
+    @classmethod
+    def from_field_of_view(cls, width_px: int, width_mm: float) -> "Calibration":
+        """Calibration of a camera whose ``width_px`` pixels span ``width_mm`` millimetres."""
+        if width_px <= 0 or width_mm <= 0:
+            raise InvalidInputError(f"field of view must be positive, got {width_px} px over {width_mm} mm")
+        return cls(px_per_mm=width_px / width_mm)
+
+    def px(self, mm: float) -> float:
+        """A length in mm, in pixels."""
+        return float(mm) * self.px_per_mm
+
+    def mm(self, px: float) -> float:
+        """A length in pixels, in mm."""
+        return float(px) / self.px_per_mm
+
+    def odd_px(self, mm: float, minimum: int = 1) -> int:
+        """A window width in mm as an odd pixel count (windows are centred), at least ``minimum``."""
+        n = int(round(self.px(mm)))
+        n = max(n, minimum)
+        return n if n % 2 == 1 else n + 1
+
+    def px_int(self, mm: float, minimum: int = 0) -> int:
+        """A length in mm rounded to whole pixels, at least ``minimum``."""
+        return max(int(round(self.px(mm))), minimum)
