@@ -2,10 +2,9 @@
 
 import numpy as np
 import pytest
-
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.illumination import apply_illumination_gain, compensate_illumination, illumination_gain
 from skinstretch.processing.feature_localization import locate_minutiae_tips
+from skinstretch.processing.illumination import apply_illumination_gain, compensate_illumination, illumination_gain
 
 
 def test_gain_matches_eq_3_7_up_to_rounding():
@@ -275,8 +274,7 @@ def test_blob_labelling_handles_empty_full_and_edge_blobs():
 
 def test_compiled_density_filter_matches_a_kd_tree_reference():
     from scipy.spatial import cKDTree
-
-    from skinstretch.processing.editing import feature_density_mask
+    from skinstretch.processing.feature_filters import feature_density_mask
 
     rng = np.random.default_rng(5)
     x, y = rng.uniform(0, 60, 300), rng.uniform(0, 60, 300)

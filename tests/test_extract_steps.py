@@ -4,24 +4,23 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor, extract_features
+from skinstretch.processing.feature_filters import feature_density_mask
+from skinstretch.processing.feature_localization import refine_pores
+from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind
+from skinstretch.processing.illumination import compensate_illumination, illumination_map
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.editing import (
-    feature_density_mask,
+from skinstretch.processing.pores import detect_blob_pores
+from skinstretch.processing.preprocess import binarize, detect_background, local_mean
+from skinstretch.processing.skeleton_editing import (
     heal_broken_valleys,
     line_pixels,
     remove_bridges,
     remove_short_spurs,
     remove_short_valleys,
 )
-from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor, extract_features
-from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind
-from skinstretch.processing.illumination import compensate_illumination, illumination_map
-from skinstretch.processing.minutiae import node_kind, node_orientation, trace_skeleton
-from skinstretch.processing.pores import detect_blob_pores
-from skinstretch.processing.preprocess import binarize, detect_background, local_mean
-from skinstretch.processing.feature_localization import refine_pores
+from skinstretch.processing.skeleton_graph_lists import node_kind, node_orientation, trace_skeleton
 from skinstretch.processing.thinning import thin
 
 PPM = 62.0

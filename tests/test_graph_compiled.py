@@ -1,4 +1,4 @@
-"""The compiled skeleton graph (skinstretch.processing.minutiae.GraphArrays) and the skeleton rules that run on it.
+"""The compiled skeleton graph (skinstretch.processing.skeleton_graph.GraphArrays) and the skeleton rules that run on it.
 
 The rules were list-based Python; they now run compiled on flat arrays with the same results to the bit. These tests
 cover what the port added: the numerics that must match Python's and numpy's, degenerate and large skeletons, the
@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from skinstretch.processing.editing import (
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FeatureKind
+from skinstretch.processing.skeleton_editing import (
+    _stable_argsort,
     edit_graph,
     heal_broken_valleys,
     line_pixels,
@@ -21,20 +23,19 @@ from skinstretch.processing.editing import (
     remove_short_spurs,
     remove_short_valleys,
 )
-from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.feature_table import FeatureKind
-from skinstretch.processing.minutiae import (
+from skinstretch.processing.skeleton_graph import (
     GraphArrays,
     GraphCapacityError,
-    SkeletonGraph,
     _hypot,
-    _stable_argsort,
-    branch_direction,
     edit_with_room,
     graph_features,
+    trace_arrays,
+)
+from skinstretch.processing.skeleton_graph_lists import (
+    SkeletonGraph,
+    branch_direction,
     node_kind,
     node_orientation,
-    trace_arrays,
     trace_skeleton,
 )
 from skinstretch.processing.thinning import thin
@@ -383,7 +384,7 @@ def test_settle_merges_the_two_valleys_left_at_a_node():
 
 
 def test_an_edit_that_never_fits_raises_instead_of_looping():
-    from skinstretch.processing.minutiae import GraphCapacityError
+    from skinstretch.processing.skeleton_graph import GraphCapacityError
 
     rooms = []
 

@@ -34,10 +34,9 @@ _PASSES = 3
 
 def _scene_row(name: str, n_frames: int) -> list:
     import numpy as np
-
     from skinstretch.experiments.evaluation.features import evaluate_features
-    from skinstretch.processing.editing import border_mask
     from skinstretch.processing.extraction import FeatureExtractor
+    from skinstretch.processing.feature_filters import border_mask
     from skinstretch.simulators.scene import load_scene, render_session
 
     scene = load_scene(name).model_copy(update={"n_frames": n_frames})

@@ -21,16 +21,16 @@ from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
-
-from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.editing import border_mask, edit_graph, feature_density_mask, outside_border
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
+from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
-from skinstretch.processing.minutiae import GraphArrays, edit_with_room, graph_features, trace_arrays
+from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores
 from skinstretch.processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
-from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
+from skinstretch.processing.skeleton_editing import edit_graph
+from skinstretch.processing.skeleton_graph import GraphArrays, edit_with_room, graph_features, trace_arrays
 from skinstretch.processing.thinning import thin
 
 __all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
@@ -263,7 +263,7 @@ def _counts(kinds: np.ndarray) -> dict[str, int]:
 
 
 def _graph_counts(row: np.ndarray) -> dict[str, int]:
-    """Counts per kind from a row of :func:`skinstretch.processing.editing.edit_graph`'s counts (endings, bifurcations, pores)."""
+    """Counts per kind from a row of :func:`skinstretch.processing.skeleton_editing.edit_graph`'s counts (endings, bifurcations, pores)."""
     ends, bifs, pores = row.tolist()
     return {
         KIND_NAMES[FeatureKind.VALLEY_ENDING]: ends,
