@@ -11,9 +11,7 @@ direction (5.3.2, Figure 94) and the tactile movie (5.4). It writes ``OUTDIR/res
 from __future__ import annotations
 
 import json
-import platform
 from concurrent.futures import ThreadPoolExecutor
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,6 +21,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.json_encoding import json_default, json_safe
+from skinstretch.experiments.provenance import software_versions
+from skinstretch.progress import progress_bar
 from skinstretch.experiments.results_file import (
     EDGE_DTYPE,
     MOTION_DTYPE,
@@ -116,28 +117,6 @@ class MotionMeasurement:
     parallel: str = ""  # how the measurement ran (threads or worker processes), for the results' params
 
 
-def _versions() -> dict[str, str]:
-    import cv2
-    import h5py
-    import scipy
-
-    try:
-        from importlib.metadata import version
-
-        own = version("skinstretch")
-    except Exception:  # package metadata missing (not installed): report it, do not fail
-        own = "unknown"
-    return {
-        "skinstretch": own,
-        "python": sys.version.split()[0],
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "opencv": cv2.__version__,
-        "h5py": h5py.__version__,
-        "platform": platform.platform(),
-    }
-
-
 def _mapping_of(session) -> Any:
     if not session.mapping_json:
         return None
@@ -182,20 +161,19 @@ def measure_features(
         raw, shading, good = frames, None, None
         if isinstance(frames, _ShadedFrames):
             raw, shading, good = frames._frames, frames._shading, frames._good
-        bar = _bar(n, progress, "features")
+        bar = progress_bar(n, enabled=progress, desc="features")
         try:
             pt = analysis_pool.track_in_processes(
                 raw, calibration=calibration, params=params, workers=workers, plan=plan, overlap=overlap,
                 shading=shading, good=good, read_frame=lambda k: np.asarray(frames[k]),
-                on_frames=(lambda done: bar.update(done - bar.n)) if bar is not None else None,
+                on_frames=lambda done: bar.update(done - bar.n),
             )
             tracker, tables, flags, timing = pt.tracker, pt.tables, pt.flags, pt.timing
             parallel = f"processes ({workers}): {pt.n_chunks} chunks, {pt.n_retracked} re-tracked at their join"
         except analysis_pool.ProcessPoolFailed as exc:
             parallel = f"threads ({workers}): worker processes failed ({exc})"
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
     if tracker is None:
         tracker, tables, flags, timing = _track_on_threads(
             frames, calibration=calibration, params=params, workers=workers, progress=progress
@@ -255,7 +233,8 @@ def _track_on_threads(frames, *, calibration: Calibration, params: AnalysisParam
         ahead = 2 * workers
         for k in range(min(ahead, n)):
             pending[k] = pool.submit(timed_extract, k)
-        for k in _progress(range(n), progress, "features"):
+        bar = progress_bar(n, enabled=progress, desc="features")
+        for k in range(n):
             res, prepared, dt, dt_prepare = pending.pop(k).result()
             if k + ahead < n:
                 pending[k + ahead] = pool.submit(timed_extract, k + ahead)
@@ -267,6 +246,8 @@ def _track_on_threads(frames, *, calibration: Calibration, params: AnalysisParam
             t_prepare += dt_prepare
             tables.append(feats)
             flags.append(",".join(sorted(res.flags)))
+            bar.update(1)
+        bar.close()
     return tracker, tables, flags, {"extraction_s": t_extract, "image_prep_s": t_prepare, "tracking_s": t_track}
 
 
@@ -283,14 +264,13 @@ def measure_flow(
     flow = DenseFlow(calibration=calibration, params=params.flow)
     flags = [""] * n
     t0 = time.perf_counter()
-    bar = _bar(max(n - 1, 0), progress, "flow")
+    bar = progress_bar(max(n - 1, 0), enabled=progress, desc="flow")
     try:
         # Each frame prepared once, runs of pairs on params.workers threads (same fields as pair by pair).
         fields = flow.compute_sequence(frames, threads=max(1, int(params.workers)),
-                                       on_field=(lambda _f: bar.update(1)) if bar is not None else None)
+                                       on_field=lambda _f: bar.update(1))
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     for f in fields:
         if f.status != "ok":
             flags[f.frame_a] = f.status
@@ -333,22 +313,6 @@ def _rectified_sample(s: MotionSample, mapping, cal: Calibration) -> MotionSampl
     pa = _rectify(s.points, mapping, cal.px_per_mm)
     pb = _rectify(s.points + s.displacement, mapping, cal.px_per_mm)
     return MotionSample(s.frame_a, s.frame_b, pa, pb - pa, s.ids)
-
-
-def _bar(total: int, enabled: bool, desc: str):
-    if not enabled:
-        return None
-    from tqdm import tqdm  # noqa: PLC0415
-
-    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, leave=False)
-
-
-def _progress(it, enabled: bool, desc: str):
-    if not enabled:
-        return it
-    from tqdm import tqdm
-
-    return tqdm(it, desc=desc, unit="frame", file=sys.stderr, leave=False)
 
 
 def span_strain(samples: Sequence[MotionSample | str], *, span: int, max_edge_px: float) -> SpanStrain:
@@ -603,7 +567,7 @@ def analyze_frames(
         tactile_stretch_change=movie.stretch_change if movie else None,
         timing=timing,
         params={**params.to_dict(), "glass_shading_status": shading_status, "parallel": m.parallel},
-        versions=_versions(),
+        versions=software_versions(),
         features=m.features,
         trajectories=m.trajectories,
         flow_grid_x=gx,
@@ -674,15 +638,5 @@ def analyze_session(
     )
     outdir.mkdir(parents=True, exist_ok=True)
     path = write_results(outdir / "results.h5", r)
-    (outdir / "summary.json").write_text(json.dumps(summarize(r, path), indent=2, default=_json_default))
+    (outdir / "summary.json").write_text(json.dumps(json_safe(summarize(r, path)), indent=2, default=json_default))
     return path
-
-
-def _json_default(v):
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    if isinstance(v, (np.floating,)):
-        return None if not np.isfinite(v) else float(v)
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    return str(v)

@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Literal, Optional, TypeVar
+from typing import Any, Literal, Optional
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.config_file import parse_yaml_model, read_config_text
 from skinstretch.processing.errors import ConfigError
 
 __all__ = [
@@ -268,96 +268,19 @@ class Rig(_Strict):
         return all(getattr(self, r).kind in ("sim", "none") for r in _KINDS)
 
 
-# --------------------------------------------------------------------------------------------- loading YAML
-
-_M = TypeVar("_M", bound=BaseModel)
-
-
-def _node_lines(node: yaml.Node, path: tuple = (), out: dict | None = None) -> dict[tuple, int]:
-    """Map every key path of a composed YAML document to its (1-based) line number."""
-    out = {} if out is None else out
-    out[path] = node.start_mark.line + 1
-    if isinstance(node, yaml.MappingNode):
-        for key_node, value_node in node.value:
-            key = key_node.value
-            _node_lines(value_node, path + (key,), out)
-            # The key's line, not the value's: a nested block value starts on the next line.
-            out[path + (key,)] = key_node.start_mark.line + 1
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _node_lines(item, path + (i,), out)
-    return out
-
-
-def _format_loc(loc: tuple) -> str:
-    text = ""
-    for part in loc:
-        if isinstance(part, int):
-            text += f"[{part}]"
-        else:
-            text += ("." if text else "") + str(part)
-    return text or "(document)"
-
-
-def _line_for(loc: tuple, lines: dict[tuple, int]) -> int:
-    # pydantic locations may carry validator names that are not YAML keys; fall back to the longest known prefix.
-    loc = tuple(p for p in loc if isinstance(p, int) or not str(p).startswith("function-"))
-    for k in range(len(loc), -1, -1):
-        if loc[:k] in lines:
-            return lines[loc[:k]]
-    return 1
-
-
-def _parse(model: type[_M], text: str, *, source: str) -> _M:
-    try:
-        node = yaml.compose(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{source}:{mark.line + 1}" if mark is not None else source
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{where}: not valid YAML ({problem})") from None
-    if node is None:
-        raise ConfigError(f"{source}:1: the file is empty")
-    if not isinstance(node, yaml.MappingNode):
-        raise ConfigError(f"{source}:{node.start_mark.line + 1}: expected a mapping of fields at the top level")
-    lines = _node_lines(node)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:  # compose succeeded, so this is a constructor error (bad tag...)
-        raise ConfigError(f"{source}: YAML cannot be loaded ({exc})") from None
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        messages = []
-        for err in exc.errors(include_url=False):
-            loc = tuple(err.get("loc", ()))
-            messages.append(f"{source}:{_line_for(loc, lines)}: {_format_loc(loc)}: {err['msg']}")
-        raise ConfigError("\n".join(messages)) from None
-
-
-def _read(path: str | os.PathLike, what: str) -> tuple[str, str]:
-    p = Path(path)
-    try:
-        return p.read_text(encoding="utf-8"), str(p)
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such {what} file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: cannot read {what} file ({exc})") from None
-
-
 def parse_protocol(text: str, *, source: str = "<protocol>") -> Protocol:
     """Validate protocol YAML text; ConfigError names ``source``, the line and the field of every problem."""
-    return _parse(Protocol, text, source=source)
+    return parse_yaml_model(Protocol, text, source=source)
 
 
 def parse_rig(text: str, *, source: str = "<rig>") -> Rig:
     """Validate rig YAML text; ConfigError names ``source``, the line and the field of every problem."""
-    return _parse(Rig, text, source=source)
+    return parse_yaml_model(Rig, text, source=source)
 
 
 def load_protocol(path: str | os.PathLike) -> Protocol:
     """Load and validate a protocol YAML file (raises ConfigError with file:line: field: message)."""
-    text, source = _read(path, "protocol")
+    text, source = read_config_text(path, "protocol")
     protocol = parse_protocol(text, source=source)
     cal = protocol.calibration
     if cal is not None and not Path(cal.source).is_absolute():
@@ -370,7 +293,7 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
     """Load a rig YAML file; ``None`` gives the all-simulated rig."""
     if path is None:
         return Rig()
-    text, source = _read(path, "rig")
+    text, source = read_config_text(path, "rig")
     return parse_rig(text, source=source)
 
 

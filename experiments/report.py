@@ -13,8 +13,6 @@ import base64
 import html
 import json
 import math
-import platform
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +20,8 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from skinstretch.experiments.number_format import format_number
+from skinstretch.experiments.provenance import software_versions
 from skinstretch.drivers.session_file import open_session
 from skinstretch.processing.errors import SkinstretchError
 from skinstretch.experiments.figures import chapter6 as fig6
@@ -67,25 +67,7 @@ def _esc(x: Any) -> str:
 
 
 def _num(v: Any) -> str:
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, (int, np.integer)):
-        return f"{int(v)}"
-    if isinstance(v, (float, np.floating)):
-        v = float(v)
-        if math.isnan(v):
-            return "n/a"
-        a = abs(v)
-        if a == 0:
-            return "0"
-        if a >= 1000:
-            return f"{v:.0f}"
-        if a >= 1:
-            return f"{v:.3g}" if a < 100 else f"{v:.1f}"
-        return f"{v:.3g}"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_num(x) for x in v) + "]"
-    return _esc(v)
+    return _esc(format_number(v))
 
 
 def _table(rows: Sequence[Sequence[Any]], header: Sequence[str]) -> str:
@@ -120,25 +102,6 @@ th{background:#f3f3f3} td{text-align:right} td:first-child{text-align:left}
 figure{margin:1em 0} img{max-width:100%} figcaption{font-size:.85em;color:#555}
 .warn{color:#a40} .ok{color:#070} pre{background:#f7f7f7;padding:.5em;font-size:.8em;overflow-x:auto}
 """
-
-
-def _versions() -> dict[str, str]:
-    out = {"python": platform.python_version(), "platform": platform.platform()}
-    for mod in ("numpy", "scipy", "h5py", "cv2", "skimage", "matplotlib", "pydantic"):
-        m = sys.modules.get(mod)
-        if m is None:
-            try:
-                m = __import__(mod)
-            except ImportError:
-                continue
-        out[mod] = str(getattr(m, "__version__", "?"))
-    try:
-        from importlib.metadata import version  # noqa: PLC0415
-
-        out["skinstretch"] = version("skinstretch")
-    except Exception:  # not installed as a distribution
-        out["skinstretch"] = "source tree"
-    return out
 
 
 # --------------------------------------------------------------------------------------------- from results
@@ -420,7 +383,7 @@ def build_report(
         params.setdefault("analysis parameters", first.params)
     sdir = Path(session_dir) if session_dir else None
     proto = sdir / "protocol.yaml" if sdir else None
-    foot = ["<h2>Parameters and versions</h2>", _kv(_versions())]
+    foot = ["<h2>Parameters and versions</h2>", _kv(software_versions())]
     if proto is not None and proto.exists():
         foot.append("<h3>Protocol</h3><pre>" + _esc(proto.read_text()) + "</pre>")
     for k, v in params.items():

@@ -34,6 +34,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from skinstretch.experiments.json_encoding import json_default
 from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
 from skinstretch.drivers.session_file import attach_truth, open_session
 from skinstretch.processing.pixel_scale import Calibration
@@ -79,7 +80,7 @@ class EventLog:
         if name not in ("start", "descriptor", "event", "stop"):
             raise InvalidInputError(f"document name must be start/descriptor/event/stop, got {name!r}")
         doc = {"time": time.time(), **doc}
-        line = json.dumps({"name": name, "doc": doc}, sort_keys=True, default=_json_default)
+        line = json.dumps({"name": name, "doc": doc}, sort_keys=True, default=json_default)
         with self._lock:
             self._fh.write(line + "\n")
             self._fh.flush()
@@ -94,16 +95,6 @@ class EventLog:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, (np.integer, np.floating, np.bool_)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)
 
 
 def read_events(path: str | os.PathLike) -> list[tuple[str, dict[str, Any]]]:

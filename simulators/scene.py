@@ -39,11 +39,13 @@ import cv2
 import numba
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from skinstretch.drivers.camera_modes import CameraMode, camera_mode as _camera_mode
 from skinstretch.drivers.session_file import SessionTruth, write_session
 from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.config_file import parse_yaml_model
+from skinstretch.progress import progress_bar
 from skinstretch.processing.errors import ConfigError, InvalidInputError
 from skinstretch.simulators.sensor_model import CameraModel
 from skinstretch.simulators.deformation import (
@@ -218,51 +220,9 @@ def _builtin_names() -> list[str]:
 SCENE_NAMES: tuple[str, ...] = tuple(_builtin_names())
 
 
-def _line_of(node: yaml.Node | None, loc: tuple) -> int | None:
-    """1-based line of the YAML node at ``loc`` (or of its deepest existing parent)."""
-    line = None
-    for key in loc:
-        if node is None:
-            break
-        line = node.start_mark.line + 1
-        if isinstance(node, yaml.MappingNode):
-            nxt = None
-            for k, v in node.value:
-                if k.value == str(key):
-                    nxt, line = v, k.start_mark.line + 1
-                    break
-            node = nxt
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-            node = node.value[key]
-        else:
-            break
-    if node is not None:
-        line = node.start_mark.line + 1
-    return line
-
-
 def parse_scene(text: str, *, source: str = "<string>") -> Scene:
-    """Validate a scene from YAML text; errors raise ConfigError naming ``source``, the field and the line."""
-    try:
-        data = yaml.safe_load(text)
-        root = yaml.compose(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not valid YAML ({exc})") from None
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: a scene must be a YAML mapping, got {type(data).__name__}")
-    try:
-        return Scene.model_validate(data)
-    except ValidationError as exc:
-        problems = []
-        for err in exc.errors():
-            loc = tuple(err["loc"])
-            name = ".".join(str(p) for p in loc) or "(scene)"
-            line = _line_of(root, loc)
-            where = f" (line {line})" if line else ""
-            problems.append(f"field {name}{where}: {err['msg']}")
-        raise ConfigError(f"{source}: invalid scene: " + "; ".join(problems)) from None
+    """Validate a scene from YAML text; errors raise ConfigError naming ``source``, the line and the field."""
+    return parse_yaml_model(Scene, text, source=source, empty_ok=True)
 
 
 def load_scene(name_or_path: str | os.PathLike) -> Scene:
@@ -783,18 +743,13 @@ def render_session(
     r = SceneRenderer(scene, seed=seed, noise=noise, optics=optics)
     n = r.n_frames
     frames = np.empty((n, r.camera_mode.height, r.camera_mode.width), dtype=np.uint8)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n, desc=f"simulate {scene.name}", unit="frame", leave=False)
+    bar = progress_bar(n, enabled=progress, desc=f"simulate {scene.name}")
 
     inner = None if workers == 1 else 1  # frame-level threads replace the row-band threads of one frame
 
     def one(k: int) -> None:
         frames[k] = r.render_frame(k, threads=inner)  # frames are independent and seeded by index: any order
-        if bar is not None:
-            bar.update(1)
+        bar.update(1)
 
     if workers == 1:
         for k in range(n):
@@ -803,8 +758,7 @@ def render_session(
         # The compiled kernels, cv2 and numpy's generators release the GIL, so threads overlap.
         with ThreadPoolExecutor(max_workers=int(workers)) as pool:
             list(pool.map(one, range(n)))
-    if bar is not None:
-        bar.close()
+    bar.close()
     timestamps = np.arange(n) * r.camera_mode.period_s
     metadata = {
         "simulated": True,

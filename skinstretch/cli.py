@@ -1,16 +1,29 @@
-"""The ``skinstretch`` command line: discovers the subcommands in :mod:`skinstretch.experiments.commands`."""
+"""The ``skinstretch`` command line: one subcommand per module of :mod:`skinstretch.experiments.commands`.
+
+Every subcommand takes ``-v/--verbose`` (more log lines; twice for debugging) and ``-q/--quiet`` (warnings and errors
+only, no progress bars). Library code logs through :mod:`logging`; this is the one place that configures it. Any
+:class:`~skinstretch.processing.errors.SkinstretchError` ends the command with its one-line message and status 2.
+"""
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import pkgutil
+import logging
 import sys
-
-from skinstretch.processing.errors import SkinstretchError
 
 import skinstretch.experiments.commands as _commands
 from skinstretch import __version__
+from skinstretch.experiments.module_discovery import public_submodules
+from skinstretch.processing.errors import SkinstretchError
+
+log = logging.getLogger("skinstretch")
+
+
+def _add_verbosity(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("output")
+    group.add_argument("-v", "--verbose", action="count", default=0,
+                       help="more messages (-vv: debugging detail)")
+    group.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors; no progress bars")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,24 +34,35 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"skinstretch {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{_commands.__name__}.{info.name}")
+    for module in public_submodules(_commands):
         module.register(sub)
+    for command in sub.choices.values():
+        _add_verbosity(command)
     return parser
+
+
+def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
+    """Log records of skinstretch to standard error: INFO by default, DEBUG with -v -v, WARNING with --quiet."""
+    level = logging.WARNING if quiet else logging.DEBUG if verbose >= 2 else logging.INFO
+    fmt = "%(levelname)s %(name)s: %(message)s" if verbose else "%(message)s"
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(fmt))
+    log.handlers[:] = [handler]
+    log.setLevel(level)
+    log.propagate = False
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet)
     try:
         return int(args.func(args) or 0)
     except SkinstretchError as exc:
-        print(f"skinstretch {args.command}: error: {exc}", file=sys.stderr)
+        log.error("skinstretch %s: error: %s", args.command, exc)
         return 2
     except KeyboardInterrupt:
-        print(f"skinstretch {args.command}: interrupted", file=sys.stderr)
+        log.error("skinstretch %s: interrupted", args.command)
         return 130
 
 

@@ -1,5 +1,6 @@
 """skinstretch installs exactly one namespace: the card's four folders become skinstretch.processing, ..."""
 
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -45,7 +46,11 @@ def test_nothing_imports_the_bare_layer_names():
 
 @pytest.mark.slow
 def test_wheel_holds_only_the_skinstretch_namespace(tmp_path):
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", str(ROOT), "-w", str(tmp_path)],
+    # Built from a copy: setuptools writes its build/ folder into the tree it builds.
+    src = tmp_path / "src"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__", "*.egg-info", "build",
+                                                             "demo-output", "bench-output", ".hypothesis"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", str(src), "-w", str(tmp_path)],
                    check=True, capture_output=True)
     (wheel,) = tmp_path.glob("skinstretch-*.whl")
     tops = {name.split("/")[0] for name in zipfile.ZipFile(wheel).namelist()}

@@ -125,10 +125,10 @@ def test_builtin_scenes_load(name):
 def test_scene_errors_name_file_field_and_line(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text("name: bad\ncamera:\n  mode: full\n  noise_sigma: -1\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml.*camera\.noise_sigma \(line 4\)"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml:4: camera\.noise_sigma: "):
         load_scene(p)
     p.write_text("name: bad\nsurface: {kind: bump}\n")
-    with pytest.raises(ConfigError, match=r"surface\.kind \(line 2\)"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml:2: surface\.kind: "):
         load_scene(p)
     p.write_text("name: bad\nmotoin: {}\n")
     with pytest.raises(ConfigError, match="motoin"):

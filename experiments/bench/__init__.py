@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from skinstretch.experiments.number_format import format_number
+
 
 @dataclass
 class BenchOptions:
@@ -41,7 +43,7 @@ class BenchTable:
         }
 
     def format(self) -> str:
-        cells = [[str(c) for c in self.columns]] + [[_fmt(v) for v in row] for row in self.rows]
+        cells = [[str(c) for c in self.columns]] + [[format_number(v) for v in row] for row in self.rows]
         widths = [max(len(r[i]) for r in cells) for i in range(len(self.columns))]
         line = "  ".join("-" * w for w in widths)
         out = [self.title, line]
@@ -51,25 +53,6 @@ class BenchTable:
                 out.append(line)
         out.extend(f"  {n}" for n in self.notes)
         return "\n".join(out)
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "n/a"
-        a = abs(v)
-        if a == 0:
-            return "0"
-        if a >= 1000:
-            return f"{v:.0f}"
-        if a >= 10:
-            return f"{v:.1f}"
-        if a >= 0.01:
-            return f"{v:.3f}"
-        return f"{v:.2e}"
-    return str(v)
 
 
 def _jsonable(v: Any) -> Any:

@@ -26,7 +26,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("features", "flow"), default="features", help="measurement method")
     p.add_argument("--span", default="1,11", help="comma-separated frame spans of the strain (default 1,11)")
     p.add_argument("--min-track", type=int, default=None, help="minimum trajectory length in frames (default 30)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 

@@ -12,16 +12,11 @@ from pathlib import Path
 
 import skinstretch.experiments.bench as _bench
 from skinstretch.experiments.bench import BenchOptions
+from skinstretch.experiments.module_discovery import public_submodules
 
 
 def available_sections() -> dict[str, object]:
-    sections = {}
-    for info in sorted(pkgutil.iter_modules(_bench.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{_bench.__name__}.{info.name}")
-        sections[module.SECTION] = module
-    return sections
+    return {module.SECTION: module for module in public_submodules(_bench)}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
