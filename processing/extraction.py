@@ -21,11 +21,14 @@ from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
+from pydantic import model_validator
+
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
 from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores
 from skinstretch.processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
@@ -42,7 +45,7 @@ FEATURE_ID_STRIDE = 1_000_000
 STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "density", "border")
 
 
-@dataclass(frozen=True)
+@parameters(strict=True)
 class ExtractionParams:
     """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255.
 
@@ -117,7 +120,8 @@ class ExtractionParams:
     saturated_fraction: float = 0.5
     no_finger_fraction: float = 0.95
 
-    def __post_init__(self) -> None:
+    @model_validator(mode="after")
+    def _check(self) -> "ExtractionParams":
         for f in fields(self):
             v = getattr(self, f.name)
             if f.type in ("bool", bool):
@@ -157,6 +161,7 @@ class ExtractionParams:
                 raise InvalidInputError(f"ExtractionParams.{name} must be in (0, 1], got {getattr(self, name)!r}")
         if not 0 <= self.background_min_mean <= 255 or not 0 <= self.black_level <= 255:
             raise InvalidInputError("background_min_mean and black_level must be grey levels in [0, 255]")
+        return self
 
     def to_dict(self) -> dict:
         return asdict(self)
