@@ -161,7 +161,7 @@ def _triangulated_pairs(r, span: int):
     s = r.strain.get(span)
     if s is None:
         raise KeyError(f"no strain at span {span}")
-    ok = np.nonzero(s.pairs["status"] == b"ok")[0]
+    ok = np.nonzero(s.ok)[0]
     if ok.size == 0:
         raise ValueError(f"no frame pair at span {span} gave a triangulation")
     return s, ok
@@ -238,10 +238,10 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
             "analysis time (s)": r.timing.get("total_s", float("nan")),
             "frames per s": r.timing.get("frames_per_s", float("nan")),
             "fingertip travel (px)": np.ptp(r.fingertip_position, axis=0).tolist(),
-            "profile axis": "x" if r.profile_axis == 0 else "y",
+            "profile axis": r.profile_axis,
         }
         if r.trajectories is not None:
-            lengths = r.trajectories["present"].sum(axis=0)
+            lengths = r.trajectories.lengths
             summary["trajectories"] = int(lengths.size)
             summary["median trajectory (frames)"] = float(np.median(lengths)) if lengths.size else 0.0
         for span, s in sorted(r.strain.items()):
@@ -255,7 +255,7 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
         parts.append(_guard("edge length series", lambda: _edge_series(r, span_long, limit=0.15)))
         if r.trajectories is not None:
             parts.append(_guard("trajectory lengths", lambda: _img(
-                fig6.trajectory_length_figure(r.trajectories["present"].sum(axis=0), n_frames=r.n_frames),
+                fig6.trajectory_length_figure(r.trajectories.lengths, n_frames=r.n_frames),
                 "Trajectory length distribution (as seed Figure 70)")))
         scale = 1.0 / r.px_per_mm
         info["profile"] = (r.profile_position * scale, np.where(r.profile_valid, r.profile_change, np.nan))
@@ -272,7 +272,7 @@ def _truth_section(r, session, info: dict[str, Any]) -> str:
     truth = session.truth
     ev = evaluate_tracking(r, truth)
     info["evaluation"] = ev
-    strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
+    strip = float(r.params["strain"]["profile_strip_mm"]) * r.px_per_mm
     _, true_change = profile_correlation(r, TruthField(truth), strip_px=strip)
     info["true_profile"] = (r.profile_position / r.px_per_mm, np.asarray(true_change, float))
     rows = []

@@ -41,8 +41,8 @@ class TrackingParams:
     search_radius_mm : float
         Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
     min_length_frames : int or None
-        Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30, or half a clip shorter
-        than 60 frames (:func:`min_length_for_clip`; the analysis says so when it adapts).
+        Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30 here; the analysis uses half
+        of a clip shorter than 60 frames instead (:func:`min_length_for_clip`) and says so.
     smoothing_radius_frames : int
         Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
     smoothing_sigma_frames : float
@@ -297,6 +297,10 @@ class DenseTrajectories:
     linked: np.ndarray
     refined: np.ndarray
     kind: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.present.shape[0])
 
     @property
     def n_tracks(self) -> int:
@@ -627,12 +631,12 @@ class FeatureTracker:
     def finish(self) -> Trajectories:
         """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far.
 
-        ``params.min_length_frames`` None means :func:`min_length_for_clip` of the frames added."""
+        ``params.min_length_frames`` None means the seed's 30 frames (the analysis adapts it to a short clip)."""
         if self._n_frames == 0:
             raise InsufficientDataError("no frames were added to the tracker")
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
-        min_length = min_length_for_clip(n) if min_length is None else int(min_length)
+        min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
         sizes = np.array([rec[0].size for rec in self._frames], dtype=np.int64)
         frame = np.repeat(np.arange(n, dtype=np.int32), sizes)
         track = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)

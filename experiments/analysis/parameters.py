@@ -10,10 +10,10 @@ Python user builds them. Everything is in mm, degrees, frames and grey levels; t
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import fields, is_dataclass, replace
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from skinstretch.processing.display_mapping import DisplayMappingParams
 from skinstretch.processing.displacement_refinement import SubpixelParams
@@ -98,6 +98,20 @@ class AnalysisParams(_Stage):
     strain: StrainParams = StrainParams()
     glass_shading: GlassShadingParams = GlassShadingParams()
     execution: ExecutionParams = ExecutionParams()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fields_given_change_the_analysis_defaults(cls, data: Any) -> Any:
+        """``{tracking: {min_length_frames: 10}}`` changes that field of the analysis' tracking defaults (not of
+        TrackingParams' own, which differ: no smoothing and re-linking over 3 frames here)."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            default = cls.model_fields[name].default if name in cls.model_fields else None
+            if isinstance(value, dict) and is_dataclass(default):
+                out[name] = {**{f.name: getattr(default, f.name) for f in fields(default)}, **value}
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able nested dict (what the results' ``params_json`` records)."""
