@@ -22,6 +22,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import Executor, Future
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain,
 )
-from skinstretch.experiments.analysis.executor import make_executor
+from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
 from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params, for_clip
@@ -59,7 +60,7 @@ class _StrainTables:
         self.writer, self.executor, self.max_edge_px = writer, executor, max_edge_px
         self.buffers: dict[int, list[MotionSample]] = {int(s): [] for s in spans}
         self.done: dict[int, int] = {int(s): 0 for s in spans}  # pairs submitted per span
-        self.pending: deque[tuple[int, Future]] = deque()
+        self.pending: deque[tuple[int, Future, list, dict]] = deque()
         self.ok: dict[int, int] = {int(s): 0 for s in spans}
 
     def add(self, span: int, sample: MotionSample) -> None:
@@ -73,16 +74,21 @@ class _StrainTables:
         if not buf:
             return
         self.buffers[span] = []
-        fut = self.executor.submit(span_strain, buf, span=span, max_edge_px=self.max_edge_px,
-                                   first_pair=self.done[span])
+        kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span])
+        fut = self.executor.submit(span_strain, buf, **kwargs)
         self.done[span] += len(buf)
-        self.pending.append((span, fut))
+        self.pending.append((span, fut, buf, kwargs))
         while len(self.pending) > 4:  # keep a few batches in flight, write the rest
             self._write_next()
 
     def _write_next(self) -> None:
-        span, fut = self.pending.popleft()
-        s = fut.result()
+        span, fut, buf, kwargs = self.pending.popleft()
+        try:
+            s = fut.result()
+        except (BrokenProcessPool, OSError) as exc:  # the workers died: this process carries on (as measure does)
+            log.warning("worker processes failed (%s); the strain is computed in this process", exc)
+            self.executor = InlineExecutor()
+            s = span_strain(buf, **kwargs)
         g = f"strain/span_{span}"
         self.writer.append(f"{g}/pairs", s.pairs, UNITS["pairs"])
         self.writer.append(f"{g}/edges", s.edges, UNITS["edges"])
