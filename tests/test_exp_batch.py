@@ -102,7 +102,8 @@ def test_batch_on_an_external_scheduler_shows_progress(batch_dir, tmp_path, caps
     """Progress bar and per-session lines with a scheduler the batch did not start (issue 17 item 7)."""
     from dask.distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            caplog.at_level("INFO", logger="skinstretch"):
         result = analyze_many([batch_dir / "s01" / "broken.h5"], tmp_path / "ext", scheduler=cluster.scheduler_address,
                               progress=True)
     assert [r.status for r in result.rows] == ["failed"] and "not an HDF5 file" in result.rows[0].error
