@@ -48,15 +48,16 @@ class TiffStack(FrameReader):
         super().__init__(path)
         if not self.path.is_file():
             raise FrameFileError(f"{self.path}: no such TIFF file")
+        self._fh = open(self.path, "rb")  # ours to close: tifffile leaves its handle open when it refuses a file
         try:
-            self._tif = tifffile.TiffFile(self.path)
-            series = self._tif.series[0]
-        except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError) as exc:
-            raise FrameFileError(f"{self.path}: not a TIFF file tifffile can read ({exc})") from None
-        try:
+            try:
+                self._tif = tifffile.TiffFile(self._fh, name=self.path.name)
+                series = self._tif.series[0]
+            except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError) as exc:
+                raise FrameFileError(f"{self.path}: not a TIFF file tifffile can read ({exc})") from None
             self._setup(series)
         except BaseException:
-            self._tif.close()
+            self._fh.close()
             raise
 
     def _setup(self, series) -> None:
@@ -154,6 +155,7 @@ class TiffStack(FrameReader):
         super().close()
         self._memmap = None
         self._tif.close()
+        self._fh.close()
 
 
 def _ome_pixels(xml: str) -> dict[str, Any]:
