@@ -8,6 +8,7 @@ them all for users.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -64,11 +65,19 @@ class SkinstretchError(Exception):
         return self.message_for(str)
 
     def message_for(self, name_of: Callable[[str], str]) -> str:
-        """The message with its remedy's parameters named by ``name_of`` (keep a parameter it does not know)."""
+        """The message with its remedy's parameters named by ``name_of`` (which returns a parameter it does not
+        know unchanged); a message that opens with a parameter it knows (``"fps must be positive"``, the style
+        of every argument check) opens with that name instead (``"--fps must be positive"``)."""
         base = self._base_message()
+        opening = _PARAMETER_OPENING.match(base)
+        if opening is not None and name_of(opening.group(1)) != opening.group(1):
+            base = name_of(opening.group(1)) + base[opening.end(1):]
         if self.remedy is None:
             return base
         return f"{base}; {self.remedy.render(name_of)}"
+
+
+_PARAMETER_OPENING = re.compile(r"([A-Za-z_][A-Za-z0-9_]*) (?:must|should|is not|cannot) ")
 
 
 class InvalidInputError(SkinstretchError, ValueError):
