@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import av
 import cv2
 import numpy as np
 import pytest
@@ -15,25 +14,11 @@ from hypothesis import strategies as st
 
 from skinstretch.drivers.errors import FrameFileError
 from skinstretch.drivers.frame_readers import ImageFolder, TiffStack, VideoFile, open_frame_reader, to_grey
+from skinstretch.experiments.bench.import_video import write_video
 
 
 def _frames(n=6, h=24, w=32, dtype=np.uint8, seed=3):
     return np.random.default_rng(seed).integers(0, np.iinfo(dtype).max, (n, h, w), dtype=dtype)
-
-
-def write_video(path, frames, *, codec="ffv1", pix_fmt="gray", rate=60, options=None, in_format="gray"):
-    """Encode ``frames`` (N, H, W) or (N, H, W, 3) with PyAV."""
-    with av.open(str(path), "w") as c:
-        s = c.add_stream(codec, rate=rate)
-        s.height, s.width = frames.shape[1:3]
-        s.pix_fmt = pix_fmt
-        s.options = options or {}
-        for f in frames:
-            for packet in s.encode(av.VideoFrame.from_ndarray(f, format=in_format)):
-                c.mux(packet)
-        for packet in s.encode():
-            c.mux(packet)
-    return path
 
 
 def test_lossless_avi_reads_back_exactly_with_its_times(tmp_path):

@@ -14,7 +14,7 @@ from skinstretch.drivers.errors import FrameFileError
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.frame_import import Crop, import_frames
 from skinstretch.processing.errors import InvalidInputError
-from tests.test_frame_readers import write_video
+from skinstretch.experiments.bench.import_video import write_video
 
 
 def _frames(n=6, h=24, w=32, dtype=np.uint8, seed=4):

@@ -30,7 +30,9 @@ _FRAMES = 40  # the analysis keeps trajectories of 30 frames or more
 _MEMORY_TARGET_MB = 500.0
 
 
-def _write_video(path: Path, frames, *, codec: str, pix_fmt: str, rate: int, options=None) -> Path:
+def write_video(path: Path, frames, *, codec: str = "ffv1", pix_fmt: str = "gray", rate: int = 60, options=None,
+                in_format: str = "gray") -> Path:
+    """Encode ``frames`` ((N, H, W), or (N, H, W, 3) with ``in_format="rgb24"``) into a video file with PyAV."""
     import av  # noqa: PLC0415
 
     with av.open(str(path), "w") as c:
@@ -39,7 +41,7 @@ def _write_video(path: Path, frames, *, codec: str, pix_fmt: str, rate: int, opt
         s.pix_fmt = pix_fmt
         s.options = options or {}
         for f in frames:
-            for packet in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="gray")):
+            for packet in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format=in_format)):
                 c.mux(packet)
         for packet in s.encode():
             c.mux(packet)
@@ -52,7 +54,7 @@ def _copies(d: Path, frames, fps: float, ppm: float):
     import tifffile  # noqa: PLC0415
 
     rate = int(round(fps))
-    yield "AVI FFV1", _write_video(d / "copy.avi", frames, codec="ffv1", pix_fmt="gray", rate=rate), {"px_per_mm": ppm}
+    yield "AVI FFV1", write_video(d / "copy.avi", frames, codec="ffv1", pix_fmt="gray", rate=rate), {"px_per_mm": ppm}
     tif = d / "copy.tif"
     tifffile.imwrite(tif, frames, imagej=True, resolution=(ppm / 1000, ppm / 1000),
                      metadata={"unit": "um", "finterval": 1 / fps, "axes": "TYX"})
@@ -63,7 +65,7 @@ def _copies(d: Path, frames, fps: float, ppm: float):
         cv2.imwrite(str(png / f"frame{k}.png"), f)
     yield "PNG folder", png, {"px_per_mm": ppm, "fps": fps}
     for crf in ("0", "12", "18"):
-        path = _write_video(d / f"copy-crf{crf}.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=rate,
+        path = write_video(d / f"copy-crf{crf}.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=rate,
                             options={"crf": crf})
         yield f"MP4 H.264 crf {crf}", path, {"px_per_mm": ppm}
 
