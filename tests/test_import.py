@@ -174,3 +174,35 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
     agreement = trajectory_agreement(original.trajectories, read_results(d / kind).trajectories)
     assert agreement.reference_tracks > 50 and agreement.paired_fraction >= 0.98
     assert agreement.max_px <= tolerance_px, agreement
+
+
+def test_a_calibration_goes_into_the_session_cut_to_the_crop(tmp_path):
+    """--calibration CAL.json: the fitted skin mapping is stored; with --crop, the mapping of that window."""
+    import json
+
+    from skinstretch.processing.geometric_calibration import calibrate_grid_image
+    from skinstretch.simulators.dot_grid_images import render_calibration_grid
+    from skinstretch.simulators.prism_optics import PrismOptics
+    from skinstretch.simulators.surfaces import RuledSurface
+
+    optics = PrismOptics(surface=RuledSurface(kind="flat", center_mm=0.3))
+    grid = render_calibration_grid(optics, missing_fraction=0.1, offset_mm=(0.13, 0.21), seed=20)
+    mapping, _ = calibrate_grid_image(grid.image, px_per_mm=optics.px_per_mm)
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps(mapping.to_dict()))
+    frames = np.repeat(grid.image[None], 3, axis=0)
+    video = write_video(tmp_path / "grid.avi", frames, rate=60)
+    out = tmp_path / "s.h5"
+    assert main(["import", str(video), "-o", str(out), "--calibration", str(cal), "--crop", "10,121,600,242",
+                 "-q"]) == 0
+    with open_session(out) as s:
+        stored = s.calibration.mapping
+        assert s.shape == (3, 242, 600) and (stored.width, stored.height) == (600, 242)
+        assert s.calibration.px_per_mm == pytest.approx(stored.px_per_mm)
+        assert s.metadata["source"]["px_per_mm"] == "calibration"
+        # the window's pixel (x, y) is the full frame's (x + 10, y + 121) on the skin
+        xy = np.array([[100.0, 50.0], [400.0, 200.0]])
+        np.testing.assert_allclose(stored.image_to_surface(xy), mapping.image_to_surface(xy + [10, 121]), atol=1e-9)
+    with pytest.raises(InvalidInputError, match="crop needs a calibration of the uncropped frames"):
+        import_frames(tmp_path / "grid.avi", tmp_path / "t.h5", calibration=mapping.for_window(
+            x0=0, y0=0, width=320, height=240), crop=Crop(0, 0, 10, 10))
