@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="address to listen on (default 127.0.0.1: this machine only)")
     p.add_argument("--no-browser", action="store_true", help="print the URL only, do not open a browser")
     p.add_argument("--no-live", action="store_true", help="no live analysis of a session still being recorded")
+    p.add_argument("--exit-with-parent", type=int, default=None, help=argparse.SUPPRESS)  # record --live
     p.set_defaults(func=run)
 
 
@@ -33,5 +34,6 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise InvalidInputError(f"--port must be in 0..65535, got {args.port}")
     target = find_view_target(args.target)
-    serve(target, host=args.host, port=args.port, open_browser=not args.no_browser, live=not args.no_live)
+    serve(target, host=args.host, port=args.port, open_browser=not args.no_browser, live=not args.no_live,
+          parent_pid=args.exit_with_parent)
     return 0

@@ -34,7 +34,7 @@ from skinstretch.experiments.viewer.session_data import (
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InsufficientDataError, SkinstretchError
 from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor
-from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.stretch import triangulation_strain
 from skinstretch.processing.tracking import FeatureTracker, MotionSample, TrackingParams
@@ -82,6 +82,7 @@ class LiveAnalyzer:
         )
         self._refiner = SubpixelRefiner(calibration=cal)
         self._max_edge_px = cal.px(MAX_EDGE_MM)
+        self._max_deviation_px = cal.px(TrackingParams().max_local_deviation_mm)
         self._keep = int(keep_frames)
         self._poll = float(poll_s)
         self._overlays: OrderedDict[int, FrameOverlays] = OrderedDict()
@@ -171,13 +172,20 @@ class LiveAnalyzer:
         if res.flags:
             notes.append("frame flagged: " + ", ".join(sorted(res.flags)))
         matches_seg = arrows = np.zeros((0, 4))
+        ci = np.zeros(0, np.int64)
         mesh = None
         if self._prev is not None and len(matches):
             pk, pxy, ptracks, pref = self._prev
             pi, ci = matches.prev_index, matches.curr_index
             tracks[ci] = ptracks[pi]
-            d0 = xy[ci] - pxy[pi]
-            d = self._refiner.refine(pref, refine_image, pxy[pi], d0).displacement
+            r = self._refiner.refine(pref, refine_image, pxy[pi], xy[ci] - pxy[pi])
+            ok = r.refined.copy()
+            if ok.sum() >= 7:
+                # As the analysis does: a refined displacement far from the median of its 7 nearest refined
+                # neighbours is a registration failure (skin moves smoothly); so is an unrefined one.
+                med = local_predictions(pxy[pi], pxy[pi][ok], r.displacement[ok], neighbours=7)
+                ok &= np.hypot(*(r.displacement - med).T) <= self._max_deviation_px
+            pi, ci, d = pi[ok], ci[ok], r.displacement[ok]
             matches_seg = np.column_stack([pxy[pi], xy[ci]])
             arrows = np.column_stack([pxy[pi] + d, d])
             try:
@@ -205,7 +213,7 @@ class LiveAnalyzer:
             notes=notes, exposure_time=exposure, analysed_time=time.time(),
         )
         if arrows.size:
-            overlays.arrow_ids = tracks[matches.curr_index]
+            overlays.arrow_ids = tracks[ci]
         self._prev = (k, xy, tracks, refine_image)
         with self._lock:
             self._overlays[k] = overlays

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import secrets
 import threading
 import time
@@ -396,9 +397,17 @@ def start_server(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 0, 
     return RunningServer(_url(host, bound, token), bound, token, state, server, thread)
 
 
+def _print_flushed(message: str) -> None:
+    print(message, flush=True)  # the command's output: a parent process (record --live) reads the URL from it
+
+
 def serve(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 8765, open_browser: bool = True,
-          live: bool = True, announce: Callable[[str], None] = print) -> None:
-    """Serve ``target`` until interrupted (Ctrl-C), printing the URL and opening it in a browser."""
+          live: bool = True, announce: Callable[[str], None] | None = None, parent_pid: int | None = None) -> None:
+    """Serve ``target`` until interrupted (Ctrl-C), printing the URL and opening it in a browser.
+
+    ``parent_pid``: also stop when that process (a recording that started this viewer) is gone, however it ended.
+    """
+    announce = announce or _print_flushed
     running = start_server(target, host=host, port=port, live=live)
     announce(f"viewer: {running.url}")
     if host not in ("127.0.0.1", "localhost", "::1"):
@@ -408,5 +417,8 @@ def serve(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 8765, open
     try:
         while running._thread.is_alive():
             running._thread.join(0.5)
+            if parent_pid is not None and os.getppid() != parent_pid:
+                log.info("viewer: the recording that started it ended; stopping")
+                break
     finally:
         running.stop()

@@ -25,7 +25,7 @@ const S = {
 };
 // Measurements the browser tests and the live bench read: per shown frame, how long it took and, for a live
 // frame, its exposure time (host clock, s) and when it was on screen (same clock: Date.now()).
-window.viewerStats = { shown: [], live: [], errors: [] };
+window.viewerStats = { shown: [], live: [], liveReceived: [], errors: [] };
 
 const $ = (id) => document.getElementById(id);
 const view = $("view");
@@ -483,6 +483,7 @@ function listen() {
   });
   es.addEventListener("live", (e) => {
     const ov = JSON.parse(e.data);
+    window.viewerStats.liveReceived.push({ frame: ov.frame, exposure: ov.exposure_time, received: Date.now() / 1000 });
     S.overlays.set(`${S.sid}/${ov.frame}/${S.span}`, Promise.resolve(ov));
     if (S.follow) showFrame(ov.frame, ov);
   });
