@@ -354,6 +354,8 @@ class ResultsIndex:
         mesh = self._mesh(k, span)
         if mesh is None and k >= span:
             notes.append(f"no strain for frames {k - span}->{k} (see the results' pair status)")
+        elif mesh is None and k > 0:
+            notes.append(f"strain over {span} frames starts at frame {span}")
         if self.method == "flow":
             notes.append("flow method: displacements on a grid, no features or trajectories")
         pts = np.column_stack([features.x, features.y]) if features.x.size else arrows[:, :2]
