@@ -137,8 +137,57 @@ def run(options: BenchOptions) -> list[BenchTable]:
     ]
     if not np.isfinite(p95):
         notes.append("no live update reached the page")
-    return [BenchTable(
+    tables = [BenchTable(
         title=f"Live view while recording ({seconds:g} s, ridgeL looped)",
         columns=["mode", "frames", "dropped", "analysed /s", "page updates /s", "latency p50 ms", "latency p95 ms",
                  "latency max ms", "disp RMSE px", "area RMSE %", "display"],
         rows=rows_out, notes=notes)]
+    if no_browser is None:
+        tables.append(_stepping(scene, work / "stepping"))
+    return tables
+
+
+def _stepping(scene, work: Path) -> BenchTable:
+    """Step through a whole analysed 640x484, 180-frame session in the browser, one key press per frame."""
+    from playwright.sync_api import sync_playwright  # noqa: PLC0415
+
+    from skinstretch.drivers.session_file import write_session  # noqa: PLC0415
+    from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
+    from skinstretch.experiments.viewer.server import start_server  # noqa: PLC0415
+    from skinstretch.experiments.viewer.session_data import find_view_target  # noqa: PLC0415
+
+    work.mkdir(parents=True, exist_ok=True)
+    path = write_session(work / "session.h5", scene.frames, timestamps=scene.timestamps, camera_mode=scene.camera_mode,
+                         calibration=scene.calibration, metadata=scene.metadata, truth=scene.truth)
+    analyze_session(path, work / "analysis")
+    server = start_server(find_view_target(work))
+    n = scene.frames.shape[0]
+    try:
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.goto(server.url)
+            page.wait_for_function("window.viewerStats.shown.length > 0", timeout=30000)
+            for name in ("matches", "arrows"):  # every overlay on
+                page.check(f'input[data-overlay="{name}"]')
+            page.locator("#view").focus()
+            t0 = time.perf_counter()
+            for k in range(1, n):
+                page.keyboard.press("ArrowRight")
+                page.wait_for_function(f"S.k === {k} && !S.busy")
+            wall = time.perf_counter() - t0
+            shown = page.evaluate("window.viewerStats.shown")
+            errors = page.evaluate("window.viewerStats.errors")
+            browser.close()
+    finally:
+        server.stop()
+    ms = np.array([e["ms"] for e in shown[1:]])
+    return BenchTable(
+        title="Viewer: stepping a 640x484, 180-frame analysed session (ridgeL), every overlay on",
+        columns=["frames stepped", "median ms", "p95 ms", "max ms", "frames over 200 ms", "steps/s (with key round trip)",
+                 "page errors"],
+        rows=[[int(ms.size), float(np.median(ms)), float(np.percentile(ms, 95)), float(ms.max()),
+               int((ms > 200).sum()), (n - 1) / wall, len(errors)]],
+        notes=["ms = from the page asking for a frame to its image and overlays drawn (PNG frame + JSON overlays "
+               "fetched from the local server, first view of each frame: nothing cached)."],
+    )

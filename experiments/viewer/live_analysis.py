@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 __all__ = ["LiveAnalyzer", "LiveStats"]
 
 MAX_EDGE_MM = 2.0  # the analysis' default (AnalysisParams.max_edge_mm): long hull slivers left out
+SCALE_WINDOW_FRAMES = 60  # the colour scale covers the strains of the last analysed frames (a few seconds)
 
 
 @dataclass
@@ -93,7 +94,7 @@ class LiveAnalyzer:
         self._prev: tuple[int, np.ndarray, np.ndarray, object] | None = None  # frame, xy, tracks, prepared image
         self._prev_tracks = np.zeros(0, np.int64)
         self._n_tracks = 0
-        self._scale = 0.005
+        self._recent_changes: deque[np.ndarray] = deque(maxlen=SCALE_WINDOW_FRAMES)
         self._analysed = 0
         self._skipped = 0
         self._last = -1
@@ -194,9 +195,7 @@ class LiveAnalyzer:
                 tri = s.triangles
                 mesh_xy = np.column_stack([ends[tri[:, 0]], ends[tri[:, 1]], ends[tri[:, 2]]])
                 mesh = Mesh(1, pk, k, mesh_xy, s.ids[tri], s.area_change, s.flipped, "frame_b")
-                ok = ~s.flipped
-                if ok.any():
-                    self._scale = max(self._scale, nice_scale(s.area_change[ok]))
+                self._recent_changes.append(s.area_change[~s.flipped])
             except InsufficientDataError as exc:
                 notes.append(f"no strain: {exc}")
         new = tracks < 0
@@ -209,7 +208,8 @@ class LiveAnalyzer:
             features=FeatureMarks(feats["id"].astype(np.int64), tracks, feats["kind"].astype(np.int8), xy[:, 0],
                                   xy[:, 1], feats["quality"].astype(np.float32)),
             matches=matches_seg, arrows=arrows, tails=tails, mesh=mesh, outline=convex_hull(xy), window=None,
-            tactile_um=None, tactile_reset=None, tactile_clipped=None, truth=None, strain_scale=self._scale,
+            tactile_um=None, tactile_reset=None, tactile_clipped=None, truth=None,
+            strain_scale=nice_scale(np.concatenate(self._recent_changes)) if self._recent_changes else 0.01,
             notes=notes, exposure_time=exposure, analysed_time=time.time(),
         )
         if arrows.size:

@@ -263,6 +263,7 @@ class SessionSource:
         s = self._session
         return {
             "path_name": self.path.name,
+            "trial_dir": self.path.parent.name,
             "width": int(s.camera_mode.width),
             "height": int(s.camera_mode.height),
             "fps": float(s.camera_mode.fps),

@@ -21,7 +21,7 @@ const S = {
   info: null, sid: 0, n: 0, k: 0, span: 1, scale: 1, playing: false, follow: false,
   overlays: new Map(), images: new Map(), current: null, pinned: null, hover: null,
   on: { features: true, matches: false, tails: true, mesh: true, arrows: false, outline: true, window: true },
-  request: 0, busy: false, pendingFrame: null,
+  busy: false, pendingFrame: null, direction: 1,
 };
 // Measurements the browser tests and the live bench read: per shown frame, how long it took and, for a live
 // frame, its exposure time (host clock, s) and when it was on screen (same clock: Date.now()).
@@ -56,7 +56,7 @@ async function loadInfo() {
   S.overlays.clear();
   S.images.clear();
   $("title").textContent = info.waiting ? "skinstretch viewer: waiting for a trial" :
-    `skinstretch viewer: ${[info.metadata && info.metadata.trial, info.path_name].filter(Boolean).join(" / ")}`;
+    `skinstretch viewer: ${[info.metadata && info.metadata.trial, info.trial_dir, info.path_name].filter(Boolean).join(" / ")}`;
   if (info.width) {
     const avail = Math.max(320, $("stage").clientWidth - 4);
     S.scale = Math.min(2, avail / info.width);
@@ -158,7 +158,7 @@ async function showFrame(k, live = null) {
     drawTactile(ov);
     drawColorbar(ov.strain_scale, ov.mesh);
     updateReadout();
-    if (S.playing || S.follow) prefetch(k + 1);
+    prefetch(k + S.direction);
   } catch (e) {
     window.viewerStats.errors.push(String(e));
     $("notes").textContent = String(e);
@@ -168,8 +168,8 @@ async function showFrame(k, live = null) {
   }
 }
 
-function prefetch(k) {
-  if (k < S.n && S.info && !S.info.live) { imageFor(S.sid, k).catch(() => {}); overlaysFor(S.sid, k, S.span).catch(() => {}); }
+function prefetch(k) {  // the frame the user will most likely ask for next (not while following a recording)
+  if (k >= 0 && k < S.n && S.info && !S.info.live && !S.follow) { imageFor(S.sid, k).catch(() => {}); overlaysFor(S.sid, k, S.span).catch(() => {}); }
 }
 
 // --------------------------------------------------------------------------------------------- drawing
@@ -431,7 +431,7 @@ async function tick() {
   setTimeout(() => requestAnimationFrame(tick), wait);
 }
 
-function step(d) { setPlaying(false); setFollow(false); showFrame(S.k + d); }
+function step(d) { setPlaying(false); setFollow(false); S.direction = d < 0 ? -1 : 1; showFrame(S.k + d); }
 function setFollow(on) { S.follow = on; $("follow").checked = on; if (on) showFrame(S.n - 1); }
 
 document.querySelectorAll("input[data-overlay]").forEach((box) => {
@@ -483,6 +483,7 @@ function listen() {
   });
   es.addEventListener("live", (e) => {
     const ov = JSON.parse(e.data);
+    if (ov.frame >= S.n) { S.n = ov.frame + 1; $("slider").max = String(S.n - 1); }  // ahead of the last "state"
     window.viewerStats.liveReceived.push({ frame: ov.frame, exposure: ov.exposure_time, received: Date.now() / 1000 });
     S.overlays.set(`${S.sid}/${ov.frame}/${S.span}`, Promise.resolve(ov));
     if (S.follow) showFrame(ov.frame, ov);
