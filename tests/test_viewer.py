@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -91,7 +90,7 @@ def test_overlays_are_the_results_of_that_frame(analysed):
             else:
                 assert ov.mesh is None and ov.notes
     assert idx.overlays(19, span=1).tactile_um.shape == (10, 10)
-    json.dumps(idx.overlays(3).to_json())  # JSON-able, no NaN
+    json.dumps(idx.overlays(3).to_json(), allow_nan=False)  # JSON-able, no NaN
 
 
 @settings(max_examples=60, deadline=None)

@@ -34,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise InvalidInputError(f"--port must be in 0..65535, got {args.port}")
     target = find_view_target(args.target)
+    # The URL goes to standard output, flushed: ``record --live`` starts this command and reads it from there.
     serve(target, host=args.host, port=args.port, open_browser=not args.no_browser, live=not args.no_live,
-          parent_pid=args.exit_with_parent)
+          announce=lambda line: print(line, flush=True), parent_pid=args.exit_with_parent)
     return 0

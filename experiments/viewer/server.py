@@ -33,7 +33,6 @@ from typing import Any, Callable
 
 import anyio
 import cv2
-import numpy as np
 from starlette.applications import Starlette
 from starlette.middleware import Middleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
@@ -397,17 +396,13 @@ def start_server(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 0, 
     return RunningServer(_url(host, bound, token), bound, token, state, server, thread)
 
 
-def _print_flushed(message: str) -> None:
-    print(message, flush=True)  # the command's output: a parent process (record --live) reads the URL from it
-
-
 def serve(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 8765, open_browser: bool = True,
           live: bool = True, announce: Callable[[str], None] | None = None, parent_pid: int | None = None) -> None:
     """Serve ``target`` until interrupted (Ctrl-C), printing the URL and opening it in a browser.
 
     ``parent_pid``: also stop when that process (a recording that started this viewer) is gone, however it ended.
     """
-    announce = announce or _print_flushed
+    announce = announce or log.info
     running = start_server(target, host=host, port=port, live=live)
     announce(f"viewer: {running.url}")
     if host not in ("127.0.0.1", "localhost", "::1"):

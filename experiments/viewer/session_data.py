@@ -26,7 +26,6 @@ import numpy as np
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.drivers.session_file import STATUS_NAMES, Session, open_session
 from skinstretch.experiments.results_file import read_results
-from skinstretch.processing.feature_table import KIND_NAMES
 
 log = logging.getLogger(__name__)
 

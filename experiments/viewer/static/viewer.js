@@ -277,21 +277,26 @@ function drawHighlight(lw) {
   }
 }
 
-function drawColorbar(scale, mesh) {
-  const c = $("colorbar"), g = c.getContext("2d");
+// A horizontal colour bar on canvas ``c``: ``map`` from -limit to +limit, five ticks labelled by ``label(t)``.
+function drawBar(c, map, label, title) {
+  const g = c.getContext("2d");
   g.clearRect(0, 0, c.width, c.height);
-  const x0 = 12, x1 = c.width - 12, w = x1 - x0;
-  for (let i = 0; i < w; i++) { g.fillStyle = colorOf(STRAIN_MAP, (2 * i) / (w - 1) - 1); g.fillRect(x0 + i, 2, 1, 14); }
+  const x0 = 12, w = c.width - 24;
+  for (let i = 0; i < w; i++) { g.fillStyle = colorOf(map, (2 * i) / (w - 1) - 1); g.fillRect(x0 + i, 2, 1, 14); }
   g.strokeStyle = "#333"; g.strokeRect(x0, 2, w, 14);
   g.fillStyle = "#111"; g.font = "11px system-ui, sans-serif"; g.textAlign = "center";
   for (const t of [-1, -0.5, 0, 0.5, 1]) {
     const x = x0 + ((t + 1) / 2) * w;
     g.fillRect(x, 16, 1, 4);
-    const v = t * scale * 100;
-    g.fillText(t === 0 ? "0" : `${v > 0 ? "+" : "−"}${fmt(Math.abs(v))}`, x, 31);
+    g.fillText(t === 0 ? "0" : `${t > 0 ? "+" : "−"}${label(Math.abs(t))}`, x, 31);
   }
-  g.fillText(`%   (area change A${mesh ? `(${mesh.frame_b})` : "b"} / A${mesh ? `(${mesh.frame_a})` : "a"} − 1; grey = flipped)`, c.width / 2, 44);
-  c.dataset.scale = String(scale);
+  g.fillText(title, c.width / 2, 44);
+}
+
+function drawColorbar(scale, mesh) {
+  const ratio = mesh ? `A(${mesh.frame_b}) / A(${mesh.frame_a})` : "Ab / Aa";
+  drawBar($("colorbar"), STRAIN_MAP, (t) => fmt(t * scale * 100), `%   (area change ${ratio} − 1; grey = flipped)`);
+  $("colorbar").dataset.scale = String(scale);
 }
 function fmt(v) { return v >= 1 ? v.toFixed(v % 1 ? 1 : 0) : v.toPrecision(2).replace(/0+$/, ""); }
 
@@ -317,18 +322,8 @@ function drawTactile(ov) {
     else { g.fillStyle = colorOf(TACTILE_MAP, um / TACTILE_RANGE_UM); g.fill(); g.strokeStyle = "#555"; g.lineWidth = 0.8; g.stroke(); }
     if (ov.tactile_clipped[r][col]) { g.strokeStyle = "#000"; g.lineWidth = 2.5; g.stroke(); }
   }
-  const b = $("tactile-bar"), h = b.getContext("2d");
-  h.clearRect(0, 0, b.width, b.height);
-  const x0 = 12, w = b.width - 24;
-  for (let i = 0; i < w; i++) { h.fillStyle = colorOf(TACTILE_MAP, (2 * i) / (w - 1) - 1); h.fillRect(x0 + i, 2, 1, 14); }
-  h.strokeStyle = "#333"; h.strokeRect(x0, 2, w, 14);
-  h.fillStyle = "#111"; h.font = "11px system-ui, sans-serif"; h.textAlign = "center";
-  for (const t of [-1, -0.5, 0, 0.5, 1]) {
-    const x = x0 + ((t + 1) / 2) * w;
-    h.fillRect(x, 16, 1, 4);
-    h.fillText(`${t > 0 ? "+" : t < 0 ? "−" : ""}${Math.abs(t * TACTILE_RANGE_UM)}`, x, 31);
-  }
-  h.fillText("contactor position along the sliding axis (µm)", b.width / 2, 44);
+  drawBar($("tactile-bar"), TACTILE_MAP, (t) => String(t * TACTILE_RANGE_UM),
+    "contactor position along the sliding axis (µm)");
 }
 
 // --------------------------------------------------------------------------------------------- readout
