@@ -171,6 +171,17 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
     assert main(["analyze", str(session), "-o", str(d / kind), "-q"]) == 0
     with open_session(session) as s:
         assert s.camera_mode.fps == pytest.approx(fps) and s.calibration.px_per_mm == pytest.approx(ppm)
+    from skinstretch.experiments.viewer.session_data import SessionSource, find_view_target
+
+    target = find_view_target(d / kind)  # the viewer takes the imported session like a recorded one
+    assert target.session == session.resolve() or target.session == session
+    source = SessionSource(target.session)
+    try:
+        assert source.status() == "complete" and source.n_frames() == len(frames)
+        if kind != "mp4":
+            np.testing.assert_array_equal(source.frame(7), frames[7])
+    finally:
+        source.close()
     agreement = trajectory_agreement(original.trajectories, read_results(d / kind).trajectories)
     assert agreement.reference_tracks > 50 and agreement.paired_fraction >= 0.98
     assert agreement.max_px <= tolerance_px, agreement
