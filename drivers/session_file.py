@@ -14,6 +14,13 @@ Reading
 -------
 :func:`open_session` returns a :class:`Session`; anything that is not a readable skinstretch session raises
 :class:`skinstretch.drivers.errors.SessionFileError` with a message naming the file and what is wrong.
+
+Files that explain themselves
+-----------------------------
+Every dataset is written with ``units``, a ``description``, named axes (HDF5 dimension labels), ``columns`` for
+a set of columns and ``enum_values`` / ``enum_names`` for codes, from :data:`SESSION_DATASETS` and the
+:class:`StreamSpec` of each stream (:data:`KNOWN_STREAMS`); :meth:`Session.dataset_info` reads them back, and
+describes a file written before they existed from the same tables.
 """
 
 from __future__ import annotations
