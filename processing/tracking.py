@@ -42,7 +42,7 @@ class TrackingParams:
         Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
     min_length_frames : int or None
         Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30 here; the analysis uses half
-        of a clip shorter than 60 frames instead (:func:`min_length_for_clip`) and says so.
+        of a clip shorter than 30 frames instead (:func:`min_length_for_clip`) and says so.
     smoothing_radius_frames : int
         Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
     smoothing_sigma_frames : float
@@ -69,9 +69,10 @@ DEFAULT_MIN_LENGTH_FRAMES = 30
 
 
 def min_length_for_clip(n_frames: int) -> int:
-    """The minimum trajectory length when none is given: the seed's 30 frames, or half of a clip shorter than 60
-    frames (at least 2), so that a short clip keeps the features seen through most of it."""
-    return max(2, min(DEFAULT_MIN_LENGTH_FRAMES, int(n_frames) // 2))
+    """The minimum trajectory length when none is given: the seed's 30 frames, or half of a clip shorter than that
+    (at least 2), which would otherwise keep no trajectory at all."""
+    n = int(n_frames)
+    return DEFAULT_MIN_LENGTH_FRAMES if n >= DEFAULT_MIN_LENGTH_FRAMES else max(2, n // 2)
 
 
 @dataclass(frozen=True)

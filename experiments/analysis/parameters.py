@@ -21,7 +21,7 @@ from skinstretch.processing.errors import InsufficientDataError, InvalidInputErr
 from skinstretch.processing.extraction import ExtractionParams
 from skinstretch.processing.flow import FlowParams
 from skinstretch.processing.parameters import describe_validation_error
-from skinstretch.processing.tracking import TrackingParams, min_length_for_clip
+from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TrackingParams, min_length_for_clip
 
 __all__ = ["AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params",
            "for_clip"]
@@ -145,7 +145,8 @@ def for_clip(params: AnalysisParams, n_frames: int, method: str) -> AnalysisPara
             )
         return params
     effective = min_length_for_clip(n_frames)
-    if effective < 30:
-        log.warning("a %d-frame clip is shorter than twice the default minimum trajectory length (30 frames): "
-                    "trajectories of at least %d frames are kept (set --min-track to choose)", n_frames, effective)
+    if effective < DEFAULT_MIN_LENGTH_FRAMES:
+        log.warning("a %d-frame clip is shorter than the default minimum trajectory length (%d frames): "
+                    "trajectories of at least %d frames are kept (set --min-track to choose)", n_frames,
+                    DEFAULT_MIN_LENGTH_FRAMES, effective)
     return params.model_copy(update={"tracking": replace(params.tracking, min_length_frames=effective)})

@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("features", "flow"), default="features", help="measurement method")
     p.add_argument("--span", default="1,11", help="comma-separated frame spans of the strain (default 1,11)")
     p.add_argument("--min-track", type=int, default=None,
-                   help="minimum trajectory length in frames (default 30, or half a clip shorter than 60 frames)")
+                   help="minimum trajectory length in frames (default 30, or half a clip shorter than that)")
     p.add_argument("--flow-scale", type=float, default=None, metavar="MM",
                    help="flow method: side of the registration window in mm (default 0.8): smaller resolves finer "
                    "strain, larger averages more noise")
