@@ -43,6 +43,7 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
     assert r.tactile_positions_um.shape == (N_FRAMES, 10, 10)
     assert np.all(np.abs(r.tactile_positions_um) <= 50)
     assert np.all(np.isfinite(r.motion["dx"]))
+    _every_dataset_has_units_and_codes(out / "results.h5")
     capsys.readouterr()
     assert main(["evaluate", str(out), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -55,6 +56,21 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
         assert result["features"]["pore"]["recall"] > 0.5
     else:
         assert result["tracking"]["wrong_match_rate"] is None
+
+
+def _every_dataset_has_units_and_codes(path):
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs["status_codes"])["0"] == "ok" and json.loads(f.attrs["kind_codes"])["2"] == "pore"
+        assert f["profile"].attrs["axis"] in ("x", "y")
+        missing = []
+        f.visititems(lambda name, obj: missing.append(name)
+                     if isinstance(obj, h5py.Dataset) and "units" not in obj.attrs else None)
+        assert not missing, missing
+        for name in ("motion", "strain/span_1/edges"):
+            units = json.loads(f[name].attrs["units"])
+            assert set(units) == set(f[name].dtype.names) and units.get("x", units.get("xa")) == "px"
 
 
 def test_results_file_errors(tmp_path):

@@ -124,7 +124,7 @@ def _rectify_trajectories(tr: Trajectories, mapping, px_per_mm: float) -> None:
 
 
 def analyze(
-    source: FrameSource,
+    source: FrameSource | Sequence[np.ndarray] | np.ndarray,
     *,
     calibration: Calibration,
     method: str = "features",
@@ -136,7 +136,8 @@ def analyze(
     surface: str | None = None,
     progress: bool = False,
 ) -> Results:
-    """Analyse ``source`` into ``results_path`` (None: a results file in memory) and return it opened.
+    """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
+    results file in memory) and return it opened.
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -145,6 +146,8 @@ def analyze(
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     params = analysis_params(params)
+    if not isinstance(source, FrameSource):
+        source = ArrayFrames(source)
     n = len(source)
     params = for_clip(params, n, method)
     image_shape = tuple(int(v) for v in source.shape)
@@ -333,24 +336,9 @@ def surface_kind(metadata: dict) -> str | None:
     return str(surface) if surface else None
 
 
-def analyze_frames(
-    frames: Sequence[np.ndarray] | np.ndarray,
-    *,
-    calibration: Calibration,
-    method: str = "features",
-    params: AnalysisParams | dict | None = None,
-    executor: Executor | None = None,
-    mapping=None,
-    results_path: str | Path | None = None,
-    session_path: str = "",
-    surface: str | None = None,
-    progress: bool = False,
-) -> Results:
-    """The whole pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array); the results stay
-    in memory unless ``results_path`` is given. See :func:`analyze`."""
-    return analyze(ArrayFrames(frames), calibration=calibration, method=method, params=params, executor=executor,
-                   mapping=mapping, results_path=results_path, session_path=session_path, surface=surface,
-                   progress=progress)
+#: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
+#: results stay in memory unless ``results_path`` is given.
+analyze_frames = analyze
 
 
 def analyze_session(
