@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
-from pydantic import model_validator
+from pydantic import field_validator, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
@@ -45,7 +45,7 @@ FEATURE_ID_STRIDE = 1_000_000
 STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "density", "border")
 
 
-@parameters(strict=True)
+@parameters
 class ExtractionParams:
     """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255.
 
@@ -119,6 +119,14 @@ class ExtractionParams:
     black_level: float = 20.0
     saturated_fraction: float = 0.5
     no_finger_fraction: float = 0.95
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _bools_are_bools(cls, v, info):
+        # A switch given as 1 or "yes" is a mistake, not True.
+        if cls.__dataclass_fields__[info.field_name].type in ("bool", bool) and not isinstance(v, (bool, np.bool_)):
+            raise ValueError(f"must be a bool, got {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _check(self) -> "ExtractionParams":

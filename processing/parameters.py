@@ -36,15 +36,9 @@ def describe_validation_error(exc: ValidationError, prefix: str = "") -> str:
     return "; ".join(parts)
 
 
-def parameters(cls: _C | None = None, *, strict: bool = False):
-    """Make ``cls`` a frozen, validated parameter dataclass (see the module docstring).
-
-    ``@parameters(strict=True)``: no conversions (a bool field refuses 1, an int field refuses 2.0).
-    """
-    if cls is None:
-        return functools.partial(parameters, strict=strict)
-    config = ConfigDict(**PARAMETERS_CONFIG, strict=True) if strict else PARAMETERS_CONFIG
-    cls = _pydantic_dataclass(cls, frozen=True, config=config)
+def parameters(cls: _C) -> _C:
+    """Make ``cls`` a frozen, validated parameter dataclass (see the module docstring)."""
+    cls = _pydantic_dataclass(cls, frozen=True, config=PARAMETERS_CONFIG)
     validated_init = cls.__init__
 
     @functools.wraps(validated_init)
