@@ -638,42 +638,45 @@ class FeatureTracker:
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
-        sizes = np.array([rec[0].size for rec in self._frames], dtype=np.int64)
-        frame = np.repeat(np.arange(n, dtype=np.int32), sizes)
-        track = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)
-        raw = np.concatenate([rec[1] for rec in self._frames]).reshape(-1, 2)
-        fidx = np.concatenate([rec[2] + np.arange(rec[0].size, dtype=np.int64) for rec in self._frames])
-        disp = np.concatenate([rec[3] for rec in self._frames]).reshape(-1, 2)
-        refined = np.concatenate([rec[4] for rec in self._frames]).astype(bool)
-        kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
-        keep_track = np.bincount(track, minlength=t) >= min_length
-        keep = keep_track[track]
+        all_tracks = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)
+        keep_track = np.bincount(all_tracks, minlength=t) >= min_length
+        del all_tracks
         new_id = np.cumsum(keep_track) - 1
-        frame, track, raw, fidx, disp, refined = frame[keep], new_id[track[keep]], raw[keep], fidx[keep], disp[keep], refined[keep]
-        linked = np.all(np.isfinite(disp), axis=1)
-        if self.refiner is not None:
-            # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps its
-            # identity but its positions restart there, so no measured displacement spans that step.
-            linked &= refined
-        # Chain and smooth each track in frame order, then store the rows frame by frame.
-        order = np.lexsort((frame, track))
-        pos, run = _chain_tracks(track[order], raw[order], disp[order], linked[order])
+        kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
+        # The table is filled frame by frame with only the kept tracks' rows (memory: the rows, once).
+        kept_rows = [np.flatnonzero(keep_track[rec[0]]) for rec in self._frames]
+        rows = np.zeros(sum(k.size for k in kept_rows), dtype=TRAJECTORY_DTYPE)
+        dx = np.empty(rows.size)
+        dy = np.empty(rows.size)
+        i = 0
+        for k, ((tracks, xy, offset, disp, refined), sel) in enumerate(zip(self._frames, kept_rows)):
+            ids = new_id[tracks[sel]]
+            order = np.argsort(ids, kind="stable")
+            sel, ids = sel[order], ids[order]
+            r = rows[i : i + sel.size]
+            r["frame"], r["track"] = k, ids
+            r["raw_x"], r["raw_y"] = xy[sel, 0], xy[sel, 1]
+            r["feature_index"] = offset + sel
+            d = disp[sel]
+            linked = np.all(np.isfinite(d), axis=1)
+            if self.refiner is not None:
+                # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps
+                # its identity but its positions restart there, so no measured displacement spans that step.
+                linked &= refined[sel]
+            r["linked"], r["refined"] = linked, refined[sel] & linked
+            dx[i : i + sel.size], dy[i : i + sel.size] = d[:, 0], d[:, 1]
+            i += sel.size
+        del kept_rows
+        n_kept = int(keep_track.sum())
+        pos, run = _chain_tracks(rows["track"], rows["raw_x"], rows["raw_y"], dx, dy, rows["linked"], n_kept)
+        del dx, dy
         radius = int(self.params.smoothing_radius_frames)
         if radius > 0 and n >= 2:
             sigma = float(self.params.smoothing_sigma_frames)
             weights = np.array([float(np.exp(-(i * i) / (2.0 * sigma**2))) for i in range(-radius, radius + 1)])
-            pos = _smooth_tracks(track[order], frame[order], run, pos, weights)
-        rows = np.zeros(frame.size, dtype=TRAJECTORY_DTYPE)
-        back = np.empty_like(order)
-        back[order] = np.arange(order.size)
-        rows["frame"], rows["track"] = frame, track
-        rows["x"], rows["y"] = pos[back, 0], pos[back, 1]
-        rows["raw_x"], rows["raw_y"] = raw[:, 0], raw[:, 1]
-        rows["feature_index"] = fidx
-        rows["linked"] = linked
-        rows["refined"] = refined & linked
-        rows["run"] = run[back]
-        rows = rows[np.lexsort((rows["track"], rows["frame"]))]
+            offsets = np.searchsorted(rows["frame"], np.arange(n + 1), side="left")
+            pos = _smooth_tracks(rows["track"], rows["frame"], run, pos, offsets, weights)
+        rows["x"], rows["y"], rows["run"] = pos[:, 0], pos[:, 1], run
         return Trajectories(n_frames=n, rows=rows, kind=kind[keep_track].astype(np.int8))
 
 
@@ -732,43 +735,52 @@ class _LostTracks:
 
 
 @numba.njit(cache=True, nogil=True)
-def _chain_tracks(track, raw, disp, linked):
+def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
     the run's extracted positions (equal to the extracted positions when displacements are raw differences).
 
-    Rows sorted by track, then frame. The running sum is kept per track from its first row (a start adds
-    nothing), and a run's offset is the sum of its residuals in frame order over its size: the same operations
-    in the same order as a cumulative sum over (frames, tracks) arrays, so the same numbers to the bit.
+    Rows in frame order (any order within a frame). Each track keeps its running sum from its first row (a start
+    adds nothing), and a run's offset is the sum of its residuals in frame order over its size: the same
+    operations in the same order as a cumulative sum over (frames, tracks) arrays, so the same numbers to the bit.
     Returns (positions (M, 2), run number of each row within its track)."""
     m = track.shape[0]
-    pos = np.empty((m, 2))
-    run = np.empty(m, np.int32)
-    group = np.empty(m, np.int64)
-    sums = np.zeros((m, 2))
-    counts = np.zeros(m, np.int64)
-    n_groups = -1
-    cx = cy = sx = sy = 0.0
-    r = 0
+    cx = np.zeros(n_tracks)
+    cy = np.zeros(n_tracks)
+    sx = np.zeros(n_tracks)
+    sy = np.zeros(n_tracks)
+    runs = np.zeros(n_tracks, np.int32)
+    current = np.full(n_tracks, -1, np.int64)
+    n_starts = 0
     for i in range(m):
-        if i == 0 or track[i] != track[i - 1]:
-            cx = cy = 0.0
-            r = 0
+        if not linked[i]:
+            n_starts += 1
+    sums = np.zeros((n_starts, 2))
+    counts = np.zeros(n_starts, np.int64)
+    group = np.empty(m, np.int64)
+    run = np.empty(m, np.int32)
+    pos = np.empty((m, 2))
+    g_next = 0
+    for i in range(m):
+        t = track[i]
         if linked[i]:
-            cx += disp[i, 0]
-            cy += disp[i, 1]
+            cx[t] += dx[i]
+            cy[t] += dy[i]
         else:  # a start: a new run, whose local positions count from here
-            r += 1
-            n_groups += 1
-            sx, sy = cx, cy
-        lx = cx - sx
-        ly = cy - sy
+            runs[t] += 1
+            current[t] = g_next
+            g_next += 1
+            sx[t] = cx[t]
+            sy[t] = cy[t]
+        lx = cx[t] - sx[t]
+        ly = cy[t] - sy[t]
+        g = current[t]
         pos[i, 0] = lx
         pos[i, 1] = ly
-        run[i] = r
-        group[i] = n_groups
-        sums[n_groups, 0] += raw[i, 0] - lx
-        sums[n_groups, 1] += raw[i, 1] - ly
-        counts[n_groups] += 1
+        run[i] = runs[t]
+        group[i] = g
+        sums[g, 0] += raw_x[i] - lx
+        sums[g, 1] += raw_y[i] - ly
+        counts[g] += 1
     for i in range(m):
         g = group[i]
         pos[i, 0] += sums[g, 0] / counts[g]
@@ -777,25 +789,25 @@ def _chain_tracks(track, raw, disp, linked):
 
 
 @numba.njit(cache=True, nogil=True)
-def _smooth_tracks(track, frame, run, pos, weights):
+def _smooth_tracks(track, frame, run, pos, offsets, weights):
     """Gaussian smoothing along time within each linked run (see :func:`smooth_positions`) of rows sorted by
-    track then frame; ``weights`` are the kernel's 2R + 1 values. Each sum runs over the kernel in the order of
-    :func:`smooth_positions`, so the numbers are the same."""
+    frame then track (``offsets``: first row of each frame); ``weights`` are the kernel's 2R + 1 values. Each sum
+    runs over the kernel in the order of :func:`smooth_positions`, so the numbers are the same."""
     m = track.shape[0]
+    n = offsets.shape[0] - 1
     radius = (weights.shape[0] - 1) // 2
     out = np.empty((m, 2))
     for i in range(m):
-        ox = oy = w = 0.0
+        ox = 0.0
+        oy = 0.0
+        w = 0.0
         for j in range(-radius, radius + 1):
-            # The row of the same track at frame + j, if any (rows of one track are consecutive, frames increase).
-            q = i
-            if j < 0:
-                while q > 0 and track[q - 1] == track[i] and frame[q - 1] >= frame[i] + j:
-                    q -= 1
-            elif j > 0:
-                while q < m - 1 and track[q + 1] == track[i] and frame[q + 1] <= frame[i] + j:
-                    q += 1
-            if track[q] != track[i] or frame[q] != frame[i] + j or run[q] != run[i]:
+            f = frame[i] + j
+            if f < 0 or f >= n:
+                continue
+            lo, hi = offsets[f], offsets[f + 1]
+            q = lo + np.searchsorted(track[lo:hi], track[i])
+            if q >= hi or track[q] != track[i] or run[q] != run[i]:
                 continue
             k = weights[j + radius]
             ox += pos[q, 0] * k
