@@ -2,25 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import PositiveFloat, PositiveInt, validated_dataclass
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class CameraMode:
     """A camera acquisition mode: image size in pixels and frame rate in Hz."""
 
     name: str
-    width: int
-    height: int
-    fps: float
-
-    def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise InvalidInputError(f"camera mode {self.name!r}: size must be positive, got {self.width}x{self.height}")
-        if not self.fps > 0:
-            raise InvalidInputError(f"camera mode {self.name!r}: fps must be positive, got {self.fps}")
+    width: PositiveInt
+    height: PositiveInt
+    fps: PositiveFloat
 
     @property
     def period_s(self) -> float:

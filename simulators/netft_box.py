@@ -19,10 +19,12 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+from pydantic import model_validator
 
 from skinstretch.drivers.forcesensor.netft import RdtCommand, RdtRecord, decode_request, encode_record
 from skinstretch.drivers.errors import DeviceError, ProtocolError
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import Probability, validated_dataclass
 
 __all__ = ["NetFTFaults", "NetFTSimulator", "SimulatorStats", "normal_force_wrench"]
 
@@ -42,7 +44,7 @@ def normal_force_wrench(normal_force_n: Callable[[float], float]) -> Wrench:
     return wrench
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class NetFTFaults:
     """Faults injected per datagram, drawn from the simulator's seeded generator.
 
@@ -58,18 +60,17 @@ class NetFTFaults:
         A datagram is replaced by random bytes of a wrong length (its sequence number is used up).
     """
 
-    loss_probability: float = 0.0
-    reorder_probability: float = 0.0
-    duplicate_probability: float = 0.0
-    garble_probability: float = 0.0
+    loss_probability: Probability = 0.0
+    reorder_probability: Probability = 0.0
+    duplicate_probability: Probability = 0.0
+    garble_probability: Probability = 0.0
 
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            p = getattr(self, name)
-            if not 0.0 <= p < 1.0:
-                raise InvalidInputError(f"{name} must be in [0, 1), got {p!r}")
-        if self.loss_probability + self.reorder_probability + self.duplicate_probability + self.garble_probability >= 1:
-            raise InvalidInputError("fault probabilities must add up to less than 1")
+    @model_validator(mode="after")
+    def _one_fault_at_most(self) -> "NetFTFaults":
+        total = self.loss_probability + self.reorder_probability + self.duplicate_probability + self.garble_probability
+        if total >= 1:
+            raise InvalidInputError(f"fault probabilities must add up to less than 1, got {total!r}")
+        return self
 
 
 @dataclass(frozen=True)
