@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from skinstretch.processing.argument_checks import positive_number
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["INDEX_NONE", "DotDetections", "detect_dots", "index_grid"]
@@ -81,10 +82,8 @@ def detect_dots(
         Components touching the image border are left out (their centroid would be biased).
     """
     img = _check_image(image)
-    if not (math.isfinite(px_per_mm) and px_per_mm > 0):
-        raise InvalidInputError(f"px_per_mm must be positive, got {px_per_mm!r}")
-    if not (math.isfinite(dot_diameter_mm) and dot_diameter_mm > 0):
-        raise InvalidInputError(f"dot_diameter_mm must be positive, got {dot_diameter_mm!r}")
+    px_per_mm = positive_number(px_per_mm, "px_per_mm")
+    dot_diameter_mm = positive_number(dot_diameter_mm, "dot_diameter_mm")
     if not 0 < threshold < 1:
         raise InvalidInputError(f"threshold must be in (0, 1), got {threshold!r}")
     dot_px = dot_diameter_mm * px_per_mm

@@ -19,11 +19,11 @@ The names of the three steps' modules that users need are re-exported here.
 
 from __future__ import annotations
 
-import math
 from typing import Any, Sequence
 
 import numpy as np
 
+from skinstretch.processing.argument_checks import positive_number
 from skinstretch.processing.dot_grid_detection import INDEX_NONE, DotDetections, detect_dots, index_grid
 from skinstretch.processing.errors import CalibrationError, InvalidInputError
 from skinstretch.processing.grid_mapping import SURFACE_KINDS, GridMapping, mapping_from_dict
@@ -49,13 +49,9 @@ def calibrate_grid_images(
     images: Sequence[np.ndarray],
     *,
     px_per_mm: float,
-    surface: str = "auto",
-    spacing_mm: float = 0.5,
     dot_diameter_mm: float = 0.2,
-    working_distance_mm: float = 150.0,
-    max_rms_px: float = 0.5,
-    min_dots: int = 40,
     min_indexed_fraction: float = 0.5,
+    **fit_options: Any,
 ) -> tuple[GridMapping, CalibrationReport]:
     """Calibrate from one or more images of a dot grid (moved between images, seed 7.2.1), all of one rig.
 
@@ -65,12 +61,13 @@ def calibrate_grid_images(
         Grid images (dark dots on a bright surface), all the same size.
     px_per_mm : float
         Nominal scale along the image x axis (e.g. 640 px / 10.3 mm), for dot sizes and the starting point.
-    surface, spacing_mm, working_distance_mm, max_rms_px, min_dots
-        See :func:`fit_grid_mapping`.
     dot_diameter_mm : float
         Dot diameter on the sheet.
     min_indexed_fraction : float
         If fewer than this fraction of the detected dots of an image fit one lattice, there is no grid in it.
+    **fit_options
+        Options of :func:`fit_grid_mapping`: ``surface`` ("auto", "flat", "ridge", "valley"), ``spacing_mm``,
+        ``working_distance_mm``, ``max_rms_px``, ``min_dots``...
 
     Returns
     -------
@@ -84,8 +81,7 @@ def calibrate_grid_images(
     """
     if len(images) == 0:
         raise InvalidInputError("images must hold at least one image")
-    if not (math.isfinite(px_per_mm) and px_per_mm > 0):
-        raise InvalidInputError(f"px_per_mm must be positive, got {px_per_mm!r}")
+    px_per_mm = positive_number(px_per_mm, "px_per_mm")
     shape = np.asarray(images[0]).shape
     views, n_detected = [], 0
     for k, image in enumerate(images):
@@ -106,17 +102,8 @@ def calibrate_grid_images(
                 f"image {k}: grid not found ({ok.sum()} of {len(dots)} detected dots form a lattice){hint}"
             )
         views.append((ij[ok], dots.xy[ok]))
-    return fit_grid_mapping(
-        views,
-        image_shape=shape,
-        surface=surface,
-        spacing_mm=spacing_mm,
-        working_distance_mm=working_distance_mm,
-        max_rms_px=max_rms_px,
-        min_dots=min_dots,
-        dot_diameter_mm=dot_diameter_mm,
-        n_detected=n_detected,
-    )
+    return fit_grid_mapping(views, image_shape=shape, dot_diameter_mm=dot_diameter_mm, n_detected=n_detected,
+                            **fit_options)
 
 
 def calibrate_grid_image(image: np.ndarray, *, px_per_mm: float, **options: Any) -> tuple[GridMapping, CalibrationReport]:

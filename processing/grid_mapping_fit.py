@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from skinstretch.processing.argument_checks import positive_number
 from skinstretch.processing.dot_grid_detection import INDEX_NONE
 from skinstretch.processing.errors import CalibrationError, InvalidInputError
 from skinstretch.processing.grid_mapping import SURFACE_KINDS, GridMapping, RigParameters, SurfaceFrame
@@ -303,8 +304,7 @@ def fit_grid_mapping(
     for name, value in (("spacing_mm", spacing_mm), ("working_distance_mm", working_distance_mm),
                         ("max_rms_px", max_rms_px), ("shape_width_mm", shape_width_mm),
                         ("outlier_px", outlier_px)):
-        if not (math.isfinite(value) and value > 0):
-            raise InvalidInputError(f"{name} must be positive, got {value!r}")
+        positive_number(value, name)
     if not views:
         raise InvalidInputError("views must hold at least one (ij, xy) pair")
     gviews = []
