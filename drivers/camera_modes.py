@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
+from pydantic import Field
+
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.validated_dataclass import PositiveFloat, PositiveInt, validated_dataclass
+from skinstretch.processing.validated_dataclass import Float, PositiveInt, validated_dataclass
 
 
 @validated_dataclass
 class CameraMode:
-    """A camera acquisition mode: image size in pixels and frame rate in Hz."""
+    """A camera acquisition mode: image size in pixels and frame rate in Hz (``math.inf``: as fast as read, a replay)."""
 
     name: str
     width: PositiveInt
     height: PositiveInt
-    fps: PositiveFloat
+    fps: Annotated[Float, Field(gt=0)]
 
     @property
     def period_s(self) -> float:
