@@ -23,3 +23,7 @@ class ProtocolError(DeviceError):
 
 class SafetyStop(DeviceError):
     """Playback was stopped to protect the subject (force ceiling, link failure); contactors were sent to rest."""
+
+
+class FrameFileError(SkinstretchError):
+    """A video, TIFF stack or image folder cannot be read: missing, corrupt, truncated or of an unsupported kind."""

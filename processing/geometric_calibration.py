@@ -106,6 +106,7 @@ def calibrate_grid_images(
                             **fit_options)
 
 
-def calibrate_grid_image(image: np.ndarray, *, px_per_mm: float, **options: Any) -> tuple[GridMapping, CalibrationReport]:
+def calibrate_grid_image(image: np.ndarray, *, px_per_mm: float,
+                         **options: Any) -> tuple[GridMapping, CalibrationReport]:
     """Calibrate from a single grid image; options as for :func:`calibrate_grid_images`."""
     return calibrate_grid_images([image], px_per_mm=px_per_mm, **options)

@@ -193,7 +193,8 @@ def mapping_from_dict(data: dict[str, Any]) -> GridMapping:
         found = data.get("kind") if isinstance(data, dict) else type(data).__name__
         raise CalibrationError(f"not a skinstretch grid mapping (kind {found!r})")
     if data.get("version") != MAPPING_VERSION:
-        raise CalibrationError(f"grid mapping version {data.get('version')!r} is not supported (reads {MAPPING_VERSION})")
+        raise CalibrationError(
+            f"grid mapping version {data.get('version')!r} is not supported (reads {MAPPING_VERSION})")
     try:
         return GridMapping(
             width=int(data["width"]),

@@ -140,7 +140,8 @@ def _select(views: list[_GridView], keep: np.ndarray) -> list[_GridView]:
     return out
 
 
-def _dot_image_offset(model: ImagingModel, pose, ij: np.ndarray, spacing: float, radius: float, n: int = 48) -> np.ndarray:
+def _dot_image_offset(model: ImagingModel, pose, ij: np.ndarray, spacing: float, radius: float,
+                      n: int = 48) -> np.ndarray:
     """Area centroid of each dot's image minus the image of its centre, px (K, 2).
 
     The dot is a disc on the unrolled surface; its image outline is projected through the rig and the centroid of

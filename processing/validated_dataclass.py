@@ -3,7 +3,7 @@
 ``@validated_dataclass`` is :func:`pydantic.dataclasses.dataclass` (frozen; any Python type allowed as a field) whose
 validation errors are re-raised as one :class:`~skinstretch.processing.errors.InvalidInputError`, so the command line
 reports them in one line like every other error of ours, e.g.
-``PrismOptics: field_width_mm should be greater than 0, got -1.0``. Constraints that involve several fields go in a
+``field_width_mm should be greater than 0, got -1.0 (PrismOptics)``. Constraints that involve several fields go in a
 ``@pydantic.model_validator(mode="after")`` method raising InvalidInputError; its message is kept as it is.
 The instances are ordinary frozen dataclasses: ``dataclasses.replace`` validates the new values again.
 
@@ -72,7 +72,8 @@ def _one_line(cls: type, exc: ValidationError) -> str | SkinstretchError:
         if "input" in err and not isinstance(err["input"], dict):
             msg += f" (got {err['input']!r})" if ", got " in msg else f", got {err['input']!r}"
         parts.append(f"{name} {msg}")
-    return f"{cls.__name__}: " + "; ".join(parts)
+    # The field opens the message (the house style, which the command line turns into the flag's name).
+    return "; ".join(parts) + f" ({cls.__name__})"
 
 
 def validated_dataclass(cls: type[_T] | None = None, *, frozen: bool = True) -> Any:

@@ -46,8 +46,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_frames < 1:
         raise InvalidInputError(f"--max-frames must be >= 1, got {args.max_frames}")
-    if not args.field_width_mm > 0:
-        raise InvalidInputError(f"--field-width-mm must be positive, got {args.field_width_mm}")
+    for flag, value in (("--field-width-mm", args.field_width_mm), ("--spacing-mm", args.spacing_mm),
+                        ("--dot-diameter-mm", args.dot_diameter_mm), ("--max-rms-px", args.max_rms_px)):
+        if not value > 0:
+            raise InvalidInputError(f"{flag} must be positive, got {value}")
     mapping, summary = calibrate_source(
         args.source,
         surface=args.surface,
