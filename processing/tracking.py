@@ -457,6 +457,7 @@ class FeatureTracker:
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
         self._lost = _LostTracks()
+        self._released = False
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
         self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
 
@@ -482,6 +483,8 @@ class FeatureTracker:
         ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
         of the same image) is given instead.
         """
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True)")
         validate_features(features)
         needs_image = self.refiner is not None or self.motion_estimator is not None
         if needs_image and prepared is None:
@@ -629,12 +632,17 @@ class FeatureTracker:
             return np.mean(self._prev_disp[known], axis=0)
         return np.zeros(2)
 
-    def finish(self) -> Trajectories:
+    def finish(self, *, release: bool = False) -> Trajectories:
         """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far.
+
+        ``release``: free each frame's records as they are copied into the table (the tracker cannot be used
+        afterwards; what a long analysis wants, so that records and table are not both held).
 
         ``params.min_length_frames`` None means the seed's 30 frames (the analysis adapts it to a short clip)."""
         if self._n_frames == 0:
             raise InsufficientDataError("no frames were added to the tracker")
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True)")
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
@@ -649,7 +657,10 @@ class FeatureTracker:
         dx = np.empty(rows.size)
         dy = np.empty(rows.size)
         i = 0
-        for k, ((tracks, xy, offset, disp, refined), sel) in enumerate(zip(self._frames, kept_rows)):
+        for k, sel in enumerate(kept_rows):
+            tracks, xy, offset, disp, refined = self._frames[k]
+            if release:
+                self._frames[k] = None
             ids = new_id[tracks[sel]]
             order = np.argsort(ids, kind="stable")
             sel, ids = sel[order], ids[order]
@@ -667,6 +678,8 @@ class FeatureTracker:
             dx[i : i + sel.size], dy[i : i + sel.size] = d[:, 0], d[:, 1]
             i += sel.size
         del kept_rows
+        if release:
+            self._frames, self._released = [], True
         n_kept = int(keep_track.sum())
         pos, run = _chain_tracks(rows["track"], rows["raw_x"], rows["raw_y"], dx, dy, rows["linked"], n_kept)
         del dx, dy

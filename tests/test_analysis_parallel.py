@@ -76,9 +76,11 @@ def test_continue_with_gives_the_sequential_trajectories():
     for k in range(b - overlap, n):
         c.add_frame(_moving_features(k))
     assert a.continue_with(c, overlap=overlap)
-    ta, ts = a.finish(), seq.finish()
+    ta, ts = a.finish(), seq.finish(release=True)
     for name in ts.rows.dtype.names:
         np.testing.assert_array_equal(ta.rows[name], ts.rows[name], err_msg=name)
+    with pytest.raises(InvalidInputError, match="released"):
+        seq.add_frame(_moving_features(n))
 
 
 def test_continue_with_refuses_disagreeing_trackers_and_changes_nothing():

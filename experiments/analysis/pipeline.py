@@ -183,7 +183,8 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, progress=progress)
             t0 = time.perf_counter()
-            tr = m.tracker.finish()
+            tr = m.tracker.finish(release=True)  # records freed as the table fills
+            m.tracker = None
             if mapping is not None:
                 _rectify_trajectories(tr, mapping, calibration.px_per_mm)
             writer.append("trajectories", tr.rows, UNITS["trajectories"])
