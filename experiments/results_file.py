@@ -188,8 +188,9 @@ class ResultsWriter:
         ds = self._table(name, rows.dtype, units)
         n = ds.shape[0]
         ds.resize((n + rows.shape[0],))
-        if rows.shape[0]:
-            ds[n:] = rows
+        step = 1 << 16  # a block at a time: h5py converts a compound selection through a buffer of its size
+        for i in range(0, rows.shape[0], step):
+            ds[n + i : n + min(i + step, rows.shape[0])] = rows[i : i + step]
 
     def array(self, name: str, data: np.ndarray, units: str, *, columns: Sequence[str] | None = None,
               compress: bool = False, **attrs: Any) -> None:
