@@ -260,6 +260,11 @@ class StressDisplay(TactileDisplay):
     def _do_prepare_frame(self, command_um: np.ndarray) -> bytes:
         return sp.encode_positions(command_um)
 
+    def _do_wire_command(self, wire: bytes) -> np.ndarray:
+        if not isinstance(wire, (bytes, bytearray)):
+            raise TypeError(f"a STReSS frame payload is bytes, got {type(wire).__name__}")
+        return sp.decode_positions(wire)
+
     def _do_send_prepared(self, wire: bytes, command_um: np.ndarray) -> int:
         seq, sent_at = self._send(sp.Command.FRAME, wire)
         self._track(seq, command_um, sent_at, None)
