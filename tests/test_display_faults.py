@@ -201,3 +201,33 @@ def test_a_port_nobody_reads_fails_the_write_in_bounded_time(monkeypatch):
         transport.close()
         os.close(master)
         os.close(slave)
+
+
+@pytest.mark.parametrize("how", ["buffered", "play_movie"])  # immediate mode spins on the clock: no manual clock
+def test_a_silent_link_is_reported_within_its_timeout(how):
+    """Detected at the link timeout after the last byte; REST and DISARM on the dead link then add milliseconds,
+    not two reply timeouts each (it took ~0.5 s against a 0.2 s timeout)."""
+    from skinstretch.drivers.display.movie_stream import stream_movie_buffered
+    from skinstretch.experiments.playback import play_movie
+
+    clock = ManualClock()
+    link = stress_links.make_link(faults="stall_after:150", seed=3, clock=clock)
+    display = _url_display(link, clock=clock.now, link_timeout_s=0.2)
+    stalled_at = []
+    on_packet = link._on_packet
+
+    def watch(packet, t):
+        was = link.stalled
+        on_packet(packet, t)
+        if link.stalled and not was:
+            stalled_at.append(clock.now())
+
+    link._on_packet = watch
+    movie = _movie(1400)
+    if how == "buffered":
+        outcome = stream_movie_buffered(display, movie, clock=clock.now).outcome
+    else:
+        result = play_movie(display, movie, closed_loop=False, clock=clock.now)
+        outcome = "link_failure" if "link failed" in result.stopped else result.stopped
+    assert outcome == "link_failure" and stalled_at
+    assert clock.now() - stalled_at[0] <= 0.2 + 0.03

@@ -375,6 +375,11 @@ class TactileDisplay(abc.ABC):
     def outstanding(self) -> int:
         """Frames sent whose ack has not arrived yet."""
 
+    def declare_link_lost(self, reason: str) -> None:
+        """The caller has found the link dead (e.g. too many frames unacknowledged): later commands (REST,
+        DISARM) are sent once without waiting long for their replies; the firmware watchdog rests the contactors."""
+        self._do_declare_link_lost(str(reason))
+
     def close(self) -> None:
         """Rest (when the link still works) and release the transport."""
         self._do_close()
@@ -442,6 +447,9 @@ class TactileDisplay(abc.ABC):
 
     def _do_read_movie_status(self) -> MovieStatus:
         raise DeviceError(f"{type(self).__name__} has no timed playback")
+
+    def _do_declare_link_lost(self, reason: str) -> None:
+        """Default: nothing (a display without replies to wait for)."""
 
     @abc.abstractmethod
     def _do_close(self) -> None: ...

@@ -299,8 +299,10 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
                 # behind schedule the wait above is skipped: collect what has arrived without waiting
                 file_acks(display.collect_acks(timeout_s=0.0))
             if display.outstanding > max_outstanding:
-                raise DeviceTimeoutError(f"{display.outstanding} frames unacknowledged "
-                                         f"({display.outstanding * period * 1000:.0f} ms of movie)")
+                lost = (f"{display.outstanding} frames unacknowledged "
+                        f"({display.outstanding * period * 1000:.0f} ms of movie)")
+                display.declare_link_lost(lost)
+                raise DeviceTimeoutError(lost)
         file_acks(display.collect_acks(timeout_s=0.0))
         end = clock() + final_ack_timeout_s
         while display.outstanding and clock() < end:
