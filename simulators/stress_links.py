@@ -35,8 +35,9 @@ from skinstretch.drivers.display.transports import (STRESS_USB_EP_IN, STRESS_USB
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 
-from .stress_firmware import (Clock, LinkFaults, LinkVanished, PacedLink, PtyFirmwareServer, RealClock,
-                              StressFirmware)
+from .stress_firmware import StressFirmware
+from .stress_pty import PtyFirmwareServer
+from .stress_wire import Clock, LinkFaults, LinkVanished, PacedLink, RealClock
 
 URL_HANDLER_PACKAGE = "skinstretch.simulators.stress_urlhandler"
 _links: dict[str, PacedLink] = {}
@@ -227,7 +228,7 @@ class FirmwareProcess:
         self._slave = slave
         try:
             self._process = subprocess.Popen(
-                [sys.executable, "-m", "skinstretch.simulators.stress_firmware", "--pty-fd", str(master), "--baud", str(baud),
+                [sys.executable, "-m", "skinstretch.simulators.stress_pty", "--pty-fd", str(master), "--baud", str(baud),
                  "--seed", str(seed), "--faults", faults, "--record", str(self.record_path)],
                 pass_fds=(master,), stdout=subprocess.PIPE, text=True)
         finally:

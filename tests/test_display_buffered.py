@@ -25,7 +25,8 @@ from skinstretch.drivers.display.transports import SerialTransport
 from skinstretch.drivers.errors import DeviceError, ProtocolError, SafetyStop
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import REFUSED, ManualClock, StressFirmware
+from skinstretch.simulators.stress_firmware import REFUSED, StressFirmware
+from skinstretch.simulators.stress_wire import ManualClock
 
 PERIOD = 1 / 700
 _names = itertools.count()

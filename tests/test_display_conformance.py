@@ -15,7 +15,8 @@ from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import ManualClock, PacedLink, StressFirmware
+from skinstretch.simulators.stress_firmware import StressFirmware
+from skinstretch.simulators.stress_wire import ManualClock, PacedLink
 
 _names = itertools.count()
 # long enough that a test process starved by a busy CI machine does not trip it by accident

@@ -16,7 +16,8 @@ from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
 from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, SafetyStop
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import LinkFaults, ManualClock, PacedLink, StressFirmware
+from skinstretch.simulators.stress_firmware import StressFirmware
+from skinstretch.simulators.stress_wire import LinkFaults, ManualClock, PacedLink
 
 _names = itertools.count()
 
