@@ -377,8 +377,13 @@ class RigDevices:
         else:
             scene = self._sim_scene(trial=trial, protocol=protocol, n_frames=n_frames)
             frames, truth = render_scene(scene.to_yaml(), spec.seed + trial.index)
+        options = dict(spec.options)
+        if isinstance(options.get("faults"), dict):  # a fault drill from a rig file: {faults: {stall_at_frame: 20}}
+            from skinstretch.simulators.simulated_camera import CameraFaults  # noqa: PLC0415
+
+            options["faults"] = CameraFaults(**options["faults"])
         cam = SimulatedCamera(frames.__getitem__, mode, n_frames=n_frames, loop=False, seed=spec.seed + trial.index,
-                              **spec.options)
+                              **options)
         trial_cam = _TrialCamera(cam, mode)
         trial_cam.truth = truth
         return trial_cam
