@@ -50,7 +50,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DeviceError, DiskFullError, SessionFileError
 from skinstretch.experiments.output_paths import check_output_dir
 from skinstretch.experiments.process_lifetime import worker_pool
-from skinstretch.processing.errors import ConfigError, InvalidInputError, SkinstretchError
+from skinstretch.processing.errors import InvalidInputError, SkinstretchError
 from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
 from skinstretch.experiments.skin_mapping_step import store_calibration
 from skinstretch.experiments.recorder import Recorder, RecorderStats

@@ -3,11 +3,9 @@ the trial stops cleanly (frames flushed before kept and readable, file marked fa
 says so), the display rests, the run ends with a one-line error and a non-zero status, never a signal or a
 traceback. On a real small file system (tmpfs, root only) filled by another process, and with injected faults."""
 
-import errno
 import os
 import subprocess
 import sys
-import time
 from functools import partial
 from pathlib import Path
 
@@ -17,14 +15,15 @@ import pytest
 from skinstretch.drivers import disk_space
 from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
 from skinstretch.drivers.errors import DiskFullError
-from skinstretch.drivers.session_file import SessionWriter, open_session, write_session
+from skinstretch.drivers.session_file import SessionWriter, open_session
+from skinstretch.experiments.bench.faults import DISK_FILLER, replay_rig
 from skinstretch.experiments.protocol import Rig, parse_protocol
 from skinstretch.experiments.runner import read_events, run_protocol, session_dir
 from skinstretch.processing.pixel_scale import Calibration
 
 CAL = Calibration(px_per_mm=62.0)
 TINY = CameraMode("tiny", 64, 48, 100.0)
-CLI = [sys.executable, "-c", "import sys; from skinstretch.cli import main; sys.exit(main())"]
+CLI = [sys.executable, "-m", "skinstretch.cli"]
 
 PROTOCOL = """\
 name: fill
@@ -198,32 +197,8 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
-def _replay_rig(tmp_path: Path) -> Path:
-    """A rig replaying a textured 640x484 session at 60 Hz (on the big disk), the display twin, no force."""
-    rng = np.random.default_rng(0)
-    frames = rng.integers(0, 256, (90, 484, 640), dtype=np.uint8)
-    source = write_session(tmp_path / "source.h5", frames, timestamps=np.arange(90) / 60.0,
-                           camera_mode=CAMERA_MODES["full"], calibration=CAL)
-    rig = tmp_path / "rig.yaml"
-    rig.write_text(f"name: replay\ncamera: {{kind: replay, device: {str(source)!r}}}\nforce: {{kind: none}}\n"
-                   "display: {kind: sim}\n")
-    return rig
-
-
-_FILLER = """
-import sys
-with open(sys.argv[1], "wb") as fh:
-    try:
-        while True:
-            fh.write(bytes(1 << 20))
-            fh.flush()
-    except OSError:
-        pass
-"""
-
-
 def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
-    rig = _replay_rig(tmp_path)
+    rig = replay_rig(tmp_path)
     proto = tmp_path / "p.yaml"
     proto.write_text(PROTOCOL % _trials(2, 1.5))  # 2 x 90 frames: 2 x 28 MB x 1.2 + 4 MB > 50 MB ...
     big = subprocess.run(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
@@ -240,7 +215,8 @@ def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
         for line in child.stdout:  # bounded by pytest-timeout
             out_lines.append(line)
             if filler is None and ": " in line and "/42 frames" in line:  # the first trial is writing
-                filler = subprocess.Popen([sys.executable, "-c", _FILLER, str(small_disk / "filler.bin")])
+                filler = subprocess.Popen([sys.executable, "-c", DISK_FILLER, str(small_disk / "filler.bin")],
+                                          stdout=subprocess.DEVNULL)
         rc = child.wait(60)
         err = child.stderr.read()
     finally:

@@ -10,11 +10,10 @@ import time
 from pathlib import Path
 
 import psutil
-import pytest
 
 from skinstretch.experiments.process_lifetime import die_with_parent, worker_pool
 
-CLI = [sys.executable, "-c", "import sys; from skinstretch.cli import main; sys.exit(main())"]
+CLI = [sys.executable, "-m", "skinstretch.cli"]
 
 PROTOCOL = """\
 name: orphans

@@ -5,14 +5,13 @@ import os
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from skinstretch.experiments.output_paths import OutputPathError, check_output_dir, check_output_file, os_error_line
 
-CLI = [sys.executable, "-c", "import sys; from skinstretch.cli import main; sys.exit(main())"]
+CLI = [sys.executable, "-m", "skinstretch.cli"]
 PROTOCOL = """\
 name: paths
 subject: {id: s01}

@@ -39,7 +39,7 @@ SECTION = "faults"
 DESCRIPTION = "fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files"
 
 COLUMNS = ["fault", "injected", "detected after s", "kept", "display", "exit status", "as designed"]
-CLI = [sys.executable, "-c", "import sys; from skinstretch.cli import main; sys.exit(main())"]
+CLI = [sys.executable, "-m", "skinstretch.cli"]
 CAL = Calibration(px_per_mm=640 / 10.3)
 
 
@@ -157,7 +157,8 @@ def _sigkill(work: Path) -> _Row:
                 left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 0)
 
 
-def _replay_rig(work: Path) -> Path:
+def replay_rig(work: Path) -> Path:
+    """A rig file replaying 90 textured 640x484 frames at 60 Hz (from ``work``), the display twin, no force."""
     frames = np.random.default_rng(0).integers(0, 256, (90, 484, 640), dtype=np.uint8)
     source = write_session(work / "replay-source.h5", frames, timestamps=np.arange(90) / 60.0,
                            camera_mode=CAMERA_MODES["full"], calibration=CAL, overwrite=True)
@@ -167,7 +168,8 @@ def _replay_rig(work: Path) -> Path:
     return rig
 
 
-_FILLER = """
+#: A program that fills the disk holding the file it is given, printing the time it hit ENOSPC.
+DISK_FILLER = """
 import sys, time
 with open(sys.argv[1], "wb") as fh:
     try:
@@ -187,7 +189,7 @@ def _disk_full(work: Path) -> _Row:
     if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=50m", "tmpfs", str(mnt)], capture_output=True).returncode:
         return _disk_full_injected(work)
     try:
-        rig = _replay_rig(work)
+        rig = replay_rig(work)
         proto = work / "fill.yaml"
         proto.write_text("name: fill\nsubject: {id: s01}\ncamera_mode: full\ntrials:\n"
                          "  - {name: a, duration_s: 0.7}\n  - {name: b, duration_s: 0.7}\n"
@@ -197,7 +199,7 @@ def _disk_full(work: Path) -> _Row:
         lines = _Lines(child)
         if lines.wait_for(lambda line: "/42 frames" in line) is None:
             raise RuntimeError("record never started writing frames")
-        filler = subprocess.run([sys.executable, "-c", _FILLER, str(mnt / "filler.bin")], capture_output=True,
+        filler = subprocess.run([sys.executable, "-c", DISK_FILLER, str(mnt / "filler.bin")], capture_output=True,
                                 text=True, timeout=60)
         full_at = float(filler.stdout.strip())
         stopped = lines.wait_for(lambda line: "failed (" in line and "disk full" in line)
