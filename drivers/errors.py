@@ -36,3 +36,7 @@ class InvalidTargetError(InvalidInputError):
     def __init__(self, message: str, *, contactor: tuple[int, int] | None = None) -> None:
         super().__init__(message)
         self.contactor = contactor
+
+
+class FrameFileError(SkinstretchError):
+    """A video, TIFF stack or image folder cannot be read: missing, corrupt, truncated or of an unsupported kind."""

@@ -16,6 +16,7 @@ contactor's *persistent* error online:
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -549,7 +550,8 @@ def _check_movie(movie: np.ndarray, source: Path) -> np.ndarray:
     return np.where(np.isfinite(movie), movie, 0.0)
 
 
-def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=print) -> PlaybackResult:
+def play_protocol_movie(protocol, session_directory: Path, *, devices,
+                        progress=logging.getLogger(__name__).info) -> PlaybackResult:
     """Play the protocol's movie (``movie.source``: a trial name, ``last_trial``, or a file) on the rig's display."""
     spec = protocol.movie
     sdir = Path(session_directory)

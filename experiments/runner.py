@@ -32,6 +32,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import errno
 import json
+import logging
 import os
 import threading
 import time
@@ -471,7 +472,7 @@ def _attach_truth(path: Path, truth) -> None:
 
 
 def _print(msg: str) -> None:
-    print(msg, flush=True)
+    logging.getLogger(__name__).info(msg)  # progress lines: --quiet silences them
 
 
 def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progress: Callable[[str], None]):

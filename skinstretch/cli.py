@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
         module.register(sub)
     for command in sub.choices.values():
         _add_verbosity(command)
+        # The command's flags by parameter name, so an error's remedy names --overwrite, not overwrite=True.
+        flags = {a.dest: max(a.option_strings, key=len) for a in command._actions if a.option_strings}
+        command.set_defaults(cli_flags=flags)
     return parser
 
 
@@ -60,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = int(args.func(args) or 0)
     except SkinstretchError as exc:
-        log.error("skinstretch %s: error: %s", args.command, exc)
+        flags = getattr(args, "cli_flags", {})
+        log.error("skinstretch %s: error: %s", args.command, exc.message_for(lambda p: flags.get(p, p)))
         rc = 2
     except KeyboardInterrupt:
         log.error("skinstretch %s: interrupted", args.command)

@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="carry on after a crash with the next unfinished trial")
     p.add_argument("--no-analysis", action="store_true", help="record only; analyse later (skinstretch analyze)")
     p.add_argument("--no-movie", action="store_true", help="do not play the protocol's tactile movie")
+    p.add_argument("--live", action="store_true",
+                   help="show the trial being recorded in the browser viewer, with online features and strain "
+                   "(a separate process reading the session file: the recording never waits on it)")
     p.set_defaults(func=run)
 
 
@@ -43,16 +46,20 @@ def run(args: argparse.Namespace) -> int:
         path = bundled_protocol(args.protocol)
     protocol = load_protocol(path)
     rig = load_rig(args.rig)
-    result = run_protocol(
-        protocol,
-        rig,
-        args.datadir,
-        resume=args.resume,
-        analyse=False if args.no_analysis else None,
-        play_movie=not args.no_movie,
-        protocol_text=path.read_text(),
-        rig_text=Path(args.rig).read_text() if args.rig else None,
-    )
+    from skinstretch.experiments.runner import session_dir  # noqa: PLC0415
+    from skinstretch.experiments.viewer.live_launch import live_view  # noqa: PLC0415 - the viewer's one hook
+
+    with live_view(session_dir(protocol, args.datadir), enabled=args.live):
+        result = run_protocol(
+            protocol,
+            rig,
+            args.datadir,
+            resume=args.resume,
+            analyse=False if args.no_analysis else None,
+            play_movie=not args.no_movie,
+            protocol_text=path.read_text(),
+            rig_text=Path(args.rig).read_text() if args.rig else None,
+        )
     print(f"session: {result.directory}")
     for t in result.trials:
         reason = t.reason if t.status != "not run" else ""  # the run's stop reason is on the last line
