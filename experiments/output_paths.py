@@ -25,7 +25,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from skinstretch.processing.errors import ConfigError
+from skinstretch.processing.errors import ConfigError, Remedy
 
 __all__ = ["OutputPathError", "check_output_dir", "check_output_file", "os_error_line"]
 
@@ -81,11 +81,12 @@ def _probe_writable(directory: Path, target: Path) -> None:
     os.unlink(name)
 
 
-def check_output_dir(path: str | os.PathLike, *, must_be_empty: bool = False, hint: str = "") -> Path:
+def check_output_dir(path: str | os.PathLike, *, must_be_empty: bool = False, remedy: Remedy | None = None) -> Path:
     """Check that files can be written into directory ``path`` (existing, or creatable: its nearest existing
     ancestor is a writable directory). Returns ``path`` as a Path; nothing is left behind.
 
-    ``must_be_empty``: an existing directory holding anything is an error (``hint`` says what to do instead).
+    ``must_be_empty``: an existing directory holding anything is an error (``remedy``: the argument that allows
+    it, named as the caller spells it, e.g. ``--resume`` on the command line).
     """
     path = Path(path)
     base = _nearest_existing(path)
@@ -98,7 +99,7 @@ def check_output_dir(path: str | os.PathLike, *, must_be_empty: bool = False, hi
             except OSError as exc:
                 raise OutputPathError(os_error_line(exc, path)) from None
             if occupied:
-                raise OutputPathError(f"{path}: is not empty" + (f"; {hint}" if hint else ""))
+                raise OutputPathError(f"{path}: is not empty", remedy=remedy)
     _probe_writable(base, path)
     return path
 

@@ -51,7 +51,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DeviceError, DiskFullError, SessionFileError
 from skinstretch.experiments.output_paths import check_output_dir
 from skinstretch.experiments.process_lifetime import worker_pool
-from skinstretch.processing.errors import InvalidInputError, SkinstretchError
+from skinstretch.processing.errors import InvalidInputError, Remedy, SkinstretchError
 from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
 from skinstretch.experiments.skin_mapping_step import store_calibration
 from skinstretch.experiments.recorder import Recorder, RecorderStats
@@ -541,8 +541,8 @@ def run_protocol(
     sdir = session_dir(protocol, datadir)
     log_path = sdir / EVENT_LOG
     # Before anything is created or opened: the directory can be written, and the trials to record fit on disk.
-    check_output_dir(sdir, must_be_empty=not resume, hint="it holds a session: pass --resume to carry on, or "
-                     "choose another -o")
+    check_output_dir(sdir, must_be_empty=not resume,
+                     remedy=Remedy(("resume",), "to carry on with the session it holds (or write elsewhere)", True))
     if resume and sdir.exists():
         _remove_stale_reserves(sdir)
     pending_plan = [t for t in protocol.planned_trials()

@@ -197,7 +197,7 @@ def test_device_fault_fails_trial_with_reason_and_keeps_data(tmp_path):
 
 def test_existing_session_needs_resume(tmp_path):
     _run(tmp_path)
-    with pytest.raises(ConfigError, match="--resume"):
+    with pytest.raises(ConfigError, match="is not empty; pass resume=True to carry on"):
         _run(tmp_path)
     _, _, again, _ = _run(tmp_path, resume=True)
     assert [t.status for t in again.trials] == ["skipped"] * 3

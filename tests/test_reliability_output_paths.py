@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from skinstretch.experiments.output_paths import OutputPathError, check_output_dir, check_output_file, os_error_line
+from skinstretch.processing.errors import Remedy
 
 CLI = [sys.executable, "-m", "skinstretch.cli"]
 PROTOCOL = """\
@@ -85,8 +86,8 @@ def test_the_checks_name_the_path_and_the_problem(tmp_path, unwritable):
         assert str(info.value).startswith(message) and "\n" not in str(info.value)
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    with pytest.raises(OutputPathError, match="is not empty; pass --resume"):
-        check_output_dir(tmp_path / "full", must_be_empty=True, hint="pass --resume")
+    with pytest.raises(OutputPathError, match="is not empty; pass resume=True to go on"):
+        check_output_dir(tmp_path / "full", must_be_empty=True, remedy=Remedy(("resume",), "to go on", True))
     assert check_output_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
     assert not (tmp_path / "new").exists()  # checking creates nothing
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "full", "locked"]

@@ -195,7 +195,7 @@ def _disk_full(work: Path) -> _Row:
                          "  - {name: a, duration_s: 0.7}\n  - {name: b, duration_s: 0.7}\n"
                          "record: {force: false}\nanalysis: {enabled: false}\n")
         child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(mnt / "d")],
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines = _Lines(child)
         if lines.wait_for(lambda line: "/42 frames" in line) is None:
             raise RuntimeError("record never started writing frames")
@@ -204,13 +204,15 @@ def _disk_full(work: Path) -> _Row:
         full_at = float(filler.stdout.strip())
         stopped = lines.wait_for(lambda line: "failed (" in line and "disk full" in line)
         rc = child.wait(60)
-        err = child.stderr.read()
-        child.stderr.close()
+        lines.wait_for(lambda line: False, timeout_s=10)  # to the end of the output
+        output = [line for _, line in lines.lines if line is not None]
         child.stdout.close()
         with open_session(mnt / "d" / "s01" / "fill" / "000-a-r1" / "session.h5") as s:
             n, status, lost = s.n_frames, s.status, full_at - float(s.timestamps[-1])
         rested = "did not return to rest" not in (stopped[1] if stopped else "")
-        clean = _one_line(err) and all(bad not in err for bad in ("Exception ignored", "Segmentation", "HDF5-DIAG"))
+        text = "\n".join(output)
+        clean = (output[-1].startswith("skinstretch record: 1 of 2 trials failed") and "disk full" in output[-1]
+                 and all(bad not in text for bad in ("Traceback", "Exception ignored", "Segmentation", "HDF5-DIAG")))
         return _Row("disk full", "50 MB tmpfs filled by another process mid-trial",
                     (stopped[0] - full_at) if stopped else math.nan,
                     f"{n} frames readable, file {status}, {max(lost, 0.0):.3f} s lost; next trial not run",
