@@ -613,6 +613,15 @@ class SessionWriter:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
         self.close(status=STATUS_FAILED, reason=reason)
 
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is None:
+            self.close()
+        else:
+            self.fail(f"{exc_type.__name__}: {exc}")
+
 
 #: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
 CLOSE_RETRY_S = 1.0
@@ -626,15 +635,6 @@ def unclosed_sessions() -> list[Path]:
     sees any should end with ``os._exit`` once its output is flushed (the command line does).
     """
     return list(_UNCLOSED)
-
-    def __enter__(self) -> "SessionWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc is None:
-            self.close()
-        else:
-            self.fail(f"{exc_type.__name__}: {exc}")
 
 
 def write_session(

@@ -157,14 +157,17 @@ def test_callback_safety_stop_rests_the_display():
     link = stress_links.make_link(seed=4)
     display = _url_display(link, watchdog_s=WATCHDOG_S, ack_timeout_s=0.5)
 
+    stopped_at = []
+
     def ceiling(index, command, ack):
-        if index == 50:
+        if index >= 50:  # >=: on a starved host frame 50's slot may pass unsent (no callback for it)
+            stopped_at.append(index)
             raise SafetyStop("normal force 6.1 N above the 5 N ceiling")
         return command + 1.0
 
     report = stream_movie(display, _movie(), rate_hz=RATE_HZ, callback=ceiling)
     assert report.outcome == "safety_stop" and "ceiling" in report.error and report.rested
-    assert report.frames_played == 50
+    assert report.frames_played == stopped_at[0]
     sent = ~report.skipped[10:20]
     assert np.allclose(report.commands_um[10:20][sent], np.clip(_movie()[10:20] + 1.0, -50, 50)[sent], atol=0.25)
     time.sleep(0.05)

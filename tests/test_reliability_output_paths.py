@@ -138,3 +138,23 @@ def test_play_movie_refuses_an_existing_recording_before_the_display_moves(tmp_p
     finally:
         display.close()
         stress_links.detach("paths")
+
+
+def test_fault_drills_from_the_command_line_and_finite_numbers_only(tmp_path):
+    """play takes the twin's URL with its fault switches; NaN options and protocol values are named as such."""
+    movie = tmp_path / "m.npy"
+    np.save(movie, 20.0 * np.sin(np.arange(1400) / 70.0)[:, None, None] * np.ones((1, 10, 10)))
+    out = tmp_path / "drill.h5"
+    done = _cli("play", str(movie), "--movie-rate", "700", "--no-force", "-o", str(out),
+                "--display", "stresssim://drill?faults=vanish_after:300&seed=1")
+    assert done.returncode == 3 and "display link failed" in done.stdout, (done.stdout, done.stderr)
+    from skinstretch.drivers.session_file import open_session
+
+    with open_session(out) as s:
+        assert s.status == "failed" and 0 < s.read_stream("display_target")[0].shape[0] < 1400
+    bad = _cli("play", str(movie), "--gain", "nan")
+    assert bad.returncode == 2 and "'nan' is not a finite number" in bad.stderr
+    proto = tmp_path / "nan.yaml"
+    proto.write_text("name: x\nsubject: {id: s}\ntrials:\n  - {name: a, duration_s: .nan}\n")
+    _one_line(_cli("record", str(proto), "-o", str(tmp_path / "d")), "nan.yaml:4: trials[0].duration_s",
+              "finite number")
