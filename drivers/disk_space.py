@@ -15,7 +15,8 @@ another process with every frame flushed before the failure. So a recording:
 * if another process fills the disk anyway between the check and the write, releases the reserve and retries
   the flush, then closes the file marked failed.
 
-Hand-written: no library wraps statvfs / fallocate for this purpose; the calls are the standard library's.
+The free space comes from psutil (``disk_usage``); the reserve is hand-written around ``os.posix_fallocate``
+(no library keeps such a reserve).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import errno
 import logging
 import os
 from pathlib import Path
+
+import psutil
 
 from skinstretch.drivers.errors import DiskFullError
 
@@ -43,11 +46,13 @@ def megabytes(n: float) -> str:
 def free_bytes(path: str | os.PathLike) -> int:
     """Bytes an unprivileged writer may still use on the file system holding ``path`` (or its nearest existing
     ancestor)."""
-    p = Path(path)
-    while not p.exists() and p.parent != p:
-        p = p.parent
-    st = os.statvfs(p)
-    return int(st.f_bavail) * int(st.f_frsize)
+    try:
+        return int(psutil.disk_usage(os.fspath(path)).free)  # statvfs: f_bavail * f_frsize; microseconds
+    except FileNotFoundError:
+        p = Path(path)
+        while not p.exists() and p.parent != p:
+            p = p.parent
+        return int(psutil.disk_usage(str(p)).free)
 
 
 def check_fits(path: str | os.PathLike, needed_bytes: float, *, what: str) -> int:

@@ -44,7 +44,8 @@ import h5py
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
-from skinstretch.drivers.disk_space import DEFAULT_RESERVE_BYTES, SpaceReserve, free_bytes, is_disk_full, megabytes
+from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, free_bytes, is_disk_full,
+                                            megabytes)
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DiskFullError, SessionFileError
@@ -668,6 +669,9 @@ def write_session(
         raise InvalidInputError(f"frame_ids must have shape ({n},), got {frame_ids.shape}")
     if truth is not None:
         truth.validate(n)
+    # HDF5 does not survive a full disk (see disk_space): refuse what cannot fit before writing a byte
+    truth_bytes = sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS) if truth is not None else 0
+    check_fits(path.parent, frames.nbytes + 24 * n + truth_bytes + _LAYOUT_BYTES, what=f"session {path.name}")
     with replacing_file(path, overwrite=overwrite) as tmp:
         with h5py.File(tmp, "w", libver="latest") as f:
             _create_layout(
