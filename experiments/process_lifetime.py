@@ -147,11 +147,23 @@ def _watch(pid: int, *, interval_s: float = SCAN_INTERVAL_S) -> int:
         if proc not in trackers:
             with contextlib.suppress(psutil.Error):
                 proc.kill()
-    _, alive = psutil.wait_procs(trackers, timeout=TRACKER_GRACE_S)
-    for proc in alive:
+    deadline = time.monotonic() + TRACKER_GRACE_S
+    while trackers and time.monotonic() < deadline:
+        trackers = [p for p in trackers if _running(p)]  # a dead orphan nobody reaps stays a zombie: gone
+        time.sleep(0.02)
+    for proc in trackers:
         with contextlib.suppress(psutil.Error):
             proc.kill()
     return 0
+
+
+def _running(proc) -> bool:
+    import psutil  # noqa: PLC0415
+
+    try:
+        return proc.is_running() and proc.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:

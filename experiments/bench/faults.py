@@ -264,7 +264,7 @@ def _camera_stall(work: Path) -> _Row:
     detected = stop["time"] - last - CAMERA_MODES["full"].period_s  # from the frame that never came
     rested = "did not return to rest" not in stop.get("reason", "")
     return _Row("camera stall", "simulated camera stops at frame 20 (forever)", detected,
-                f"{n} frames readable, file {status} ({stop.get('reason', '')[:40]}...)",
+                f"{n} frames readable, file {status} ({stop.get('reason', '').split(':')[0]}: no frame for 1 s)",
                 "rested" if rested else "NOT rested", str(done.returncode),
                 done.returncode == 1 and n == 20 and status == "failed" and rested and time.time() - t0 < 120)
 
@@ -441,7 +441,7 @@ def _bad_protocol(work: Path) -> _Row:
     took = time.perf_counter() - t0
     done = _cli("record", str(bad), "-o", str(work / "typo"))
     return _Row("bad protocol", "a misspelt field (duraton_s) on line 4", took,
-                f"nothing recorded ({message.rsplit('/', 1)[-1][:60]})", "never opened", f"{done.returncode} (record)",
+                f"nothing recorded ({message.rsplit('/', 1)[-1]})", "never opened", f"{done.returncode} (record)",
                 bool(message) and done.returncode == 2 and _one_line(done.stderr) and "typo.yaml:4" in done.stderr
                 and not (work / "typo").exists())
 
