@@ -4,7 +4,7 @@ the table says how long until it was detected, what was kept, where the display 
 Faults: SIGKILL of ``record`` mid-trial (analysis on), a disk that fills mid-trial (a 50 MB tmpfs filled by another
 process when root, an injected full disk otherwise), a camera that stalls, the display link at end-of-file
 (unplugged), stalled and killed (the firmware process), a force above the ceiling, a corrupt and a truncated
-session file, a protocol with a typo. A bad video file joins once the import command exists.
+session file, a truncated video given to ``import``, a protocol with a typo.
 
 "Detected after" is the time from the fault to the moment the program acted on it (stopped the trial or movie,
 refused the file), measured on the host clock; for SIGKILL, to the moment the last process of the killed
@@ -36,7 +36,8 @@ from skinstretch.experiments.runner import read_events
 from skinstretch.processing.pixel_scale import Calibration
 
 SECTION = "faults"
-DESCRIPTION = "fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files"
+DESCRIPTION = ("fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files "
+               "and videos, bad protocol")
 
 COLUMNS = ["fault", "injected", "detected after s", "kept", "display", "exit status", "as designed"]
 CLI = [sys.executable, "-m", "skinstretch.cli"]
@@ -426,6 +427,38 @@ def _bad_file(work: Path, kind: str) -> _Row:
                 f"{done.returncode} (analyze)", bool(refused) and done.returncode == 2 and _one_line(done.stderr))
 
 
+def _bad_video(work: Path) -> _Row:
+    """An MJPEG AVI cut at a third: the import finds the frames missing that the container declares."""
+    import cv2  # noqa: PLC0415
+
+    from skinstretch.drivers.errors import FrameFileError  # noqa: PLC0415
+    from skinstretch.experiments.frame_import import import_frames  # noqa: PLC0415
+
+    good = work / "good.avi"
+    writer = cv2.VideoWriter(str(good), cv2.VideoWriter_fourcc(*"MJPG"), 60, (640, 484), isColor=False)
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        writer.write(rng.integers(0, 256, (484, 640), dtype=np.uint8))
+    writer.release()
+    bad = work / "bad.avi"
+    data = good.read_bytes()
+    bad.write_bytes(data[: len(data) // 3])
+    t0 = time.perf_counter()
+    try:
+        import_frames(bad, work / "bad-video.h5", px_per_mm=62.0)
+        refused = ""
+    except FrameFileError as exc:
+        refused = str(exc)
+    took = time.perf_counter() - t0
+    done = _cli("import", str(bad), "-o", str(work / "bad-video-cli.h5"), "--px-per-mm", "62")
+    left = (work / "bad-video.h5").exists() or (work / "bad-video-cli.h5").exists()
+    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+    return _Row("bad video file", "an AVI cut at a third (an interrupted copy)", took,
+                f"refused ({refused.split(': ', 1)[-1]}); no session left", "-", f"{done.returncode} (import)",
+                bool(refused) and done.returncode == 2 and not left and "Traceback" not in done.stderr
+                and last.startswith("skinstretch import: error:"))
+
+
 def _bad_protocol(work: Path) -> _Row:
     bad = work / "typo.yaml"
     bad.write_text("name: typo\nsubject: {id: s01}\ntrials:\n  - {name: a, duration_s: 1.0, duraton_s: 2}\n")
@@ -456,6 +489,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
                  ("force ceiling", lambda: _force_ceiling(work)),
                  ("corrupt file", lambda: _bad_file(work, "corrupt")),
                  ("truncated file", lambda: _bad_file(work, "truncated")),
+                 ("bad video", lambda: _bad_video(work)),
                  ("bad protocol", lambda: _bad_protocol(work))]
     rows, notes = [], []
     for name, scenario in scenarios:
@@ -466,7 +500,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     notes.append("detected after: fault -> the program acted (trial or movie stopped, file refused); SIGKILL: -> "
                  "the last process of record's session gone. Display link timeout 0.2 s, camera read timeout 1 s.")
     notes.append("exit status: what the command a user runs returns for that fault (1: record with a failed trial, "
-                 "3: play stopped, 2: refused before starting, -9: killed). 'bad video file': once import exists.")
+                 "3: play stopped, 2: refused before starting, -9: killed).")
     notes.append("Measured on this machine under the load of the moment (other developers' jobs); the simulated rig.")
     return [BenchTable(title="Fault matrix: detection, what is kept, display state, exit status",
                        columns=COLUMNS, rows=rows, notes=notes)]
