@@ -10,6 +10,11 @@ Writing
   file in SWMR mode, flushing at least every ``flush_interval_s``.
 * :func:`write_session` writes a whole in-memory session at once (the scene simulator uses it).
 
+A full disk (:mod:`skinstretch.drivers.disk_space`): :func:`expected_session_bytes` says what a recording needs
+before it starts; a :class:`SessionWriter` keeps a few MB in reserve and checks the free space before every
+write, stops with :class:`~skinstretch.drivers.errors.DiskFullError` before HDF5 could meet ENOSPC (which it does
+not survive), and then closes the file marked failed, every frame written so far readable.
+
 Reading
 -------
 :func:`open_session` returns a :class:`Session`; anything that is not a readable skinstretch session raises
@@ -33,15 +38,17 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import h5py
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, free_bytes, is_disk_full,
+                                            megabytes)
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.errors import DiskFullError, SessionFileError
 from skinstretch.processing.errors import InvalidInputError, Remedy
 
 FORMAT_NAME = "skinstretch-session"
@@ -351,6 +358,28 @@ def _create_layout(
         describe_dataset(data, spec.info())
 
 
+#: HDF5 metadata of a session (groups, attributes, dataset headers, chunk indices) stays below this.
+_LAYOUT_BYTES = 256 << 10
+
+
+def expected_session_bytes(
+    camera_mode: CameraMode,
+    n_frames: int,
+    *,
+    streams: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
+    samples: Mapping[str, int] | None = None,
+    reserve_bytes: int = DEFAULT_RESERVE_BYTES,
+) -> int:
+    """Bytes a recording of ``n_frames`` frames (and ``samples[name]`` rows of each stream) takes on disk, with
+    its layout and the reserve a :class:`SessionWriter` holds while writing; frames are stored uncompressed."""
+    per_frame = camera_mode.width * camera_mode.height + 3 * 8  # image, two time stamps, frame id
+    total = int(n_frames) * per_frame + _LAYOUT_BYTES + int(reserve_bytes)
+    for name, (tail, dtype) in (streams or {}).items():
+        row = int(np.prod(tuple(int(t) for t in tail) or (1,))) * np.dtype(dtype).itemsize + 8  # sample + time
+        total += int((samples or {}).get(name, 0)) * row
+    return total
+
+
 class SessionWriter:
     """Stream frames and samples into a new session file in HDF5 SWMR mode.
 
@@ -371,6 +400,12 @@ class SessionWriter:
     streams : mapping name -> StreamSpec or (sample shape, dtype), optional
         Extra time-stamped sample streams, e.g. ``{"force": ((6,), "f8")}``; a stream of :data:`KNOWN_STREAMS`
         declared by name and shape gets its units and column names, any other should be a :class:`StreamSpec`.
+    reserve_bytes : int, optional
+        Disk space held next to the file (``.NAME.reserve``) until it is closed, so it can always be closed.
+    min_free_bytes : int, optional
+        A write that would leave less free space than this is refused with DiskFullError (nothing written).
+    free_bytes : callable, optional
+        ``free_bytes(directory) -> int``; tests inject a disk that fills up.
     """
 
     def __init__(
@@ -383,13 +418,26 @@ class SessionWriter:
         streams: Mapping[str, StreamSpec | tuple[tuple[int, ...], Any]] | None = None,
         flush_interval_s: float = 0.05,
         compression: str | None = None,
+        reserve_bytes: int = DEFAULT_RESERVE_BYTES,
+        min_free_bytes: int = 1 << 20,
+        free_bytes: Callable[[Path], int] = free_bytes,
     ) -> None:
         self.path = Path(path)
         if self.path.exists():
             raise InvalidInputError(f"session file {self.path} already exists; recordings are never overwritten")
         self._height, self._width = camera_mode.height, camera_mode.width
         self._flush_interval = float(flush_interval_s)
-        self._file = h5py.File(self.path, "w", libver="latest")
+        self._free_bytes = free_bytes
+        self._min_free = int(min_free_bytes)
+        self._unflushed = 0  # bytes appended since the last flush (HDF5 keeps them in memory until then)
+        self._closed = True  # until the file exists
+        self._check_room(_LAYOUT_BYTES)
+        self._reserve = SpaceReserve(self.path, reserve_bytes)  # DiskFullError before the file is created
+        try:
+            self._file = h5py.File(self.path, "w", libver="latest")
+        except BaseException:
+            self._reserve.release()
+            raise
         try:
             _create_layout(
                 self._file,
@@ -405,6 +453,7 @@ class SessionWriter:
             self._file.swmr_mode = True
         except BaseException:
             self._file.close()
+            self._reserve.release()
             raise
         self._frames = self._file["frames"]
         self._ts = self._file["timestamps"]
@@ -414,6 +463,39 @@ class SessionWriter:
         self._stream_n: dict[str, int] = {name: 0 for name in (streams or {})}
         self._last_flush = time.monotonic()
         self._closed = False
+
+    def _check_room(self, nbytes: int) -> None:
+        """DiskFullError, before anything is written, when ``nbytes`` (plus what HDF5 still holds in memory: it
+        writes raw data at flushes) would leave less than the minimum free."""
+        free = self._free_bytes(self.path.parent)
+        if free < nbytes + self._unflushed + self._min_free:
+            raise DiskFullError(f"{self.path}: disk full: {megabytes(free)} free for {megabytes(nbytes + self._unflushed)}"
+                                f" to write and {megabytes(self._min_free)} to keep free; recording stopped, "
+                                "everything written before is kept")
+
+    @contextmanager
+    def _writing(self, nbytes: int | None):
+        """Around every write of ``nbytes`` (None: a flush): refuse it when the disk has no room for it and for what
+        is not flushed yet, and turn an ENOSPC that HDF5 meets
+        anyway (another process filled the disk since the check) into DiskFullError, after releasing the reserve
+        and flushing again so that the file can still be closed (see :mod:`skinstretch.drivers.disk_space`)."""
+        if self._closed:
+            raise SessionFileError(f"{self.path}: the session writer is closed")
+        if nbytes is not None:  # a flush (None) is never refused: the appends before it kept the room for it
+            self._check_room(nbytes)
+            self._unflushed += nbytes
+        try:
+            yield
+        except (OSError, RuntimeError) as exc:
+            if not is_disk_full(exc):
+                raise
+            self._reserve.release()
+            try:
+                self._file.flush()
+            except (OSError, RuntimeError):
+                pass  # close() tries again
+            raise DiskFullError(f"{self.path}: disk full while writing (ENOSPC); recording stopped, everything "
+                                "flushed before is kept") from None
 
     @property
     def n_frames(self) -> int:
@@ -428,14 +510,15 @@ class SessionWriter:
                 f"frame must be uint8 of shape {(self._height, self._width)}, got {frame.dtype} {frame.shape}"
             )
         n = self._n
-        # Time stamps first, frame last: a reader trusts only rows present in all three (see n_frames).
-        for ds, value in ((self._ts, timestamp), (self._dts, device_timestamp), (self._ids, frame_id)):
-            ds.resize((n + 1,))
-            ds[n] = value
-        self._frames.resize((n + 1, self._height, self._width))
-        self._frames[n] = frame
-        self._n = n + 1
-        self._maybe_flush()
+        with self._writing(frame.nbytes + 24):
+            # Time stamps first, frame last: a reader trusts only rows present in all three (see n_frames).
+            for ds, value in ((self._ts, timestamp), (self._dts, device_timestamp), (self._ids, frame_id)):
+                ds.resize((n + 1,))
+                ds[n] = value
+            self._frames.resize((n + 1, self._height, self._width))
+            self._frames[n] = frame
+            self._n = n + 1
+            self._maybe_flush()
 
     def append_frames(
         self, frames: np.ndarray, *, timestamps: np.ndarray, frame_ids: np.ndarray, device_timestamps: np.ndarray
@@ -451,14 +534,15 @@ class SessionWriter:
         if any(c.shape[0] != k for c in cols):
             raise InvalidInputError(f"timestamps, device_timestamps and frame_ids must each hold {k} values")
         n = self._n
-        # Time stamps first, frames last, as in append_frame.
-        for ds, values in zip((self._ts, self._dts, self._ids), cols):
-            ds.resize((n + k,))
-            ds[n : n + k] = values
-        self._frames.resize((n + k, self._height, self._width))
-        self._frames[n : n + k] = frames
-        self._n = n + k
-        self._maybe_flush()
+        with self._writing(frames.nbytes + 24 * k):
+            # Time stamps first, frames last, as in append_frame.
+            for ds, values in zip((self._ts, self._dts, self._ids), cols):
+                ds.resize((n + k,))
+                ds[n : n + k] = values
+            self._frames.resize((n + k, self._height, self._width))
+            self._frames[n : n + k] = frames
+            self._n = n + k
+            self._maybe_flush()
 
     def append_samples(self, stream: str, t: np.ndarray | float, data: np.ndarray) -> None:
         """Append samples (``t`` of shape (k,), ``data`` of shape (k, *sample_shape)) to a declared stream."""
@@ -474,12 +558,13 @@ class SessionWriter:
                 f"stream {stream!r}: got t {t.shape} and data {data.shape}, expected (k,) and (k, *{g['data'].shape[1:]})"
             )
         n, k = self._stream_n[stream], t.shape[0]
-        g["data"].resize((n + k, *g["data"].shape[1:]))
-        g["data"][n : n + k] = data
-        g["t"].resize((n + k,))
-        g["t"][n : n + k] = t
-        self._stream_n[stream] = n + k
-        self._maybe_flush()
+        with self._writing(data.nbytes + t.nbytes):
+            g["data"].resize((n + k, *g["data"].shape[1:]))
+            g["data"][n : n + k] = data
+            g["t"].resize((n + k,))
+            g["t"][n : n + k] = t
+            self._stream_n[stream] = n + k
+            self._maybe_flush()
 
     def _maybe_flush(self) -> None:
         now = time.monotonic()
@@ -489,19 +574,41 @@ class SessionWriter:
 
     def flush(self) -> None:
         """Write everything buffered to the file (readers in SWMR mode then see it)."""
-        self._file.flush()
+        with self._writing(None):
+            self._file.flush()
+            self._unflushed = 0
 
     def close(self, *, status: int = STATUS_COMPLETE, reason: str = "") -> None:
-        """Mark the session complete (or failed, with a reason) and close the file. Idempotent."""
+        """Mark the session complete (or failed, with a reason) and close the file. Idempotent.
+
+        The disk reserve is released first, so the last writes have room even on a full disk. If HDF5 still
+        cannot write (another process took that room too) the flush is retried for up to ``CLOSE_RETRY_S`` while
+        space may come back; after that the file stays open in HDF5 and DiskFullError says so (see
+        :func:`unclosed_sessions`).
+        """
         if self._closed:
             return
         self._closed = True
-        try:
-            self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
-            self._file["status"][()] = np.int8(status)
-            self._file.flush()
-        finally:
-            self._file.close()
+        self._reserve.release()
+        deadline = time.monotonic() + CLOSE_RETRY_S
+        while True:
+            try:
+                self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
+                self._file["status"][()] = np.int8(status)
+                self._file.flush()
+                break
+            except (OSError, RuntimeError) as exc:
+                if not is_disk_full(exc):
+                    self._file.close()
+                    raise
+                if time.monotonic() >= deadline:
+                    # Closing now would fail and leave HDF5 unable to shut down: keep the handle, say so.
+                    _UNCLOSED.append(self.path)
+                    raise DiskFullError(f"{self.path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be "
+                                        "closed (writes since its last flush are lost, frames flushed before are "
+                                        "kept)") from None
+                time.sleep(0.05)
+        self._file.close()
 
     def fail(self, reason: str) -> None:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
@@ -515,6 +622,20 @@ class SessionWriter:
             self.close()
         else:
             self.fail(f"{exc_type.__name__}: {exc}")
+
+
+#: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
+CLOSE_RETRY_S = 1.0
+_UNCLOSED: list[Path] = []
+
+
+def unclosed_sessions() -> list[Path]:
+    """Session files this process could not close because the disk stayed full (normally none).
+
+    HDF5 keeps such a file open, and crashes while shutting down the library at interpreter exit; a program that
+    sees any should end with ``os._exit`` once its output is flushed (the command line does).
+    """
+    return list(_UNCLOSED)
 
 
 def write_session(
@@ -548,6 +669,9 @@ def write_session(
         raise InvalidInputError(f"frame_ids must have shape ({n},), got {frame_ids.shape}")
     if truth is not None:
         truth.validate(n)
+    # HDF5 does not survive a full disk (see disk_space): refuse what cannot fit before writing a byte
+    truth_bytes = sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS) if truth is not None else 0
+    check_fits(path.parent, frames.nbytes + 24 * n + truth_bytes + _LAYOUT_BYTES, what=f"session {path.name}")
     with replacing_file(path, overwrite=overwrite) as tmp:
         with h5py.File(tmp, "w", libver="latest") as f:
             _create_layout(

@@ -213,8 +213,10 @@ def analyze(
                 if not recent and done[0] == 0:
                     writer.start_flow(f.grid_x, f.grid_y)
                 writer.append_flow(f.displacement, f.valid)
-                if f.status != "ok":
+                if f.status != "ok" and not any(f.frame_flags):
                     flags[f.frame_a] = f.status
+                for k, refused in zip((f.frame_a, f.frame_b), f.frame_flags):  # the texture gate names each frame's
+                    flags[k] = refused or flags[k]                              # reason
                 recent.append(f)
                 block.append(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
                 for span in spans:

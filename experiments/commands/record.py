@@ -1,11 +1,20 @@
-"""``skinstretch record PROTOCOL.yaml [--rig RIG.yaml] -o DATADIR [--resume]``: run an experiment protocol."""
+"""``skinstretch record PROTOCOL.yaml [--rig RIG.yaml] -o DATADIR [--resume]``: run an experiment protocol.
+
+Exit status 0 only when every trial was recorded and every analysis done; otherwise 1, and the last line says how
+many of how many trials and analyses failed, and why the run stopped early if it did (a full disk). Problems found
+before anything is recorded (bad protocol, unwritable output, a protocol that cannot fit on the disk) are one
+line and status 2.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from skinstretch.experiments.protocol import bundled_protocol, load_protocol, load_rig
+
+log = logging.getLogger("skinstretch")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,8 +37,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
     from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
 
+    guard_process_tree()  # whatever ends this process, nothing it started outlives it
     path = Path(args.protocol)
     if not path.exists() and "/" not in args.protocol and not args.protocol.endswith(".yaml"):
         path = bundled_protocol(args.protocol)
@@ -51,5 +62,15 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"session: {result.directory}")
     for t in result.trials:
-        print(f"  {t.trial}: {t.status}" + (f" ({t.reason})" if t.reason else ""))
-    return 0 if result.ok else 1
+        reason = t.reason if t.status != "not run" else ""  # the run's stop reason is on the last line
+        analysis = f"; analysis FAILED: {t.analysis_error}" if t.analysis_error else ""
+        print(f"  {t.trial}: {t.status}" + (f" ({reason})" if reason else "") + analysis)
+    if result.playback_error:
+        print(f"  playback: {result.playback_error}")
+    line = result.summary_line()
+    if result.ok:
+        print(f"record: {line}", flush=True)
+        return 0
+    print(end="", flush=True)
+    log.error("skinstretch record: %s", line)
+    return 1
