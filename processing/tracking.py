@@ -23,6 +23,7 @@ from functools import cached_property
 import numba
 import numpy as np
 from pydantic import Field
+from scipy.spatial import cKDTree
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
@@ -54,6 +55,12 @@ class TrackingParams:
         With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
         refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
         the ~0.5 mm between neighbours moves them apart by far less).
+    merge_radius_mm : float
+        With sub-pixel refinement: a feature this close to where the registration measured a tracked point to be
+        is that point's landmark: it confirms the point's match, or continues it when the point's own feature was
+        missed; another feature this close starts no track of its own (one skin point detected twice). 0.1 mm =
+        6 px at 62 px/mm, a quarter of a ridge period: the jitter of a detection is smaller, and distinct landmarks
+        are rarely closer.
     """
 
     search_radius_mm: float = Field(0.3, gt=0)
@@ -62,6 +69,7 @@ class TrackingParams:
     smoothing_sigma_frames: float = Field(1.0, gt=0)
     max_gap_frames: int = Field(0, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
+    merge_radius_mm: float = Field(0.1, gt=0)
 
 
 #: Seed 5.1.2: trajectories shorter than 30 frames are rejected.
@@ -446,6 +454,7 @@ class FeatureTracker:
         self.motion_estimator = motion_estimator
         self._radius = calibration.px(self.params.search_radius_mm)
         self._max_deviation = calibration.px(self.params.max_local_deviation_mm)
+        self._merge_radius = calibration.px(self.params.merge_radius_mm)
         self._n_frames = 0
         self._n_tracks = 0
         self._n_features = 0
@@ -453,7 +462,11 @@ class FeatureTracker:
         self._prev_frame: FrameImages | None = None
         self._prev_tracks = np.zeros(0, np.int64)
         self._prev_disp = np.zeros((0, 2))
-        # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
+        self._prev_age = np.zeros(0, np.int64)  # frames since each point of the previous frame was last detected
+        self._prev_feature_row = np.zeros(0, np.int64)  # row of each point in its frame's features (-1: bridged)
+        # per frame: (track ids, extracted xy (NaN for a point bridged by registration), offset of the frame's
+        # features in the sequence's, disp from previous frame (NaN = not linked), refined); the frame's features
+        # come first, in their table's order, then its bridged points
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
         self._lost = _LostTracks()
@@ -478,7 +491,8 @@ class FeatureTracker:
     def add_frame(
         self, features: np.ndarray, *, image: np.ndarray | None = None, prepared: "FrameImages | None" = None
     ) -> Matches:
-        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first).
+        """Match ``features`` (this frame) to the previous frame's; returns the matches between the two frames'
+        features (rows of the two tables; empty for the first frame).
 
         ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
         of the same image) is given instead.
@@ -497,6 +511,8 @@ class FeatureTracker:
         refined = np.zeros(n, bool)
         tracks = np.full(n, -1, np.int64)
         matches = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        bridged = np.zeros(0, np.int64)  # points of the previous frame continued into this one by registration
+        bridged_disp = np.zeros((0, 2))
         if self._prev is not None:
             prev = self._prev
             known = np.all(np.isfinite(self._prev_disp), axis=1)
@@ -510,27 +526,33 @@ class FeatureTracker:
             if self.motion_estimator is not None and len(matches) >= 3:
                 # Second pass: predict from matched neighbours (local structure, sticking and slipping regions).
                 d1 = cols.xy[matches.curr_index] - prev.xy[matches.prev_index]
-                pred2 = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
-                matches = _match(prev, cols, pred2, self._radius)
+                pred = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
+                matches = _match(prev, cols, pred, self._radius)
             pi, ci = matches.prev_index, matches.curr_index
             d = cols.xy[ci] - prev.xy[pi]
-            if self.refiner is not None and self._prev_frame is not None and pi.size:
-                r = self.refiner.refine(self._prev_frame.refine, prepared.refine, prev.xy[pi], d)
-                d = r.displacement
-                ok = r.refined.copy()
-                if ok.sum() >= 7:
-                    # Local consistency: skin moves smoothly, so a refined displacement far from the median of
-                    # its nearest refined neighbours is a registration failure (contact edge, lost texture).
-                    med = local_predictions(prev.xy[pi], prev.xy[pi][ok], d[ok], neighbours=7)
-                    ok &= np.hypot(*(d - med).T) <= self._max_deviation
-                refined[ci] = ok
+            matched_prev = np.zeros(prev.xy.shape[0], bool)
+            matched_prev[pi] = True
+            if self.refiner is not None and self._prev_frame is not None:
+                # Points left unmatched, seen at most max_gap_frames ago, are looked for by registration alone.
+                candidates = np.flatnonzero(~matched_prev & (self._prev_age < self.params.max_gap_frames))
+                if pi.size or candidates.size:
+                    rf = self._refine(prev, pi, ci, cols, d, candidates, pred[candidates], prepared)
+                    bridged, bridged_disp = rf.bridged, rf.bridged_disp
+                    keep = ~rf.detached  # a detached match: the registration followed the point away from its feature
+                    matches = Matches(pi[keep], ci[keep], matches.confidence[keep])
+                    pi, ci = matches.prev_index, matches.curr_index
+                    d = rf.disp[keep]
+                    refined[ci] = rf.ok[keep]
             disp[ci] = d
             tracks[ci] = self._prev_tracks[pi]
             self.global_shifts.append(shift)
             self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
-            # Features of frame k-1 left unmatched may be re-linked within max_gap_frames (beyond the seed).
-            matched_prev = np.zeros(prev.xy.shape[0], bool)
-            matched_prev[pi] = True
+            if bridged.size and n:
+                bridged, bridged_disp = self._merge_bridged(prev, bridged, bridged_disp, cols, tracks, disp, refined,
+                                                            matched_prev)
+            # Points of frame k-1 neither matched nor bridged may be re-linked within max_gap_frames of their last
+            # detection (beyond the seed), with a new run: their motion across the gap is not measured.
+            matched_prev[bridged] = True
             unmatched_prev = np.flatnonzero(~matched_prev)
             step = np.median(d, axis=0) if pi.size else shift
             self._lost.advance(step)
@@ -544,20 +566,182 @@ class FeatureTracker:
                     prev,
                     unmatched_prev,
                     self._prev_tracks[unmatched_prev],
+                    self._prev_age[unmatched_prev],
                 )
             self._lost.expire(self.params.max_gap_frames)
-        new = tracks < 0
+            rows = self._prev_feature_row[matches.prev_index]
+            matches = Matches(rows, matches.curr_index, matches.confidence)
+        bridged_xy = self._prev.xy[bridged] + bridged_disp if bridged.size else np.zeros((0, 2))
+        untrack = np.zeros(n, bool)
+        if bridged.size + n >= 2:
+            untrack, drop = self._crowded(cols.xy, tracks, bridged_xy, self._prev_tracks[bridged])
+            if drop.any():
+                bridged, bridged_disp, bridged_xy = bridged[~drop], bridged_disp[~drop], bridged_xy[~drop]
+            tracks[untrack] = -1
+            disp[untrack] = np.nan
+            refined[untrack] = False
+        new = (tracks < 0) & ~untrack & ~self._duplicates(cols.xy, tracks, bridged_xy)
         tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
         self._n_tracks += int(new.sum())
         self._track_kind.append(cols.kind[new])
-        self._frames.append((tracks, cols.xy, self._n_features, disp, refined))
+        # The record of this frame: its features (a duplicate of a tracked point has track -1), then the points
+        # bridged into it (a measured position, no feature: the extracted position is NaN there).
+        tracked = np.flatnonzero(tracks >= 0)
+        nb = bridged.size
+        raw = cols.xy
+        rec_tracks, rec_disp, rec_refined = tracks, disp, refined
+        if nb:
+            raw = np.concatenate([cols.xy, np.full((nb, 2), np.nan)])
+            rec_tracks = np.concatenate([tracks, self._prev_tracks[bridged]])
+            rec_disp = np.concatenate([disp, bridged_disp])
+            rec_refined = np.concatenate([refined, np.ones(nb, bool)])
+        self._frames.append((rec_tracks, raw, self._n_features, rec_disp, rec_refined))
+        # The points the next frame is matched to: the tracked features, then the bridged points.
+        p = self._prev
+        self._prev = _Cols(
+            np.concatenate([cols.xy[tracked], bridged_xy]),
+            np.concatenate([cols.kind[tracked], p.kind[bridged] if nb else np.zeros(0, np.int8)]),
+            np.concatenate([cols.orientation[tracked], p.orientation[bridged] if nb else np.zeros(0)]),
+            np.concatenate([cols.known[tracked], p.known[bridged] if nb else np.zeros(0, bool)]),
+        )
+        self._prev_feature_row = np.concatenate([tracked, np.full(nb, -1, np.int64)])
+        self._prev_tracks = np.concatenate([tracks[tracked], rec_tracks[n:]])
+        self._prev_disp = np.concatenate([disp[tracked], bridged_disp])
+        self._prev_age = np.concatenate([np.zeros(tracked.size, np.int64),
+                                         self._prev_age[bridged] + 1 if nb else np.zeros(0, np.int64)])
+        self._prev_frame = prepared if needs_image else None
         self._n_features += n
         self._n_frames += 1
-        self._prev = cols
-        self._prev_tracks = tracks
-        self._prev_disp = disp
-        self._prev_frame = prepared if needs_image else None
         return matches
+
+    def _duplicates(self, xy: np.ndarray, tracks: np.ndarray, bridged_xy: np.ndarray) -> np.ndarray:
+        """Features that would start a track within ``merge_radius_mm`` of a tracked point of this frame (another
+        feature's or a bridged one) or of an earlier such feature: one skin point detected twice (two kinds at one
+        place), which must not start a second track (an edge a fraction of a pixel long). Only with a refiner:
+        without one the seed's matching is left as it is."""
+        start = tracks < 0
+        if self.refiner is None or not start.any() or xy.shape[0] + bridged_xy.shape[0] < 2:
+            return np.zeros(xy.shape[0], bool)
+        everything = np.concatenate([xy, bridged_xy])
+        pairs = cKDTree(everything).query_pairs(self._merge_radius, output_type="ndarray")
+        starts = np.concatenate([start, np.zeros(bridged_xy.shape[0], bool)])
+        out = np.zeros(everything.shape[0], bool)
+        if pairs.size:
+            a, b = pairs[:, 0], pairs[:, 1]  # a < b
+            out[a[starts[a] & ~starts[b]]] = True  # next to a tracked point
+            out[b[starts[b] & ~starts[a]]] = True
+            both = starts[a] & starts[b]
+            for i, j in sorted(zip(a[both].tolist(), b[both].tolist())):
+                if not out[i]:  # two new features: the later one, unless the earlier is a duplicate itself
+                    out[j] = True
+        return out[: xy.shape[0]]
+
+    def _merge_bridged(self, prev: _Cols, bridged, bridged_disp, cols: _Cols, tracks, disp, refined, done):
+        """A point bridged to within ``merge_radius_mm`` of a feature that started no track of its own is that
+        feature (whatever its kind: a valley ending and a bifurcation trade places as a ridge gap opens or closes):
+        the feature continues the bridged track, with the displacement the registration measured. A bridged point
+        within half that distance of a feature that continues another track is dropped (two tracks on one skin
+        point would make an edge a fraction of a pixel long). Fills ``tracks``, ``disp``, ``refined`` and ``done``
+        (previous points finished with) in place; returns the bridged points left."""
+        q = prev.xy[bridged] + bridged_disp
+        dist, j = cKDTree(cols.xy).query(q, distance_upper_bound=self._merge_radius)
+        hit = np.flatnonzero(np.isfinite(dist))
+        merged = np.zeros(bridged.size, bool)
+        for b in hit[np.argsort(dist[hit], kind="stable")]:  # the nearest first
+            f = j[b]
+            if tracks[f] < 0:
+                tracks[f] = self._prev_tracks[bridged[b]]
+                disp[f] = bridged_disp[b]
+                refined[f] = True
+                merged[b] = True
+        done[bridged[merged]] = True  # neither bridged further nor waiting to be re-linked
+        return bridged[~merged], bridged_disp[~merged]
+
+    def _crowded(self, xy: np.ndarray, tracks: np.ndarray, bridged_xy: np.ndarray, bridged_tracks: np.ndarray):
+        """Tracked points of this frame closer than half ``merge_radius_mm`` to another are one skin point followed
+        twice (a skin point detected as two kinds, each matched to a track of its kind; a bridged point drifting onto
+        a feature): one of each pair is dropped, a bridged point before a feature, then the younger track. Returns
+        (features to untrack, bridged points to drop), boolean masks."""
+        on = np.flatnonzero(tracks >= 0)
+        drop_f = np.zeros(xy.shape[0], bool)
+        drop_b = np.zeros(bridged_xy.shape[0], bool)
+        pts = np.concatenate([xy[on], bridged_xy])
+        if self.refiner is None or pts.shape[0] < 2:
+            return drop_f, drop_b
+        pairs = cKDTree(pts).query_pairs(self._merge_radius / 2, output_type="ndarray")
+        if not pairs.size:
+            return drop_f, drop_b
+        m = on.size
+        ids = np.concatenate([tracks[on], bridged_tracks])
+        rank = np.stack([np.arange(pts.shape[0]) >= m, ids], axis=1)  # (bridged, track id): larger is dropped
+        dist = np.hypot(*(pts[pairs[:, 0]] - pts[pairs[:, 1]]).T)
+        gone = np.zeros(pts.shape[0], bool)
+        for a, b in pairs[np.argsort(dist, kind="stable")]:
+            if gone[a] or gone[b]:
+                continue
+            gone[b if tuple(rank[b]) > tuple(rank[a]) else a] = True
+        drop_f[on[gone[:m]]] = True
+        drop_b[gone[m:]] = True
+        return drop_f, drop_b
+
+    def _refine(self, prev: _Cols, pi, ci, cols: _Cols, d, candidates, candidate_pred, prepared) -> "_Refinement":
+        """Refine the displacements ``d`` of the matched points ``pi`` of ``prev`` (to features ``ci`` of ``cols``)
+        and look for the unmatched ``candidates`` by registration alone.
+
+        Matched displacements are registered from the matched features first (the seed of a sub-pixel step). Those
+        that fail, and the candidates, are then registered from the motion of their refined neighbours (the median
+        of the 6 nearest), which does not depend on where a jittery or wrong detection put the feature: a match
+        whose registration ends further than ``merge_radius_mm`` from its feature is detached from it (the skin
+        point is followed, the feature is free), one that ends near it is refined. A point found by registration
+        alone has no feature to confirm it, so it must pass the local consistency test against at least 3 refined
+        neighbours (a match carries the test when there are 7)."""
+        m = pi.size
+        a, b = self._prev_frame.refine, prepared.refine
+        if m:
+            r1 = self.refiner.refine(a, b, prev.xy[pi], d)
+            dd, ok = r1.displacement.copy(), r1.refined.copy()
+        else:
+            dd, ok = np.zeros((0, 2)), np.zeros(0, bool)
+        good = int(ok.sum())
+        retry = np.flatnonzero(~ok) if good >= 3 else np.zeros(0, np.int64)
+        rows = np.concatenate([pi[retry], candidates])
+        init = np.concatenate([d[retry], candidate_pred])
+        if rows.size and good >= 3:
+            init = local_predictions(prev.xy[rows], prev.xy[pi][ok], dd[ok], fallback=np.median(dd[ok], axis=0))
+        elif candidates.size and m >= 3:
+            init = local_predictions(prev.xy[rows], prev.xy[pi], d, fallback=np.median(d, axis=0))
+        detached = np.zeros(m, bool)
+        found = np.zeros(candidates.size, bool)
+        cand_disp = np.zeros((candidates.size, 2))
+        if rows.size:
+            r2 = self.refiner.refine(a, b, prev.xy[rows], init)
+            nr = retry.size
+            again, again_d = r2.refined[:nr], r2.displacement[:nr]
+            near = np.hypot(*(prev.xy[pi[retry]] + again_d - cols.xy[ci[retry]]).T) <= self._merge_radius
+            dd[retry[again]] = again_d[again]
+            ok[retry[again & near]] = True
+            detached[retry[again & ~near]] = True
+            found, cand_disp = r2.refined[nr:].copy(), r2.displacement[nr:]
+        # Local consistency: skin moves smoothly, so a refined displacement far from the median of its nearest
+        # refined neighbours is a registration failure (contact edge, lost texture, a neighbouring ridge).
+        points = np.concatenate([prev.xy[pi], prev.xy[candidates]])
+        disp = np.concatenate([dd, cand_disp])
+        valid = np.concatenate([ok | detached, found])
+        n_ok = int(valid.sum())
+        if n_ok >= 3:
+            med = local_predictions(points, points[valid], disp[valid], neighbours=7)
+            close = np.hypot(*(disp - med).T) <= self._max_deviation
+            if n_ok >= 7:
+                ok &= close[:m]
+            detached &= close[:m]
+            found &= close[m:]
+        else:
+            detached[:] = False
+            found[:] = False
+        ok &= ~detached
+        bridged = np.concatenate([candidates[found], pi[detached]])
+        bridged_disp = np.concatenate([cand_disp[found], dd[detached]])
+        return _Refinement(dd, ok, detached, bridged, bridged_disp)
 
     def continue_with(self, other: "FeatureTracker", *, overlap: int) -> bool:
         """Append the frames that ``other`` tracked after an overlap with this tracker, if they are exactly the
@@ -571,7 +755,7 @@ class FeatureTracker:
         tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
         ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
-        result of one sequential pass (:mod:`skinstretch.experiments.analysis_pool`).
+        result of one sequential pass (:mod:`skinstretch.experiments.analysis.measure`).
         """
         window = int(self.params.max_gap_frames) + 2
         if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:
@@ -586,15 +770,16 @@ class FeatureTracker:
         for i in range(overlap - window + 1, overlap + 1):
             ta, xa, _, da, ra = self._frames[offset + i]
             tb, xb, _, db, rb = other._frames[i]
-            if not (np.array_equal(xa, xb) and np.array_equal(da, db, equal_nan=True) and np.array_equal(ra, rb)):
+            if not (np.array_equal(xa, xb, equal_nan=True) and np.array_equal(da, db, equal_nan=True)
+                    and np.array_equal(ra, rb) and np.array_equal(ta < 0, tb < 0)):
                 return False
             # The shift of the first compared pair only steered its matching (compared above); later ones also
             # move the features waiting to be re-linked when a pair has no match.
             first = i == overlap - window + 1
             if not first and not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
                 return False
-            mine.append(ta)
-            theirs.append(tb)
+            mine.append(ta[ta >= 0])
+            theirs.append(tb[tb >= 0])
         pairs = np.unique(np.stack([np.concatenate(theirs), np.concatenate(mine)], axis=1), axis=0)
         if np.unique(pairs[:, 0]).size != pairs.shape[0] or np.unique(pairs[:, 1]).size != pairs.shape[0]:
             return False  # the two trackers split or joined the same features into different tracks
@@ -603,12 +788,12 @@ class FeatureTracker:
         lut[pairs[:, 0]] = pairs[:, 1]
         lut[n_before:] = self._n_tracks + np.arange(other._n_tracks - n_before)
         later = [other._frames[i][0] for i in range(overlap + 1, other._n_frames)]
-        if any(np.any(lut[t] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
+        if any(np.any(lut[t[t >= 0]] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
             return False  # a track from before the compared frames reappears: cannot be numbered here
         for i in range(overlap + 1, other._n_frames):
             t, xy, _, d, r = other._frames[i]
-            self._frames.append((lut[t], xy, self._n_features, d, r))
-            self._n_features += xy.shape[0]
+            self._frames.append((np.where(t >= 0, lut[t], -1), xy, self._n_features, d, r))
+            self._n_features += int(np.isfinite(xy[:, 0]).sum())
         self._track_kind.extend(other._track_kind[overlap + 1 :])
         self._n_tracks += other._n_tracks - n_before
         self._n_frames += other._n_frames - overlap - 1
@@ -617,6 +802,8 @@ class FeatureTracker:
         self._prev = other._prev
         self._prev_tracks = lut[other._prev_tracks]
         self._prev_disp = other._prev_disp
+        self._prev_age = other._prev_age
+        self._prev_feature_row = other._prev_feature_row
         self._prev_frame = other._prev_frame
         lost = other._lost
         self._lost = _LostTracks(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
@@ -646,13 +833,22 @@ class FeatureTracker:
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
-        all_tracks = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)
+        # A point bridged by registration belongs to its track only between two detections of its feature (a gap
+        # filled): bridged points after a track's last detection are dropped.
+        # Features with track -1 (a skin point detected twice) belong to no trajectory.
+        last_seen = np.full(t + 1, -1, np.int64)  # the extra last entry: track -1's
+        for k, rec in enumerate(self._frames):
+            last_seen[rec[0][np.isfinite(rec[1][:, 0])]] = k
+        in_track = [(rec[0] >= 0) & (np.isfinite(rec[1][:, 0]) | (last_seen[rec[0]] > k))
+                    for k, rec in enumerate(self._frames)]
+        all_tracks = np.concatenate([rec[0][m] for rec, m in zip(self._frames, in_track)]).astype(np.int64)
         keep_track = np.bincount(all_tracks, minlength=t) >= min_length
-        del all_tracks
+        del all_tracks, last_seen
         new_id = np.cumsum(keep_track) - 1
         kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
         # The table is filled frame by frame with only the kept tracks' rows (memory: the rows, once).
-        kept_rows = [np.flatnonzero(keep_track[rec[0]]) for rec in self._frames]
+        kept_rows = [np.flatnonzero(keep_track[rec[0]] & m) for rec, m in zip(self._frames, in_track)]
+        del in_track
         rows = np.zeros(sum(k.size for k in kept_rows), dtype=TRAJECTORY_DTYPE)
         dx = np.empty(rows.size)
         dy = np.empty(rows.size)
@@ -667,7 +863,7 @@ class FeatureTracker:
             r = rows[i : i + sel.size]
             r["frame"], r["track"] = k, ids
             r["raw_x"], r["raw_y"] = xy[sel, 0], xy[sel, 1]
-            r["feature_index"] = offset + sel
+            r["feature_index"] = np.where(np.isfinite(xy[sel, 0]), offset + sel, -1)
             d = disp[sel]
             linked = np.all(np.isfinite(d), axis=1)
             if self.refiner is not None:
@@ -702,6 +898,19 @@ class FrameImages:
     motion: np.ndarray | None
 
 
+@dataclass(frozen=True)
+class _Refinement:
+    """What :meth:`FeatureTracker._refine` found: per match its displacement, whether it was refined (and passed the
+    consistency test) and whether it was detached from its feature; the previous frame's points found by
+    registration alone (bridged) and their displacements."""
+
+    disp: np.ndarray
+    ok: np.ndarray
+    detached: np.ndarray
+    bridged: np.ndarray
+    bridged_disp: np.ndarray
+
+
 @dataclass
 class _LostTracks:
     """Features lost by matching, kept with a predicted position for re-linking (beyond the seed)."""
@@ -716,13 +925,14 @@ class _LostTracks:
     def __len__(self) -> int:
         return int(self.track.size)
 
-    def add(self, xy, cols: _Cols, rows, tracks) -> None:
+    def add(self, xy, cols: _Cols, rows, tracks, age) -> None:
+        """``age``: frames the points had already been missed (bridged by registration) before this one."""
         self.xy = np.concatenate([self.xy, xy])
         self.kind = np.concatenate([self.kind, cols.kind[rows]])
         self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
         self.known = np.concatenate([self.known, cols.known[rows]])
         self.track = np.concatenate([self.track, tracks])
-        self.age = np.concatenate([self.age, np.zeros(len(rows), np.int64)])
+        self.age = np.concatenate([self.age, np.asarray(age, np.int64)])
 
     def advance(self, step: np.ndarray) -> None:
         self.xy = self.xy + step
@@ -750,7 +960,8 @@ class _LostTracks:
 @numba.njit(cache=True, nogil=True)
 def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
-    the run's extracted positions (equal to the extracted positions when displacements are raw differences).
+    the run's extracted positions (equal to the extracted positions when displacements are raw differences); rows
+    without one (NaN: bridged by registration) do not anchor, and every run starts at an extracted position.
 
     Rows in frame order (any order within a frame). Each track keeps its running sum from its first row (a start
     adds nothing), and a run's offset is the sum of its residuals in frame order over its size: the same
@@ -791,9 +1002,10 @@ def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
         pos[i, 1] = ly
         run[i] = runs[t]
         group[i] = g
-        sums[g, 0] += raw_x[i] - lx
-        sums[g, 1] += raw_y[i] - ly
-        counts[g] += 1
+        if raw_x[i] == raw_x[i]:  # a bridged point (no extracted position, NaN) does not anchor its run
+            sums[g, 0] += raw_x[i] - lx
+            sums[g, 1] += raw_y[i] - ly
+            counts[g] += 1
     for i in range(m):
         g = group[i]
         pos[i, 0] += sums[g, 0] / counts[g]
