@@ -33,6 +33,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain,
 )
+from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
@@ -319,6 +320,8 @@ def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int,
         lengths = f["tracks"]["n_frames"]
         out["n_trajectories"] = int(lengths.size)
         out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
+    out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
+                                  spans=list(strain.buffers), max_edge_px=strain.max_edge_px).to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
         e = g["edges"]["change"]
