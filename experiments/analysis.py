@@ -279,9 +279,12 @@ def measure_flow(
     samples = [_rectified_sample(f.motion(), mapping, calibration) for f in fields]
     span_samples: dict[int, list[MotionSample | str]] = {}
     for s in params.spans:
-        out: list[MotionSample | str] = []
-        for k in range(n - s):
-            out.append(_rectified_sample(chain_flows(fields[k : k + s], stride=params.flow_stride), mapping, calibration))
+        # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
+        # frames (DenseFlow.compute_spans); composing alone adds up every step's smoothing bias (slip front).
+        span_fields = flow.compute_spans(frames, fields, span=int(s), threads=max(1, int(params.workers)))
+        out: list[MotionSample | str] = [
+            _rectified_sample(f.motion(stride=params.flow_stride), mapping, calibration) for f in span_fields
+        ]
         span_samples[int(s)] = out
     return MotionMeasurement(
         samples=samples,
