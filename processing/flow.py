@@ -541,13 +541,18 @@ class DenseFlow:
         explain (glass-fixed shading, contact lost) raises the residual, not the explained share, so it is left
         smoothed. Nothing changes where no node qualifies (the iterations are skipped).
 
-        ``relative`` (refining a field composed over a longer span, :meth:`compute_spans`): the share must also stand
-        out against the rest of the contact (``_ADAPT_REL_FROM``-``_ADAPT_REL_TO`` times its median). Over a span,
-        brightness changes the motion cannot explain (glass-fixed shading and lost contact the skin moves through
-        on a ridge or valley) raise the share everywhere; a localized strain such as a slip front still stands
-        out."""
+        ``relative`` (refining a field composed from consecutive steps over a longer span, :meth:`compute_spans`):
+        the share must also stand out against the rest of the contact (``_ADAPT_REL_FROM`` to ``_ADAPT_REL_TO``
+        times its median). Over a span, brightness changes the motion cannot explain (glass-fixed shading and
+        contact lost where the skin moves across a ridge or valley) raise the share over much of the contact; a
+        localized strain such as a slip front still stands out. The price: detail spread over most of the contact
+        is refined smoothly over a span (a sinusoidal deformation of 126 px period over 7 frames on speckle, 31 px
+        window: 0.22 px RMS against 0.09 px composed from the steps), while the consecutive fields keep it.
+        """
         contact = sys_.contact
         sys_.linearise(field, with_residual=True)
+        if not np.any(contact & (sys_.inb > 0)):
+            return field, np.zeros(contact.shape)
         sharp = _sor(field, prior, sys_.gxx, sys_.gxy, sys_.gyy, sys_.rx, sys_.ry, contact, _SHARP * lam,
                      2 * int(self.params.solver_sweeps), float(self.params.sor_omega))
         delta = sharp - field
@@ -556,9 +561,11 @@ class DenseFlow:
              + sys_.gyy * delta[..., 1] ** 2) * cw
         explained = gaussian_filter(q, _ADAPT_SIGMA_NODES) / np.maximum(
             gaussian_filter(sys_.residual * cw, _ADAPT_SIGMA_NODES), 1e-9) * float(self._win**2)
-        weight = np.clip((explained - _ADAPT_FROM) / (_ADAPT_TO - _ADAPT_FROM), 0.0, 1.0) * cw
+        # Not near the image border, where a window's data run into the mirrored padding (nor where a node has no
+        # data, its window out of the second image): there the smooth field holds.
+        weight = np.clip((explained - _ADAPT_FROM) / (_ADAPT_TO - _ADAPT_FROM), 0.0, 1.0) * cw * sys_.inner(field)
         if relative:
-            rel = explained / max(float(np.median(explained[contact])), 1e-12)
+            rel = explained / max(float(np.median(explained[contact & (sys_.inb > 0)])), 1e-12)
             weight *= np.clip((rel - _ADAPT_REL_FROM) / (_ADAPT_REL_TO - _ADAPT_REL_FROM), 0.0, 1.0)
         if not np.any(weight > 0):
             return field, weight
@@ -635,6 +642,15 @@ class _LinearSystem:
             r, c = self.rows[:, None], self.cols[None, :]
             self.residual = (ii[r + half + 1, c + half + 1] - ii[r - half, c + half + 1] - ii[r + half + 1, c - half]
                              + ii[r - half, c - half]) * inb
+
+    def inner(self, field: np.ndarray) -> np.ndarray:
+        """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""
+        h, w = self.shape
+        m = self.half + max(self.flow.grid_step_px, 2)
+        out = np.ones(field.shape[:2], bool)
+        for x, y in ((self.node_x, self.node_y), (self.node_x + field[..., 0], self.node_y + field[..., 1])):
+            out &= (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
+        return out
 
     def median_weight(self) -> float:
         """Median data weight (trace of G) over the contact nodes with data (1 when there are none)."""
