@@ -760,54 +760,13 @@ def _window_moments(s, d, rows, cols, half):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
 def _sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
     """Block successive over-relaxation of the coupled system at contact nodes: per node, the 2x2 data term
     ``G`` plus ``lam`` times the number of contact neighbours, right-hand side ``r + lam * (sum of the
     neighbours' deviation from the prior + n * own prior)``, solved with the neighbours' latest values and
     over-relaxed by ``omega``. Nodes out of contact keep ``u0``. (Plain Jacobi needs hundreds of sweeps to carry
     the along-ridge component across the grid; SOR reaches the same solution in a few dozen.)"""
-    gy_n, gx_n = contact.shape
-    u = u0.copy()
-    for _ in range(sweeps):
-        for i in range(gy_n):
-            for j in range(gx_n):
-                if not contact[i, j]:
-                    continue
-                sx = 0.0
-                sy = 0.0
-                n = 0
-                if i > 0 and contact[i - 1, j]:
-                    sx += u[i - 1, j, 0] - prior[i - 1, j, 0]
-                    sy += u[i - 1, j, 1] - prior[i - 1, j, 1]
-                    n += 1
-                if i < gy_n - 1 and contact[i + 1, j]:
-                    sx += u[i + 1, j, 0] - prior[i + 1, j, 0]
-                    sy += u[i + 1, j, 1] - prior[i + 1, j, 1]
-                    n += 1
-                if j > 0 and contact[i, j - 1]:
-                    sx += u[i, j - 1, 0] - prior[i, j - 1, 0]
-                    sy += u[i, j - 1, 1] - prior[i, j - 1, 1]
-                    n += 1
-                if j < gx_n - 1 and contact[i, j + 1]:
-                    sx += u[i, j + 1, 0] - prior[i, j + 1, 0]
-                    sy += u[i, j + 1, 1] - prior[i, j + 1, 1]
-                    n += 1
-                sx += n * prior[i, j, 0]
-                sy += n * prior[i, j, 1]
-                ax = gxx[i, j] + lam * n
-                ay = gyy[i, j] + lam * n
-                c = gxy[i, j]
-                px = rx[i, j] + lam * sx
-                py = ry[i, j] + lam * sy
-                det = ax * ay - c * c
-                if abs(det) < 1e-12:
-                    det = 1e-12
-                ux = (ay * px - c * py) / det
-                uy = (ax * py - c * px) / det
-                u[i, j, 0] += omega * (ux - u[i, j, 0])
-                u[i, j, 1] += omega * (uy - u[i, j, 1])
-    return u
+    return _sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, np.full(contact.shape, float(lam)), sweeps, omega)
 
 
 @numba.njit(cache=True, nogil=True)
