@@ -60,6 +60,9 @@ def test_flow_command_writes_u_v_with_nan_outside(tmp_path, image_pair, capsys):
     cv2.imwrite(str(flat), np.full((160, 200), 128, np.uint8))
     assert main(["flow", str(flat), str(flat), "-o", str(tmp_path / "x.npz")]) == 2
     assert "no displacement measured" in capsys.readouterr().err
+    # A speckle is not a print: the fingerprint gate, when asked for, refuses it.
+    assert main(["flow", str(pa), str(pb), "-o", str(tmp_path / "g.npz"), "--fingerprint-gate"]) == 2
+    assert "no_texture" in capsys.readouterr().err
 
 
 def test_window_px_overrides_window_mm_and_sets_the_grid():
@@ -98,7 +101,8 @@ def test_the_window_knob_trades_resolution_for_noise():
     cal = Calibration(px_per_mm=62.0)
     scores = []
     for w in (13, 21, 35):
-        field = DenseFlow(calibration=cal, params=FlowParams(window_px=w)).compute(pair.image_a, pair.image_b)
+        field = DenseFlow(calibration=cal, params=FlowParams(window_px=w, texture_gate=False)).compute(
+            pair.image_a, pair.image_b)
         scores.append(score_star(field.dense(pair.image_a.shape)[1], pair))
     res = [s.resolution_px for s in scores]
     noise = [s.noise_px for s in scores]

@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--px-per-mm", type=float, default=DEFAULT_PX_PER_MM,
                    help=f"image scale, for the settings given in mm (default {DEFAULT_PX_PER_MM:.2f}, the rig's full "
                         "field of 640 px over 10.3 mm)")
+    p.add_argument("--fingerprint-gate", action="store_true",
+                   help="refuse images without fingerprint texture in contact, as the analysis does (default: any "
+                        "texture, e.g. a DIC speckle, is registered)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="uniform regularization (default: weakened where the images ask for more detail)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"{args.output} exists (give --overwrite to replace it)")
     if a.shape != b.shape:
         raise InvalidInputError(f"the images differ in size: {a.shape[1]} x {a.shape[0]} and {b.shape[1]} x {b.shape[0]}")
-    options: dict = {"adaptive": not args.no_adaptive}
+    options: dict = {"adaptive": not args.no_adaptive, "texture_gate": args.fingerprint_gate}
     if args.window_mm is not None:
         options["window_mm"] = args.window_mm
     if args.window_px is not None:

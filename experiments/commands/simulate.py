@@ -4,7 +4,7 @@ ground truth) to a file, with the synthetic print or a real print image as the s
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -68,6 +68,6 @@ def run(args: argparse.Namespace) -> int:
     )
     n = args.frames or scene.n_frames
     texture = "" if scene.texture is None else f", texture {scene.texture.image}: features not known"
-    print(f"wrote {path} ({n} frames of scene {scene.name}, seed {args.seed}{texture}) in "
-          f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    logging.getLogger(__name__).info("wrote %s (%d frames of scene %s, seed %d%s) in %.1f s", path, n, scene.name,
+                                     args.seed, texture, time.perf_counter() - t0)
     return 0
