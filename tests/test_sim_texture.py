@@ -137,6 +137,11 @@ def test_a_print_smaller_than_the_field_leaves_skin_out_of_contact(tmp_path):
     tex = r.fingerprint
     assert isinstance(tex, RealPrintTexture)
     assert tex.coverage_at(np.array([[0.0, 0.0]]))[0] > 0.99 and tex.coverage_at(np.array([[5.0, 4.0]]))[0] == 0.0
+    # A scene file names its texture relative to itself.
+    (tmp_path / "scene.yaml").write_text("name: mine\nn_frames: 2\ntexture: {image: small.png, dpi: 500}\n")
+    scene = load_scene(tmp_path / "scene.yaml")
+    assert scene.texture.image == str(path.resolve())
+    assert SceneRenderer(scene, seed=0).fingerprint.image.sha256 == tex.image.sha256
 
 
 def test_simulate_with_texture_and_evaluate_says_features_are_not_scored(tmp_path, capsys):
