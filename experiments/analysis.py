@@ -282,8 +282,11 @@ def measure_flow(
     span_samples: dict[int, list[MotionSample | str]] = {}
     for s in params.spans:
         # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
-        # frames (DenseFlow.compute_spans); composing alone adds up every step's smoothing bias (slip front).
-        span_fields = flow.compute_spans(frames, fields, span=int(s), threads=max(1, int(params.workers)))
+        # frames (DenseFlow.compute_spans); composing alone adds up every step's smoothing bias (slip front). Not
+        # over a ridge or valley (frames whose glass shading was removed): the refinement follows the glass-fixed
+        # patterns left.
+        span_fields = flow.compute_spans(frames, fields, span=int(s), threads=max(1, int(params.workers)),
+                                         refine=not isinstance(frames, _ShadedFrames))
         out: list[MotionSample | str] = [
             _rectified_sample(f.motion(stride=params.flow_stride), mapping, calibration) for f in span_fields
         ]

@@ -87,5 +87,7 @@ def test_compute_spans_registers_the_span_directly():
 
     composed = compose_fields(fields)
     assert err(spans[0]) <= err(composed) and spans[0].valid.sum() > composed.valid.sum()
+    (plain,) = flow.compute_spans(frames, fields, span=7, refine=False)  # the composition, as over a ridge
+    np.testing.assert_array_equal(plain.displacement, composed.displacement)
     with pytest.raises(InvalidInputError, match="consecutive fields"):
         flow.compute_spans(frames, fields[:-1], span=2)
