@@ -33,17 +33,19 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from pydantic import Field, field_validator
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
 from skinstretch.processing.tracking import MotionSample
 
 
-@dataclass(frozen=True)
+@parameters
 class FlowParams:
     """Options of :class:`DenseFlow`, in mm and grey levels.
 
@@ -56,10 +58,11 @@ class FlowParams:
         Side of the registration window (about two ridge periods): the resolution knob. Smaller windows resolve
         shorter strain features (a slip front, a short-period star pattern) with more noise; see
         ``skinstretch bench --only star`` for the resolution/noise curve.
+        With ``smoothness`` 1.5 the default 0.8 mm beats 0.6 mm / 1.0 in edge strain on the seed's scenes (and
+        DeepFlow's, on the same pairs); wider windows do better still inside the field but err by up to 0.25 px at
+        its border under a large shift plus 2 % strain.
     window_px : int or None
-        The window side in pixels, overriding ``window_mm`` when given (rounded up to an odd number, at least 7). With ``smoothness`` 1.5 it beats 0.6 mm / 1.0
-        in edge strain on the seed's scenes (and DeepFlow's, on the same pairs); wider windows do better still
-        inside the field but err by up to 0.25 px at its border under a large shift plus 2 % strain.
+        The window side in pixels (odd, >= 7), overriding ``window_mm`` when given (None: from ``window_mm``).
     pyramid_levels : int
         Pyramid levels above full resolution for the first registration.
     min_contrast : float
@@ -92,37 +95,28 @@ class FlowParams:
         for images of other textures (a DIC speckle, ``skinstretch flow`` by default).
     """
 
-    grid_step_mm: float = 0.2
-    window_mm: float = 0.8
-    window_px: int | None = None
-    pyramid_levels: int = 2
-    min_contrast: float = 8.0
-    smoothness: float = 1.5
-    refine_iterations: int = 3
-    solver_sweeps: int = 15
-    sor_omega: float = 1.8
-    prior_refits: int = 4
-    max_residual_ratio: float = 3.0
-    clg_levels: int = 0
-    normalize_sigma_mm: float | None = 0.15
+    grid_step_mm: float = Field(0.2, gt=0)
+    window_mm: float = Field(0.8, gt=0)
+    window_px: int | None = Field(None, ge=7)
+    pyramid_levels: int = Field(2, ge=0, le=5)
+    min_contrast: float = Field(8.0, ge=0)
+    smoothness: float = Field(1.5, ge=0)
+    refine_iterations: int = Field(3, ge=1)
+    solver_sweeps: int = Field(15, ge=1)
+    sor_omega: float = Field(1.8, gt=0, lt=2)
+    prior_refits: int = Field(4, ge=1)
+    max_residual_ratio: float = Field(3.0, gt=0)
+    clg_levels: int = Field(0, ge=0, le=5)
+    normalize_sigma_mm: float | None = Field(0.15, gt=0)
     adaptive: bool = True
     texture_gate: bool = True
 
-    def __post_init__(self) -> None:
-        for name in ("grid_step_mm", "window_mm"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise InvalidInputError(f"{name} must be positive, got {v!r}")
-        if self.window_px is not None and not (isinstance(self.window_px, (int, np.integer)) and self.window_px >= 7):
-            raise InvalidInputError(f"window_px must be an integer >= 7 (or None: from window_mm), got {self.window_px!r}")
-        if not 0 <= int(self.pyramid_levels) <= 5:
-            raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
-        if int(self.prior_refits) < 1:
-            raise InvalidInputError(f"prior_refits must be >= 1, got {self.prior_refits!r}")
-        if not 0 < self.sor_omega < 2:
-            raise InvalidInputError(f"sor_omega must be in (0, 2), got {self.sor_omega!r}")
-        if not self.min_contrast >= 0:
-            raise InvalidInputError(f"min_contrast must be >= 0, got {self.min_contrast!r}")
+    @field_validator("window_px")
+    @classmethod
+    def _odd_window(cls, v: int | None) -> int | None:
+        if v is not None and v % 2 == 0:
+            raise ValueError(f"must be odd (a window centred on its node), got {v}")
+        return v
 
 
 @dataclass(frozen=True)
@@ -208,11 +202,8 @@ class FlowField:
 
 
 def window_px(params: FlowParams, calibration: Calibration) -> int:
-    """The registration window of ``params`` in pixels: ``window_px`` when given (made odd), else ``window_mm``."""
-    if params.window_px is not None:
-        n = int(params.window_px)
-        return n if n % 2 == 1 else n + 1
-    return calibration.odd_px(params.window_mm, minimum=7)
+    """The registration window of ``params`` in pixels: ``window_px`` when given, else ``window_mm`` (odd)."""
+    return int(params.window_px) if params.window_px is not None else calibration.odd_px(params.window_mm, minimum=7)
 
 
 _HELPER: list[ThreadPoolExecutor] = []
@@ -349,18 +340,9 @@ class DenseFlow:
         out: list[FlowField | None] = [None] * len(starts)
 
         def run(i0: int, i1: int) -> None:
-            prepared: dict[int, _Prepared] = {}  # frame k + span, prepared as the second frame, is the first later
-
-            def get(k: int) -> _Prepared:
-                if k not in prepared:
-                    prepared[k] = self._prepare(self._frame(frames, k))
-                return prepared[k]
-
+            refiner = SpanRefiner(self, lambda j: frames[j - first_frame])
             for i in range(i0, i1):
-                k = starts[i]
-                initial = compose_fields(fields[k : k + span])
-                out[i] = self._register(get(k), get(k + span), first_frame + k, first_frame + k + span, None, initial)
-                prepared.pop(k, None)
+                out[i] = refiner.refine(fields[starts[i] : starts[i] + span])
 
         n_threads = max(1, min(int(threads), len(starts)))
         bounds = np.linspace(0, len(starts), n_threads + 1).round().astype(int)
@@ -825,6 +807,32 @@ def _sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
                 u[i, j, 0] += omega * (ux - u[i, j, 0])
                 u[i, j, 1] += omega * (uy - u[i, j, 1])
     return u
+
+
+class SpanRefiner:
+    """Refines spans one at a time, as consecutive fields arrive (a streaming analysis, or
+    :meth:`DenseFlow.compute_spans`): the fields of frames k..k + s composed (:func:`compose_fields`), then
+    registered from frame k to frame k + s directly. ``frame(j)`` gives frame j (the fields' frame numbers); a frame
+    is prepared once, as the second frame of a span and later as the first, and dropped once behind the spans."""
+
+    def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
+        self.flow = flow
+        self._frame = frame
+        self._prepared: dict[int, _Prepared] = {}
+
+    def _get(self, j: int) -> _Prepared:
+        if j not in self._prepared:
+            self._prepared[j] = self.flow._prepare(self.flow._frame([self._frame(j)], 0))
+        return self._prepared[j]
+
+    def refine(self, fields: Sequence[FlowField]) -> FlowField:
+        """The span from ``fields[0].frame_a`` to ``fields[-1].frame_b`` (consecutive fields, in order)."""
+        if not fields:
+            raise InvalidInputError("a span needs at least one field")
+        k0, k1 = int(fields[0].frame_a), int(fields[-1].frame_b)
+        for j in [j for j in self._prepared if j < k0]:
+            del self._prepared[j]
+        return self.flow._register(self._get(k0), self._get(k1), k0, k1, None, compose_fields(fields))
 
 
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:

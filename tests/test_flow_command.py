@@ -68,10 +68,11 @@ def test_flow_command_writes_u_v_with_nan_outside(tmp_path, image_pair, capsys):
 def test_window_px_overrides_window_mm_and_sets_the_grid():
     cal = Calibration(px_per_mm=62.0)
     assert DenseFlow(calibration=cal).window_px == 51 and DenseFlow(calibration=cal).grid_step_px == 12
-    f = DenseFlow(calibration=cal, params=FlowParams(window_mm=2.0, window_px=16))
+    f = DenseFlow(calibration=cal, params=FlowParams(window_mm=2.0, window_px=17))
     assert f.window_px == 17 and f.grid_step_px == 4
-    with pytest.raises(Exception, match="window_px"):
-        FlowParams(window_px=5)
+    for bad in (5, 16):  # at least 7, and odd (centred on its node)
+        with pytest.raises(Exception, match="window_px"):
+            FlowParams(window_px=bad)
 
 
 def test_star_pair_is_the_exact_warp_and_scores_its_own_truth():

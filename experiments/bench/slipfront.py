@@ -57,7 +57,17 @@ def _variants(quick: bool) -> list[tuple[str, str | None, int]]:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames, without_glass_shading  # noqa: PLC0415
+    from skinstretch.experiments.analysis import analysis_params, make_executor  # noqa: PLC0415
+
+    executor = make_executor(analysis_params().execution)  # one executor for the whole run, as a batch would
+    try:
+        return _run(options, executor)
+    finally:
+        executor.shutdown()
+
+
+def _run(options: BenchOptions, executor) -> list[BenchTable]:
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames  # noqa: PLC0415
     from skinstretch.experiments.evaluation.tracking import (  # noqa: PLC0415
         TruthField,
         evaluate_dense_pair,
@@ -69,7 +79,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     n_frames = 90 if options.quick else 180
     n_pairs = 4 if options.quick else 12
     base = load_scene("slipfront")
-    params = AnalysisParams()
+    params = analysis_params()
     analysis: dict[tuple[str, str], list] = {}
     dense: dict[tuple[str, str], list] = {}
     warmed: set[str] = set()
@@ -79,16 +89,17 @@ def run(options: BenchOptions) -> list[BenchTable]:
         frames, cal, truth = s.frames, s.calibration, s.truth
         for method in ("features", "flow"):
             if method not in warmed:  # compiled kernels load, worker processes start: not a per-session cost
-                analyze_frames(frames, calibration=cal, method=method, params=params, surface="flat")
+                analyze_frames(frames, calibration=cal, method=method, params=params, surface="flat",
+                               executor=executor)
                 warmed.add(method)
-            r = analyze_frames(frames, calibration=cal, method=method, params=params, surface="flat")
+            r = analyze_frames(frames, calibration=cal, method=method, params=params, surface="flat",
+                               executor=executor)
             ev = evaluate_tracking(r, truth)
             analysis.setdefault((label.split(" on ")[0] if texture is None else label, method), []).append(
                 (r.timing["frames_per_s"], ev["tracking"]["displacement_rmse_px"], ev["strain"]["edge_rmse_1"],
                  ev["strain"]["edge_rmse_11"]))
-        # The same pairs for every dense method, where the front crosses the view.
-        shaded, _ = without_glass_shading(frames, calibration=cal, params=params, surface="flat")
-        frames = np.stack([shaded[k] for k in range(len(shaded))])
+        # The same pairs for every dense method, where the front crosses the view (a flat surface: no glass-fixed
+        # shading to remove first).
         tf = TruthField(truth)
         lo, hi = (30, n_frames - SPAN - 1) if not options.quick else (35, n_frames - SPAN - 1)
         starts = np.linspace(lo, hi, n_pairs).round().astype(int)

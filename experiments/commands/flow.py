@@ -36,8 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("image_b", type=Path, help="second image, same size")
     p.add_argument("-o", "--output", type=Path, required=True, help="field file to write (.npz)")
     p.add_argument("--window-px", type=int, default=None,
-                   help="registration window in pixels (odd; overrides --window-mm): the resolution knob, smaller "
-                        "resolves shorter features with more noise")
+                   help="registration window in pixels (an even number is rounded up to odd; overrides --window-mm): "
+                        "the resolution knob, smaller resolves shorter features with more noise")
     p.add_argument("--window-mm", type=float, default=None, help="registration window in mm (default 0.8)")
     p.add_argument("--px-per-mm", type=float, default=DEFAULT_PX_PER_MM,
                    help=f"image scale, for the settings given in mm (default {DEFAULT_PX_PER_MM:.2f}, the rig's full "
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if args.window_mm is not None:
         options["window_mm"] = args.window_mm
     if args.window_px is not None:
-        options["window_px"] = args.window_px
+        options["window_px"] = args.window_px + (1 - args.window_px % 2)  # windows are centred: odd
     flow = DenseFlow(calibration=Calibration(px_per_mm=float(args.px_per_mm)), params=FlowParams(**options))
     t0 = time.perf_counter()
     field = flow.compute(a, b)
