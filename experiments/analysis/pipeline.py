@@ -212,7 +212,7 @@ def analyze(
             # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front). Not over a
             # ridge or valley: the refinement would follow the glass-fixed patterns the skin moves through.
             refiner = None
-            if shading is None and surface in (None, "", "flat"):
+            if params.flow.refine_spans and shading is None and surface in (None, "", "flat"):
                 from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=params.flow), reader)
