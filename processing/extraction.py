@@ -27,8 +27,9 @@ from skinstretch.processing.feature_localization import locate_minutiae_tips, re
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.pores import detect_blob_pores
-from skinstretch.processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
+from skinstretch.processing.pores import detect_blob_pores, fill_specks
+from skinstretch.processing.ridge_flow import ridge_flow
+from skinstretch.processing.preprocess import binarize, check_frame, contact_map, ridge_statistics, smooth
 from skinstretch.processing.skeleton_editing import edit_graph
 from skinstretch.processing.skeleton_graph import GraphArrays, edit_with_room, graph_features, trace_arrays
 from skinstretch.processing.thinning import thin
@@ -68,6 +69,10 @@ class ExtractionParams:
     # The background statistics use a smaller window than 4.2 (still more than a ridge period, 0.43 mm) so the
     # mask reaches the fingertip's edge instead of stopping half a 2 mm window short of it.
     background_window_mm: float = 0.6
+    # Beyond the seed: the typical ridge period (0.43 mm, FACTS) sets the scale of the local statistics, and skin
+    # whose FTIR contrast is below min_contact of full contact's is out of contact (background).
+    ridge_period_mm: float = 0.43
+    min_contact: float = 0.5
     # 4.4 binarization threshold = scale x local average.
     binarization_scale: float = 1.0
     # 4.5 blob pores below 0.25 mm across; smaller blobs than min diameter are noise.
@@ -206,6 +211,7 @@ class _Plan:
     bg_dilation: int
     pore_max: float
     pore_min_area: int
+    pore_min: float
     pore_radius: float
     orient_n: int
     short_valley: float
@@ -221,6 +227,9 @@ class _Plan:
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
     edit_pore_radius: float
+    ridge_sigma: float
+    cell: int
+    flow_sigma: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -233,6 +242,7 @@ class _Plan:
             bg_dilation=cal.px_int(p.background_dilation_mm),
             pore_max=cal.px(p.pore_max_diameter_mm),
             pore_min_area=max(int(math.floor(math.pi / 4 * pore_min * pore_min)), 1),
+            pore_min=pore_min,
             pore_radius=max(cal.px(p.pore_max_diameter_mm) / 2, 1.5),
             orient_n=cal.px_int(p.orientation_distance_mm, minimum=2),
             short_valley=cal.px(p.short_valley_max_mm),
@@ -255,6 +265,9 @@ class _Plan:
             # flatL pore RMSE, seeds 0/1/2, 0.100/0.257/0.098 px with the 2 px minimum window, 0.067/0.088/0.064
             # px with 0.065 mm (0.08 mm: 0.072/0.169/0.067).
             edit_pore_radius=max(cal.px(0.065), 2.0),
+            ridge_sigma=cal.px(p.ridge_period_mm) / 2,
+            cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
+            flow_sigma=cal.px(p.ridge_period_mm),
         )
 
 
@@ -367,15 +380,12 @@ class FeatureExtractor:
             # the variance test of 4.3 relies on (without it valleyL's minutiae precision fell from 0.94 to 0.40).
             frame = apply_illumination_gain(frame, gain=self._gain)
         s = smooth(frame, sigma_px=q.sigma, kernel_px=q.kernel)  # 4.1
-        # 4.2: a 2 mm mean is blind to the 1-px smoothing, so it is taken on the uint8 frame (faster).
-        avg = local_mean(frame, window_px=q.window)
-        background = detect_background(  # 4.3
-            frame,
-            window_px=q.bg_window,
-            min_mean=p.background_min_mean,
-            max_std=p.background_max_std,
-            dilation_px=q.bg_dilation,
-        )
+        stats = ridge_statistics(s, sigma_px=q.ridge_sigma, cell_px=q.cell)  # 4.2 at the ridge scale
+        avg = stats.mean
+        background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact)  # 4.3
+        if q.bg_dilation > 0:
+            d = 2 * q.bg_dilation + 1
+            background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
         if np.count_nonzero(background) > p.no_finger_fraction * background.size:
             return self._empty(frame.shape, {"no_finger"}, background=background)
         thr = avg if p.binarization_scale == 1.0 else cv2.multiply(avg, float(p.binarization_scale))
@@ -391,6 +401,9 @@ class FeatureExtractor:
         else:
             valleys = binary
             pore_x = pore_y = pore_d = np.zeros(0)
+        # Dark specks narrower than the smallest pore inside a valley are noise, as bright ones are (4.5): left,
+        # thinning rings them with a tiny loop whose two junctions pass for bifurcations.
+        valleys = fill_specks(valleys, max_diameter_px=q.pore_min)
         skeleton = thin(valleys)  # 4.6
         rules = dict(  # 4.8.1-4.8.4, each when switched on
             orientation_px=q.orient_n,
@@ -399,6 +412,7 @@ class FeatureExtractor:
             spurs=(q.spur_min, q.spur_max, p.spur_max_deviation_deg) if p.remove_short_spurs else None,
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
+        rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
             lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
             lambda g: edit_graph(g, **rules),

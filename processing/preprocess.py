@@ -11,12 +11,18 @@ every pixel instead of on a coarse grid.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
 
-__all__ = ["check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize"]
+__all__ = [
+    "check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize", "RidgeStatistics",
+    "ridge_statistics", "contact_map",
+]
 
 
 def check_frame(frame: np.ndarray, *, name: str = "frame", min_size: int = 1) -> np.ndarray:
@@ -191,3 +197,108 @@ def binarize(
         foreground = cv2.compare(bg.view(np.uint8), 0, cv2.CMP_EQ)
         binary = cv2.bitwise_and(binary, foreground)
     return binary
+
+
+@dataclass(frozen=True)
+class RidgeStatistics:
+    """Local statistics of a frame at the scale of one ridge period (see :func:`ridge_statistics`).
+
+    Attributes
+    ----------
+    mean : (H, W) float32
+        Local mean, full resolution (the binarization threshold).
+    cell_image : (h, w) float32
+        The image averaged over each of the ``cell_px`` x ``cell_px`` cells of the grid (not smoothed further).
+    cell_mean, cell_std : (h, w) float32
+        Local mean and standard deviation on the grid.
+    cell_px : int
+        Cell size of the grid.
+    """
+
+    mean: np.ndarray
+    cell_image: np.ndarray
+    cell_mean: np.ndarray
+    cell_std: np.ndarray
+    cell_px: int
+
+
+def ridge_statistics(smoothed: np.ndarray, *, sigma_px: float, cell_px: int = 4) -> RidgeStatistics:
+    """Gaussian-weighted local mean and standard deviation of ``smoothed`` with a standard deviation of half a ridge
+    period (the ridge pattern's own frequency is then damped ~140 times, so the mean follows the brightness of the
+    skin, not its ridges).
+
+    Beyond the seed (4.2 uses a 2 mm mean): partial contact over a ridge or a valley of the surface and the light
+    change the brightness over a few tenths of a millimetre, and a 2 mm mean then puts whole bands of ridges above
+    or below the threshold. The statistics vary slowly, so they are computed on a grid of ``cell_px`` pixel cells
+    (exact cell means of the image and of its square) and the mean is brought back to full resolution bilinearly.
+
+    Parameters
+    ----------
+    smoothed : (H, W) float32
+    sigma_px : float
+        Standard deviation of the Gaussian window, full-resolution pixels (> 0).
+    cell_px : int
+        Cell size of the grid (1 = every pixel).
+    """
+    if smoothed.ndim != 2:
+        raise InvalidInputError(f"smoothed must be a 2-D image, got shape {smoothed.shape}")
+    if not (np.isfinite(sigma_px) and sigma_px > 0):
+        raise InvalidInputError(f"sigma_px must be positive, got {sigma_px!r}")
+    if not isinstance(cell_px, (int, np.integer)) or cell_px < 1:
+        raise InvalidInputError(f"cell_px must be a positive integer, got {cell_px!r}")
+    h, w = smoothed.shape
+    img = smoothed.astype(np.float32, copy=False)
+    size = (max(w // cell_px, 1), max(h // cell_px, 1))
+    if cell_px > 1:
+        m = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        sq = cv2.resize(cv2.multiply(img, img), size, interpolation=cv2.INTER_AREA)
+    else:
+        m, sq = img, cv2.multiply(img, img)
+    cells = m
+    sg = float(sigma_px) / cell_px
+    k = 2 * int(math.ceil(3.0 * sg)) + 1
+    m = cv2.GaussianBlur(cells, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.GaussianBlur(sq, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    var = cv2.subtract(sq, cv2.multiply(m, m))
+    np.maximum(var, 0.0, out=var)
+    std = cv2.sqrt(var)
+    if cell_px > 1:
+        # Cell centres sit at (i + 0.5) * cell - 0.5 in full-resolution pixels: cv2.resize's own convention.
+        full = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
+    else:
+        full = m
+    return RidgeStatistics(mean=full, cell_image=cells, cell_mean=m, cell_std=std, cell_px=int(cell_px))
+
+
+def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: float,
+                texture_floor: float = 0.1, reference_percentile: float = 90.0) -> tuple[np.ndarray, float]:
+    """Where the skin touches the glass: contact fraction from the local contrast, and the background mask.
+
+    FTIR model (seed 3.2): the camera sees ``g (B + c (S - B))``, the bright glass ``B`` blended with the skin's
+    ridge/valley pattern ``S`` by the contact fraction ``c`` and multiplied by the light's gain ``g``. The valleys
+    are nearly as bright as the bare glass, so the local relative contrast
+    ``kappa = (valley - ridge) / valley`` is ``c`` times that of full contact, whatever the gain: it does not
+    depend on vignetting, the slope's darkening or the exposure. ``valley`` and ``ridge`` are taken as mean +/-
+    sqrt(2) std (a sinusoid's envelope) at the ridge scale, and full contact's ``kappa`` is the frame's
+    ``reference_percentile``-th percentile over the textured cells (``kappa > texture_floor``; the bare glass
+    gives ~0.05). Cells with ``c < min_contact`` are background.
+
+    Returns
+    -------
+    background : (H, W) bool
+        True where the contact fraction is below ``min_contact`` (nearest-cell upsampling).
+    reference : float
+        Full contact's relative contrast in this frame (``nan`` when no cell is textured: all background).
+    """
+    m, s = stats.cell_mean, stats.cell_std
+    env = cv2.scaleAdd(s, math.sqrt(2.0), m)
+    kappa = cv2.divide(s, np.maximum(env, 1.0), scale=2.0 * math.sqrt(2.0))
+    textured = kappa[kappa > texture_floor]
+    h, w = shape
+    if textured.size == 0:
+        return np.ones((h, w), dtype=bool), float("nan")
+    reference = float(np.percentile(textured, reference_percentile))
+    bg = (kappa < min_contact * reference).astype(np.uint8)
+    if bg.shape != (h, w):
+        bg = cv2.resize(bg, (w, h), interpolation=cv2.INTER_NEAREST)
+    return bg.astype(bool), reference

@@ -45,6 +45,7 @@ from skinstretch.processing.skeleton_graph import (
     _unlink_edge,
     edit_with_room,
 )
+from skinstretch.processing.ridge_flow import RidgeFlow, flow_normal_at
 from skinstretch.processing.skeleton_graph_lists import SkeletonGraph
 
 __all__ = [
@@ -359,7 +360,50 @@ def _bridge_end(G, node, edge, n_px, max_dev):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _short_spurs(G, lo, hi, max_dev, n_px):  # pragma: no cover - compiled
+def _across_flow(G, a, b, fc2, fs2, fcell, max_dev):  # pragma: no cover - compiled
+    """Whether the chord from node ``a`` to node ``b`` is within ``max_dev`` degrees of the ridges' normal (it
+    crosses the ridge flow, as the branch a pore makes does), the flow taken at the chord's middle."""
+    dx = G.node_xy[b, 0] - G.node_xy[a, 0]
+    dy = G.node_xy[b, 1] - G.node_xy[a, 1]
+    d2 = dx * dx + dy * dy
+    if d2 == 0:
+        return False
+    c2, s2 = flow_normal_at(fc2, fs2, fcell, G.node_xy[a, 0] + dx / 2, G.node_xy[a, 1] + dy / 2)
+    if c2 == 0 and s2 == 0:
+        return False
+    # cos^2 of the angle between the chord and the normal: (1 + cos 2(alpha - phi)) / 2.
+    cos_sq = 0.5 * (1.0 + ((dx * dx - dy * dy) * c2 + 2.0 * dx * dy * s2) / d2)
+    return math.degrees(math.acos(math.sqrt(min(max(cos_sq, 0.0), 1.0)))) <= max_dev
+
+
+@njit(nogil=True)
+def _branch_end(G, node, edge, n_px, max_dev, flow):  # pragma: no cover - compiled
+    """:func:`_bridge_end`, or with the ridge flow (``flow``) only its shape: a bifurcation of three valleys, or a
+    crossing of four where one valley continues ``edge`` straight on (the branch itself is judged by
+    :func:`_across_flow`)."""
+    if not flow:
+        return _bridge_end(G, node, edge, n_px, max_dev)
+    d = G.node_deg[node]
+    if d == 3:
+        return True
+    if d != 4:
+        return False
+    sx, sy, _ = _edge_direction(G, node, edge, n_px)
+    if sx == 0 and sy == 0:
+        return False
+    for k in range(4):
+        other = G.node_adj[node, k]
+        if other == edge:
+            continue
+        ox, oy, _ = _edge_direction(G, node, other, n_px)
+        if math.degrees(math.acos(max(-1.0, min(1.0, sx * ox + sy * oy)))) >= 180.0 - max_dev:
+            return True
+    return False
+
+
+@njit(nogil=True)
+def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - compiled
+    flow = fc2.size > 0
     for e in _alive_edges(G):
         if not G.edge_alive[e] or G.edge_length[e] >= hi:
             continue
@@ -375,7 +419,9 @@ def _short_spurs(G, lo, hi, max_dev, n_px):  # pragma: no cover - compiled
             bif = a
         else:
             continue
-        if not _bridge_end(G, bif, e, n_px, max_dev):
+        if not _branch_end(G, bif, e, n_px, max_dev, flow):
+            continue
+        if flow and not _across_flow(G, bif, end, fc2, fs2, fcell, max_dev):
             continue
         tx = G.node_xy[end, 0]
         ty = G.node_xy[end, 1]
@@ -387,7 +433,8 @@ def _short_spurs(G, lo, hi, max_dev, n_px):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _bridges(G, lo, hi, max_dev, n_px):  # pragma: no cover - compiled
+def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - compiled
+    flow = fc2.size > 0
     changed = True
     while changed:
         changed = False
@@ -399,7 +446,9 @@ def _bridges(G, lo, hi, max_dev, n_px):  # pragma: no cover - compiled
             length = G.edge_length[e]
             if a == b or not (lo <= length <= hi):
                 continue
-            if not (_bridge_end(G, a, e, n_px, max_dev) and _bridge_end(G, b, e, n_px, max_dev)):
+            if not (_branch_end(G, a, e, n_px, max_dev, flow) and _branch_end(G, b, e, n_px, max_dev, flow)):
+                continue
+            if flow and not _across_flow(G, a, b, fc2, fs2, fcell, max_dev):
                 continue
             s = G.edge_span[e, 0]
             m = G.edge_span[e, 1]
@@ -437,17 +486,17 @@ def _edit_to_healing(G, short_valley_px, heal_px, n_px):  # pragma: no cover - c
 @njit(nogil=True)
 def _edit_from_healing(
     G, counts, ends, iu, ju, dist, acos, heal_px, heal_deg, spur_lo, spur_hi, spur_dev, bridge_lo, bridge_hi,
-    bridge_dev, n_px,
+    bridge_dev, n_px, fc2, fs2, fcell,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Extraction's editing, second part: 4.8.2, 4.8.3, 4.8.4, each when its upper length is > 0, with counts."""
     if heal_px > 0:
         _heal_apply(G, ends, iu, ju, dist, acos, heal_px, heal_deg)
         _counts(G, counts[2])
     if spur_hi > 0:
-        _short_spurs(G, spur_lo, spur_hi, spur_dev, n_px)
+        _short_spurs(G, spur_lo, spur_hi, spur_dev, n_px, fc2, fs2, fcell)
         _counts(G, counts[3])
     if bridge_hi > 0:
-        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px)
+        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px, fc2, fs2, fcell)
         _counts(G, counts[4])
 
 
@@ -475,12 +524,24 @@ def line_pixels(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
 # calls of _run_rules.
 
 
-def _run_rules(arrays, n_px, sv=0.0, heal=(0.0, 0.0), spurs=(0.0, 0.0, 0.0), bridges=(0.0, 0.0, 0.0)) -> np.ndarray:
+_NO_FLOW = (np.zeros((0, 0)), np.zeros((0, 0)), 1)
+
+
+def _flow_arrays(flow: RidgeFlow | None):
+    if flow is None:
+        return _NO_FLOW
+    if not isinstance(flow, RidgeFlow):
+        raise InvalidInputError(f"flow must be a RidgeFlow or None, got {type(flow).__name__}")
+    return flow.cos2, flow.sin2, flow.cell_px
+
+
+def _run_rules(arrays, n_px, sv=0.0, heal=(0.0, 0.0), spurs=(0.0, 0.0, 0.0), bridges=(0.0, 0.0, 0.0),
+               flow=None) -> np.ndarray:
     """Run the rules whose first length is > 0, in the order of seed 4.8, on ``arrays`` (in place); (5, 3) counts."""
     counts, ends, iu, ju, dist, cos = _edit_to_healing(arrays, sv, heal[0], n_px)
     # numpy's arccos (vectorised: it can differ from the C library's acos in the last bit), as the rule always had.
     acos = np.arccos(cos)
-    _edit_from_healing(arrays, counts, ends, iu, ju, dist, acos, *heal, *spurs, *bridges, n_px)
+    _edit_from_healing(arrays, counts, ends, iu, ju, dist, acos, *heal, *spurs, *bridges, n_px, *_flow_arrays(flow))
     return counts
 
 
@@ -584,6 +645,7 @@ def edit_graph(
     heal: tuple[float, float] | None = None,
     spurs: tuple[float, float, float] | None = None,
     bridges: tuple[float, float, float] | None = None,
+    flow: RidgeFlow | None = None,
 ) -> np.ndarray:
     """The skeleton rules of seed 4.8.1-4.8.4 in order, on graph arrays edited in place (the extraction's chain).
 
@@ -604,5 +666,5 @@ def edit_graph(
         rules["spurs"] = (*_length_range(*spurs[:2]), _angle_limit(spurs[2], "max_deviation_deg"))
     if bridges is not None:
         rules["bridges"] = (*_length_range(*bridges[:2]), _angle_limit(bridges[2], "max_deviation_deg"))
-    return _run_rules(arrays, _n_px(orientation_px), **rules)
+    return _run_rules(arrays, _n_px(orientation_px), flow=flow, **rules)
 
