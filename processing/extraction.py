@@ -230,6 +230,7 @@ class _Plan:
     ridge_sigma: float
     cell: int
     flow_sigma: float
+    fork_max_move: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -268,6 +269,9 @@ class _Plan:
             ridge_sigma=cal.px(p.ridge_period_mm) / 2,
             cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
             flow_sigma=cal.px(p.ridge_period_mm),
+            # The fork's mean shift corrects the thinning's fork by up to a quarter ridge period; further, it is
+            # creeping along a brighter valley (see refine_bifurcations).
+            fork_max_move=max(cal.px(p.ridge_period_mm / 4), 2.0),
         )
 
 
@@ -432,7 +436,7 @@ class FeatureExtractor:
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
-            x, y = self._refine(s, thr, excess, x, y, kind, orient, size)
+            x, y = self._refine(s, thr, excess, stats, x, y, kind, orient, size)
         n = x.size
         features = make_features(
             x,
@@ -452,7 +456,7 @@ class FeatureExtractor:
             flags=set(),
         )
 
-    def _refine(self, s, thr, excess, x, y, kind, orient, size):
+    def _refine(self, s, thr, excess, stats, x, y, kind, orient, size):
         q = self._plan
         x = x.copy()
         y = y.copy()
@@ -473,6 +477,11 @@ class FeatureExtractor:
             # one, with the same jitter.
             k = 2 * int(math.ceil(1.6 * q.minutia_sigma)) + 1
             excess = cv2.GaussianBlur(excess, (k, k), q.minutia_sigma)
+        # In units of the local contrast: where partial contact or the light dim the ridges over a few tenths of a
+        # millimetre, the brighter side of a fork would otherwise pull its mean shift.
+        h, w = excess.shape
+        std = cv2.resize(stats.cell_std, (w, h), interpolation=cv2.INTER_LINEAR)
+        excess = cv2.divide(excess, np.maximum(std, 1.0))
         # Valley endings: where the bright valley's centre line falls to the local mean (locate_minutiae_tips; on
         # flatL ~0.08 px repeatable, against ~0.26 px for the apex of the region and ~1.5 px for the skeleton end,
         # at a constant offset of ~2-3 px beyond the true minutia, which tracking does not see).
@@ -483,7 +492,8 @@ class FeatureExtractor:
             x[ends], y[ends] = rx, ry
         # Valley bifurcations: mean shift on the valley excess from the skeleton fork (see refine_bifurcations).
         if bifs.any():
-            rx, ry, _ = refine_bifurcations(excess, threshold=None, x=x[bifs], y=y[bifs], radius_px=q.fork_radius)
+            rx, ry, _ = refine_bifurcations(excess, threshold=None, x=x[bifs], y=y[bifs], radius_px=q.fork_radius,
+                                            max_move_px=q.fork_max_move)
             x[bifs], y[bifs] = rx, ry
         return x, y
 

@@ -143,8 +143,9 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _gaussian_mean_shift(img, xs, ys, sigma, iterations):  # pragma: no cover - compiled
-    """Mean shift of ``max(img, 0)`` under a Gaussian window (cut at 3 sigma) from each start point."""
+def _gaussian_mean_shift(img, xs, ys, sigma, iterations, max_move):  # pragma: no cover - compiled
+    """Mean shift of ``max(img, 0)`` under a Gaussian window (cut at 3 sigma) from each start point; a step that
+    would take the point further than ``max_move`` from its start ends the iterations (the point stays)."""
     h, w = img.shape
     n = xs.size
     ox = xs.copy()
@@ -181,11 +182,12 @@ def _gaussian_mean_shift(img, xs, ys, sigma, iterations):  # pragma: no cover - 
             if sw <= 0:
                 ok[k] = False
                 break
-            cx = sx / sw
-            cy = sy / sw
-            if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > 9.0 * sigma * sigma:
-                ok[k] = False
+            nx = sx / sw
+            ny = sy / sw
+            if (nx - xs[k]) ** 2 + (ny - ys[k]) ** 2 > max_move * max_move:
                 break
+            cx = nx
+            cy = ny
         if ok[k]:
             ox[k] = cx
             oy[k] = cy
@@ -200,6 +202,7 @@ def refine_bifurcations(
     y: np.ndarray,
     radius_px: float,
     iterations: int = 12,
+    max_move_px: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel valley bifurcations: a few mean-shift steps on the valley excess intensity from the skeleton fork.
 
@@ -216,19 +219,28 @@ def refine_bifurcations(
     smoothed excess (:attr:`ExtractionParams.minutia_smoothing_mm`) balance the two (flatL jitter 0.146 px with
     8 steps on the unsmoothed excess, 0.123 px now).
 
+    Where one of the valleys is much brighter than the others (partial contact over a ridge or a valley of the
+    surface dims the ridges around a fork unevenly) the point creeps along it: ``max_move_px`` (default 1.5
+    ``radius_px``) ends the iterations before a step that would take it further than that from the start. On
+    valleyL forks the refinement moves 0-6 px from the skeleton fork and lands within 2 px of the true fork; the
+    ~7 % that moved further than 6 px were 8-15 px off.
+
     Returns
     -------
     x, y : (M,) float64
         Refined positions (unchanged where not refined).
     refined : (M,) bool
-        False where there was no excess intensity or the point drifted more than 1.5 ``radius_px`` away.
+        False where there was no excess intensity.
     """
     img, thr, x, y = _check(image, image if threshold is None else threshold, x, y, radius_px)
     if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
         raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
     if threshold is not None:
         img = img - thr
-    rx, ry, ok = _gaussian_mean_shift(img, x, y, float(radius_px) / 2.0, int(iterations))
+    max_move = 1.5 * float(radius_px) if max_move_px is None else float(max_move_px)
+    if not max_move > 0:
+        raise InvalidInputError(f"max_move_px must be positive, got {max_move_px!r}")
+    rx, ry, ok = _gaussian_mean_shift(img, x, y, float(radius_px) / 2.0, int(iterations), max_move)
     return rx, ry, ok
 
 
