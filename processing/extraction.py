@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
-from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
+from skinstretch.processing.feature_localization import locate_forks, locate_minutiae_tips, refine_pores
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
 from skinstretch.processing.pixel_scale import Calibration
@@ -108,7 +108,8 @@ class ExtractionParams:
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
     # Beyond the seed (7.2.2): sub-pixel positions of pores (subpixel) and of minutiae (subpixel_minutiae, which
-    # needs subpixel too); fork_radius_mm is the mean-shift disc of bifurcations (about half a ridge period).
+    # needs subpixel too); fork_radius_mm bounds the radius of the disc that locates a bifurcation (about half a
+    # ridge period, see locate_forks).
     subpixel: bool = True
     subpixel_minutiae: bool = True
     fork_radius_mm: float = 0.21
@@ -230,7 +231,7 @@ class _Plan:
     ridge_sigma: float
     cell: int
     flow_sigma: float
-    fork_max_move: float
+    fork_reach: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -269,9 +270,8 @@ class _Plan:
             ridge_sigma=cal.px(p.ridge_period_mm) / 2,
             cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
             flow_sigma=cal.px(p.ridge_period_mm),
-            # The fork's mean shift corrects the thinning's fork by up to a quarter ridge period; further, it is
-            # creeping along a brighter valley (see refine_bifurcations).
-            fork_max_move=max(cal.px(p.ridge_period_mm / 4), 2.0),
+            # The thinning's fork lies within a quarter ridge period of the widest place of the valleys' crotch.
+            fork_reach=max(cal.px(p.ridge_period_mm / 4), 2.0),
         )
 
 
@@ -436,7 +436,7 @@ class FeatureExtractor:
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
-            x, y = self._refine(s, thr, excess, stats, x, y, kind, orient, size)
+            x, y = self._refine(s, thr, excess, x, y, kind, orient, size)
         n = x.size
         features = make_features(
             x,
@@ -456,7 +456,7 @@ class FeatureExtractor:
             flags=set(),
         )
 
-    def _refine(self, s, thr, excess, stats, x, y, kind, orient, size):
+    def _refine(self, s, thr, excess, x, y, kind, orient, size):
         q = self._plan
         x = x.copy()
         y = y.copy()
@@ -472,16 +472,12 @@ class FeatureExtractor:
         bifs = kind == FeatureKind.VALLEY_BIFURCATION
         if not self.params.subpixel_minutiae or not (ends.any() or bifs.any()):
             return x, y
+        forks = excess  # the outline of the valleys, before the minutiae's extra smoothing
         if q.minutia_sigma > 0:
             # Gaussian cut at 1.6 sigma (a 9 px kernel at 2.5 px): 0.33 ms a frame against 0.57 ms for an 11 px
             # one, with the same jitter.
             k = 2 * int(math.ceil(1.6 * q.minutia_sigma)) + 1
             excess = cv2.GaussianBlur(excess, (k, k), q.minutia_sigma)
-        # In units of the local contrast: where partial contact or the light dim the ridges over a few tenths of a
-        # millimetre, the brighter side of a fork would otherwise pull its mean shift.
-        h, w = excess.shape
-        std = cv2.resize(stats.cell_std, (w, h), interpolation=cv2.INTER_LINEAR)
-        excess = cv2.divide(excess, np.maximum(std, 1.0))
         # Valley endings: where the bright valley's centre line falls to the local mean (locate_minutiae_tips; on
         # flatL ~0.08 px repeatable, against ~0.26 px for the apex of the region and ~1.5 px for the skeleton end,
         # at a constant offset of ~2-3 px beyond the true minutia, which tracking does not see).
@@ -490,10 +486,10 @@ class FeatureExtractor:
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
             rx, ry, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
             x[ends], y[ends] = rx, ry
-        # Valley bifurcations: mean shift on the valley excess from the skeleton fork (see refine_bifurcations).
+        # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).
         if bifs.any():
-            rx, ry, _ = refine_bifurcations(excess, threshold=None, x=x[bifs], y=y[bifs], radius_px=q.fork_radius,
-                                            max_move_px=q.fork_max_move)
+            rx, ry, _, _ = locate_forks(forks, x=x[bifs], y=y[bifs], reach_px=q.fork_reach,
+                                        max_radius_px=q.fork_radius)
             x[bifs], y[bifs] = rx, ry
         return x, y
 

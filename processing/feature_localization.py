@@ -7,7 +7,7 @@ a blob is pulled toward the brighter side of the window).
 
 Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds where the
 valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`locate_minutiae_tips`
-(valley endings) and :func:`refine_bifurcations`.
+(valley endings) and :func:`locate_forks` (valley bifurcations).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
 
-__all__ = ["refine_pores", "refine_bifurcations", "locate_minutiae_tips"]
+__all__ = ["refine_pores", "locate_forks", "locate_minutiae_tips"]
 
 
 @njit(nogil=True)
@@ -142,106 +142,137 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
     )
 
 
+@njit(nogil=True, inline="always")
+def _nearest_sq(bx, by, nb, px, py):  # pragma: no cover - compiled
+    best = np.inf
+    for i in range(nb):
+        dx = bx[i] - px
+        dy = by[i] - py
+        d = dx * dx + dy * dy
+        if d < best:
+            best = d
+    return best
+
+
 @njit(nogil=True)
-def _gaussian_mean_shift(img, xs, ys, sigma, iterations, max_move):  # pragma: no cover - compiled
-    """Mean shift of ``max(img, 0)`` under a Gaussian window (cut at 3 sigma) from each start point; a step that
-    would take the point further than ``max_move`` from its start ends the iterations (the point stays)."""
+def _inscribed_centres(img, xs, ys, reach, half):  # pragma: no cover - compiled
+    """See :func:`locate_forks`: centre of the largest disc inside ``img > 0`` within ``reach`` of each start."""
     h, w = img.shape
     n = xs.size
     ox = xs.copy()
     oy = ys.copy()
-    ok = np.ones(n, np.bool_)
-    r = int(np.ceil(3.0 * sigma))
-    inv = 1.0 / (2.0 * sigma * sigma)
-    gx = np.empty(2 * r + 1)
-    gy = np.empty(2 * r + 1)
+    radius = np.full(n, np.nan)
+    ok = np.zeros(n, np.bool_)
+    side = 2 * half + 1
+    cap = 2 * side * side
+    bx = np.empty(cap)
+    by = np.empty(cap)
+    rr = int(np.ceil(reach))
     for k in range(n):
-        cx = xs[k]
-        cy = ys[k]
-        for _ in range(iterations):
-            ic = int(np.rint(cx))
-            ir = int(np.rint(cy))
-            # The Gaussian is separable: one exp per row and per column, not per pixel.
-            for j in range(2 * r + 1):
-                dx = ic - r + j - cx
-                dy = ir - r + j - cy
-                gx[j] = np.exp(-dx * dx * inv)
-                gy[j] = np.exp(-dy * dy * inv)
-            sw = 0.0
-            sx = 0.0
-            sy = 0.0
-            for rr in range(max(ir - r, 0), min(ir + r + 1, h)):
-                wy = gy[rr - ir + r]
-                for cc in range(max(ic - r, 0), min(ic + r + 1, w)):
-                    v = img[rr, cc]
-                    if v > 0:
-                        g = v * wy * gx[cc - ic + r]
-                        sw += g
-                        sx += g * cc
-                        sy += g * rr
-            if sw <= 0:
-                ok[k] = False
-                break
-            nx = sx / sw
-            ny = sy / sw
-            if (nx - xs[k]) ** 2 + (ny - ys[k]) ** 2 > max_move * max_move:
-                break
-            cx = nx
-            cy = ny
-        if ok[k]:
-            ox[k] = cx
-            oy[k] = cy
-    return ox, oy, ok
+        ic = int(np.rint(xs[k]))
+        ir = int(np.rint(ys[k]))
+        r0 = max(ir - half, 0)
+        r1 = min(ir + half, h - 1)
+        c0 = max(ic - half, 0)
+        c1 = min(ic + half, w - 1)
+        # The region's outline: where the excess changes sign between two neighbouring pixels, interpolated.
+        nb = 0
+        for r in range(r0, r1 + 1):
+            for c in range(c0, c1):
+                a = img[r, c]
+                b = img[r, c + 1]
+                if (a > 0) != (b > 0):
+                    bx[nb] = c + a / (a - b)
+                    by[nb] = r
+                    nb += 1
+        for c in range(c0, c1 + 1):
+            for r in range(r0, r1):
+                a = img[r, c]
+                b = img[r + 1, c]
+                if (a > 0) != (b > 0):
+                    bx[nb] = c
+                    by[nb] = r + a / (a - b)
+                    nb += 1
+        if nb == 0:
+            continue
+        # Whole pixels inside the region within reach, then two finer grids around the best.
+        best = -1.0
+        qx = 0.0
+        qy = 0.0
+        for r in range(max(ir - rr, 0), min(ir + rr, h - 1) + 1):
+            for c in range(max(ic - rr, 0), min(ic + rr, w - 1) + 1):
+                if (c - xs[k]) ** 2 + (r - ys[k]) ** 2 > reach * reach or not img[r, c] > 0:
+                    continue
+                d = _nearest_sq(bx, by, nb, c, r)
+                if d > best:
+                    best = d
+                    qx = c
+                    qy = r
+        if best < 0:
+            continue
+        for step in (0.25, 0.0625):
+            cx = qx
+            cy = qy
+            for j in range(-4, 5):
+                for i in range(-4, 5):
+                    px = cx + i * step
+                    py = cy + j * step
+                    if not _bilinear(img, px, py) > 0:
+                        continue
+                    d = _nearest_sq(bx, by, nb, px, py)
+                    if d > best:
+                        best = d
+                        qx = px
+                        qy = py
+        ox[k] = qx
+        oy[k] = qy
+        radius[k] = np.sqrt(best)
+        ok[k] = True
+    return ox, oy, radius, ok
 
 
-def refine_bifurcations(
-    image: np.ndarray,
+def locate_forks(
+    excess: np.ndarray,
     *,
-    threshold: np.ndarray | None,
     x: np.ndarray,
     y: np.ndarray,
-    radius_px: float,
-    iterations: int = 12,
-    max_move_px: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel valley bifurcations: a few mean-shift steps on the valley excess intensity from the skeleton fork.
+    reach_px: float,
+    max_radius_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel valley bifurcations: the centre of the largest disc that fits in the valleys near the fork.
 
-    ``threshold=None`` means ``image`` is already the excess over the threshold (the extractor passes its
-    smoothed excess). The centre of mass of ``max(image - threshold, 0)`` under a Gaussian window of standard deviation
-    ``radius_px / 2`` (cut at 3 sigma; ``radius_px`` is about half a ridge period) around the fork is recomputed
-    ``iterations`` times. The bright mass of the three valleys meeting there pulls the point to the same place in
-    every frame, which removes the pixel quantisation and thinning jitter of the skeleton fork. The Gaussian
-    window, unlike a hard disc, does not let pixels enter or leave the window's rim as the point moves, so the
-    position is a smooth function of the image (flatL jitter: skeleton 0.60, disc 0.17, Gaussian 0.15 px;
-    sigma radius/1.5 or radius/3 and 20 iterations were worse).
-    Along the valleys the mean shift converges slowly, so after a few steps the point still remembers the
-    pixel-quantised skeleton start; too many let it creep along the widest valley. 12 steps on the extractor's
-    smoothed excess (:attr:`ExtractionParams.minutia_smoothing_mm`) balance the two (flatL jitter 0.146 px with
-    8 steps on the unsmoothed excess, 0.123 px now).
+    Where three valleys meet, the widest place of the valley region is the crotch in front of the ridge that ends
+    between two of them; its centre is where the medial axis (the ideal skeleton, seed 4.6) of the three valleys
+    forks. The region's outline is the excess's zero crossing between neighbouring pixels (linear interpolation,
+    so it moves smoothly with the image), and the centre is searched on whole pixels within ``reach_px`` of the
+    skeleton's fork, then on grids of 1/4 and 1/16 px around the best. Unlike a mean shift of the valleys'
+    brightness, it does not creep toward the brightest of the three valleys where partial contact dims the ridges
+    around the fork unevenly.
 
-    Where one of the valleys is much brighter than the others (partial contact over a ridge or a valley of the
-    surface dims the ridges around a fork unevenly) the point creeps along it: ``max_move_px`` (default 1.5
-    ``radius_px``) ends the iterations before a step that would take it further than that from the start. On
-    valleyL forks the refinement moves 0-6 px from the skeleton fork and lands within 2 px of the true fork; the
-    ~7 % that moved further than 6 px were 8-15 px off.
+    Parameters
+    ----------
+    excess : (H, W) float32
+        The frame minus the binarization threshold (valleys > 0).
+    x, y : (M,) float
+        The skeleton's forks.
+    reach_px : float
+        Search radius around each start.
+    max_radius_px : float
+        Largest disc radius looked for: the outline is collected within ``reach_px + max_radius_px``.
 
     Returns
     -------
     x, y : (M,) float64
-        Refined positions (unchanged where not refined).
-    refined : (M,) bool
-        False where there was no excess intensity.
+        The centres (unchanged where none was found).
+    radius : (M,) float64
+        The disc radii (NaN where none was found).
+    found : (M,) bool
     """
-    img, thr, x, y = _check(image, image if threshold is None else threshold, x, y, radius_px)
-    if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
-        raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
-    if threshold is not None:
-        img = img - thr
-    max_move = 1.5 * float(radius_px) if max_move_px is None else float(max_move_px)
-    if not max_move > 0:
-        raise InvalidInputError(f"max_move_px must be positive, got {max_move_px!r}")
-    rx, ry, ok = _gaussian_mean_shift(img, x, y, float(radius_px) / 2.0, int(iterations), max_move)
-    return rx, ry, ok
+    img, _, x, y = _check(excess, excess, x, y, reach_px)
+    if not (np.isfinite(max_radius_px) and max_radius_px > 0):
+        raise InvalidInputError(f"max_radius_px must be positive, got {max_radius_px!r}")
+    half = int(np.ceil(reach_px + max_radius_px)) + 1
+    return _inscribed_centres(img, x, y, float(reach_px), half)
 
 
 @njit(nogil=True)
