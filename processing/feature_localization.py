@@ -143,7 +143,9 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, inline="always")
-def _nearest_sq(bx, by, nb, px, py):  # pragma: no cover - compiled
+def _nearest_sq(bx, by, nb, px, py, floor):  # pragma: no cover - compiled
+    """Squared distance from (px, py) to the nearest of the ``nb`` points; any value <= ``floor`` once one is found
+    that close (the caller only wants points farther than ``floor`` from all of them)."""
     best = np.inf
     for i in range(nb):
         dx = bx[i] - px
@@ -151,6 +153,8 @@ def _nearest_sq(bx, by, nb, px, py):  # pragma: no cover - compiled
         d = dx * dx + dy * dy
         if d < best:
             best = d
+            if best <= floor:
+                return best
     return best
 
 
@@ -203,7 +207,7 @@ def _inscribed_centres(img, xs, ys, reach, half):  # pragma: no cover - compiled
             for c in range(max(ic - rr, 0), min(ic + rr, w - 1) + 1):
                 if (c - xs[k]) ** 2 + (r - ys[k]) ** 2 > reach * reach or not img[r, c] > 0:
                     continue
-                d = _nearest_sq(bx, by, nb, c, r)
+                d = _nearest_sq(bx, by, nb, c, r, best)
                 if d > best:
                     best = d
                     qx = c
@@ -219,7 +223,7 @@ def _inscribed_centres(img, xs, ys, reach, half):  # pragma: no cover - compiled
                     py = cy + j * step
                     if not _bilinear(img, px, py) > 0:
                         continue
-                    d = _nearest_sq(bx, by, nb, px, py)
+                    d = _nearest_sq(bx, by, nb, px, py, best)
                     if d > best:
                         best = d
                         qx = px
