@@ -360,9 +360,9 @@ def _bridge_end(G, node, edge, n_px, max_dev):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _across_flow(G, a, b, fc2, fs2, fcell, max_dev):  # pragma: no cover - compiled
-    """Whether the chord from node ``a`` to node ``b`` is within ``max_dev`` degrees of the ridges' normal (it
-    crosses the ridge flow, as the branch a pore makes does), the flow taken at the chord's middle."""
+def _across_flow(G, a, b, fc2, fs2, fcell):  # pragma: no cover - compiled
+    """Whether the chord from node ``a`` to node ``b`` crosses the ridge flow more than it follows it (within 45
+    degrees of the ridges' normal, taken at the chord's middle), as the branch a pore makes does."""
     dx = G.node_xy[b, 0] - G.node_xy[a, 0]
     dy = G.node_xy[b, 1] - G.node_xy[a, 1]
     d2 = dx * dx + dy * dy
@@ -371,9 +371,8 @@ def _across_flow(G, a, b, fc2, fs2, fcell, max_dev):  # pragma: no cover - compi
     c2, s2 = flow_normal_at(fc2, fs2, fcell, G.node_xy[a, 0] + dx / 2, G.node_xy[a, 1] + dy / 2)
     if c2 == 0 and s2 == 0:
         return False
-    # cos^2 of the angle between the chord and the normal: (1 + cos 2(alpha - phi)) / 2.
-    cos_sq = 0.5 * (1.0 + ((dx * dx - dy * dy) * c2 + 2.0 * dx * dy * s2) / d2)
-    return math.degrees(math.acos(math.sqrt(min(max(cos_sq, 0.0), 1.0)))) <= max_dev
+    # cos 2 (alpha - phi) of the chord's angle alpha and the normal's phi: > 0 within 45 degrees of the normal.
+    return (dx * dx - dy * dy) * c2 + 2.0 * dx * dy * s2 > 0
 
 
 @njit(nogil=True)
@@ -421,7 +420,7 @@ def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover
             continue
         if not _branch_end(G, bif, e, n_px, max_dev, flow):
             continue
-        if flow and not _across_flow(G, bif, end, fc2, fs2, fcell, max_dev):
+        if flow and not _across_flow(G, bif, end, fc2, fs2, fcell):
             continue
         tx = G.node_xy[end, 0]
         ty = G.node_xy[end, 1]
@@ -448,7 +447,7 @@ def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - c
                 continue
             if not (_branch_end(G, a, e, n_px, max_dev, flow) and _branch_end(G, b, e, n_px, max_dev, flow)):
                 continue
-            if flow and not _across_flow(G, a, b, fc2, fs2, fcell, max_dev):
+            if flow and not _across_flow(G, a, b, fc2, fs2, fcell):
                 continue
             s = G.edge_span[e, 0]
             m = G.edge_span[e, 1]
