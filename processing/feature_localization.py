@@ -16,8 +16,9 @@ import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
+from skinstretch.processing.ridge_flow import RidgeFlow, flow_normal_at
 
-__all__ = ["refine_pores", "locate_forks", "locate_minutiae_tips"]
+__all__ = ["refine_pores", "locate_pores_on_ridges", "locate_forks", "locate_minutiae_tips"]
 
 
 @njit(nogil=True)
@@ -102,7 +103,6 @@ def refine_pores(
         neighbouring valleys (they are bright too and would pull the centre).
     iterations : int
         Re-centring iterations.
-
     Returns
     -------
     x, y : (P,) float64
@@ -140,6 +140,118 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
         (1 - fy) * ((1 - fx) * img[r, c] + fx * img[r, c + 1])
         + fy * ((1 - fx) * img[r + 1, c] + fx * img[r + 1, c + 1])
     )
+
+
+@njit(nogil=True)
+def _ridge_pores(img, thr, xs, ys, fc2, fs2, fcell, half_period, along, iterations):  # pragma: no cover - compiled
+    """See :func:`locate_pores_on_ridges`."""
+    n = xs.size
+    ox = xs.copy()
+    oy = ys.copy()
+    ok = np.zeros(n, np.bool_)
+    n_across = int(half_period / 0.5)
+    n_along = int(along / 0.5)
+    for k in range(n):
+        c2, s2 = flow_normal_at(fc2, fs2, fcell, xs[k], ys[k])
+        if c2 == 0 and s2 == 0:
+            continue
+        phi = 0.5 * np.arctan2(s2, c2)
+        nx = np.cos(phi)
+        ny = np.sin(phi)
+        tx = -ny
+        ty = nx
+        cx = xs[k]
+        cy = ys[k]
+        good = True
+        for _ in range(iterations):
+            # Across: the dark ridge's centre of mass on profiles along the normal, beside the pore on both sides.
+            off = 0.0
+            m = 0
+            for side in (-1.0, 1.0):
+                px = cx + side * along * tx
+                py = cy + side * along * ty
+                sw = 0.0
+                sd = 0.0
+                for j in range(-n_across, n_across + 1):
+                    qx = px + 0.5 * j * nx
+                    qy = py + 0.5 * j * ny
+                    v = _bilinear(thr, qx, qy) - _bilinear(img, qx, qy)
+                    if not v == v:
+                        sw = 0.0
+                        break
+                    if v > 0:
+                        sw += v
+                        sd += v * 0.5 * j
+                if sw > 0:
+                    off += sd / sw
+                    m += 1
+            if m < 2:
+                good = False
+                break
+            cx += 0.5 * off * nx
+            cy += 0.5 * off * ny
+            # Along: the pore's bright excess on the ridge's centre line.
+            sw = 0.0
+            sd = 0.0
+            for j in range(-n_along, n_along + 1):
+                qx = cx + 0.5 * j * tx
+                qy = cy + 0.5 * j * ty
+                v = _bilinear(img, qx, qy) - _bilinear(thr, qx, qy)
+                if not v == v:
+                    sw = 0.0
+                    break
+                if v > 0:
+                    sw += v
+                    sd += v * 0.5 * j
+            if sw <= 0:
+                good = False
+                break
+            cx += sd / sw * tx
+            cy += sd / sw * ty
+            if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > half_period * half_period:
+                good = False
+                break
+        if good:
+            ox[k] = cx
+            oy[k] = cy
+            ok[k] = True
+    return ox, oy, ok
+
+
+def locate_pores_on_ridges(
+    image: np.ndarray,
+    *,
+    threshold: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flow: RidgeFlow,
+    half_period_px: float,
+    along_px: float,
+    iterations: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel centres of pores that touch a valley, from the ridge they sit on.
+
+    A pore opens on a ridge's centre line (FACTS). When it touches a valley its bright pixels join the valley's
+    and no window around it holds the pore alone, so the two coordinates are taken where the valley cannot enter:
+
+    1. across the ridge, the centre of mass of the ridge's darkness (``threshold - image`` > 0) on two profiles along
+       the ridges' normal (``flow``), ``along_px`` before and after the pore along the ridge, within
+       ``half_period_px``; the pore is put half-way between the two centres;
+    2. along the ridge, the centre of mass of the pore's excess (``image - threshold`` > 0) on the centre line,
+       within ``along_px``.
+
+    Both are repeated ``iterations`` times. A pore whose profiles find no ridge, or that moves more than
+    ``half_period_px``, is left where it was (``refined`` False).
+    """
+    img, thr, x, y = _check(image, threshold, x, y, half_period_px)
+    if not isinstance(flow, RidgeFlow):
+        raise InvalidInputError(f"flow must be a RidgeFlow, got {type(flow).__name__}")
+    if not (np.isfinite(along_px) and along_px > 0):
+        raise InvalidInputError(f"along_px must be positive, got {along_px!r}")
+    if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
+        raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
+    return _ridge_pores(img, thr, x, y, flow.cos2, flow.sin2, flow.cell_px, float(half_period_px), float(along_px),
+                        int(iterations))
 
 
 @njit(nogil=True, inline="always")

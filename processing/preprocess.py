@@ -304,3 +304,27 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     if bg.shape != (h, w):
         bg = cv2.resize(bg, (w, h), interpolation=cv2.INTER_NEAREST)
     return bg.astype(bool), reference
+
+
+def flatten_light(smoothed: np.ndarray, *, cell_px: int, window_px: float, sigma_px: float) -> np.ndarray:
+    """``smoothed`` divided by the light that falls on it, estimated from the frame alone (seed 3.5 per frame).
+
+    The valleys and pores are almost as bright as the bare glass whatever the contact (FTIR, seed 3.2), so the
+    upper envelope of the frame (its local maximum over ``window_px``, about a ridge period, smoothed by a Gaussian
+    of ``sigma_px``) is the light times a constant. Dividing by it removes the light's slow changes (vignetting,
+    a surface slope's darkening) that tilt a pore's or a minutia's brightness and pull its centre uphill; the
+    result is scaled so the envelope becomes 255 (the seed's eq. 3.7 without the clip). Computed on the grid of
+    ``cell_px`` cell means.
+    """
+    h, w = smoothed.shape
+    size = (max(w // cell_px, 1), max(h // cell_px, 1))
+    cells = cv2.resize(smoothed, size, interpolation=cv2.INTER_AREA) if cell_px > 1 else smoothed
+    kd = max(int(round(window_px / cell_px)) | 1, 3)
+    env = cv2.dilate(cells, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd)))
+    sg = float(sigma_px) / cell_px
+    k = 2 * int(math.ceil(3.0 * sg)) + 1
+    env = cv2.GaussianBlur(env, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    gain = cv2.divide(np.full_like(env, 255.0), np.maximum(env, 1.0))
+    if cell_px > 1:
+        gain = cv2.resize(gain, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.multiply(smoothed, gain)
