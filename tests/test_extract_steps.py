@@ -275,7 +275,12 @@ def test_editing_steps_are_switchable():
 @settings(max_examples=6, deadline=None)
 @given(dx=st.integers(-12, 12), dy=st.integers(-12, 12))
 def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
-    """Whole-pixel shift of the scene => every feature far from the image border shifts by exactly that."""
+    """Whole-pixel shift of the scene => every feature far from the image border shifts by that.
+
+    To 0.03 px, not exactly: the ridge-scale statistics (threshold, light, flow) are taken on a grid of cells an
+    eighth of a ridge period wide (preprocess.ridge_statistics), and a shift that is not a whole number of cells
+    changes the cell means a little (~0.015 px seen in feature positions, five times below their frame-to-frame
+    jitter on the simulated scenes)."""
     ex = FeatureExtractor(calibration=CAL, params=ExtractionParams(remove_border_features=False))
     # Noise is drawn per pixel, not per skin point, so the invariant is checked on noise-free renderings.
     a0 = ex.extract(_noise_free(0, 0)).features
@@ -286,8 +291,8 @@ def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
     ia = np.lexsort((ca["y"], ca["x"], ca["kind"]))
     ib = np.lexsort((cb["y"] - dy, cb["x"] - dx, cb["kind"]))
     assert np.array_equal(ca["kind"][ia], cb["kind"][ib])
-    np.testing.assert_allclose(cb["x"][ib] - dx, ca["x"][ia], atol=1e-3)
-    np.testing.assert_allclose(cb["y"][ib] - dy, ca["y"][ia], atol=1e-3)
+    np.testing.assert_allclose(cb["x"][ib] - dx, ca["x"][ia], atol=0.03)
+    np.testing.assert_allclose(cb["y"][ib] - dy, ca["y"][ia], atol=0.03)
 
 
 def _noise_free(dx, dy):
