@@ -604,6 +604,7 @@ def remove_short_spurs(
     max_length_px: float,
     max_deviation_deg: float,
     orientation_px: int,
+    flow: RidgeFlow | None = None,
 ) -> SkeletonGraph:
     """Delete short spurs roughly perpendicular to their valley (seed 4.8.3, Figures 40-41).
 
@@ -616,7 +617,7 @@ def remove_short_spurs(
     straight on, the last pore of a row of pores across the ridges (see :func:`remove_bridges`).
     """
     spurs = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
-    return _edited(graph, _n_px(orientation_px), spurs=spurs)
+    return _edited(graph, _n_px(orientation_px), spurs=spurs, flow=flow)
 
 
 def remove_bridges(
@@ -626,6 +627,7 @@ def remove_bridges(
     max_length_px: float,
     max_deviation_deg: float,
     orientation_px: int,
+    flow: RidgeFlow | None = None,
 ) -> SkeletonGraph:
     """Replace bridges between adjacent valleys by pores (seed 4.8.4, Figures 43-44).
 
@@ -641,7 +643,7 @@ def remove_bridges(
     next bridge of the chain is taken on the next pass. Passes repeat until nothing changes.
     """
     bridges = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
-    return _edited(graph, _n_px(orientation_px), bridges=bridges)
+    return _edited(graph, _n_px(orientation_px), bridges=bridges, flow=flow)
 
 
 def edit_graph(
