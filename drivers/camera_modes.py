@@ -2,25 +2,22 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Annotated
+
+from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import Float, PositiveInt, validated_dataclass
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class CameraMode:
-    """A camera acquisition mode: image size in pixels and frame rate in Hz."""
+    """A camera acquisition mode: image size in pixels and frame rate in Hz (``math.inf``: as fast as read, a replay)."""
 
     name: str
-    width: int
-    height: int
-    fps: float
-
-    def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise InvalidInputError(f"camera mode {self.name!r}: size must be positive, got {self.width}x{self.height}")
-        if not self.fps > 0:
-            raise InvalidInputError(f"camera mode {self.name!r}: fps must be positive, got {self.fps}")
+    width: PositiveInt
+    height: PositiveInt
+    fps: Annotated[Float, Field(gt=0)]
 
     @property
     def period_s(self) -> float:

@@ -10,10 +10,22 @@ Writing
   file in SWMR mode, flushing at least every ``flush_interval_s``.
 * :func:`write_session` writes a whole in-memory session at once (the scene simulator uses it).
 
+A full disk (:mod:`skinstretch.drivers.disk_space`): :func:`expected_session_bytes` says what a recording needs
+before it starts; a :class:`SessionWriter` keeps a few MB in reserve and checks the free space before every
+write, stops with :class:`~skinstretch.drivers.errors.DiskFullError` before HDF5 could meet ENOSPC (which it does
+not survive), and then closes the file marked failed, every frame written so far readable.
+
 Reading
 -------
 :func:`open_session` returns a :class:`Session`; anything that is not a readable skinstretch session raises
 :class:`skinstretch.drivers.errors.SessionFileError` with a message naming the file and what is wrong.
+
+Files that explain themselves
+-----------------------------
+Every dataset is written with ``units``, a ``description``, named axes (HDF5 dimension labels), ``columns`` for
+a set of columns and ``enum_values`` / ``enum_names`` for codes, from :data:`SESSION_DATASETS` and the
+:class:`StreamSpec` of each stream (:data:`KNOWN_STREAMS`); :meth:`Session.dataset_info` reads them back, and
+describes a file written before they existed from the same tables.
 """
 
 from __future__ import annotations
@@ -21,18 +33,23 @@ from __future__ import annotations
 import json
 import math
 import os
+import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import h5py
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, free_bytes, is_disk_full,
+                                            megabytes)
+from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.drivers.errors import SessionFileError
-from skinstretch.processing.errors import InvalidInputError
+from skinstretch.drivers.errors import DiskFullError, SessionFileError
+from skinstretch.processing.errors import InvalidInputError, Remedy
 
 FORMAT_NAME = "skinstretch-session"
 FORMAT_VERSION = 1
@@ -42,6 +59,157 @@ STATUS_COMPLETE = 1
 STATUS_FAILED = 2
 STATUS_NAMES = {STATUS_RECORDING: "recording", STATUS_COMPLETE: "complete", STATUS_FAILED: "failed"}
 _REASON_LEN = 512
+
+#: The conventions every session states in its root attribute ``conventions``.
+CONVENTIONS = (
+    "image pixels, x = column, y = row, origin at the centre of the top-left pixel; times in s; lengths in mm "
+    "unless a name or a units attribute says px or um; each dataset has units, its axes are named by HDF5 "
+    "dimension labels, named columns of its last axis are in its columns attribute, codes are keyed by its "
+    "enum_values / enum_names attributes"
+)
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    """What a session dataset holds, written as its attributes so the file explains itself.
+
+    Attributes
+    ----------
+    units : str
+        Units of the values: ``"px"``, ``"s"``, ``"1"`` for a dimensionless number or a code, ``""`` for text;
+        per column, comma-separated in the order of ``columns``, when the columns differ.
+    axes : tuple of str
+        Name of every axis (HDF5 dimension labels), e.g. ``("frame", "y", "x")``.
+    description : str
+        One line on the meaning.
+    columns : tuple of str
+        Names along the last axis (``fx, fy, fz, tx, ty, tz``), empty when the last axis is not a set of columns.
+    enum : mapping int -> str, optional
+        The name of every code (``status``, ``feature_kind``).
+    """
+
+    units: str
+    axes: tuple[str, ...]
+    description: str
+    columns: tuple[str, ...] = ()
+    enum: Mapping[int, str] | None = None
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """A time-stamped sample stream of a session (force, display positions...): the shape and type of one sample,
+    and how it explains itself in the file (``units``, ``axes`` of one sample, ``columns`` of a 1-D sample)."""
+
+    shape: tuple[int, ...]
+    dtype: Any
+    units: str
+    axes: tuple[str, ...] = ()
+    columns: tuple[str, ...] = ()
+    description: str = ""
+
+    def info(self) -> DatasetInfo:
+        axes = self.axes or tuple(f"dim{k}" for k in range(1, len(self.shape) + 1))
+        return DatasetInfo(self.units, ("sample", *axes), self.description, self.columns)
+
+
+_CONTACTOR_AXES = ("contactor_row", "contactor_column")
+
+#: How the streams skinstretch records explain themselves (a declaration by name and shape picks these up).
+KNOWN_STREAMS: dict[str, StreamSpec] = {
+    "force": StreamSpec((6,), "f8", "N, N, N, N m, N m, N m", ("component",), ("fx", "fy", "fz", "tx", "ty", "tz"),
+                        "force (N) and torque (N m) in the sensor frame"),
+    "display_state": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+                                "measured lateral position of every contactor of the display"),
+    "display_target": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (), "target position of every contactor"),
+    "display_command": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+                                  "position sent to every contactor (after the driver's limits)"),
+    "display_measured": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+                                   "measured position of every contactor, aligned to the target it answers"),
+}
+
+#: Every dataset of a session (``streams/<name>/data`` come from their :class:`StreamSpec`). Files written before
+#: these attributes existed are read with these same descriptions (:meth:`Session.dataset_info`).
+SESSION_DATASETS: dict[str, DatasetInfo] = {
+    "frames": DatasetInfo("grey level", ("frame", "y", "x"), "8-bit grey images (0 black, 255 white)"),
+    "timestamps": DatasetInfo("s", ("frame",), "host time of each frame (Unix epoch; imported sessions: from the "
+                                               "first frame)"),
+    "device_timestamps": DatasetInfo("s", ("frame",), "camera (or file) time of each frame; NaN where none"),
+    "frame_ids": DatasetInfo("1", ("frame",), "camera frame counter (a gap is a dropped frame)"),
+    "status": DatasetInfo("1", (), "state of the session", enum=STATUS_NAMES),
+    "status_reason": DatasetInfo("", (), "why the session failed (empty otherwise)"),
+    "truth/feature_id": DatasetInfo("1", ("feature",), "stable id of every true minutia and pore"),
+    "truth/feature_kind": DatasetInfo("1", ("feature",), "kind of every true feature", enum=KIND_NAMES),
+    "truth/feature_x": DatasetInfo("px", ("frame", "feature"), "true x (column) of every feature in every frame"),
+    "truth/feature_y": DatasetInfo("px", ("frame", "feature"), "true y (row) of every feature in every frame"),
+    "truth/feature_visible": DatasetInfo("1", ("frame", "feature"), "feature in view and in contact (bool)"),
+    "truth/grid_x": DatasetInfo("px", ("grid_x",), "frame-0 x of the displacement grid"),
+    "truth/grid_y": DatasetInfo("px", ("grid_y",), "frame-0 y of the displacement grid"),
+    "truth/displacement": DatasetInfo("px", ("frame", "grid_y", "grid_x", "component"),
+                                      "Lagrangian displacement of the skin point at the grid point in frame 0",
+                                      ("dx", "dy")),
+    "truth/displacement_valid": DatasetInfo("1", ("frame", "grid_y", "grid_x"),
+                                            "that skin point is in view and in contact (bool)"),
+    "truth/rigid": DatasetInfo("px, px, deg", ("frame", "component"),
+                               "fingertip rigid motion relative to frame 0 (theta counter-clockwise on the image)",
+                               ("tx", "ty", "theta")),
+    "truth/rigid_center": DatasetInfo("px", ("component",), "centre of that rotation in frame 0", ("x", "y")),
+    "truth/strain": DatasetInfo("1", ("frame", "grid_y", "grid_x", "component"),
+                                "Green-Lagrange strain of frame k relative to frame 0, image axes (a fraction)",
+                                ("exx", "eyy", "exy")),
+}
+_STREAM_TIME = DatasetInfo("s", ("sample",), "host time of each sample")
+
+
+def describe_dataset(ds: h5py.Dataset, info: DatasetInfo) -> None:
+    """Write ``info`` as the attributes of ``ds`` (units, description, axis labels, columns, enum keys)."""
+    ds.attrs["units"] = info.units
+    ds.attrs["description"] = info.description
+    for k, label in enumerate(info.axes[: ds.ndim]):
+        ds.dims[k].label = label
+    if info.columns:
+        ds.attrs["columns"] = np.array(info.columns, dtype=h5py.string_dtype())
+    if info.enum:
+        ds.attrs["enum_values"] = np.array(sorted(info.enum), dtype=np.int64)
+        ds.attrs["enum_names"] = np.array([info.enum[k] for k in sorted(info.enum)], dtype=h5py.string_dtype())
+
+
+def stream_spec(name: str, declared: StreamSpec | tuple) -> StreamSpec:
+    """The :class:`StreamSpec` of a declared stream: as given, the known one of that name and shape, or one whose
+    units say ``unspecified``."""
+    if isinstance(declared, StreamSpec):
+        return declared
+    shape, dtype = declared
+    shape = tuple(int(t) for t in shape)
+    known = KNOWN_STREAMS.get(name)
+    if known is not None and known.shape == shape:
+        return StreamSpec(shape, dtype, known.units, known.axes, known.columns, known.description)
+    return StreamSpec(shape, dtype, "unspecified")
+
+
+@contextmanager
+def replacing_file(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Write a file under a temporary name beside ``path`` and move it onto ``path`` only when the block succeeds.
+
+    Yields the temporary path (not yet created). If the block raises, the temporary file is removed and ``path``
+    is untouched, so a half-written file never stands at ``path`` as if it were good. ``path`` existing is an
+    error unless ``overwrite``.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InvalidInputError(f"{path} exists", remedy=Remedy(("overwrite",), "to replace it", True))
+    if path.is_dir():
+        raise InvalidInputError(f"{path} is a directory, not a file name")
+    if not path.parent.is_dir():
+        raise InvalidInputError(f"{path.parent} is not an existing directory")
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    tmp.unlink()  # writers create it themselves (and refuse to overwrite)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @dataclass
@@ -145,13 +313,14 @@ def _create_layout(
     camera_mode: CameraMode,
     calibration: Calibration,
     metadata: Mapping[str, Any] | None,
-    streams: Mapping[str, tuple[tuple[int, ...], Any]] | None,
+    streams: Mapping[str, StreamSpec | tuple[tuple[int, ...], Any]] | None,
     n_frames: int,
     compression: str | None,
 ) -> None:
     """Create every group, attribute and dataset of a session up front (SWMR forbids creating them later)."""
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = FORMAT_VERSION
+    f.attrs["conventions"] = CONVENTIONS
     f.attrs["created_unix"] = time.time()
     f.attrs["metadata_json"] = _json_attr(metadata)
     cam = f.create_group("camera")
@@ -175,13 +344,40 @@ def _create_layout(
         f.create_dataset(name, shape=(n_frames,), maxshape=(None,), dtype=dtype, chunks=(4096,))
     f.create_dataset("status", data=np.int8(STATUS_RECORDING))
     f.create_dataset("status_reason", data=np.bytes_(b"".ljust(_REASON_LEN)), dtype=f"S{_REASON_LEN}")
+    for name in ("frames", "timestamps", "device_timestamps", "frame_ids", "status", "status_reason"):
+        describe_dataset(f[name], SESSION_DATASETS[name])
     sg = f.create_group("streams")
-    for name, (tail, dtype) in (streams or {}).items():
+    for name, declared in (streams or {}).items():
+        spec = stream_spec(name, declared)
         g = sg.create_group(name)
-        tail = tuple(int(t) for t in tail)
-        g.create_dataset("t", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(4096,))
+        tail, dtype = spec.shape, spec.dtype
+        describe_dataset(g.create_dataset("t", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(4096,)),
+                         _STREAM_TIME)
         chunk_rows = max(1, min(4096, (1 << 20) // max(1, int(np.prod(tail or (1,))) * np.dtype(dtype).itemsize)))
-        g.create_dataset("data", shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(chunk_rows, *tail))
+        data = g.create_dataset("data", shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(chunk_rows, *tail))
+        describe_dataset(data, spec.info())
+
+
+#: HDF5 metadata of a session (groups, attributes, dataset headers, chunk indices) stays below this.
+_LAYOUT_BYTES = 256 << 10
+
+
+def expected_session_bytes(
+    camera_mode: CameraMode,
+    n_frames: int,
+    *,
+    streams: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
+    samples: Mapping[str, int] | None = None,
+    reserve_bytes: int = DEFAULT_RESERVE_BYTES,
+) -> int:
+    """Bytes a recording of ``n_frames`` frames (and ``samples[name]`` rows of each stream) takes on disk, with
+    its layout and the reserve a :class:`SessionWriter` holds while writing; frames are stored uncompressed."""
+    per_frame = camera_mode.width * camera_mode.height + 3 * 8  # image, two time stamps, frame id
+    total = int(n_frames) * per_frame + _LAYOUT_BYTES + int(reserve_bytes)
+    for name, (tail, dtype) in (streams or {}).items():
+        row = int(np.prod(tuple(int(t) for t in tail) or (1,))) * np.dtype(dtype).itemsize + 8  # sample + time
+        total += int((samples or {}).get(name, 0)) * row
+    return total
 
 
 class SessionWriter:
@@ -201,8 +397,15 @@ class SessionWriter:
         Pixel scale (and mapping, if fitted) of the frames.
     metadata : mapping, optional
         Free JSON-serialisable metadata (subject, surface, protocol, trial...).
-    streams : mapping name -> (sample shape, dtype), optional
-        Extra time-stamped sample streams, e.g. ``{"force": ((6,), "f8")}``.
+    streams : mapping name -> StreamSpec or (sample shape, dtype), optional
+        Extra time-stamped sample streams, e.g. ``{"force": ((6,), "f8")}``; a stream of :data:`KNOWN_STREAMS`
+        declared by name and shape gets its units and column names, any other should be a :class:`StreamSpec`.
+    reserve_bytes : int, optional
+        Disk space held next to the file (``.NAME.reserve``) until it is closed, so it can always be closed.
+    min_free_bytes : int, optional
+        A write that would leave less free space than this is refused with DiskFullError (nothing written).
+    free_bytes : callable, optional
+        ``free_bytes(directory) -> int``; tests inject a disk that fills up.
     """
 
     def __init__(
@@ -212,16 +415,29 @@ class SessionWriter:
         camera_mode: CameraMode,
         calibration: Calibration,
         metadata: Mapping[str, Any] | None = None,
-        streams: Mapping[str, tuple[tuple[int, ...], Any]] | None = None,
+        streams: Mapping[str, StreamSpec | tuple[tuple[int, ...], Any]] | None = None,
         flush_interval_s: float = 0.05,
         compression: str | None = None,
+        reserve_bytes: int = DEFAULT_RESERVE_BYTES,
+        min_free_bytes: int = 1 << 20,
+        free_bytes: Callable[[Path], int] = free_bytes,
     ) -> None:
         self.path = Path(path)
         if self.path.exists():
             raise InvalidInputError(f"session file {self.path} already exists; recordings are never overwritten")
         self._height, self._width = camera_mode.height, camera_mode.width
         self._flush_interval = float(flush_interval_s)
-        self._file = h5py.File(self.path, "w", libver="latest")
+        self._free_bytes = free_bytes
+        self._min_free = int(min_free_bytes)
+        self._unflushed = 0  # bytes appended since the last flush (HDF5 keeps them in memory until then)
+        self._closed = True  # until the file exists
+        self._check_room(_LAYOUT_BYTES)
+        self._reserve = SpaceReserve(self.path, reserve_bytes)  # DiskFullError before the file is created
+        try:
+            self._file = h5py.File(self.path, "w", libver="latest")
+        except BaseException:
+            self._reserve.release()
+            raise
         try:
             _create_layout(
                 self._file,
@@ -237,6 +453,7 @@ class SessionWriter:
             self._file.swmr_mode = True
         except BaseException:
             self._file.close()
+            self._reserve.release()
             raise
         self._frames = self._file["frames"]
         self._ts = self._file["timestamps"]
@@ -246,6 +463,39 @@ class SessionWriter:
         self._stream_n: dict[str, int] = {name: 0 for name in (streams or {})}
         self._last_flush = time.monotonic()
         self._closed = False
+
+    def _check_room(self, nbytes: int) -> None:
+        """DiskFullError, before anything is written, when ``nbytes`` (plus what HDF5 still holds in memory: it
+        writes raw data at flushes) would leave less than the minimum free."""
+        free = self._free_bytes(self.path.parent)
+        if free < nbytes + self._unflushed + self._min_free:
+            raise DiskFullError(f"{self.path}: disk full: {megabytes(free)} free for {megabytes(nbytes + self._unflushed)}"
+                                f" to write and {megabytes(self._min_free)} to keep free; recording stopped, "
+                                "everything written before is kept")
+
+    @contextmanager
+    def _writing(self, nbytes: int | None):
+        """Around every write of ``nbytes`` (None: a flush): refuse it when the disk has no room for it and for what
+        is not flushed yet, and turn an ENOSPC that HDF5 meets
+        anyway (another process filled the disk since the check) into DiskFullError, after releasing the reserve
+        and flushing again so that the file can still be closed (see :mod:`skinstretch.drivers.disk_space`)."""
+        if self._closed:
+            raise SessionFileError(f"{self.path}: the session writer is closed")
+        if nbytes is not None:  # a flush (None) is never refused: the appends before it kept the room for it
+            self._check_room(nbytes)
+            self._unflushed += nbytes
+        try:
+            yield
+        except (OSError, RuntimeError) as exc:
+            if not is_disk_full(exc):
+                raise
+            self._reserve.release()
+            try:
+                self._file.flush()
+            except (OSError, RuntimeError):
+                pass  # close() tries again
+            raise DiskFullError(f"{self.path}: disk full while writing (ENOSPC); recording stopped, everything "
+                                "flushed before is kept") from None
 
     @property
     def n_frames(self) -> int:
@@ -260,14 +510,15 @@ class SessionWriter:
                 f"frame must be uint8 of shape {(self._height, self._width)}, got {frame.dtype} {frame.shape}"
             )
         n = self._n
-        # Time stamps first, frame last: a reader trusts only rows present in all three (see n_frames).
-        for ds, value in ((self._ts, timestamp), (self._dts, device_timestamp), (self._ids, frame_id)):
-            ds.resize((n + 1,))
-            ds[n] = value
-        self._frames.resize((n + 1, self._height, self._width))
-        self._frames[n] = frame
-        self._n = n + 1
-        self._maybe_flush()
+        with self._writing(frame.nbytes + 24):
+            # Time stamps first, frame last: a reader trusts only rows present in all three (see n_frames).
+            for ds, value in ((self._ts, timestamp), (self._dts, device_timestamp), (self._ids, frame_id)):
+                ds.resize((n + 1,))
+                ds[n] = value
+            self._frames.resize((n + 1, self._height, self._width))
+            self._frames[n] = frame
+            self._n = n + 1
+            self._maybe_flush()
 
     def append_frames(
         self, frames: np.ndarray, *, timestamps: np.ndarray, frame_ids: np.ndarray, device_timestamps: np.ndarray
@@ -283,14 +534,15 @@ class SessionWriter:
         if any(c.shape[0] != k for c in cols):
             raise InvalidInputError(f"timestamps, device_timestamps and frame_ids must each hold {k} values")
         n = self._n
-        # Time stamps first, frames last, as in append_frame.
-        for ds, values in zip((self._ts, self._dts, self._ids), cols):
-            ds.resize((n + k,))
-            ds[n : n + k] = values
-        self._frames.resize((n + k, self._height, self._width))
-        self._frames[n : n + k] = frames
-        self._n = n + k
-        self._maybe_flush()
+        with self._writing(frames.nbytes + 24 * k):
+            # Time stamps first, frames last, as in append_frame.
+            for ds, values in zip((self._ts, self._dts, self._ids), cols):
+                ds.resize((n + k,))
+                ds[n : n + k] = values
+            self._frames.resize((n + k, self._height, self._width))
+            self._frames[n : n + k] = frames
+            self._n = n + k
+            self._maybe_flush()
 
     def append_samples(self, stream: str, t: np.ndarray | float, data: np.ndarray) -> None:
         """Append samples (``t`` of shape (k,), ``data`` of shape (k, *sample_shape)) to a declared stream."""
@@ -306,12 +558,13 @@ class SessionWriter:
                 f"stream {stream!r}: got t {t.shape} and data {data.shape}, expected (k,) and (k, *{g['data'].shape[1:]})"
             )
         n, k = self._stream_n[stream], t.shape[0]
-        g["data"].resize((n + k, *g["data"].shape[1:]))
-        g["data"][n : n + k] = data
-        g["t"].resize((n + k,))
-        g["t"][n : n + k] = t
-        self._stream_n[stream] = n + k
-        self._maybe_flush()
+        with self._writing(data.nbytes + t.nbytes):
+            g["data"].resize((n + k, *g["data"].shape[1:]))
+            g["data"][n : n + k] = data
+            g["t"].resize((n + k,))
+            g["t"][n : n + k] = t
+            self._stream_n[stream] = n + k
+            self._maybe_flush()
 
     def _maybe_flush(self) -> None:
         now = time.monotonic()
@@ -321,19 +574,41 @@ class SessionWriter:
 
     def flush(self) -> None:
         """Write everything buffered to the file (readers in SWMR mode then see it)."""
-        self._file.flush()
+        with self._writing(None):
+            self._file.flush()
+            self._unflushed = 0
 
     def close(self, *, status: int = STATUS_COMPLETE, reason: str = "") -> None:
-        """Mark the session complete (or failed, with a reason) and close the file. Idempotent."""
+        """Mark the session complete (or failed, with a reason) and close the file. Idempotent.
+
+        The disk reserve is released first, so the last writes have room even on a full disk. If HDF5 still
+        cannot write (another process took that room too) the flush is retried for up to ``CLOSE_RETRY_S`` while
+        space may come back; after that the file stays open in HDF5 and DiskFullError says so (see
+        :func:`unclosed_sessions`).
+        """
         if self._closed:
             return
         self._closed = True
-        try:
-            self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
-            self._file["status"][()] = np.int8(status)
-            self._file.flush()
-        finally:
-            self._file.close()
+        self._reserve.release()
+        deadline = time.monotonic() + CLOSE_RETRY_S
+        while True:
+            try:
+                self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
+                self._file["status"][()] = np.int8(status)
+                self._file.flush()
+                break
+            except (OSError, RuntimeError) as exc:
+                if not is_disk_full(exc):
+                    self._file.close()
+                    raise
+                if time.monotonic() >= deadline:
+                    # Closing now would fail and leave HDF5 unable to shut down: keep the handle, say so.
+                    _UNCLOSED.append(self.path)
+                    raise DiskFullError(f"{self.path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be "
+                                        "closed (writes since its last flush are lost, frames flushed before are "
+                                        "kept)") from None
+                time.sleep(0.05)
+        self._file.close()
 
     def fail(self, reason: str) -> None:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
@@ -347,6 +622,20 @@ class SessionWriter:
             self.close()
         else:
             self.fail(f"{exc_type.__name__}: {exc}")
+
+
+#: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
+CLOSE_RETRY_S = 1.0
+_UNCLOSED: list[Path] = []
+
+
+def unclosed_sessions() -> list[Path]:
+    """Session files this process could not close because the disk stayed full (normally none).
+
+    HDF5 keeps such a file open, and crashes while shutting down the library at interpreter exit; a program that
+    sees any should end with ``os._exit`` once its output is flushed (the command line does).
+    """
+    return list(_UNCLOSED)
 
 
 def write_session(
@@ -380,29 +669,29 @@ def write_session(
         raise InvalidInputError(f"frame_ids must have shape ({n},), got {frame_ids.shape}")
     if truth is not None:
         truth.validate(n)
-    if path.exists() and not overwrite:
-        raise InvalidInputError(f"{path} exists; pass overwrite=True to replace it")
-    tmp = path.with_name(path.name + ".partial")
-    with h5py.File(tmp, "w", libver="latest") as f:
-        _create_layout(
-            f,
-            height=h,
-            width=w,
-            camera_mode=camera_mode,
-            calibration=calibration,
-            metadata=metadata,
-            streams=None,
-            n_frames=n,
-            compression=compression,
-        )
-        f["frames"][...] = frames
-        f["timestamps"][...] = timestamps
-        f["device_timestamps"][...] = timestamps
-        f["frame_ids"][...] = frame_ids
-        if truth is not None:
-            _write_truth(f, truth)
-        f["status"][()] = np.int8(STATUS_COMPLETE)
-    os.replace(tmp, path)
+    # HDF5 does not survive a full disk (see disk_space): refuse what cannot fit before writing a byte
+    truth_bytes = sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS) if truth is not None else 0
+    check_fits(path.parent, frames.nbytes + 24 * n + truth_bytes + _LAYOUT_BYTES, what=f"session {path.name}")
+    with replacing_file(path, overwrite=overwrite) as tmp:
+        with h5py.File(tmp, "w", libver="latest") as f:
+            _create_layout(
+                f,
+                height=h,
+                width=w,
+                camera_mode=camera_mode,
+                calibration=calibration,
+                metadata=metadata,
+                streams=None,
+                n_frames=n,
+                compression=compression,
+            )
+            f["frames"][...] = frames
+            f["timestamps"][...] = timestamps
+            f["device_timestamps"][...] = timestamps
+            f["frame_ids"][...] = frame_ids
+            if truth is not None:
+                _write_truth(f, truth)
+            f["status"][()] = np.int8(STATUS_COMPLETE)
     return path
 
 
@@ -413,7 +702,8 @@ def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
     for name in SessionTruth._ARRAYS:
         arr = np.asarray(getattr(truth, name))
         big = arr.ndim >= 3  # the per-frame fields: lzf keeps ~10 % off at half gzip's time (noisy floats)
-        g.create_dataset(name, data=arr, compression="lzf" if big else None)
+        ds = g.create_dataset(name, data=arr, compression="lzf" if big else None)
+        describe_dataset(ds, SESSION_DATASETS[f"truth/{name}"])
 
 
 def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
@@ -561,6 +851,44 @@ class Session:
 
         return self._read(read)
 
+    def stream_info(self, name: str) -> DatasetInfo:
+        """Units, axis names and column names of a stream's samples (``fx, fy, fz, tx, ty, tz`` for ``force``)."""
+        if name not in self.stream_names():
+            raise SessionFileError(f"{self.path}: no stream {name!r} (has {self.stream_names()})")
+        return self.dataset_info(f"streams/{name}/data")
+
+    def dataset_info(self, name: str) -> DatasetInfo:
+        """What dataset ``name`` holds ("frames", "truth/strain", "streams/force/data"...): its units, axis names,
+        columns and code names, from its attributes; a file written before they existed is described by
+        :data:`SESSION_DATASETS` and :data:`KNOWN_STREAMS`, which is what its writer meant."""
+        try:
+            ds = self._f[name]
+        except KeyError:
+            raise SessionFileError(f"{self.path}: no dataset {name!r}") from None
+        if not isinstance(ds, h5py.Dataset):
+            raise SessionFileError(f"{self.path}: {name!r} is a group, not a dataset")
+        a = ds.attrs
+        if "units" in a:
+            values, names = a.get("enum_values"), a.get("enum_names")
+            enum = ({int(v): _text(n) for v, n in zip(values, names)} if values is not None and names is not None
+                    else None)
+            return DatasetInfo(
+                units=_text(a["units"]),
+                axes=tuple(_text(d.label) for d in ds.dims),
+                description=_text(a.get("description", "")),
+                columns=tuple(_text(c) for c in a.get("columns", ())),
+                enum=enum,
+            )
+        parts = name.strip("/").split("/")
+        if len(parts) == 3 and parts[0] == "streams":
+            if parts[2] == "t":
+                return _STREAM_TIME
+            return stream_spec(parts[1], (ds.shape[1:], ds.dtype)).info()
+        info = SESSION_DATASETS.get(name.strip("/"))
+        if info is None:
+            raise SessionFileError(f"{self.path}: dataset {name!r} carries no units and is not a session dataset")
+        return info
+
     @property
     def has_truth(self) -> bool:
         return "truth" in self._f
@@ -604,6 +932,10 @@ class Session:
 
     def __repr__(self) -> str:
         return f"Session({str(self.path)!r}, frames={self.n_frames}, mode={self.camera_mode.name}, {self.status})"
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
 
 
 def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:

@@ -272,8 +272,10 @@ def measure_flow(
     finally:
         bar.close()
     for f in fields:
-        if f.status != "ok":
+        if f.status != "ok" and not any(f.frame_flags):
             flags[f.frame_a] = f.status
+        for k, refused in zip((f.frame_a, f.frame_b), f.frame_flags):  # the texture gate names each frame's reason
+            flags[k] = refused or flags[k]
     t_flow = time.perf_counter() - t0
     t0 = time.perf_counter()
     samples = [_rectified_sample(f.motion(), mapping, calibration) for f in fields]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import time
@@ -165,7 +166,7 @@ def analyze_many(
     scheduler: str | None = None,
     method: str = "features",
     options: dict[str, Any] | None = None,
-    progress: Callable[[str], None] = print,
+    progress: Callable[[str], None] = logging.getLogger(__name__).info,
 ) -> BatchResult:
     """Analyse every session of ``paths`` (files or directories) into ``outdir``; summarise across sessions.
 

@@ -16,6 +16,7 @@ contactor's *persistent* error online:
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -31,6 +32,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.session_file import SessionWriter, open_session
 from skinstretch.drivers.errors import DeviceError, SafetyStop, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.experiments.output_paths import check_output_dir, check_output_file
 
 __all__ = [
     "ContactorCorrector",
@@ -276,6 +278,8 @@ def play_movie(
         raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
     if not (0 < force_ceiling_n <= 100):
         raise InvalidInputError(f"force_ceiling_n must be in (0, 100] N, got {force_ceiling_n!r}")
+    if path is not None:
+        check_output_file(path)  # before the first frame: what is played must be recordable
     n = movie.shape[0]
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
     forces = np.full((n, 6), np.nan)
@@ -283,6 +287,7 @@ def play_movie(
     intended = np.full((n, *SHAPE), np.nan)  # the host's command of each frame (kept for an interrupted movie)
     seen = [display.acks_received]
     done = [0]  # frames whose callback completed (they were sent unless the movie was interrupted just then)
+    tripped: list[int] = []  # the frame whose force sample tripped the ceiling (it was never sent)
 
     def callback(k: int, command: np.ndarray, latest) -> np.ndarray | None:
         host_t[k] = time.time()
@@ -293,6 +298,7 @@ def play_movie(
                 forces[k] = wrench
                 fz = abs(float(wrench[2]))
                 if fz > force_ceiling_n:
+                    tripped.append(k)
                     raise SafetyStop(f"normal force {fz:.2f} N above the ceiling {force_ceiling_n:.2f} N")
         if corrector is None:
             done[0] = k + 1
@@ -363,8 +369,14 @@ def play_movie(
                "skipped_frames": report.frames_skipped,
                "period_jitter_p99_s": report.period_jitter_p99_s, "rate_hz": float(rate_hz)},
     )
+    if tripped:
+        result.extra["ceiling_sample"] = {"frame": tripped[0], "t": float(host_t[tripped[0]]),
+                                          "wrench": forces[tripped[0]].tolist()}
     if path is not None:
-        _record_playback(path, result, host_t[:sent], forces[:sent], metadata=metadata, force_ceiling_n=force_ceiling_n)
+        # the force stream runs to the sample that tripped the ceiling, one frame past the last one sent
+        n_force = max(sent, tripped[0] + 1) if tripped else sent
+        _record_playback(path, result, host_t[:sent], (host_t[:n_force], forces[:n_force]), metadata=metadata,
+                         force_ceiling_n=force_ceiling_n)
     if progress is not None:
         progress(
             f"  playback ({'closed' if closed_loop else 'open'} loop): {sent}/{n} frames at {rate_hz:g} Hz, "
@@ -374,7 +386,10 @@ def play_movie(
     return result
 
 
-def _record_playback(path, result: PlaybackResult, t: np.ndarray, forces: np.ndarray, *, metadata, force_ceiling_n):
+def _record_playback(path, result: PlaybackResult, t: np.ndarray, force: tuple[np.ndarray, np.ndarray], *, metadata,
+                     force_ceiling_n):
+    """Write a played movie's streams; ``t`` times the played frames, ``force`` is (times, wrenches) of every
+    force sample taken (NaN rows: none that frame), the one that tripped the ceiling included."""
     mode = CAMERA_MODES["full"]
     writer = SessionWriter(
         path,
@@ -396,9 +411,10 @@ def _record_playback(path, result: PlaybackResult, t: np.ndarray, forces: np.nda
             writer.append_samples("display_target", t, result.target_um.astype(np.float32))
             writer.append_samples("display_command", t, result.command_um.astype(np.float32))
             writer.append_samples("display_measured", t, result.measured_um.astype(np.float32))
-            ok = np.all(np.isfinite(forces), axis=1)
-            if np.any(ok):
-                writer.append_samples("force", t[ok], forces[ok])
+        force_t, forces = force
+        ok = np.all(np.isfinite(forces), axis=1)
+        if np.any(ok):
+            writer.append_samples("force", force_t[ok], forces[ok])
     except BaseException as exc:
         writer.fail(f"{type(exc).__name__}: {exc}")
         raise
@@ -421,7 +437,7 @@ def _record_interrupted(path, exc: BaseException, *, played, movie, host_t, inte
         extra={"rate_hz": rate_hz},
     )
     try:
-        _record_playback(path, result, host_t[:k], forces[:k],
+        _record_playback(path, result, host_t[:k], (host_t[:k], forces[:k]),
                          metadata={**dict(metadata or {}), "command_source": "host, before the driver's limits"},
                          force_ceiling_n=force_ceiling_n)
     except Exception:  # noqa: BLE001 - the original exception matters more; the file says what it holds
@@ -534,7 +550,8 @@ def _check_movie(movie: np.ndarray, source: Path) -> np.ndarray:
     return np.where(np.isfinite(movie), movie, 0.0)
 
 
-def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=print) -> PlaybackResult:
+def play_protocol_movie(protocol, session_directory: Path, *, devices,
+                        progress=logging.getLogger(__name__).info) -> PlaybackResult:
     """Play the protocol's movie (``movie.source``: a trial name, ``last_trial``, or a file) on the rig's display."""
     spec = protocol.movie
     sdir = Path(session_directory)
@@ -553,7 +570,7 @@ def play_protocol_movie(protocol, session_directory: Path, *, devices, progress=
     display_rate = float(spec.rate_hz or 700.0)
     if rate is not None and rate != display_rate:
         movie = resample_movie(movie, from_hz=rate, to_hz=display_rate)
-    out = sdir / "playback"
+    out = check_output_dir(sdir / "playback")
     out.mkdir(exist_ok=True)
     k = 1
     while (out / f"playback-{k}.h5").exists():

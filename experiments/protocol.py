@@ -45,8 +45,9 @@ _NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
 
 
 class _Strict(BaseModel):
-    # Unknown keys are errors: a misspelt option must not be silently ignored.
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # Unknown keys are errors: a misspelt option must not be silently ignored. NaN and infinities are refused as
+    # such ("Input should be a finite number"), not by whichever bound they happen to fail.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Subject(_Strict):

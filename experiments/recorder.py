@@ -7,14 +7,17 @@ The file is flushed at least every ``flush_interval_s`` (0.025 s) — after writ
 so a SIGKILL loses at most the last ~0.1 s and leaves a file that opens and reads as incomplete (shared FACTS:
 recording crash test).
 
-When the writer fails (disk full: ``OSError(ENOSPC)``, or any other error) it stops writing, closes the session
-marked *failed* with the reason, and sets :attr:`Recorder.failure`; the producers see it on their next put and
-the runner ends the trial cleanly (display to rest, devices stopped). Data already written is kept.
+When the writer fails (disk full, or any other error) it stops writing, closes the session marked *failed* with
+the reason, and sets :attr:`Recorder.failure` (and :attr:`Recorder.disk_full`); the producers see it on their next
+put and the runner ends the trial cleanly (display to rest, devices stopped). Data already written is kept. The
+session writer stops *before* a write could meet a full disk and keeps a reserve to close the file
+(:mod:`skinstretch.drivers.disk_space`): HDF5 does not survive ENOSPC.
 """
 
 from __future__ import annotations
 
 import errno
+import logging
 import math
 import os
 import queue
@@ -27,12 +30,15 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.disk_space import is_disk_full
+from skinstretch.drivers.errors import DiskFullError
 from skinstretch.drivers.session_file import STATUS_COMPLETE, STATUS_FAILED, SessionWriter
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["Recorder", "RecorderStats", "describe_os_error"]
 
+log = logging.getLogger(__name__)
 _STOP = object()
 
 
@@ -66,6 +72,8 @@ class RecorderStats:
 
 def describe_os_error(exc: BaseException) -> str:
     """A one-line reason for a failed write, naming disk full explicitly."""
+    if isinstance(exc, DiskFullError):
+        return str(exc)
     if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
         return f"disk full while writing (ENOSPC): {exc}"
     return f"{type(exc).__name__}: {exc}"
@@ -137,6 +145,7 @@ class Recorder:
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
         self._failure: str | None = None
+        self._disk_full = False
         self._failed_event = threading.Event()
         self._frames = 0
         self._samples: dict[str, int] = {name: 0 for name in (streams or {})}
@@ -155,6 +164,11 @@ class Recorder:
     def failure(self) -> str | None:
         """Why the writer failed (disk full...), or None while all is well."""
         return self._failure
+
+    @property
+    def disk_full(self) -> bool:
+        """The writer stopped because the disk is full (the run should not start another recording there)."""
+        return self._disk_full
 
     @property
     def failed(self) -> threading.Event:
@@ -200,16 +214,15 @@ class Recorder:
         return self._put(("samples", stream, np.array(t, dtype=np.float64), np.array(data)))
 
     # -- writer thread
-    def _fail(self, reason: str) -> None:
+    def _fail(self, reason: str, exc: BaseException | None = None) -> None:
         self._failure = reason
+        self._disk_full = self._disk_full or (exc is not None and is_disk_full(exc))
         self._failed_event.set()
         try:
             self._writer.fail(reason)
-        except Exception:  # the disk may refuse even the status write; the data already flushed stays
-            try:
-                self._writer._file.close()  # noqa: SLF001 - last resort: release the HDF5 handle
-            except Exception:
-                pass
+        except Exception as close_exc:  # noqa: BLE001 - the data already flushed stays; say why it did not close
+            self._disk_full = self._disk_full or is_disk_full(close_exc)
+            log.error("%s: could not be closed after the failure: %s", self.path, close_exc)
 
     def _run(self) -> None:
         dirty = False
@@ -258,12 +271,14 @@ class Recorder:
                     dirty = False
                     last_flush = now
             except Exception as exc:  # disk full, I/O error, bad item: the trial fails, the data so far stays
-                self._fail(describe_os_error(exc))
+                self._fail(describe_os_error(exc), exc)
         if self._failure is None:
             try:
                 self._writer.close(status=self._final_status, reason=self._final_reason)
-            except Exception as exc:
-                self._fail(describe_os_error(exc))
+            except Exception as exc:  # noqa: BLE001 - recorded as the failure
+                self._failure = describe_os_error(exc)
+                self._disk_full = is_disk_full(exc)
+                self._failed_event.set()
 
     def _frame_run(self, first: tuple) -> tuple[list, tuple | None]:
         """Frames already queued behind ``first`` (up to 32), written in one append when the writer fell behind:
@@ -318,8 +333,9 @@ class Recorder:
         else:
             try:
                 self._writer.close(status=self._final_status, reason=self._final_reason)
-            except Exception as exc:
-                self._fail(describe_os_error(exc))
+            except Exception as exc:  # noqa: BLE001 - recorded as the failure
+                self._failure = describe_os_error(exc)
+                self._disk_full = is_disk_full(exc)
         if self._failure is not None:
             status, reason = "failed", self._failure
         else:

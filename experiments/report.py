@@ -26,7 +26,8 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.processing.errors import SkinstretchError
 from skinstretch.experiments.figures import chapter6 as fig6
 
-__all__ = ["TrialEntry", "build_report", "collect_trials", "trial_figures"]
+__all__ = ["Quantity", "TrialEntry", "build_report", "collect_trials", "evaluation_quantities", "report_trials",
+           "trial_figures", "viewer_command"]
 
 
 @dataclass
@@ -57,6 +58,30 @@ def collect_trials(session_dir: str | Path) -> list[TrialEntry]:
             )
         )
     return out
+
+
+def report_trials(target: str | Path) -> list[TrialEntry]:
+    """The trials a report of ``target`` shows: a runner's session directory (every trial), an analysis output
+    directory of ``skinstretch analyze`` (its ``results.h5`` names the session), or a single session file."""
+    from skinstretch.drivers.errors import SessionFileError  # noqa: PLC0415
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
+
+    target = Path(target)
+    if target.is_dir() and (target / "results.h5").is_file():
+        session = Path(read_results(target).session_path)
+        if not session.is_file():
+            raise SessionFileError(f"{target}/results.h5 names the session {session}, which does not exist")
+        return [TrialEntry(name=session.stem, session=session, analysis=target)]
+    if target.is_dir():
+        trials = collect_trials(target)
+        if not trials:
+            raise SessionFileError(f"{target}: neither a session directory of skinstretch record (no trial "
+                                   "holds a session.h5) nor an analysis output (no results.h5)")
+        return trials
+    if target.is_file():
+        open_session(target).close()  # a readable session, or an error saying why not
+        return [TrialEntry(name=target.stem, session=target)]
+    raise SessionFileError(f"{target}: no such session file or directory")
 
 
 # ------------------------------------------------------------------------------------------------ html bits
@@ -102,6 +127,76 @@ th{background:#f3f3f3} td{text-align:right} td:first-child{text-align:left}
 figure{margin:1em 0} img{max-width:100%} figcaption{font-size:.85em;color:#555}
 .warn{color:#a40} .ok{color:#070} pre{background:#f7f7f7;padding:.5em;font-size:.8em;overflow-x:auto}
 """
+
+
+# ------------------------------------------------------------------------------------ numbers with units
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """A number as the report shows it: what it is, its value in ``unit``, the unit."""
+
+    label: str
+    value: Any
+    unit: str
+
+
+def _position_pair(label: str, px: float, px_per_mm: float) -> list[Quantity]:
+    """A position error in px and in um on the skin (px / px_per_mm)."""
+    um = px / px_per_mm * 1000.0 if isinstance(px, (int, float)) and px_per_mm > 0 else float("nan")
+    return [Quantity(label, px, "px"), Quantity(label, um, "um")]
+
+
+def evaluation_quantities(ev: dict[str, Any], px_per_mm: float) -> dict[str, Quantity]:
+    """Every number of an evaluation against the truth (``evaluate_tracking``), in its unit: positions in px and
+    um, strains and rates in %. Keyed ``part.name`` (``.um`` for the um twin); the report's tables all read them
+    from here, so a number shown twice is the same number."""
+    out: dict[str, Quantity] = {}
+    for part, values in ev.items():
+        if not isinstance(values, dict):
+            continue
+        for key, v in values.items():
+            name = f"{part}.{key}"
+            words = key.replace("_", " ")
+            if key.endswith("_px"):
+                px, um = _position_pair(f"{part}: {words[:-3]}", v, px_per_mm)
+                out[name], out[name + ".um"] = px, um
+            elif key.startswith(("edge_rmse_", "area_rmse_")):
+                span = key.rsplit("_", 1)[1]
+                what = "edge" if key.startswith("edge") else "area"
+                out[name] = Quantity(f"{part}: {what} strain RMSE, span {span}", _percent(v), "%")
+            elif key.endswith("_rate") or key.endswith("amplitude"):
+                out[name] = Quantity(f"{part}: {words}", _percent(v), "%")
+            elif key.endswith("_frames"):
+                out[name] = Quantity(f"{part}: {words[:-7]}", v, "frames")
+            else:
+                out[name] = Quantity(f"{part}: {words}", v, "")
+    return out
+
+
+def _percent(v: Any) -> Any:
+    return v * 100.0 if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+
+
+def _quantity_table(quantities: Iterable[Quantity]) -> str:
+    return _table([(q.label, q.value, q.unit) for q in quantities], ["quantity", "value", "unit"])
+
+
+#: The columns of the summary of every simulated trial (keys of :func:`evaluation_quantities`).
+_SUMMARY_KEYS = (
+    ("tracking.displacement_rmse_px", "displacement RMSE (px)"),
+    ("tracking.displacement_rmse_px.um", "displacement RMSE (um)"),
+    ("tracking.wrong_match_rate", "wrong matches (%)"),
+    ("strain.edge_rmse_1", "edge strain RMSE span 1 (%)"),
+    ("strain.edge_rmse_11", "edge strain RMSE span 11 (%)"),
+    ("profile.correlation", "profile correlation"),
+)
+
+
+def viewer_command(entry: "TrialEntry") -> str:
+    """The command that opens a trial in the browser viewer (its analysis when there is one)."""
+    target = entry.analysis if entry.analysis is not None else entry.session
+    return f"skinstretch view {target}"
 
 
 # --------------------------------------------------------------------------------------------- from results
@@ -167,7 +262,7 @@ def _triangulated_pairs(r, span: int):
     return s, ok
 
 
-def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) -> str:
+def _measurement_panel(r, session, span: int, *, shape_x_px=None) -> str:
     s, ok = _triangulated_pairs(r, span)
     k = int(ok[ok.size // 2])
     fa, fb = int(s.pairs["frame_a"][k]), int(s.pairs["frame_b"][k])
@@ -184,13 +279,13 @@ def _measurement_panel(r, session, span: int, *, limit: float, shape_x_px=None) 
     fig = fig6.measurements_figure(
         session.frame(fa), session.frame(fb), index_a=fa, index_b=fb, points_a=pa, points_b=pb, edges=edges,
         edge_change=e["change"], triangles=tris, area_change=t["change"], flipped=t["flipped"],
-        patch_centers=centers, patch_change=change, limit=limit, shape_x_px=shape_x_px,
+        patch_centers=centers, patch_change=change, shape_x_px=shape_x_px,
     )
-    return _img(fig, f"Measurements from frame {fa} to {fb} (span {span}; white/black = +/-{limit * 100:.0f} %), "
-                     "as seed Figures 76-93")
+    return _img(fig, f"Measurements from frame {fa} to {fb} (span {span}), as seed Figures 76-93; each map's "
+                     "colours are scaled to its data (blue = compression, red = stretch, colorbars in %)")
 
 
-def _edge_series(r, span: int, *, limit: float) -> str:
+def _edge_series(r, span: int) -> str:
     s, ok = _triangulated_pairs(r, span)
     picks = ok[np.linspace(0, ok.size - 1, min(6, ok.size)).round().astype(int)]
     panels = []
@@ -200,8 +295,9 @@ def _edge_series(r, span: int, *, limit: float) -> str:
         points, edges, _, _ = _points_edges(e, t)
         panels.append({"points": points, "edges": edges, "edge_change": e["change"],
                        "frame_a": s.pairs["frame_a"][k], "frame_b": s.pairs["frame_b"][k]})
-    fig = fig6.edge_change_series_figure(panels, shape=r.image_shape, limit=limit)
-    return _img(fig, f"Edge length change over {span} frames at several positions (as seed Figures 78, 81...)")
+    fig = fig6.edge_change_series_figure(panels, shape=r.image_shape)
+    return _img(fig, f"Edge length change over {span} frames at several positions (as seed Figures 78, 81...), "
+                     "on one colour scale fitted to them")
 
 
 def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, dict[str, Any]]:
@@ -212,7 +308,8 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
     info: dict[str, Any] = {"name": entry.name}
     with open_session(entry.session) as session:
         md = session.metadata
-        info["surface"] = (md.get("surface") or {}).get("kind", "?")
+        surface = md.get("surface")  # a protocol's {"kind": ...} or a simulated scene's name
+        info["surface"] = (surface.get("kind") if isinstance(surface, dict) else surface) or "?"
         info["scene"] = md.get("scene", "")
         rec = {
             "status": session.status + (f" ({session.status_reason})" if session.status_reason else ""),
@@ -226,33 +323,39 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
         }
         rec.update({k: v for k, v in entry.summary.items() if k in ("dropped_frames", "mean_fps", "bytes",
                                                                      "normal_force_mean_n", "normal_force_max_n")})
+        parts.append(f'<p class="viewer">Step through this trial frame by frame, with its features, matches and '
+                     f"strain: <code>{_esc(viewer_command(entry))}</code></p>")
         parts.append("<h3>Recording</h3>" + _kv(rec))
         if entry.analysis is None:
             parts.append('<p class="warn">No analysis results for this trial.</p>')
             return "\n".join(parts), info
         r = read_results(entry.analysis)
         info["results"] = r
-        summary = {
-            "method": r.method,
-            "frames flagged": sum(1 for f in r.frame_flags if f),
-            "analysis time (s)": r.timing.get("total_s", float("nan")),
-            "frames per s": r.timing.get("frames_per_s", float("nan")),
-            "fingertip travel (px)": np.ptp(r.fingertip_position, axis=0).tolist(),
-            "profile axis": "x" if r.profile_axis == 0 else "y",
-        }
+        travel = np.ptp(r.fingertip_position, axis=0)
+        summary = [
+            Quantity("method", r.method, ""),
+            Quantity("frames flagged", sum(1 for f in r.frame_flags if f), "frames"),
+            Quantity("analysis time", r.timing.get("total_s", float("nan")), "s"),
+            Quantity("analysis speed", r.timing.get("frames_per_s", float("nan")), "frames/s"),
+            Quantity("fingertip travel (x, y)", travel.tolist(), "px"),
+            Quantity("fingertip travel (x, y)", (travel / r.px_per_mm).tolist(), "mm"),
+            Quantity("profile axis (sliding direction)", "x" if r.profile_axis == 0 else "y", ""),
+        ]
         if r.trajectories is not None:
             lengths = r.trajectories["present"].sum(axis=0)
-            summary["trajectories"] = int(lengths.size)
-            summary["median trajectory (frames)"] = float(np.median(lengths)) if lengths.size else 0.0
-        for span, s in sorted(r.strain.items()):
-            e = s.edges["change"]
-            summary[f"edge change p5/p95, span {span}"] = np.percentile(e, [5, 95]).tolist() if e.size else "none"
-        parts.append("<h3>Analysis</h3>" + _kv(summary))
-        parts.append(_guard("measurements over 1 frame", lambda: _measurement_panel(r, session, 1, limit=0.05)))
+            summary.append(Quantity("trajectories", int(lengths.size), ""))
+            summary.append(Quantity("median trajectory length", float(np.median(lengths)) if lengths.size else 0.0,
+                                    "frames"))
+        for span, st in sorted(r.strain.items()):
+            e = st.edges["change"]
+            summary.append(Quantity(f"edge length change p5 / p95, span {span}",
+                                    (np.percentile(e, [5, 95]) * 100).tolist() if e.size else "none", "%"))
+        parts.append("<h3>Analysis</h3>" + _quantity_table(summary))
+        parts.append(_guard("measurements over 1 frame", lambda: _measurement_panel(r, session, 1)))
         span_long = max(r.strain) if r.strain else 11
         parts.append(_guard(f"measurements over {span_long} frames",
-                            lambda: _measurement_panel(r, session, span_long, limit=0.15)))
-        parts.append(_guard("edge length series", lambda: _edge_series(r, span_long, limit=0.15)))
+                            lambda: _measurement_panel(r, session, span_long)))
+        parts.append(_guard("edge length series", lambda: _edge_series(r, span_long)))
         if r.trajectories is not None:
             parts.append(_guard("trajectory lengths", lambda: _img(
                 fig6.trajectory_length_figure(r.trajectories["present"].sum(axis=0), n_frames=r.n_frames),
@@ -275,11 +378,10 @@ def _truth_section(r, session, info: dict[str, Any]) -> str:
     strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
     _, true_change = profile_correlation(r, TruthField(truth), strip_px=strip)
     info["true_profile"] = (r.profile_position / r.px_per_mm, np.asarray(true_change, float))
-    rows = []
-    for part in ("tracking", "strain", "profile"):
-        for k, v in ev.get(part, {}).items():
-            rows.append((f"{part}: {k}", v))
-    return "<h3>Measured vs true (simulated session)</h3>" + _table(rows, ["quantity", "value"])
+    quantities = evaluation_quantities({k: ev[k] for k in ("tracking", "strain", "profile") if k in ev},
+                                       r.px_per_mm)
+    info["evaluation_quantities"] = quantities
+    return "<h3>Measured vs true (simulated session)</h3>" + _quantity_table(quantities.values())
 
 
 # -------------------------------------------------------------------------------------------------- report
@@ -293,6 +395,12 @@ def _movie_section(r, name: str) -> str:
            _kv({"frames": n, "contactors reset (fraction)": float(np.mean(r.tactile_reset)),
                 "clipped (fraction)": float(np.mean(r.tactile_clipped)),
                 "position range (um)": [float(np.min(pos)), float(np.max(pos))]})]
+    out[1] = _quantity_table([
+        Quantity("frames", n, ""),
+        Quantity("contactors reset", float(np.mean(r.tactile_reset)) * 100, "%"),
+        Quantity("contactors clipped", float(np.mean(r.tactile_clipped)) * 100, "%"),
+        Quantity("position range", [float(np.min(pos)), float(np.max(pos))], "um"),
+    ])
     out.append(_img(fig6.contactor_positions_figure(pos, frames=frames, reset=r.tactile_reset),
                     "Contactor positions (as seed Figure 96)"))
     out.append(_img(fig6.stretch_fields_figure(r.tactile_stretch_change, frames=frames),
@@ -304,21 +412,22 @@ def _playback_section(playbacks: Sequence[Any]) -> str:
     rows = []
     runs = {}
     for pb in playbacks:
-        s = pb.summary()
         label = "closed loop" if pb.closed_loop else "open loop"
-        rows.append((label, s["frames_played"], s["frames_total"], s["rms_error_um"], s["late_frames"],
-                     s["stopped"] or "-", s["rested"]))
-        runs[label] = (pb.target_um, pb.measured_um)
+        trace = fig6.PlaybackTrace.of(pb)  # the one RMS error of the run, shown by the table and the figure
+        rows.append((label, pb.frames_played, pb.frames_total, trace.settle, trace.rms_error_um, pb.late_frames,
+                     pb.stopped or "-", pb.rested))
+        runs[label] = trace
     out = ["<h2>Playback on the display</h2>",
-           _table(rows, ["run", "frames played", "frames", "RMS error (um)", "late frames", "stopped", "at rest"])]
+           _table(rows, ["run", "frames played", "frames", "start-up frames (not in the error)", "RMS error (um)",
+                         "late frames", "stopped", "at rest"])]
     if len(playbacks) == 2 and all(p.rms_error_um > 0 for p in playbacks):
-        o = [p for p in playbacks if not p.closed_loop]
-        c = [p for p in playbacks if p.closed_loop]
+        o = [t for label, t in runs.items() if label == "open loop"]
+        c = [t for label, t in runs.items() if label == "closed loop"]
         if o and c and math.isfinite(o[0].rms_error_um) and math.isfinite(c[0].rms_error_um):
             out.append(f'<p class="ok">Closed loop cuts the RMS position error {o[0].rms_error_um / c[0].rms_error_um:.1f}'
                        " times against open loop.</p>")
     out.append(_img(fig6.playback_figure(runs, rate_hz=playbacks[0].extra.get("rate_hz")),
-                    "Target and measured contactor positions"))
+                    "Target and measured contactor positions; the errors leave out the start-up frames (shaded)"))
     return "\n".join(out)
 
 
@@ -359,14 +468,11 @@ def build_report(
             "stretch profiles", lambda: _img(fig6.stretch_profile_figure(profiles, true_profiles=trues),
                                              "Relative change in stretch with position, averaged over each sequence;"
                                              " dashed: true (simulated)")))
-    evals = [(i["name"], i["evaluation"]) for i in infos if "evaluation" in i]
+    evals = [(i["name"], i["evaluation_quantities"]) for i in infos if "evaluation_quantities" in i]
     if evals:
-        rows = [(n, e["tracking"]["displacement_rmse_px"], e["tracking"]["wrong_match_rate"],
-                 e["strain"].get("edge_rmse_1"), e["strain"].get("edge_rmse_11"), e["profile"]["correlation"])
-                for n, e in evals]
+        rows = [(n, *(q[key].value if key in q else "-" for key, _ in _SUMMARY_KEYS)) for n, q in evals]
         body.insert(0, "<h2>Measured vs true (simulated sessions)</h2>" + _table(
-            rows, ["trial", "displacement RMSE (px)", "wrong matches", "edge strain RMSE span 1",
-                   "edge strain RMSE span 11", "profile correlation"]))
+            rows, ["trial", *(label for _, label in _SUMMARY_KEYS)]))
     overview = [(i["name"], i.get("surface", "?"), i.get("scene", ""), "yes" if "results" in i else "no") for i in infos]
     body.insert(0, "<h2>Trials</h2>" + _table(overview, ["trial", "surface", "scene", "analysed"]))
     movies = [i for i in infos if "movie" in i]

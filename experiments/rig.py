@@ -27,7 +27,8 @@ from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.experiments.protocol import Rig
 
-__all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "sim_display_url", "subset_truth"]
+__all__ = ["RigDevices", "ForceSource", "DisplayAdapter", "make_display", "is_sim_url", "sim_display_url",
+           "subset_truth"]
 
 
 def subset_truth(truth, rows: np.ndarray):
@@ -215,6 +216,11 @@ def sim_display_url(*, seed: int = 0, load_n_per_mm: float = 0.15, faults: str =
     return stress_links.attach(name or f"rig{next(_sim_names)}", link)
 
 
+def is_sim_url(url: str | None) -> bool:
+    """Whether a display URL names the firmware twin (``stresssim://NAME?baud=...&faults=...&seed=...&load=...``)."""
+    return bool(url) and url.startswith("stresssim://")
+
+
 def make_display(url: str, **options: Any):
     """A :class:`skinstretch.drivers.display.stress.StressDisplay` on a serial port or pyserial URL."""
     from skinstretch.drivers.display.stress import StressDisplay  # noqa: PLC0415
@@ -343,13 +349,10 @@ class RigDevices:
         camera), so that rendering — slower than the camera rate — overlaps the recording of earlier trials."""
         if self.rig.camera.kind != "sim" or len(trials) < 2:
             return  # one trial: nothing to overlap, and starting worker processes costs seconds
-        import concurrent.futures as cf  # noqa: PLC0415
-        import multiprocessing  # noqa: PLC0415
+        from skinstretch.experiments.process_lifetime import worker_pool  # noqa: PLC0415
 
-        if self._render_pool is None:
-            self._render_pool = cf.ProcessPoolExecutor(
-                max_workers=min(2, len(trials)), mp_context=multiprocessing.get_context("spawn")
-            )
+        if self._render_pool is None:  # its workers die with this process, whatever kills it
+            self._render_pool = worker_pool(min(2, len(trials)))
         mode = CAMERA_MODES[protocol.camera_mode]
         for trial in trials:
             n = max(1, int(round(trial.spec.duration_s * mode.fps)))
@@ -374,8 +377,13 @@ class RigDevices:
         else:
             scene = self._sim_scene(trial=trial, protocol=protocol, n_frames=n_frames)
             frames, truth = render_scene(scene.to_yaml(), spec.seed + trial.index)
+        options = dict(spec.options)
+        if isinstance(options.get("faults"), dict):  # a fault drill from a rig file: {faults: {stall_at_frame: 20}}
+            from skinstretch.simulators.simulated_camera import CameraFaults  # noqa: PLC0415
+
+            options["faults"] = CameraFaults(**options["faults"])
         cam = SimulatedCamera(frames.__getitem__, mode, n_frames=n_frames, loop=False, seed=spec.seed + trial.index,
-                              **spec.options)
+                              **options)
         trial_cam = _TrialCamera(cam, mode)
         trial_cam.truth = truth
         return trial_cam
@@ -428,6 +436,14 @@ class RigDevices:
                     opts.setdefault("watchdog_s", 0.25)
                     device = make_display(url, **opts)
                     device.zero()  # the twin's sensors have offsets, removed by ZERO like the real display's
+                elif is_sim_url(spec.url):
+                    # the firmware twin named by a URL, with its fault switches (stresssim://NAME?faults=...)
+                    from skinstretch.simulators import stress_links  # noqa: PLC0415
+
+                    stress_links.register_url_handler()
+                    url = spec.url
+                    device = make_display(url, **{"watchdog_s": 0.25, **spec.options})
+                    device.zero()
                 else:
                     url = spec.url
                     device = make_display(url, **spec.options)

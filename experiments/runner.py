@@ -17,13 +17,22 @@ trials, closes the interrupted one in the log as aborted (its file is kept and r
 with the next trial.
 
 Analysis runs in a separate process (``spawn``) so acquisition is never slowed by it (record-then-analyse).
+
+Nothing is lost and nobody is surprised: the output directory is checked before any device is opened
+(:mod:`skinstretch.experiments.output_paths`); a protocol whose trials cannot fit on the disk is refused before
+the first one, and each trial is checked again before it starts (:mod:`skinstretch.drivers.disk_space`); a disk
+that fills during a trial stops that trial (its file closed marked failed, every frame flushed before kept, the
+display at rest) and ends the run (:attr:`SessionRun.stopped`), the remaining trials "not run". Worker processes
+(analysis, scene rendering) die with this process, whatever kills it
+(:mod:`skinstretch.experiments.process_lifetime`).
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import errno
 import json
-import multiprocessing
+import logging
 import os
 import threading
 import time
@@ -36,10 +45,13 @@ import numpy as np
 
 from skinstretch.experiments.json_encoding import json_default
 from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
-from skinstretch.drivers.session_file import attach_truth, open_session
+from skinstretch.drivers.disk_space import DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, is_disk_full
+from skinstretch.drivers.session_file import attach_truth, expected_session_bytes, open_session
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.drivers.errors import DeviceError, SessionFileError
-from skinstretch.processing.errors import ConfigError, InvalidInputError, SkinstretchError
+from skinstretch.drivers.errors import DeviceError, DiskFullError, SessionFileError
+from skinstretch.experiments.output_paths import check_output_dir
+from skinstretch.experiments.process_lifetime import worker_pool
+from skinstretch.processing.errors import InvalidInputError, Remedy, SkinstretchError
 from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
 from skinstretch.experiments.skin_mapping_step import store_calibration
 from skinstretch.experiments.recorder import Recorder, RecorderStats
@@ -59,6 +71,9 @@ SESSION_FILE = "session.h5"
 ANALYSIS_DIR = "analysis"
 EVENT_LOG = "events.jsonl"
 CALIBRATION_FILE = "calibration.json"
+#: What a trial needs on disk beyond its session file's expected size: HDF5's own overhead, the event log and
+#: the analysis results written next to it (measured on the demo protocol: results ~ 3 % of the frames).
+DISK_MARGIN = 1.2
 
 
 # --------------------------------------------------------------------------------------------- document log
@@ -67,14 +82,22 @@ CALIBRATION_FILE = "calibration.json"
 class EventLog:
     """Append-only JSON-lines log of bluesky-style documents; each line is ``{"name": ..., "doc": {...}}``.
 
-    Every document is flushed and fsynced before :meth:`emit` returns, so the log survives a SIGKILL.
+    Every document is flushed and fsynced before :meth:`emit` returns, so the log survives a SIGKILL. A small
+    disk reserve is held next to it: on a full disk it is given back so the documents saying what happened (the
+    failed trial's stop) still get written.
     """
+
+    RESERVE_BYTES = 256 << 10
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh = open(self.path, "a", encoding="utf-8")
         self._lock = threading.Lock()
+        try:
+            self._reserve: SpaceReserve | None = SpaceReserve(self.path, self.RESERVE_BYTES)
+        except DiskFullError:
+            self._reserve = None  # the pre-trial space check reports the full disk
 
     def emit(self, name: str, doc: Mapping[str, Any]) -> dict[str, Any]:
         if name not in ("start", "descriptor", "event", "stop"):
@@ -82,13 +105,27 @@ class EventLog:
         doc = {"time": time.time(), **doc}
         line = json.dumps({"name": name, "doc": doc}, sort_keys=True, default=json_default)
         with self._lock:
-            self._fh.write(line + "\n")
-            self._fh.flush()
-            os.fsync(self._fh.fileno())
+            try:
+                self._write(line)
+            except OSError as exc:
+                if not (is_disk_full(exc) and self._reserve is not None and self._reserve.release()):
+                    raise DiskFullError(f"{self.path}: disk full, document {name!r} not logged") from None
+                self._write(line)  # the reserve's room
         return doc
 
+    def _write(self, line: str) -> None:
+        self._fh.write(line + "\n")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
     def close(self) -> None:
-        self._fh.close()
+        if self._reserve is not None:
+            self._reserve.release()
+        try:
+            self._fh.close()
+        except OSError as exc:  # a full disk refusing a buffered write: everything emitted was fsynced already
+            if exc.errno != errno.ENOSPC:
+                raise
 
     def __enter__(self) -> "EventLog":
         return self
@@ -146,10 +183,11 @@ def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[
 
 
 def _spawn_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
-    # spawn, not fork: the recording process runs threads (writer, force reader) that fork would copy mid-state.
+    # spawn, not fork: the recording process runs threads (writer, force reader) that fork would copy mid-state;
+    # the workers die with this process (a SIGKILLed recorder left them running).
     if not (isinstance(workers, int) and workers >= 1):
         raise InvalidInputError(f"analysis_workers must be a positive int, got {workers!r}")
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return worker_pool(workers)
 
 
 # ------------------------------------------------------------------------------------------------- trials
@@ -161,25 +199,53 @@ class TrialResult:
 
     trial: str
     path: Path
-    status: str  # complete | failed | aborted | skipped
+    status: str  # complete | failed | aborted | skipped | not run
     reason: str = ""
     summary: dict[str, Any] = field(default_factory=dict)
     analysis: Path | None = None
     analysis_error: str = ""
+    analysed: bool = False  # an analysis was run (or attempted) for this trial
+    disk_full: bool = False  # it failed because the disk was full (the run stops there)
 
 
 @dataclass
 class SessionRun:
-    """Outcome of a whole protocol run."""
+    """Outcome of a whole protocol run. ``stopped`` says why the run ended before its last trial (disk full)."""
 
     directory: Path
     trials: list[TrialResult]
     playback: Any = None
     playback_error: str = ""
+    stopped: str = ""
+
+    def count(self, status: str) -> int:
+        return sum(t.status == status for t in self.trials)
+
+    @property
+    def analyses(self) -> tuple[int, int]:
+        """(failed, run) analyses of this run."""
+        run = [t for t in self.trials if t.analysed]
+        return sum(bool(t.analysis_error) for t in run), len(run)
 
     @property
     def ok(self) -> bool:
-        return all(t.status in ("complete", "skipped") for t in self.trials)
+        """Every trial recorded (or done before a resume), every analysis done, the run not stopped."""
+        return (all(t.status in ("complete", "skipped") for t in self.trials) and not self.stopped
+                and self.analyses[0] == 0)
+
+    def summary_line(self) -> str:
+        """One line: how many of how many trials and analyses failed, and why the run stopped if it did."""
+        n = len(self.trials)
+        failed = self.count("failed") + self.count("aborted")
+        bad_analyses, analyses = self.analyses
+        if self.ok:
+            return f"all {n} trials recorded" + (f", {analyses} of {analyses} analyses done" if analyses else "")
+        parts = [f"{failed} of {n} trials failed"]
+        if self.count("not run"):
+            parts.append(f"{self.count('not run')} not run")
+        parts.append(f"{bad_analyses} of {analyses} analyses failed")
+        line = ", ".join(parts)
+        return f"{line}; run stopped: {self.stopped}" if self.stopped else line
 
 
 def _summarise(path: Path, stats: RecorderStats) -> dict[str, Any]:
@@ -275,7 +341,11 @@ def record_trial(
         },
     )
     kwargs = {} if writer_factory is None else {"writer_factory": writer_factory}
-    recorder = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata, streams=streams, **kwargs)
+    try:
+        recorder = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata, streams=streams,
+                            **kwargs)
+    except DiskFullError as exc:  # not even room to start the file: nothing recorded, the display untouched
+        return TrialResult(trial=trial.dirname, path=path, status="failed", reason=str(exc), disk_full=True)
     recorder.start()
     camera = None
     pump = None
@@ -354,7 +424,37 @@ def record_trial(
         _attach_truth(path, truth)
     summary = _summarise(path, stats)
     status = "complete" if stats.status == "complete" else "failed"
-    return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary)
+    return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary,
+                       disk_full=recorder.disk_full)
+
+
+def expected_trial_bytes(protocol: Protocol, trial: PlannedTrial) -> int:
+    """What recording ``trial`` leaves on disk (its session file, with :data:`DISK_MARGIN` for the rest), counting
+    every stream the protocol asks for (an upper bound: the rig may have no force sensor). While it records, the
+    writer also holds :data:`~skinstretch.drivers.disk_space.DEFAULT_RESERVE_BYTES` (:func:`_needed`)."""
+    mode = CAMERA_MODES[protocol.camera_mode]
+    n_frames = max(1, int(round(trial.spec.duration_s * mode.fps)))
+    streams: dict[str, tuple[tuple[int, ...], Any]] = {}
+    samples: dict[str, int] = {}
+    if protocol.record.force:
+        streams["force"] = ((6,), "f8")
+        samples["force"] = int(trial.spec.duration_s * protocol.record.force_rate_hz) + 1
+    if protocol.record.display:
+        streams["display_state"] = ((10, 10), "f4")
+        samples["display_state"] = n_frames
+    return int(DISK_MARGIN * expected_session_bytes(mode, n_frames, streams=streams, samples=samples,
+                                                     reserve_bytes=0))
+
+
+def _needed(protocol: Protocol, trials: list[PlannedTrial]) -> int:
+    """Disk space ``trials`` need: what they leave, plus the reserve held while the last one records."""
+    return sum(expected_trial_bytes(protocol, t) for t in trials) + DEFAULT_RESERVE_BYTES
+
+
+def _remove_stale_reserves(sdir: Path) -> None:
+    """Disk reserves left next to session files by a killed recorder (``.session.h5.reserve``)."""
+    for stale in sdir.glob("*/.*.reserve"):
+        stale.unlink(missing_ok=True)
 
 
 def _attach_truth(path: Path, truth) -> None:
@@ -372,7 +472,7 @@ def _attach_truth(path: Path, truth) -> None:
 
 
 def _print(msg: str) -> None:
-    print(msg, flush=True)
+    logging.getLogger(__name__).info(msg)  # progress lines: --quiet silences them
 
 
 def _session_calibration(protocol: Protocol, sdir: Path, log: "EventLog", progress: Callable[[str], None]):
@@ -440,8 +540,16 @@ def run_protocol(
     """
     sdir = session_dir(protocol, datadir)
     log_path = sdir / EVENT_LOG
-    if sdir.exists() and any(sdir.iterdir()) and not resume:
-        raise ConfigError(f"{sdir} already holds a session; pass --resume to carry on, or choose another -o")
+    # Before anything is created or opened: the directory can be written, and the trials to record fit on disk.
+    check_output_dir(sdir, must_be_empty=not resume,
+                     remedy=Remedy(("resume",), "to carry on with the session it holds (or write elsewhere)", True))
+    if resume and sdir.exists():
+        _remove_stale_reserves(sdir)
+    pending_plan = [t for t in protocol.planned_trials()
+                    if t.dirname not in finished_trials(read_events(log_path)) and not (sdir / t.dirname / SESSION_FILE).exists()]
+    if pending_plan:
+        check_fits(sdir, _needed(protocol, pending_plan),
+                   what=f"the {len(pending_plan)} trial(s) of protocol {protocol.name!r}")
     sdir.mkdir(parents=True, exist_ok=True)
     if protocol_text is not None and not (sdir / "protocol.yaml").exists():
         (sdir / "protocol.yaml").write_text(protocol_text)
@@ -489,6 +597,11 @@ def run_protocol(
                     progress(f"trial {k + 1}/{len(plan)} {trial.dirname}: already {status}, skipped")
                     results.append(TrialResult(trial.dirname, path, "skipped", reason=f"already {status}"))
                     continue
+                try:  # again before each trial: another program may have filled the disk meanwhile
+                    check_fits(sdir, _needed(protocol, [trial]), what=f"trial {trial.dirname}")
+                except DiskFullError as exc:
+                    run.stopped = str(exc)
+                    break
                 tdir.mkdir(parents=True, exist_ok=True)
                 run_uid = uuid.uuid4().hex
                 log.emit(
@@ -551,7 +664,11 @@ def run_protocol(
                         progress(f"trial {trial.dirname}: calibration not stored ({exc})")
                         log.emit("event", {"uid": uuid.uuid4().hex, "run_start": run_uid, "name": "calibration",
                                            "data": {"stored": False, "reason": str(exc)}})
+                if result.disk_full:  # no further trial fits; what was recorded is analysed later
+                    run.stopped = result.reason
+                    break
                 if pool is not None and result.summary.get("frames", 0) >= 2:
+                    result.analysed = True
                     fut = pool.submit(
                         analyse_trial,
                         str(path),
@@ -560,6 +677,14 @@ def run_protocol(
                         protocol.analysis.options,
                     )
                     pending.append((result, fut, run_uid))
+            recorded = {t.trial for t in results}
+            results.extend(TrialResult(t.dirname, sdir / t.dirname / SESSION_FILE, "not run", reason=run.stopped)
+                           for t in plan if t.dirname not in recorded)
+            if run.stopped:
+                progress(f"run stopped: {run.stopped}")
+                log.emit("event", {"uid": uuid.uuid4().hex, "name": "run_stopped",
+                                   "data": {"reason": run.stopped, "not_run": [t.trial for t in results
+                                                                               if t.status == "not run"]}})
             for result, fut, run_uid in pending:
                 try:
                     out = fut.result()
@@ -580,7 +705,9 @@ def run_protocol(
                         },
                     },
                 )
-            if play_movie and protocol.movie is not None and devices.display is not None:
+            if play_movie and protocol.movie is not None and run.stopped:
+                run.playback_error = f"not played: {run.stopped}"
+            elif play_movie and protocol.movie is not None and devices.display is not None:
                 from skinstretch.experiments.playback import play_protocol_movie  # noqa: PLC0415
 
                 try:

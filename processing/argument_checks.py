@@ -13,3 +13,10 @@ def positive_number(value: float, name: str) -> float:
     if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
         raise InvalidInputError(f"{name} must be a positive number, got {value!r}")
     return float(value)
+
+
+def non_negative_number(value: float, name: str) -> float:
+    """``value`` as a float when it is a finite number >= 0; otherwise InvalidInputError naming ``name``."""
+    if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
+        raise InvalidInputError(f"{name} must be a number >= 0, got {value!r}")
+    return float(value)

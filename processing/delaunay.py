@@ -178,6 +178,16 @@ def _link(halfedges, a, b):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
+def _add_triangle(triangles, halfedges, t, i0, i1, i2, a, b, c):  # pragma: no cover - compiled
+    """Triangle (i0, i1, i2) at ``t`` with its three half-edges linked to the opposite ones a, b, c (-1: none),
+    as delaunator's ``_addTriangle``."""
+    triangles[t], triangles[t + 1], triangles[t + 2] = i0, i1, i2
+    _link(halfedges, t, a)
+    _link(halfedges, t + 1, b)
+    _link(halfedges, t + 2, c)
+
+
+@njit(nogil=True)
 def _legalize(a, xs, ys, triangles, halfedges, hull_tri, hull_prev, hull_start, stack):  # pragma: no cover
     i = 0
     ar = 0
@@ -339,10 +349,7 @@ def _triangulate(xs, ys):  # pragma: no cover - compiled
             continue  # on the hull's line (nearly a duplicate): skipped, as delaunator does
         # The first triangle from the point, then flips.
         t = tlen
-        triangles[t], triangles[t + 1], triangles[t + 2] = e, i, hull_next[e]
-        halfedges[t] = -1
-        halfedges[t + 1] = -1
-        _link(halfedges, t + 2, hull_tri[e])
+        _add_triangle(triangles, halfedges, t, e, i, hull_next[e], -1, -1, hull_tri[e])
         tlen += 3
         hull_tri[i] = _legalize(t + 2, xs, ys, triangles, halfedges, hull_tri, hull_prev, hull_start, stack)
         hull_tri[e] = t
@@ -353,10 +360,7 @@ def _triangulate(xs, ys):  # pragma: no cover - compiled
             if not _orient(x, y, xs[nxt], ys[nxt], xs[q], ys[q]) < 0:
                 break
             t = tlen
-            triangles[t], triangles[t + 1], triangles[t + 2] = nxt, i, q
-            _link(halfedges, t, hull_tri[i])
-            halfedges[t + 1] = -1
-            _link(halfedges, t + 2, hull_tri[nxt])
+            _add_triangle(triangles, halfedges, t, nxt, i, q, hull_tri[i], -1, hull_tri[nxt])
             tlen += 3
             hull_tri[i] = _legalize(t + 2, xs, ys, triangles, halfedges, hull_tri, hull_prev, hull_start, stack)
             hull_next[nxt] = nxt  # marks it removed from the hull
@@ -368,10 +372,7 @@ def _triangulate(xs, ys):  # pragma: no cover - compiled
                 if not _orient(x, y, xs[q], ys[q], xs[e], ys[e]) < 0:
                     break
                 t = tlen
-                triangles[t], triangles[t + 1], triangles[t + 2] = q, i, e
-                halfedges[t] = -1
-                _link(halfedges, t + 1, hull_tri[e])
-                _link(halfedges, t + 2, hull_tri[q])
+                _add_triangle(triangles, halfedges, t, q, i, e, -1, hull_tri[e], hull_tri[q])
                 tlen += 3
                 _legalize(t + 2, xs, ys, triangles, halfedges, hull_tri, hull_prev, hull_start, stack)
                 hull_tri[q] = t

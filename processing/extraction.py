@@ -32,6 +32,7 @@ from skinstretch.processing.ridge_flow import ridge_flow
 from skinstretch.processing.preprocess import binarize, check_frame, contact_map, flatten_light, ridge_statistics, smooth
 from skinstretch.processing.skeleton_editing import edit_graph
 from skinstretch.processing.skeleton_graph import GraphArrays, edit_with_room, graph_features, trace_arrays
+from skinstretch.processing.texture_gate import TextureGateParams, texture_verdict
 from skinstretch.processing.thinning import thin
 
 __all__ = ["ExtractionParams", "ExtractionResult", "FeatureExtractor", "extract_features", "FEATURE_ID_STRIDE"]
@@ -185,7 +186,8 @@ class ExtractionResult:
     skeleton : (H, W) uint8
         The valley skeleton after editing (1 on the skeleton).
     flags : set of str
-        Why the frame gave no features: "all_black", "saturated", "no_finger". Empty when fine.
+        Why the frame gave no features: "all_black", "saturated", "no_finger", or the texture gate's
+        "no_texture" / "out_of_focus" (:mod:`skinstretch.processing.texture_gate`). Empty when fine.
     """
 
     features: np.ndarray
@@ -375,6 +377,7 @@ class FeatureExtractor:
         flags = _flags(frame, p)
         if flags:
             return self._empty(frame.shape, flags)
+        raw = frame  # the texture gate's input: the illumination gain below clips the background to white
         if self._illumination is not None:
             if self._illumination.shape != frame.shape:
                 raise InvalidInputError(
@@ -394,6 +397,10 @@ class FeatureExtractor:
             background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
         if np.count_nonzero(background) > p.no_finger_fraction * background.size:
             return self._empty(frame.shape, {"no_finger"}, background=background)
+        gate = TextureGateParams(black_level=p.black_level, saturated_fraction=p.saturated_fraction)
+        refused = texture_verdict(raw, px_per_mm=self.calibration.px_per_mm, params=gate).reason
+        if refused:  # noise, a blank or out-of-focus frame: no print in contact, no features (texture_gate.py)
+            return self._empty(frame.shape, {refused}, background=background)
         thr = avg if p.binarization_scale == 1.0 else cv2.multiply(avg, float(p.binarization_scale))
         binary = binarize(s, local_average=thr, background=background)  # 4.4
         # The excess over the threshold weighs pore centres (4.5) and locates minutiae; computed once.

@@ -39,6 +39,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.global_motion import GlobalMotionEstimator
 from skinstretch.processing.displacement_refinement import local_normalize
+from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
 from skinstretch.processing.tracking import MotionSample
 
 
@@ -113,6 +114,10 @@ class FlowField:
     """Displacement on a grid of frame a, to frame b. ``displacement`` is NaN exactly where ``valid`` is False.
 
     ``status`` says why nodes are invalid in bulk: "ok", or e.g. "no contact" when no node has texture.
+    ``frame_flags`` names, per frame of the pair, why it was refused (""  when it was not): a reason of
+    :func:`skinstretch.processing.texture_gate.texture_verdict` ("all_black", "saturated", "no_texture",
+    "out_of_focus", or "no contact" when a frame the gate refused has no node in contact either; no node is then
+    valid and ``global_shift`` is NaN), or "no contact" for a frame a without a node in contact.
     """
 
     frame_a: int
@@ -124,6 +129,7 @@ class FlowField:
     global_shift: np.ndarray  # (2,) px
     n_outliers: int  # nodes in contact flagged invalid (residual too high or window out of the image)
     status: str = "ok"
+    frame_flags: tuple[str, str] = ("", "")
 
     def motion(self, *, stride: int = 1) -> MotionSample:
         """The valid nodes (every ``stride``-th along each axis) as a :class:`MotionSample`; ids = flat node index."""
@@ -172,11 +178,13 @@ def _helper_pool() -> ThreadPoolExecutor:
 @dataclass(frozen=True)
 class _Prepared:
     """One frame made ready for :class:`DenseFlow`: the grey image, its normalised pyramid (full resolution
-    first, float32) and, when it is the first frame of a pair, its nodes in contact."""
+    first, float32) and, when it is the first frame of a pair, its nodes in contact; or only the reason the texture
+    gate refused it."""
 
     raw: np.ndarray
     pyramid: list[np.ndarray]
     contact: np.ndarray | None
+    refused: str = ""
 
 
 class DenseFlow:
@@ -291,9 +299,10 @@ class DenseFlow:
 
     def _prepare(self, image: np.ndarray, *, contact: bool = True) -> _Prepared:
         """What one frame contributes to any pair: its normalised pyramid and (as first frame) its contact nodes."""
+        refused = texture_verdict(image, px_per_mm=self.calibration.px_per_mm).reason
         gx, gy = self.grid(image.shape)
         nodes = None
-        if contact:
+        if contact or refused in TEXTURE_REASONS:
             # Contact: local grey-level spread over the window at each node (FTIR: no contact -> no ridges).
             af = image.astype(np.float32)
             k = (self._win, self._win)
@@ -304,6 +313,9 @@ class DenseFlow:
             # A node is in contact when (almost) all of its window shows ridges.
             low = cv2.boxFilter((spread < self.params.min_contrast).astype(np.float32), -1, k)
             nodes = low[rr, cc] <= 0.05
+        if refused:  # no print in contact (texture_gate.py): nothing to register, whatever the other frame holds
+            no_contact = refused in TEXTURE_REASONS and not nodes.any()  # FTIR without contact: plain bright
+            return _Prepared(image, [], None, "no contact" if no_contact else refused)
         norm = image
         if self.params.normalize_sigma_mm is not None:
             # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
@@ -317,6 +329,10 @@ class DenseFlow:
         self, fa: _Prepared, fb: _Prepared, frame_a: int, frame_b: int, initial_shift: np.ndarray | None
     ) -> FlowField:
         gx, gy = self.grid(fa.raw.shape)
+        if fa.refused or fb.refused:
+            return FlowField(frame_a, frame_b, gx, gy, np.full((gy.size, gx.size, 2), np.nan),
+                             np.zeros((gy.size, gx.size), bool), np.full(2, np.nan), 0, fa.refused or fb.refused,
+                             (fa.refused, fb.refused))
         if initial_shift is None:
             shift = self._estimator.estimate(fa.raw, fb.raw).shift
         else:
@@ -325,7 +341,7 @@ class DenseFlow:
         gyn, gxn = gy.size, gx.size
         if not np.any(contact):
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
-                             shift, 0, "no contact")
+                             shift, 0, "no contact", ("no contact", ""))
         pa, pb = fa.pyramid, fb.pyramid
         top = int(self.params.pyramid_levels)
         # The smoothness term acts on the deviation from this global affine motion (see _clg).

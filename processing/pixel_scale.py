@@ -3,20 +3,20 @@
 Parameters throughout skinstretch are given in mm (and degrees, frames), as the seed gives them. A frozen
 :class:`Calibration` converts them to pixels once, at the top of each processing function, so that nothing
 downstream ever guesses a scale. The geometric mapping from image pixels to millimetres on the skin (seed 3.4)
-is attached by :mod:`skinstretch.processing.geometric_calibration` when one was fitted; without one the image is taken as
-a flat, square-pixel view of the contact plane at ``px_per_mm``.
+is attached by :mod:`skinstretch.processing.geometric_calibration` when one was fitted (a
+:class:`~skinstretch.processing.grid_mapping.GridMapping`); without one the image is taken as a flat, square-pixel view of the contact plane at ``px_per_mm``.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import Any
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import PositiveFloat, validated_dataclass
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class Calibration:
     """Pixel scale of an image sequence, and optionally a fitted pixel-to-skin mapping.
 
@@ -37,13 +37,8 @@ class Calibration:
     125
     """
 
-    px_per_mm: float
+    px_per_mm: PositiveFloat
     mapping: Any = field(default=None, compare=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.px_per_mm, (int, float)) or not math.isfinite(self.px_per_mm) or self.px_per_mm <= 0:
-            raise InvalidInputError(f"px_per_mm must be a positive finite number, got {self.px_per_mm!r}")
-        object.__setattr__(self, "px_per_mm", float(self.px_per_mm))
 
     @classmethod
     def from_field_of_view(cls, width_px: int, width_mm: float) -> "Calibration":

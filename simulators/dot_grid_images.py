@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from skinstretch.processing.argument_checks import non_negative_number, positive_number
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators.ideal_optics import Optics
 
@@ -126,8 +127,7 @@ def render_calibration_grid(
     CalibrationGridImage
     """
     for name, value in (("spacing_mm", spacing_mm), ("dot_diameter_mm", dot_diameter_mm)):
-        if not (math.isfinite(value) and value > 0):
-            raise InvalidInputError(f"{name} must be positive, got {value!r}")
+        positive_number(value, name)
     if dot_diameter_mm >= spacing_mm:
         raise InvalidInputError(f"dot_diameter_mm ({dot_diameter_mm}) must be smaller than spacing_mm ({spacing_mm})")
     if not 0.0 <= missing_fraction < 1.0:
@@ -136,8 +136,7 @@ def render_calibration_grid(
         raise InvalidInputError(f"n_spurious must be >= 0, got {n_spurious!r}")
     for name, value in (("blur_sigma_px", blur_sigma_px), ("noise_sigma", noise_sigma),
                         ("slope_darkening", slope_darkening), ("vignetting", vignetting)):
-        if not (math.isfinite(value) and value >= 0):
-            raise InvalidInputError(f"{name} must be >= 0, got {value!r}")
+        non_negative_number(value, name)
     rng = np.random.default_rng(seed)
     h, w = int(optics.height), int(optics.width)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)

@@ -14,6 +14,7 @@ import subprocess
 import time
 
 from skinstretch.drivers.errors import DeviceError
+from skinstretch.simulators.child_process import stop_child_process
 
 __all__ = ["FakeGigECamera", "FAKE_GV_CAMERA"]
 
@@ -57,12 +58,7 @@ class FakeGigECamera:
         proc, self._proc = self._proc, None
         if proc is None:
             return
-        proc.terminate()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
+        stop_child_process(proc)
 
     def __enter__(self) -> str:
         return self.start()

@@ -13,11 +13,10 @@ interface (see :mod:`skinstretch.simulators.prism_optics`).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
 import numpy as np
 
-from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import PositiveFloat, PositiveInt, validated_dataclass
 
 
 class Optics(ABC):
@@ -44,19 +43,13 @@ class Optics(ABC):
         return np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class IdealOptics(Optics):
     """Orthographic, square-pixel view of the unrolled surface: ``x = cx + u * scale``, ``y = cy + s * scale``."""
 
-    width: int
-    height: int
-    scale_px_per_mm: float
-
-    def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise InvalidInputError(f"image size must be positive, got {self.width}x{self.height}")
-        if not self.scale_px_per_mm > 0:
-            raise InvalidInputError(f"scale_px_per_mm must be positive, got {self.scale_px_per_mm}")
+    width: PositiveInt
+    height: PositiveInt
+    scale_px_per_mm: PositiveFloat
 
     @property
     def px_per_mm(self) -> float:

@@ -13,18 +13,23 @@ from __future__ import annotations
 import math
 import select
 import socket
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+from pydantic import model_validator
 
 from skinstretch.drivers.forcesensor.netft import RdtCommand, RdtRecord, decode_request, encode_record
 from skinstretch.drivers.errors import DeviceError, ProtocolError
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import Probability, validated_dataclass
+from skinstretch.simulators.child_process import stop_child_process
 
-__all__ = ["NetFTFaults", "NetFTSimulator", "SimulatorStats", "normal_force_wrench"]
+__all__ = ["NetFTBoxProcess", "NetFTFaults", "NetFTSimulator", "SimulatorStats", "normal_force_wrench"]
 
 Wrench = Callable[[float], Sequence[float]]
 INTERNAL_RATE_HZ = 7000.0  # the box samples at 7 kHz; ft_sequence counts those samples
@@ -42,7 +47,7 @@ def normal_force_wrench(normal_force_n: Callable[[float], float]) -> Wrench:
     return wrench
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class NetFTFaults:
     """Faults injected per datagram, drawn from the simulator's seeded generator.
 
@@ -58,18 +63,17 @@ class NetFTFaults:
         A datagram is replaced by random bytes of a wrong length (its sequence number is used up).
     """
 
-    loss_probability: float = 0.0
-    reorder_probability: float = 0.0
-    duplicate_probability: float = 0.0
-    garble_probability: float = 0.0
+    loss_probability: Probability = 0.0
+    reorder_probability: Probability = 0.0
+    duplicate_probability: Probability = 0.0
+    garble_probability: Probability = 0.0
 
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            p = getattr(self, name)
-            if not 0.0 <= p < 1.0:
-                raise InvalidInputError(f"{name} must be in [0, 1), got {p!r}")
-        if self.loss_probability + self.reorder_probability + self.duplicate_probability + self.garble_probability >= 1:
-            raise InvalidInputError("fault probabilities must add up to less than 1")
+    @model_validator(mode="after")
+    def _one_fault_at_most(self) -> "NetFTFaults":
+        total = self.loss_probability + self.reorder_probability + self.duplicate_probability + self.garble_probability
+        if total >= 1:
+            raise InvalidInputError(f"fault probabilities must add up to less than 1, got {total!r}")
+        return self
 
 
 @dataclass(frozen=True)
@@ -351,6 +355,43 @@ class NetFTSimulator:
             self._count("lost")
         except ConnectionRefusedError:
             pass  # the client's port is closed; UDP does not care
+
+
+class NetFTBoxProcess:
+    """The simulated box as a program of its own (``python -m skinstretch.simulators.netft_box``), as a real box is a
+    separate machine: the driver's CPU use is then its own. A context manager giving the box's ``(host, port)``; on
+    exit the program is stopped and :attr:`stats` holds what it did (sent, lost...).
+
+    >>> # with NetFTBoxProcess(rate_hz=1000.0, force_n=2.5) as (host, port):
+    >>> #     with NetFTSensor(host, port=port) as sensor: ...
+    """
+
+    def __init__(self, *, rate_hz: float, force_n: float = 0.0, loss_probability: float = 0.0, seed: int = 0) -> None:
+        self.args = ["--port", "0", "--rate", str(float(rate_hz)), "--force", str(float(force_n)),
+                     "--loss", str(float(loss_probability)), "--seed", str(int(seed))]
+        self.stats: SimulatorStats | None = None
+        self._proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> tuple[str, int]:
+        self._proc = subprocess.Popen([sys.executable, "-m", __name__, *self.args], stdout=subprocess.PIPE, text=True)
+        line = self._proc.stdout.readline()  # "host port" once bound
+        try:
+            host, port = line.split()
+            return host, int(port)
+        except ValueError:
+            stop_child_process(self._proc)
+            raise DeviceError(f"the Net F/T box program did not start (it said {line.strip()!r})") from None
+
+    def __exit__(self, *exc) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        tail = stop_child_process(proc) or ""  # the program's last line: what it did, as key=value pairs
+        counts = dict(kv.split("=", 1) for kv in tail.split() if "=" in kv)
+        try:
+            self.stats = SimulatorStats(**{k: int(v) for k, v in counts.items()})
+        except (TypeError, ValueError):
+            self.stats = None  # killed before it could say
 
 
 def main(argv: Sequence[str] | None = None) -> int:

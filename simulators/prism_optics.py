@@ -29,15 +29,19 @@ thickness of the oil film (seed 7.2.1 notes it can fill valleys).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import field
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.ruled_surface_rays import ArcLengthTable, cast_rays, surface_points
+from skinstretch.processing.validated_dataclass import FiniteFloat, Float, PositiveFloat, PositiveInt, validated_dataclass
 from skinstretch.simulators.ideal_optics import Optics
 from skinstretch.simulators.surfaces import RuledSurface
 
-@dataclass(frozen=True)
+
+@validated_dataclass
 class SkewedRidgeSurface(RuledSurface):
     """A ruled ridge or valley whose profile is *not* Gaussian: a Gaussian with a different sigma on each side of
     the crest, as a machined surface might come out. It tests calibrations that assume the Gaussian shape.
@@ -46,8 +50,8 @@ class SkewedRidgeSurface(RuledSurface):
     falling side ``sigma * skew_after``.
     """
 
-    skew_before: float = 0.8
-    skew_after: float = 1.2
+    skew_before: PositiveFloat = 0.8
+    skew_after: PositiveFloat = 1.2
 
     def _sigmas(self, z: np.ndarray) -> np.ndarray:
         return np.where(z < 0, self.sigma_mm * self.skew_before, self.sigma_mm * self.skew_after)
@@ -68,45 +72,7 @@ class SkewedRidgeSurface(RuledSurface):
         )
 
 
-class _ArcLength:
-    """Arc length ``s(v)`` of a profile from ``v = 0`` and its inverse, tabulated finely (linear interpolation error
-    below 1e-6 mm) and extended linearly where the profile is flat."""
-
-    def __init__(self, profile: RuledSurface, *, half_range_mm: float = 40.0, step_mm: float = 0.002) -> None:
-        self.flat = profile.max_slope == 0.0
-        if self.flat:
-            return
-        lo = min(-half_range_mm, profile.center_mm - 12 * profile.sigma_mm)  # flat beyond 12 sigma
-        hi = max(half_range_mm, profile.center_mm + 12 * profile.sigma_mm)
-        n = int(math.ceil((hi - lo) / step_mm)) + 1
-        v = np.linspace(lo, hi, n)
-        g = np.sqrt(1.0 + profile.slope(v) ** 2)
-        gm = np.sqrt(1.0 + profile.slope(0.5 * (v[1:] + v[:-1])) ** 2)
-        # Simpson's rule per interval: exact to ~1e-15 mm at this step.
-        ds = (v[1] - v[0]) / 6.0 * (g[:-1] + 4.0 * gm + g[1:])
-        s = np.concatenate([[0.0], np.cumsum(ds)])
-        s -= np.interp(0.0, v, s)
-        self.v, self.s = v, s
-
-    def s_of_v(self, v: np.ndarray) -> np.ndarray:
-        if self.flat:
-            return np.asarray(v, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        out = np.interp(v, self.v, self.s)
-        # Beyond the table the profile is flat (slope < 1e-30): arc length grows like v.
-        out = np.where(v < self.v[0], self.s[0] + (v - self.v[0]), out)
-        return np.where(v > self.v[-1], self.s[-1] + (v - self.v[-1]), out)
-
-    def v_of_s(self, s: np.ndarray) -> np.ndarray:
-        if self.flat:
-            return np.asarray(s, dtype=np.float64)
-        s = np.asarray(s, dtype=np.float64)
-        out = np.interp(s, self.s, self.v)
-        out = np.where(s < self.s[0], self.v[0] + (s - self.s[0]), out)
-        return np.where(s > self.s[-1], self.v[-1] + (s - self.s[-1]), out)
-
-
-@dataclass(frozen=True)
+@validated_dataclass
 class PrismOptics(Optics):
     """Forward and inverse model of the seed's prism rig: surface (u, s) mm <-> image (x, y) px.
 
@@ -140,42 +106,40 @@ class PrismOptics(Optics):
     True
     """
 
-    width: int = 640
-    height: int = 484
+    width: PositiveInt = 640
+    height: PositiveInt = 484
     surface: RuledSurface = field(default_factory=RuledSurface)
-    field_width_mm: float = 10.3
-    working_distance_mm: float = 150.0
-    view_angle_deg: float = 45.0
-    k1: float = -4.0
-    k2: float = 0.0
-    p1: float = 0.0
-    p2: float = 0.0
-    principal_offset_px: tuple[float, float] = (0.0, 0.0)
-    roll_deg: float = 0.0
+    field_width_mm: PositiveFloat = 10.3
+    working_distance_mm: FiniteFloat = 150.0
+    view_angle_deg: Float = Field(default=45.0, ge=0, lt=80)
+    k1: FiniteFloat = -4.0
+    k2: FiniteFloat = 0.0
+    p1: FiniteFloat = 0.0
+    p2: FiniteFloat = 0.0
+    principal_offset_px: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    roll_deg: FiniteFloat = 0.0
 
-    def __post_init__(self) -> None:
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise InvalidInputError(f"image size must be positive, got {self.width}x{self.height}")
-        if not (self.field_width_mm > 0 and math.isfinite(self.field_width_mm)):
-            raise InvalidInputError(f"field_width_mm must be positive, got {self.field_width_mm!r}")
-        if not (self.working_distance_mm > 10 * self.field_width_mm and math.isfinite(self.working_distance_mm)):
+    @model_validator(mode="after")
+    def _camera_sees_the_surface(self) -> "PrismOptics":
+        if not self.working_distance_mm > 10 * self.field_width_mm:
             raise InvalidInputError(
                 f"working_distance_mm must exceed 10x the field width, got {self.working_distance_mm!r}"
             )
-        if not 0 <= self.view_angle_deg < 80:
-            raise InvalidInputError(f"view_angle_deg must be in [0, 80), got {self.view_angle_deg!r}")
-        for name in ("k1", "k2", "p1", "p2", "roll_deg"):
-            if not math.isfinite(getattr(self, name)):
-                raise InvalidInputError(f"{name} must be finite, got {getattr(self, name)!r}")
-        if not isinstance(self.surface, RuledSurface):
-            raise InvalidInputError(f"surface must be a RuledSurface, got {type(self.surface).__name__}")
-        t = math.radians(self.view_angle_deg)
         # The view must never graze the surface (|h'| tan(angle) < 1), or a ray would meet it twice.
-        if self.surface.max_slope * math.tan(t) >= 0.95:
+        if self.surface.max_slope * math.tan(math.radians(self.view_angle_deg)) >= 0.95:
             raise InvalidInputError(
                 f"the camera at {self.view_angle_deg} deg cannot see slopes of {self.surface.max_slope:.2f}"
             )
-        object.__setattr__(self, "_arc", _ArcLength(self.surface))
+        return self
+
+    def __post_init__(self) -> None:
+        # Derived state (the fields are validated): the arc-length table and the camera's frame.
+        # Flat beyond 12 sigma; the table reaches +/-40 mm at 2 um steps (interpolation error below 1e-6 mm).
+        sigma, centre = self.surface.sigma_mm, self.surface.center_mm
+        arc = ArcLengthTable(None) if self.surface.max_slope == 0.0 else ArcLengthTable(
+            self.surface.slope, lo=min(-40.0, centre - 12 * sigma), hi=max(40.0, centre + 12 * sigma), step=0.002)
+        object.__setattr__(self, "_arc", arc)
+        t = math.radians(self.view_angle_deg)
         # Camera frame in surface-frame components (U, V, N): axis d, image axes ex (along U) and ey.
         d = np.array([0.0, math.sin(t), math.cos(t)])
         ex = np.array([1.0, 0.0, 0.0])
@@ -199,9 +163,7 @@ class PrismOptics(Optics):
 
     def surface_points_3d(self, us_mm: np.ndarray) -> np.ndarray:
         """3-D positions (U, V, N components, mm) of unrolled surface points (u, s)."""
-        us = np.asarray(us_mm, dtype=np.float64)
-        v = self._arc.v_of_s(us[..., 1])
-        return np.stack([us[..., 0], v, self.surface.height(v)], axis=-1)
+        return surface_points(np.asarray(us_mm, dtype=np.float64), self.surface, self._arc)
 
     def _distort(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r2 = a * a + b * b
@@ -256,20 +218,8 @@ class PrismOptics(Optics):
         pp = self.principal_point
         a, b = self._undistort((xy[..., 0] - pp[0]) / self.focal_px, (xy[..., 1] - pp[1]) / self.focal_px)
         ray = a[..., None] * self._axes[0] + b[..., None] * self._axes[1] + self._axes[2]
-        c = self._pinhole
-        # Point on the ray at flat-plane coordinate v: N(v) = c_N + (v - c_V) rN / rV; solve N(v) = h(v).
-        k = ray[..., 2] / ray[..., 1]
-        v = c[1] + (0.0 - c[2]) / k  # intersection with the flat plane
-        if not self._arc.flat:
-            for _ in range(30):
-                g = c[2] + (v - c[1]) * k - self.surface.height(v)
-                step = g / (k - self.surface.slope(v))
-                v = v - step
-                if np.max(np.abs(step), initial=0.0) < 1e-13:
-                    break
-        t = (v - c[1]) / ray[..., 1]
-        u = c[0] + t * ray[..., 0]
-        return np.stack([u, self._arc.s_of_v(v)], axis=-1)
+        us, _ = cast_rays(self._pinhole, ray, self.surface, self._arc)
+        return us
 
     def local_scale(self, us_mm: np.ndarray, *, step_mm: float = 1e-4) -> np.ndarray:
         """Jacobian d(x, y)/d(u, s) in px/mm at surface points, shape (..., 2, 2) (rows x, y; columns u, s)."""

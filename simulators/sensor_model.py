@@ -8,16 +8,17 @@ noise, as a real sensor would see it.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import cv2
 import numba
 import numpy as np
+from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import Float, NonNegativeFloat, validated_dataclass
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class CameraModel:
     """Sensor and lens effects, all settable; ``apply`` is deterministic for a given generator state.
 
@@ -41,21 +42,11 @@ class CameraModel:
     [[100, 100, 100], [100, 100, 100]]
     """
 
-    blur_sigma_px: float = 0.8
-    vignetting: float = 0.12
-    illumination_tilt: float = 0.04
-    noise_sigma: float = 2.0
-    shot_noise_gain: float = 0.05
-
-    def __post_init__(self) -> None:
-        for name in ("blur_sigma_px", "noise_sigma", "shot_noise_gain"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise InvalidInputError(f"{name} must be a non-negative number, got {v!r}")
-        if not 0 <= self.vignetting < 1:
-            raise InvalidInputError(f"vignetting must be in [0, 1), got {self.vignetting!r}")
-        if not abs(self.illumination_tilt) < 1:
-            raise InvalidInputError(f"illumination_tilt must be in (-1, 1), got {self.illumination_tilt!r}")
+    blur_sigma_px: NonNegativeFloat = 0.8
+    vignetting: Float = Field(default=0.12, ge=0, lt=1)
+    illumination_tilt: Float = Field(default=0.04, gt=-1, lt=1)
+    noise_sigma: NonNegativeFloat = 2.0
+    shot_noise_gain: NonNegativeFloat = 0.05
 
     def illumination(self, height: int, width: int) -> np.ndarray:
         """Multiplicative illumination field (H, W) float32, 1 at the image centre."""

@@ -11,22 +11,24 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import Callable
 
 import numpy as np
+from pydantic import Field
 
 from skinstretch.drivers.camera.base import Camera, Clock, EndOfStreamError, Frame, MonotonicClock
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import Float, NonNegativeInt, Probability, validated_dataclass
 
 __all__ = ["CameraFaults", "SimulatedCamera"]
 
 FrameSource = Callable[[int], np.ndarray]
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class CameraFaults:
     """Faults a :class:`SimulatedCamera` injects (all off by default).
 
@@ -46,21 +48,10 @@ class CameraFaults:
     """
 
     drop_frames: frozenset[int] = field(default_factory=frozenset)
-    drop_probability: float = 0.0
-    stall_at_frame: int | None = None
-    stall_s: float = math.inf
-    error_at_frame: int | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "drop_frames", frozenset(int(k) for k in self.drop_frames))
-        if not 0.0 <= self.drop_probability < 1.0:
-            raise InvalidInputError(f"drop_probability must be in [0, 1), got {self.drop_probability!r}")
-        if not self.stall_s > 0:
-            raise InvalidInputError(f"stall_s must be > 0 (math.inf for a dead camera), got {self.stall_s!r}")
-        for name in ("stall_at_frame", "error_at_frame"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or value < 0):
-                raise InvalidInputError(f"{name} must be a non-negative int or None, got {value!r}")
+    drop_probability: Probability = 0.0
+    stall_at_frame: NonNegativeInt | None = None
+    stall_s: Float = Field(default=math.inf, gt=0)  # math.inf: a dead camera
+    error_at_frame: NonNegativeInt | None = None
 
 
 class SimulatedCamera(Camera):

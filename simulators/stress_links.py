@@ -1,6 +1,6 @@
 """Reach the STReSS firmware simulator through the same doors as the hardware.
 
-- a pyserial URL ``stresssim://NAME?baud=2000000&faults=drop:0.001&seed=0`` (call :func:`register_url_handler`
+- a pyserial URL ``stresssim://NAME?baud=2000000&faults=drop:0.001&seed=0&load=0.15`` (call :func:`register_url_handler`
   once; driver code then uses :func:`serial.serial_for_url` unchanged). ``NAME`` selects a link attached with
   :func:`attach` (tests attach one with a manual clock); an unknown name creates a real-time link from the query.
 - a real pty pair served by a thread (:func:`start_pty_firmware`) or by a separate process
@@ -35,8 +35,9 @@ from skinstretch.drivers.display.transports import (STRESS_USB_EP_IN, STRESS_USB
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 
-from .stress_firmware import (Clock, LinkFaults, LinkVanished, PacedLink, PtyFirmwareServer, RealClock,
-                              StressFirmware)
+from .stress_firmware import StressFirmware
+from .stress_pty import PtyFirmwareServer
+from .stress_wire import Clock, LinkFaults, LinkVanished, PacedLink, RealClock
 
 URL_HANDLER_PACKAGE = "skinstretch.simulators.stress_urlhandler"
 _links: dict[str, PacedLink] = {}
@@ -86,9 +87,10 @@ def _link_from_url(url: str) -> PacedLink:
     if parts.scheme != "stresssim":
         raise SerialException(f"expected a stresssim:// URL, got {url!r}")
     query = {k: v[-1] for k, v in parse_qs(parts.query).items()}
-    unknown = set(query) - {"baud", "faults", "seed"}
+    unknown = set(query) - {"baud", "faults", "seed", "load"}
     if unknown:
-        raise SerialException(f"unknown stresssim URL options {sorted(unknown)} in {url!r}")
+        raise SerialException(f"unknown stresssim URL options {sorted(unknown)} in {url!r} "
+                              "(known: baud, faults, seed, load)")
     name = parts.netloc or parts.path.strip("/")
     with _links_lock:
         if name and name in _links:
@@ -96,6 +98,7 @@ def _link_from_url(url: str) -> PacedLink:
     try:
         link = make_link(baud=int(query.get("baud", sp.DEFAULT_BAUD)), seed=int(query.get("seed", 0)),
                          faults=query.get("faults", ""))
+        link.firmware.benders.set_load(float(query.get("load", 0.0)))
     except (ValueError, InvalidInputError) as exc:
         raise SerialException(f"bad stresssim URL {url!r}: {exc}") from exc
     if name:
@@ -225,7 +228,7 @@ class FirmwareProcess:
         self._slave = slave
         try:
             self._process = subprocess.Popen(
-                [sys.executable, "-m", "skinstretch.simulators.stress_firmware", "--pty-fd", str(master), "--baud", str(baud),
+                [sys.executable, "-m", "skinstretch.simulators.stress_pty", "--pty-fd", str(master), "--baud", str(baud),
                  "--seed", str(seed), "--faults", faults, "--record", str(self.record_path)],
                 pass_fds=(master,), stdout=subprocess.PIPE, text=True)
         finally:

@@ -19,17 +19,18 @@ for a ridge and -1 for a valley; the seed's height is 0.5 mm. The steepest slope
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
+from typing import Literal
 
 import numpy as np
 
-from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.ruled_surface_rays import ArcLengthTable
+from skinstretch.processing.validated_dataclass import FiniteFloat, NonNegativeFloat, PositiveFloat, validated_dataclass
 
 SURFACE_KINDS = ("flat", "ridge", "valley")
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class RuledSurface:
     """A parallel-ruled contact surface, flat or with one Gaussian ridge or valley.
 
@@ -50,18 +51,10 @@ class RuledSurface:
     (0.5, 0.75)
     """
 
-    kind: str = "flat"
-    width_mm: float = 3.0
-    height_mm: float = 0.5
-    center_mm: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.kind not in SURFACE_KINDS:
-            raise InvalidInputError(f"kind must be one of {SURFACE_KINDS}, got {self.kind!r}")
-        if not self.width_mm > 0:
-            raise InvalidInputError(f"width_mm must be positive, got {self.width_mm}")
-        if not self.height_mm >= 0:
-            raise InvalidInputError(f"height_mm must be non-negative, got {self.height_mm}")
+    kind: Literal["flat", "ridge", "valley"] = "flat"
+    width_mm: PositiveFloat = 3.0
+    height_mm: NonNegativeFloat = 0.5
+    center_mm: FiniteFloat = 0.0
 
     @property
     def sigma_mm(self) -> float:
@@ -88,36 +81,21 @@ class RuledSurface:
         return abs(self.sign) * self.height_mm / self.sigma_mm * float(np.exp(-0.5))
 
     @cached_property
-    def _table(self) -> tuple[np.ndarray, np.ndarray]:
-        # Arc length s(z) = integral sqrt(1 + h'^2) dz, tabulated finely around the shape (flat far away).
+    def _arc(self) -> ArcLengthTable:
+        # Arc length s(z) = integral sqrt(1 + h'^2) dz from z = 0 (the centre of the field of view, as the optics
+        # convention asks), tabulated finely around the shape (the surface is flat 8 sigma away).
+        if self.kind == "flat":
+            return ArcLengthTable(None)
         half = 8.0 * self.sigma_mm
-        z = np.linspace(self.center_mm - half, self.center_mm + half, 8001)
-        ds = np.sqrt(1.0 + self.slope(z) ** 2)
-        s = np.concatenate([[0.0], np.cumsum(0.5 * (ds[1:] + ds[:-1]) * np.diff(z))])
-        # s = 0 at z = 0 (the centre of the field of view), as the optics convention asks.
-        s -= np.interp(0.0, z, s) if z[0] <= 0.0 <= z[-1] else 0.0
-        if not (z[0] <= 0.0 <= z[-1]):
-            s += z[0]  # the shape is far from the centre: arc length equals z up to the table's start
-        return z, s
+        return ArcLengthTable(self.slope, lo=self.center_mm - half, hi=self.center_mm + half, step=half / 4000)
 
     def arc_length(self, z_mm: np.ndarray | float) -> np.ndarray:
         """Arc length ``s`` (mm) from ``z = 0`` to flat coordinate ``z_mm`` along the profile."""
-        z = np.asarray(z_mm, dtype=np.float64)
-        if self.kind == "flat":
-            return z.copy()
-        zt, st = self._table
-        inside = np.interp(z, zt, st)
-        # Outside the table the surface is flat: arc length grows like z.
-        return np.where(z < zt[0], st[0] + (z - zt[0]), np.where(z > zt[-1], st[-1] + (z - zt[-1]), inside))
+        return self._arc.s_of_v(z_mm)
 
     def flat_coordinate(self, s_mm: np.ndarray | float) -> np.ndarray:
         """Inverse of :meth:`arc_length`: flat coordinate ``z`` (mm) of arc length ``s_mm``."""
-        s = np.asarray(s_mm, dtype=np.float64)
-        if self.kind == "flat":
-            return s.copy()
-        zt, st = self._table
-        inside = np.interp(s, st, zt)
-        return np.where(s < st[0], zt[0] + (s - st[0]), np.where(s > st[-1], zt[-1] + (s - st[-1]), inside))
+        return self._arc.v_of_s(s_mm)
 
     def slope_at_arc(self, s_mm: np.ndarray | float) -> np.ndarray:
         """dh/dz at the point of arc length ``s_mm``."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 import skinstretch.experiments.commands as _commands
@@ -38,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
         module.register(sub)
     for command in sub.choices.values():
         _add_verbosity(command)
+        # The command's flags by parameter name, so an error's remedy names --overwrite, not overwrite=True.
+        flags = {a.dest: max(a.option_strings, key=len) for a in command._actions if a.option_strings}
+        command.set_defaults(cli_flags=flags)
     return parser
 
 
@@ -57,13 +61,29 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     try:
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
     except SkinstretchError as exc:
-        log.error("skinstretch %s: error: %s", args.command, exc)
-        return 2
+        flags = getattr(args, "cli_flags", {})
+        log.error("skinstretch %s: error: %s", args.command, exc.message_for(lambda p: flags.get(p, p)))
+        rc = 2
     except KeyboardInterrupt:
         log.error("skinstretch %s: interrupted", args.command)
-        return 130
+        rc = 130
+    _exit_now_if_hdf5_cannot_shut_down(rc)
+    return rc
+
+
+def _exit_now_if_hdf5_cannot_shut_down(rc: int) -> None:
+    """A session file the disk never let close stays open inside HDF5, which then crashes (SIGSEGV) while
+    shutting down at exit: end the process here instead, output flushed (see skinstretch.drivers.disk_space)."""
+    session_file = sys.modules.get("skinstretch.drivers.session_file")  # not imported: nothing was written
+    if session_file is not None and session_file.unclosed_sessions():
+        log.error("skinstretch: %d session file(s) could not be closed on the full disk; exiting without HDF5's "
+                  "shutdown", len(session_file.unclosed_sessions()))
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc or 1)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,6 +1,13 @@
 """Every error skinstretch raises on purpose, in one place for users: catch :class:`SkinstretchError` for all."""
 
-from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SafetyStop, SessionFileError
+from skinstretch.drivers.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    FrameFileError,
+    ProtocolError,
+    SafetyStop,
+    SessionFileError,
+)
 from skinstretch.processing.errors import (
     CalibrationError,
     ConfigError,
@@ -16,6 +23,7 @@ __all__ = [
     "CalibrationError",
     "ConfigError",
     "SessionFileError",
+    "FrameFileError",
     "DeviceError",
     "DeviceTimeoutError",
     "ProtocolError",

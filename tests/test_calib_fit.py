@@ -239,7 +239,7 @@ def test_a_non_gaussian_ridge_gets_a_spline_profile():
     optics = PrismOptics(surface=SkewedRidgeSurface(kind="ridge", center_mm=0.3))
     g = render_calibration_grid(optics, missing_fraction=0.1, n_spurious=2, seed=9)
     mapping, report = calibrate_grid_image(g.image, px_per_mm=optics.px_per_mm)
-    assert mapping.surface == "ridge" and len(mapping.rig["spline_coefs"]) > 5
+    assert mapping.surface == "ridge" and len(mapping.rig.spline_coefs) > 5
     assert report.rms_px < 0.05  # the spline takes up what the Gaussian could not
     xy = _field(optics)
     err = _error_um(mapping.image_to_surface(xy), optics.image_to_surface(xy))

@@ -19,6 +19,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators.simulated_camera import SimulatedCamera
 from skinstretch.simulators.gige_fake_camera import FakeGigECamera
+from tests.helpers import wait_until
 
 STRIP = CAMERA_MODES["strip"]
 
@@ -118,9 +119,7 @@ def test_frames_survive_stop_then_reads_fail_cleanly(camera):
         camera.set_mode(STRIP)
         camera.start()
         camera.read(5.0)
-        deadline = time.monotonic() + 5.0
-        while camera.stats.completed < 5 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_until(lambda: camera.stats.completed >= 5)
         camera.stop()
         queued = camera.stats.completed - camera.stats.delivered
         assert queued >= 4

@@ -13,7 +13,7 @@ from skinstretch.drivers.camera.replay import ReplayCamera
 from skinstretch.drivers.camera_modes import CAMERA_MODES
 from skinstretch.drivers.session_file import write_session
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.drivers.errors import DeviceTimeoutError, SessionFileError
+from skinstretch.drivers.errors import DeviceTimeoutError, FrameFileError, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
 
 STRIP = CAMERA_MODES["strip"]
@@ -133,7 +133,7 @@ def test_bad_sources(tmp_path):
         ReplayCamera(tmp_path).open()
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(InvalidInputError, match="empty"):
+    with pytest.raises(FrameFileError, match="no PNG or TIFF images"):
         ReplayCamera(empty, rate_hz=10.0).open()
     with ReplayCamera(tmp_path, rate_hz=10.0) as cam:
         with pytest.raises(InvalidInputError, match="is 4x4"):

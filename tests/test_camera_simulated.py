@@ -13,21 +13,13 @@ from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
 from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators.simulated_camera import CameraFaults, SimulatedCamera
+from tests.helpers import wait_until
 
 MODE = CameraMode("tiny", 32, 24, 100.0)
 
 
 def _source(k: int) -> np.ndarray:
     return np.full((24, 32), k % 256, np.uint8)
-
-
-def _wait_for(predicate, timeout_s: float = 5.0) -> None:
-    """Bounded wait on the acquisition thread."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not reached within the bounded wait")
-        time.sleep(0.005)
 
 
 def _drain(cam, timeout_s: float = 0.2) -> list[int]:
@@ -61,7 +53,7 @@ def test_injected_drops_and_finite_stall_are_counted_as_dropped():
     with SimulatedCamera(_source, MODE, clock=clock, faults=faults) as cam:
         cam.start()
         clock.advance(12.5 * MODE.period_s)
-        _wait_for(lambda: cam.stats.completed == 8)
+        wait_until(lambda: cam.stats.completed == 8)
         ids = _drain(cam)
         stats = cam.stats
     # 2 and 3 dropped; the stall at 6 loses frames 6, 7, 8; delivery resumes at 9.
@@ -75,7 +67,7 @@ def test_random_drops_are_seeded():
         with SimulatedCamera(_source, MODE, clock=clock, faults=CameraFaults(drop_probability=0.3), seed=seed) as cam:
             cam.start()
             clock.advance(40.5 * MODE.period_s)
-            _wait_for(lambda: cam.stats.completed + cam.stats.dropped == 41)
+            wait_until(lambda: cam.stats.completed + cam.stats.dropped == 41)
             return _drain(cam), cam.stats
 
     ids_a, stats_a = run(3)
@@ -90,7 +82,7 @@ def test_dead_camera_times_out_and_keeps_earlier_frames():
     with SimulatedCamera(_source, MODE, clock=clock, faults=faults) as cam:
         cam.start()
         clock.advance(10 * MODE.period_s)
-        _wait_for(lambda: cam.stats.completed == 3)
+        wait_until(lambda: cam.stats.completed == 3)
         t = time.monotonic()
         ids = _drain(cam, timeout_s=0.1)
         assert time.monotonic() - t < 5.0  # bounded: no hang
@@ -121,7 +113,7 @@ def test_full_queue_drops_are_counted_not_silent():
     with SimulatedCamera(_source, MODE, clock=clock, queue_size=2) as cam:
         cam.start()
         clock.advance(9.5 * MODE.period_s)
-        _wait_for(lambda: cam.stats.completed == 10)
+        wait_until(lambda: cam.stats.completed == 10)
         stats = cam.stats
         assert stats.dropped == 8
         assert [f.frame_id for f in cam.frames(2)] == [0, 1]

@@ -8,13 +8,15 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from skinstretch.drivers.errors import InvalidTargetError
 from skinstretch.drivers.display import stress_protocol as sp
 from skinstretch.drivers.display.stress import StressDisplay
 from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import ManualClock, PacedLink, StressFirmware
+from skinstretch.simulators.stress_firmware import StressFirmware
+from skinstretch.simulators.stress_wire import ManualClock, PacedLink
 
 _names = itertools.count()
 # long enough that a test process starved by a busy CI machine does not trip it by accident
@@ -88,8 +90,9 @@ def test_driver_limits_slew_and_firmware_never_has_to(rig):
     d.arm()
     ack = d.send_frame(np.full((10, 10), 1e6))
     assert np.all(ack.command_um == d.max_step_um)
-    ack = d.send_frame(np.full((10, 10), np.nan))
-    assert np.all(ack.command_um == d.max_step_um)
+    with pytest.raises(InvalidTargetError, match=r"contactor \(0, 0\)"):  # refused, never guessed
+        d.send_frame(np.full((10, 10), np.nan))
+    assert np.all(d.last_command_um == d.max_step_um)
     rig.link.advance()
     assert rig.firmware.clamped_frames == 0
     assert np.all(rig.firmware.last_command_um == d.max_step_um)

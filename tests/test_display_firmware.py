@@ -6,8 +6,9 @@ import pytest
 from skinstretch.drivers.display import stress_protocol as sp
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import (BenderArray, BenderParameters, LinkFaults, ManualClock, PacedLink,
-                                        StressFirmware)
+from skinstretch.simulators.stress_benders import BenderArray, BenderParameters
+from skinstretch.simulators.stress_firmware import StressFirmware
+from skinstretch.simulators.stress_wire import LinkFaults, ManualClock, PacedLink
 
 QUIET = BenderParameters(gain_spread=0.0, offset_spread_um=0.0, noise_um=0.0)
 

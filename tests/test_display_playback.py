@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 
+from skinstretch.drivers.errors import InvalidTargetError
 from skinstretch.drivers.display.movie_stream import PHASES, find_stalls, stream_movie
 from skinstretch.drivers.display.stress import StressDisplay
 from skinstretch.drivers.display.transports import SerialTransport
@@ -64,7 +65,6 @@ def test_callback_sees_acks_and_corrects_commands(sim):
 def test_unsafe_movie_is_limited_not_refused(sim):
     display, link = sim
     movie = np.full((30, 10, 10), 500.0)
-    movie[5] = np.nan
     report = stream_movie(display, movie)
     assert report.completed
     assert np.abs(report.commands_um).max() <= 50
@@ -83,6 +83,16 @@ def test_bad_options_are_refused_by_name(sim, kwargs, name):
 def test_bad_movie_shape_is_refused(sim):
     with pytest.raises(InvalidInputError, match="movie_um"):
         stream_movie(sim[0], np.zeros((5, 10)))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, 1j])
+def test_a_movie_with_a_non_position_is_refused_before_the_display_moves(sim, bad):
+    display, link = sim
+    movie = np.zeros((30, 10, 10), complex if bad == 1j else float)
+    movie[5, 2, 7] = bad
+    with pytest.raises(InvalidTargetError, match=r"frame 5, contactor \(2, 7\)"):
+        stream_movie(display, movie)
+    assert not display.armed and link.firmware.frames_received == 0
 
 
 def test_no_ack_means_no_error_figure_not_nan(sim):

@@ -11,13 +11,15 @@ from hypothesis.extra import numpy as hnp
 import skinstretch.drivers.display.safety as safety_module
 import skinstretch.drivers.display.stress_protocol as protocol_module
 from skinstretch.drivers.display import stress_protocol as sp
-from skinstretch.drivers.display.safety import limit_command, rest_ramp
+from skinstretch.drivers.display.safety import check_movie, limit_command, rest_ramp
+from skinstretch.drivers.errors import InvalidTargetError
+from skinstretch.drivers.display.base import PreparedFrame
 from skinstretch.drivers.display.stress import StressDisplay
 from skinstretch.drivers.display.transports import Transport
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators.stress_firmware import StressFirmware
 
-anything = st.floats(allow_nan=True, allow_infinity=True, width=64)
+anything = st.floats(allow_nan=False, allow_infinity=False, width=64)  # any finite double, huge ones included
 frames = hnp.arrays(np.float64, (10, 10), elements=anything)
 safe_previous = hnp.arrays(np.float64, (10, 10), elements=st.integers(-100, 100).map(lambda c: c * 0.5))
 
@@ -29,8 +31,8 @@ def test_doctests_of_the_codec_and_limits_pass():
 
 
 @given(frames, safe_previous, st.floats(0.5, 50), st.floats(0.5, 100))
-@settings(max_examples=150, deadline=None)
-def test_limited_command_is_in_range_within_slew_and_on_the_grid(request, previous, range_um, max_step_um):
+@settings(max_examples=200, deadline=None)
+def test_limited_command_is_safe_and_never_silently_altered(request, previous, range_um, max_step_um):
     previous = np.clip(previous, -np.floor(range_um * 2) / 2, np.floor(range_um * 2) / 2)
     out = limit_command(request, previous, range_um=range_um, max_step_um=max_step_um)
     c = out.command_um
@@ -38,20 +40,59 @@ def test_limited_command_is_in_range_within_slew_and_on_the_grid(request, previo
     assert np.all(np.abs(c) <= range_um + 1e-12)
     assert np.all(np.abs(c - previous) <= max_step_um + 1e-12)
     assert np.array_equal(c * 2, np.rint(c * 2))
-    held = ~np.isfinite(request)
-    assert np.array_equal(c[held], previous[held]) and out.non_finite == held.sum()
+    # never silently altered: a contactor not marked clamped got its request, up to the 0.5 um grid's rounding
+    free = ~out.clamped
+    assert np.all(np.abs(c[free] - request[free]) <= 0.25)
+    assert out.modified == bool(out.clamped.any())
+    # and a clamped one went as far towards its request as the limits allow
+    r_um, s_um = np.floor(range_um * 2) / 2, np.floor(max_step_um * 2) / 2
+    reach = np.clip(np.clip(np.rint(np.clip(request, -r_um, r_um) * 2) / 2, previous - s_um, previous + s_um),
+                    -r_um, r_um)
+    assert np.array_equal(c, reach)
+
+
+@pytest.mark.parametrize("bad, where", [(np.nan, (3, 4)), (np.inf, (0, 9)), (-np.inf, (9, 0))])
+def test_non_finite_targets_are_refused_naming_the_contactor(bad, where):
+    request = np.zeros((10, 10))
+    request[where] = bad
+    with pytest.raises(InvalidTargetError, match=rf"contactor \({where[0]}, {where[1]}\)") as info:
+        limit_command(request, np.zeros((10, 10)))
+    assert info.value.contactor == where and isinstance(info.value, InvalidInputError)
+
+
+def test_complex_bool_and_object_targets_are_refused():
+    request = np.zeros((10, 10), complex)
+    request[2, 5] = 1 + 2j
+    with pytest.raises(InvalidTargetError, match=r"complex.*contactor \(2, 5\)") as info:
+        limit_command(request, np.zeros((10, 10)))
+    assert info.value.contactor == (2, 5)
+    with pytest.raises(InvalidTargetError, match="complex"):  # even with no imaginary part: a bug upstream
+        limit_command(np.zeros((10, 10), complex), np.zeros((10, 10)))
+    for garbage in (np.zeros((10, 10), bool), np.full((10, 10), "1.0"), np.full((10, 10), None)):
+        with pytest.raises(InvalidTargetError, match="real numbers"):
+            limit_command(garbage, np.zeros((10, 10)))
+
+
+def test_movies_are_checked_whole_naming_frame_and_contactor():
+    movie = np.zeros((7, 10, 10))
+    movie[4, 1, 2] = np.nan
+    with pytest.raises(InvalidTargetError, match=r"frame 4, contactor \(1, 2\)"):
+        check_movie(movie)
+    with pytest.raises(InvalidTargetError, match="shape"):
+        check_movie(np.zeros((0, 10, 10)))
+    assert check_movie(np.ones((2, 10, 10), np.int16)).dtype == np.float64
 
 
 def test_safe_request_passes_unchanged_and_flags_stay_clear():
     previous = np.zeros((10, 10))
     request = np.full((10, 10), 4.5)
     out = limit_command(request, previous, max_step_um=10)
-    assert np.array_equal(out.command_um, request) and not out.modified
+    assert np.array_equal(out.command_um, request) and not out.modified and not out.clamped.any()
 
 
-@pytest.mark.parametrize("request_um", ["abc", np.zeros((10, 9)), [[1, 2]], None])
+@pytest.mark.parametrize("request_um", ["abc", np.zeros((10, 9)), [[1, 2]], None, [[1, 2], [3]]])
 def test_garbage_requests_are_refused_by_name(request_um):
-    with pytest.raises(InvalidInputError, match="requested_um"):
+    with pytest.raises(InvalidTargetError, match="requested_um"):
         limit_command(request_um, np.zeros((10, 10)))
 
 
@@ -127,3 +168,30 @@ def test_a_stale_prepared_frame_is_limited_again_before_it_leaves():
     display.send_prepared(early)  # against -5 it would be a 10 um step
     assert np.all(wire.frames[-1] == 0.0)
     assert wire.firmware.clamped_frames == 0
+
+
+def test_a_prepared_frame_whose_array_disagrees_with_its_bytes_is_refused_and_not_believed():
+    wire = FirmwareWire()
+    display = StressDisplay(wire, clock=lambda: wire.t)
+    display.arm()
+    display.send_frame(np.full((10, 10), 4.0))
+    good = display.prepare_frame(np.full((10, 10), 8.0))
+    with pytest.raises(ValueError):
+        good.command_um[0, 0] = 1.0  # read-only: nobody changes a command behind its bytes
+    forged = PreparedFrame(np.full((10, 10), 6.0), good.wire, good.epoch)  # claims 6 um, its bytes say 8 um
+    with pytest.raises(InvalidTargetError, match=r"disagree at contactor \(0, 0\)"):
+        display.send_prepared(forged)
+    assert np.all(display.last_command_um == 4.0) and len(wire.frames) == 1  # nothing sent, nothing believed
+    unsafe = PreparedFrame(np.full((10, 10), 40.0), sp.encode_positions(np.full((10, 10), 40.0)), good.epoch)
+    with pytest.raises(InvalidTargetError, match="slew"):  # bytes and array agree, but the step is 36 um
+        display.send_prepared(unsafe)
+    with pytest.raises(InvalidTargetError, match="wire"):
+        display.send_prepared(PreparedFrame(good.command_um, b"\x00" * 7, good.epoch))
+    assert len(wire.frames) == 1
+    display.send_prepared(good)
+    assert np.all(display.last_command_um == 8.0) and np.all(wire.frames[-1] == 8.0)
+    display.start_movie(rate_hz=100.0, n_frames=5, start_delay_s=0.05)
+    with pytest.raises(InvalidTargetError, match="disagree"):
+        display.send_timed(0, PreparedFrame(np.full((10, 10), 9.0), display.prepare_frame(np.full((10, 10), 10.0)).wire,
+                                            display._epoch))
+    assert np.all(display.last_command_um == 8.0)

@@ -20,16 +20,16 @@ def test_record_then_report(tmp_path, capsys):
     rig = tmp_path / "rig.yaml"
     rig.write_text("name: camera-only\ncamera: {kind: sim}\nforce: {kind: none}\ndisplay: {kind: none}\n")
     assert main(["record", str(proto), "--rig", str(rig), "-o", str(tmp_path / "data")]) == 0
-    out = capsys.readouterr().out
+    out = capsys.readouterr()
     sdir = tmp_path / "data" / "s03" / "cli"
-    assert f"session: {sdir}" in out and "000-flat-r1: complete" in out
+    assert f"session: {sdir}" in out.out and "000-flat-r1: complete" in out.out
     assert (sdir / "000-flat-r1" / "session.h5").exists() and (sdir / "protocol.yaml").read_text() == PROTOCOL
     assert "camera-only" in (sdir / "rig.yaml").read_text()
     # a second run without --resume refuses to overwrite; with it, nothing is redone
     assert main(["record", str(proto), "-o", str(tmp_path / "data")]) == 2
     assert "--resume" in capsys.readouterr().err
     assert main(["record", str(proto), "--rig", str(rig), "-o", str(tmp_path / "data"), "--resume"]) == 0
-    assert "already complete, skipped" in capsys.readouterr().out
+    assert "already complete, skipped" in capsys.readouterr().err  # a progress line: logged
     assert main(["report", str(sdir)]) == 0
     html = (sdir / "report.html").read_text()
     assert "000-flat-r1" in html and "No analysis results" in html and "<h2>Parameters and versions" in html

@@ -142,6 +142,9 @@ def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
     with open_session(tmp_path / "pb.h5") as s:
         assert s.status == "failed" and "safety stop" in s.status_reason
         assert s.read_stream("display_target")[1].shape[0] == result.frames_played
+        _, wrench = s.read_stream("force")  # the sample that tripped the ceiling is kept, after the played frames'
+        assert wrench.shape[0] == result.frames_played + 1 and wrench[-1, 2] == 6.0
+    assert result.extra["ceiling_sample"]["frame"] == result.frames_played
 
 
 def test_link_failure_stops_movie_and_reports_it():

@@ -157,8 +157,8 @@ def test_layout_log_and_summaries(tmp_path):
     assert devices.display.at_rest and devices.display.rest_calls >= 6
 
 
-def test_disk_full_fails_one_trial_and_the_next_carries_on(tmp_path):
-    class FullAfterFive(SessionWriter):
+def test_disk_full_fails_that_trial_keeps_its_data_and_ends_the_run(tmp_path):
+    class FullAfterFive(SessionWriter):  # an injected ENOSPC: the real disk is in test_reliability_disk_full
         def append_frame(self, frame, **kw):
             if "001-ridge" in str(self.path) and self.n_frames >= 5:
                 raise OSError(errno.ENOSPC, "No space left on device")
@@ -168,16 +168,20 @@ def test_disk_full_fails_one_trial_and_the_next_carries_on(tmp_path):
             for f, t, i, d in zip(frames, timestamps, frame_ids, device_timestamps):  # the same fault, frame by frame
                 self.append_frame(f, timestamp=t, frame_id=i, device_timestamp=d)
 
-    protocol, devices, result, _ = _run(tmp_path, writer_factory=FullAfterFive)
+    protocol, devices, result, msgs = _run(tmp_path, writer_factory=FullAfterFive)
     flat, ridge, valley = result.trials
-    assert flat.status == valley.status == "complete"
-    assert ridge.status == "failed" and "disk full" in ridge.reason
+    assert flat.status == "complete" and valley.status == "not run"
+    assert ridge.status == "failed" and "disk full" in ridge.reason and ridge.disk_full
     with open_session(ridge.path) as s:
         assert s.status == "failed" and "ENOSPC" in s.status_reason and s.n_frames == 5
-    stops = [d for n, d in read_events(session_dir(protocol, tmp_path) / "events.jsonl") if n == "stop"]
-    assert [d["exit_status"] for d in stops] == ["success", "fail", "success"]
+    events = read_events(session_dir(protocol, tmp_path) / "events.jsonl")
+    stops = [d for n, d in events if n == "stop"]
+    assert [d["exit_status"] for d in stops] == ["success", "fail"] and "disk full" in stops[1]["reason"]
+    assert any(d.get("name") == "run_stopped" for n, d in events if n == "event")
     assert devices.display.at_rest
-    assert not result.ok
+    assert not result.ok and "disk full" in result.stopped
+    assert result.summary_line().startswith("1 of 3 trials failed, 1 not run, 0 of 0 analyses failed; run stopped")
+    assert not (tmp_path / "s01" / "unit" / "002-valley-r1").exists()
 
 
 def test_device_fault_fails_trial_with_reason_and_keeps_data(tmp_path):
@@ -193,7 +197,7 @@ def test_device_fault_fails_trial_with_reason_and_keeps_data(tmp_path):
 
 def test_existing_session_needs_resume(tmp_path):
     _run(tmp_path)
-    with pytest.raises(ConfigError, match="--resume"):
+    with pytest.raises(ConfigError, match="is not empty; pass resume=True to carry on"):
         _run(tmp_path)
     _, _, again, _ = _run(tmp_path, resume=True)
     assert [t.status for t in again.trials] == ["skipped"] * 3

@@ -22,6 +22,7 @@ from skinstretch.processing.skeleton_editing import (
 )
 from skinstretch.processing.skeleton_graph_lists import node_kind, node_orientation, trace_skeleton
 from skinstretch.processing.thinning import thin
+from tests.helpers import y_shaped_skeleton
 
 PPM = 62.0
 CAL = Calibration(px_per_mm=PPM)
@@ -45,11 +46,7 @@ def test_single_valley_gives_two_endings():
 
 
 def test_y_gives_one_bifurcation():
-    sk = np.zeros((60, 60), np.uint8)
-    sk[30, 5:30] = 1
-    for i in range(1, 22):
-        sk[30 - i, 29 + i] = 1
-        sk[30 + i, 29 + i] = 1
+    sk = y_shaped_skeleton()
     g = trace_skeleton(sk)
     kinds = _kinds(g)
     assert kinds.count(FeatureKind.VALLEY_BIFURCATION) == 1 and kinds.count(FeatureKind.VALLEY_ENDING) == 3

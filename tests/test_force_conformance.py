@@ -3,8 +3,6 @@ the same process and as a separate program (``python -m skinstretch.simulators.n
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -14,7 +12,8 @@ from skinstretch.drivers.forcesensor.base import FORCE_SAMPLE_DTYPE, ForceSample
 from skinstretch.drivers.forcesensor.netft import NetFTSensor
 from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.simulators.netft_box import NetFTSimulator, normal_force_wrench
+from skinstretch.simulators.netft_box import NetFTBoxProcess, NetFTSimulator, normal_force_wrench
+from tests.helpers import wait_until
 
 FORCE_N = 1.5
 
@@ -27,23 +26,8 @@ def sensor(request) -> ForceSensor:
         yield NetFTSensor(host, port=port)
         sim.close()
     else:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "skinstretch.simulators.netft_box", "--port", "0", "--rate", "500", "--force", str(FORCE_N)],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        try:
-            line = proc.stdout.readline()  # "host port" once bound; bounded by the test timeout
-            host, port = line.split()
-            yield NetFTSensor(host, port=int(port))
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=5)
-            proc.stdout.close()
+        with NetFTBoxProcess(rate_hz=500.0, force_n=FORCE_N) as (host, port):  # bounded by the test timeout
+            yield NetFTSensor(host, port=port)
 
 
 def test_streams_samples_in_newtons(sensor):
@@ -65,9 +49,7 @@ def test_drain_returns_a_structured_array(sensor):
     with sensor:
         sensor.start()
         sensor.read(2.0)
-        deadline = time.monotonic() + 5.0
-        while sensor.stats.received < 20 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_until(lambda: sensor.stats.received >= 20)
         sensor.stop()
         block = sensor.drain()
     assert block.dtype == FORCE_SAMPLE_DTYPE and len(block) >= 19

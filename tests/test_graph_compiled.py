@@ -39,6 +39,7 @@ from skinstretch.processing.skeleton_graph_lists import (
     trace_skeleton,
 )
 from skinstretch.processing.thinning import thin
+from tests.helpers import y_shaped_skeleton
 
 N_PX = 10
 HEAL = dict(max_distance_px=37.2, max_angle_deg=30.0, orientation_px=N_PX)
@@ -358,11 +359,7 @@ def test_merging_a_long_valley_many_times_needs_and_gets_more_room():
 
 
 def test_settle_merges_the_two_valleys_left_at_a_node():
-    sk = np.zeros((60, 60), np.uint8)
-    sk[30, 5:30] = 1
-    for i in range(1, 22):
-        sk[30 - i, 29 + i] = 1
-        sk[30 + i, 29 + i] = 1
+    sk = y_shaped_skeleton()
     g = trace_skeleton(sk)
     bif = next(n for n in g.alive_nodes() if g.degree(n) == 3)
     lists = (g.node_x, g.node_edges, g.edge_path, g.node_edges[bif])

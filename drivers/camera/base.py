@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode, camera_mode
-from skinstretch.drivers.streaming import StreamingDevice
+from skinstretch.drivers.streaming_device import StreamingDevice
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 

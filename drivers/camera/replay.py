@@ -1,50 +1,39 @@
 """Replay recorded images through the :class:`~skinstretch.drivers.camera.base.Camera` interface.
 
-Sources:
+Sources (docs/import-and-replay.md):
 
 * a session file (``.h5``/``.hdf5``, see docs/session-format.md): recorded frame ids, device and host time stamps;
-* an image sequence: a directory of PNG/TIFF files, a glob pattern, or a list of paths (sorted by name);
-* a video file (e.g. the seed's ``.avi`` movies) read with :class:`cv2.VideoCapture`.
+* anything ``skinstretch import`` reads, through the same readers (:mod:`skinstretch.drivers.frame_readers`):
+  a video file (AVI such as the seed's movies, MP4, MOV, MKV...), a TIFF stack (multi-page, OME, ImageJ), a
+  directory or glob pattern of PNG/TIFF images in natural order, or a list of image paths.
 
-Frames come out at the recorded rate (``rate_hz=None``: the session's host time stamps, the video's frame rate),
-at a chosen rate, or as fast as they are read (``rate_hz=math.inf``). Unlike a live camera a replay never drops a
-frame: a slow reader simply slows the replay. After the last frame :meth:`read` raises
-:class:`~skinstretch.drivers.camera.base.EndOfStreamError` (unless ``loop=True``). Colour images are converted to grey.
+Frames come out at the recorded rate (``rate_hz=None``: the session's host time stamps, the rate the video or TIFF
+declares), at a chosen rate, or as fast as they are read (``rate_hz=math.inf``). Unlike a live camera a replay
+never drops a frame: a slow reader simply slows the replay. After the last frame :meth:`read` raises
+:class:`~skinstretch.drivers.camera.base.EndOfStreamError` (unless ``loop=True``). Colour images are converted to
+grey by the readers' rule (BT.601 luma); 16-bit images stay 16-bit.
 """
 
 from __future__ import annotations
 
-import glob
 import math
 import os
 import time
 from pathlib import Path
 from typing import Sequence
 
-import cv2
 import numpy as np
 
 from skinstretch.drivers.camera.base import Camera, Clock, EndOfStreamError, Frame, MonotonicClock
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.session_file import open_session
 from skinstretch.drivers.errors import DeviceError, SessionFileError
+from skinstretch.drivers.frame_readers import FrameReader, open_frame_reader
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["ReplayCamera"]
 
 _SESSION_SUFFIXES = {".h5", ".hdf5"}
-_IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
-
-
-def _to_grey(image: np.ndarray, where: str) -> np.ndarray:
-    if image.ndim == 3 and image.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        image = cv2.cvtColor(image, code)
-    elif image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
-        raise DeviceError(f"{where}: expected an 8- or 16-bit grey or colour image, got {image.dtype} {image.shape}")
-    return np.ascontiguousarray(image)
 
 
 class _SessionSource:
@@ -77,69 +66,31 @@ class _SessionSource:
         self.session.close()
 
 
-class _ImageSequenceSource:
-    def __init__(self, paths: list[Path]) -> None:
-        if not paths:
-            raise InvalidInputError("image sequence is empty: no PNG or TIFF files found")
-        self.paths = paths
-        self.name = f"{paths[0].parent}/ ({len(paths)} images)"
-        self.n_frames = len(paths)
-        self.shape = self.read(0)[0].shape
+class _FileSource:
+    """A video, TIFF stack or image folder through its shared reader (skinstretch.drivers.frame_readers)."""
+
+    def __init__(self, reader: FrameReader) -> None:
+        self.reader = reader
+        self.name = reader.name
+        self.n_frames = reader.n_frames
+        self.shape = reader.shape
         self.mode_name = "replay"
-        self.fps = None
+        self.fps = reader.fps
         self.times = None
+        if reader.dtype not in (np.uint8, np.uint16):
+            reader.close()
+            raise DeviceError(f"{reader.name}: a camera delivers 8- or 16-bit frames, the file holds {reader.dtype}")
 
     def read(self, k: int) -> tuple[np.ndarray, int, float]:
-        path = self.paths[k]
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise DeviceError(f"{path}: cannot be read as an image")
-        return _to_grey(image, str(path)), k, math.nan
+        try:
+            frame = self.reader.read(k)
+        except IndexError:
+            raise EndOfStreamError(f"{self.name}: ends after {k} frames") from None
+        device_t = frame.time_s if math.isfinite(frame.time_s) else (k / self.fps if self.fps else math.nan)
+        return frame.image, k, device_t
 
     def close(self) -> None:
-        pass
-
-
-class _VideoSource:
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.name = str(path)
-        self.capture = cv2.VideoCapture(str(path))
-        if not self.capture.isOpened():
-            raise DeviceError(f"{path}: OpenCV cannot open this video file")
-        count = int(self.capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        fps = float(self.capture.get(cv2.CAP_PROP_FPS))
-        ok, first = self.capture.read()
-        if not ok:
-            self.capture.release()
-            raise DeviceError(f"{path}: video holds no readable frame")
-        self.first = _to_grey(first, str(path))
-        self.shape = self.first.shape
-        self.n_frames = count if count > 0 else None
-        self.fps = fps if fps > 0 and math.isfinite(fps) else None
-        self.times = None
-        self.mode_name = "replay"
-        self._next = 1
-
-    def read(self, k: int) -> tuple[np.ndarray, int, float]:
-        if k == 0:
-            self.capture.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            ok, image = self.capture.read()
-            self._next = 1
-            image = self.first if not ok else _to_grey(image, self.name)
-        else:
-            if k != self._next:
-                self.capture.set(cv2.CAP_PROP_POS_FRAMES, k)
-            ok, image = self.capture.read()
-            if not ok:
-                raise EndOfStreamError(f"{self.name}: video ends after {k} frames")
-            image = _to_grey(image, self.name)
-            self._next = k + 1
-        device_t = k / self.fps if self.fps else math.nan
-        return image, k, device_t
-
-    def close(self) -> None:
-        self.capture.release()
+        self.reader.close()
 
 
 class ReplayCamera(Camera):
@@ -149,10 +100,10 @@ class ReplayCamera(Camera):
     ----------
     source : path-like, glob pattern or sequence of paths
         A session file (.h5/.hdf5), a directory of PNG/TIFF images, a glob pattern matching images,
-        a list of image paths, or a video file.
+        a list of image paths, a TIFF stack, or a video file.
     rate_hz : float, optional
-        Replay rate in Hz; None replays at the recorded rate (session time stamps, video frame rate; image
-        sequences have none and need a rate); ``math.inf`` replays as fast as frames are read.
+        Replay rate in Hz; None replays at the recorded rate (session time stamps, the rate a video or TIFF
+        declares; image folders have none and need a rate); ``math.inf`` replays as fast as frames are read.
     loop : bool
         Start again from the first frame after the last one.
     clock : Clock, optional
@@ -200,24 +151,14 @@ class ReplayCamera(Camera):
 
     @staticmethod
     def _open_source(spec):
-        if isinstance(spec, (list, tuple)):
-            return _ImageSequenceSource([Path(p) for p in spec])
-        text = os.fspath(spec)
-        path = Path(text)
-        if path.is_dir():
-            files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
-            return _ImageSequenceSource(files)
-        if any(ch in text for ch in "*?["):
-            files = sorted(Path(p) for p in glob.glob(text) if Path(p).suffix.lower() in _IMAGE_SUFFIXES)
-            return _ImageSequenceSource(files)
-        if not path.exists():
-            raise InvalidInputError(f"source {text!r} does not exist")
-        suffix = path.suffix.lower()
-        if suffix in _SESSION_SUFFIXES:
-            return _SessionSource(path)
-        if suffix in _IMAGE_SUFFIXES:
-            return _ImageSequenceSource([path])
-        return _VideoSource(path)
+        if not isinstance(spec, (list, tuple)):
+            text = os.fspath(spec)
+            path = Path(text)
+            if not path.exists() and not any(ch in text for ch in "*?["):
+                raise InvalidInputError(f"source {text!r} does not exist")
+            if path.is_file() and path.suffix.lower() in _SESSION_SUFFIXES:
+                return _SessionSource(path)
+        return _FileSource(open_frame_reader(spec))
 
     def _do_close(self) -> None:
         if self._src is not None:

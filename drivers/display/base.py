@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from skinstretch.drivers.errors import DeviceError
+from skinstretch.drivers.errors import DeviceError, InvalidTargetError, ProtocolError
 
 from skinstretch.processing.errors import InvalidInputError
 
-from .safety import LimitedCommand, limit_command, validate_limits
+from .safety import LimitedCommand, check_target, limit_command, validate_limits
 from .stress_protocol import (COLS, DEFAULT_MAX_STEP_UM, DEFAULT_WATCHDOG_S, MAX_START_DELAY_US, RANGE_UM, ROWS,
                               Disposition, MovieStart, MovieStatus, Status, StatusReport, TimedFrameReply,
                               rate_to_mhz)
@@ -109,11 +109,16 @@ class TimedReceipt:
 
 @dataclass(frozen=True)
 class PreparedFrame:
-    """A limited, encoded frame ready to go at its deadline (see :meth:`TactileDisplay.prepare_frame`)."""
+    """A limited, encoded frame ready to go at its deadline (see :meth:`TactileDisplay.prepare_frame`).
+
+    ``command_um`` is read-only. When it is sent, the driver decodes ``wire`` and refuses the frame unless the
+    bytes carry exactly ``command_um`` and are safe; the command it then remembers is the one the bytes carried.
+    """
 
     command_um: np.ndarray = field(repr=False)
     wire: object = field(repr=False)  # whatever the driver needs to send it fast (e.g. the encoded payload)
     epoch: int  # the driver's command epoch it was limited against
+    clamped: bool = False  # the request had to be clamped (range or slew) to make this command
 
 
 class TactileDisplay(abc.ABC):
@@ -154,6 +159,7 @@ class TactileDisplay(abc.ABC):
         self._next_tick = 0  # timed frames go out in increasing tick order
         self.acks: deque[FrameAck] = deque(maxlen=self.ACK_HISTORY)
         self.acks_received = 0
+        self.frames_clamped = 0  # prepared frames whose request had to be clamped (range or slew)
 
     # ---- public API ------------------------------------------------------------------------------------------
 
@@ -206,7 +212,11 @@ class TactileDisplay(abc.ABC):
         return self.read_status().positions_um
 
     def limit(self, positions_um) -> LimitedCommand:
-        """What :meth:`send_frame` would actually send for ``positions_um`` (does not send)."""
+        """What :meth:`send_frame` would actually send for ``positions_um`` (does not send).
+
+        Raises :class:`~skinstretch.drivers.errors.InvalidTargetError` naming the contactor for NaN, inf, complex
+        or non-numeric values and for a wrong shape (see :func:`skinstretch.drivers.display.safety.check_target`).
+        """
         return limit_command(positions_um, self._last_command, range_um=self.range_um,
                              max_step_um=self.max_step_um)
 
@@ -225,7 +235,11 @@ class TactileDisplay(abc.ABC):
     def prepare_frame(self, positions_um) -> PreparedFrame:
         """Limit and encode a frame ahead of its deadline; :meth:`send_prepared` then only writes bytes."""
         limited = self.limit(positions_um)
-        return PreparedFrame(limited.command_um, self._do_prepare_frame(limited.command_um), self._epoch)
+        command = limited.command_um
+        command.flags.writeable = False  # what the wire bytes were made from must not change behind them
+        if limited.modified:
+            self.frames_clamped += 1
+        return PreparedFrame(command, self._do_prepare_frame(command), self._epoch, limited.modified)
 
     def send_prepared(self, frame: PreparedFrame) -> int:
         """Send a prepared frame; re-limited first if another command left since it was prepared."""
@@ -233,13 +247,40 @@ class TactileDisplay(abc.ABC):
             raise DeviceError("the display is not armed; call arm() before sending frames")
         if self._movie is not None:
             raise DeviceError("a timed movie is running: send_timed() its frames, or stop_movie() / rest() first")
+        wire, carried = self._verified(frame)
+        seq = self._do_send_prepared(wire, carried)
+        self._set_last(carried)
+        return seq
+
+    def _verified(self, frame: PreparedFrame) -> tuple[object, np.ndarray]:
+        """The wire bytes of ``frame`` and the command they carry, decoded from the bytes themselves; refused
+        (InvalidTargetError, nothing sent) when they disagree with ``frame.command_um`` or break the limits."""
         if not isinstance(frame, PreparedFrame):
             raise InvalidInputError(f"frame must be a PreparedFrame, got {type(frame).__name__}")
         if frame.epoch != self._epoch:  # limited against a stale previous command: the slew bound would not hold
             frame = self.prepare_frame(frame.command_um)
-        seq = self._do_send_prepared(frame.wire, frame.command_um)
-        self._set_last(frame.command_um)
-        return seq
+        declared = frame.command_um
+        if not (isinstance(declared, np.ndarray) and declared.dtype == np.float64 and declared.shape == (ROWS, COLS)):
+            declared = check_target(declared, name="PreparedFrame.command_um")
+        try:
+            carried = np.asarray(self._do_wire_command(frame.wire), dtype=float)
+        except (ProtocolError, InvalidInputError, TypeError, ValueError) as exc:
+            raise InvalidTargetError(f"PreparedFrame.wire is not a frame of this display ({exc}); not sent") from None
+        # this runs at the frame's deadline: the cheap whole-array tests first, the contactor only on failure
+        if carried.shape != (ROWS, COLS) or not np.array_equal(carried, declared):
+            if carried.shape != (ROWS, COLS):
+                raise InvalidTargetError(f"PreparedFrame.wire carries shape {carried.shape}; not sent")
+            where = tuple(int(v) for v in np.argwhere(carried != declared)[0])
+            raise InvalidTargetError(f"PreparedFrame's command and its wire bytes disagree at contactor {where}: "
+                                     f"command {declared[where]} um, wire {carried[where]} um; not sent",
+                                     contactor=where)
+        if np.abs(carried).max() > self.range_um or np.abs(carried - self._last_command).max() > self.max_step_um:
+            unsafe = (np.abs(carried) > self.range_um) | (np.abs(carried - self._last_command) > self.max_step_um)
+            where = tuple(int(v) for v in np.argwhere(unsafe)[0])
+            raise InvalidTargetError(f"PreparedFrame at contactor {where} ({carried[where]} um after "
+                                     f"{self._last_command[where]} um) breaks the range or slew limit; not sent",
+                                     contactor=where)
+        return frame.wire, carried
 
     # ---- timed playback ----------------------------------------------------------------------------------------
 
@@ -285,16 +326,13 @@ class TactileDisplay(abc.ABC):
             raise DeviceError("the display is not armed; call arm() before sending frames")
         if self._movie is None:
             raise DeviceError("no timed movie is running; call start_movie() first")
-        if not isinstance(frame, PreparedFrame):
-            raise InvalidInputError(f"frame must be a PreparedFrame, got {type(frame).__name__}")
         if not (isinstance(tick, (int, np.integer)) and tick >= self._next_tick):
             raise InvalidInputError(f"tick must be an int >= {self._next_tick} (ticks increase), got {tick!r}")
         if self._movie.n_frames and tick >= self._movie.n_frames:
             raise InvalidInputError(f"tick must be below the movie's n_frames {self._movie.n_frames}, got {tick}")
-        if frame.epoch != self._epoch:  # limited against a stale previous command: the slew bound would not hold
-            frame = self.prepare_frame(frame.command_um)
-        seq = self._do_send_timed(int(tick), frame.wire, frame.command_um)
-        self._set_last(frame.command_um)
+        wire, carried = self._verified(frame)
+        seq = self._do_send_timed(int(tick), wire, carried)
+        self._set_last(carried)
         self._next_tick = int(tick) + 1
         return seq
 
@@ -337,6 +375,11 @@ class TactileDisplay(abc.ABC):
     def outstanding(self) -> int:
         """Frames sent whose ack has not arrived yet."""
 
+    def declare_link_lost(self, reason: str) -> None:
+        """The caller has found the link dead (e.g. too many frames unacknowledged): later commands (REST,
+        DISARM) are sent once without waiting long for their replies; the firmware watchdog rests the contactors."""
+        self._do_declare_link_lost(str(reason))
+
     def close(self) -> None:
         """Rest (when the link still works) and release the transport."""
         self._do_close()
@@ -375,8 +418,12 @@ class TactileDisplay(abc.ABC):
         """Send an already limited command; return its sequence number."""
 
     def _do_prepare_frame(self, command_um: np.ndarray) -> object:
-        """Precompute what sending ``command_um`` needs (default: nothing beyond the command)."""
-        return command_um
+        """Precompute what sending ``command_um`` needs (default: a copy of the command)."""
+        return command_um.copy()
+
+    def _do_wire_command(self, wire: object) -> np.ndarray:
+        """The command a prepared ``wire`` carries (the inverse of :meth:`_do_prepare_frame`)."""
+        return np.array(wire, dtype=float)
 
     def _do_send_prepared(self, wire: object, command_um: np.ndarray) -> int:
         """Send a prepared frame (default: :meth:`_do_submit_frame`)."""
@@ -400,6 +447,9 @@ class TactileDisplay(abc.ABC):
 
     def _do_read_movie_status(self) -> MovieStatus:
         raise DeviceError(f"{type(self).__name__} has no timed playback")
+
+    def _do_declare_link_lost(self, reason: str) -> None:
+        """Default: nothing (a display without replies to wait for)."""
 
     @abc.abstractmethod
     def _do_close(self) -> None: ...

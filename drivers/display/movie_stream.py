@@ -41,6 +41,7 @@ from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, SafetySt
 from skinstretch.processing.errors import InvalidInputError
 
 from .base import FrameAck, TactileDisplay, TimedFrameAck, TimedReceipt
+from .safety import check_movie
 from .stress_protocol import COLS, FIFO_DEPTH, ROWS, TICK_LOG_DEPTH, Disposition, MovieStatus, rate_to_mhz
 
 #: What :attr:`PlaybackReport.phase_times_s` columns record, per frame: top of the loop, end of the ack wait,
@@ -193,7 +194,8 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     display : TactileDisplay
         Armed here if it is not armed yet. Its range / slew limits apply to every frame.
     movie_um : array_like, shape (frames, 10, 10)
-        Requested positions; anything unsafe is limited by the driver (see :mod:`skinstretch.drivers.display.safety`).
+        Requested positions: finite real numbers (InvalidTargetError naming frame and contactor otherwise); out
+        of range or slew they are limited by the driver (see :mod:`skinstretch.drivers.display.safety`).
     rate_hz : float, keyword-only
         Frame rate, 1..700 Hz (the STReSS refresh rate).
     callback : callable, keyword-only
@@ -210,9 +212,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     clock : callable, keyword-only
         Must be the clock the display driver uses (``time.perf_counter``).
     """
-    movie = np.asarray(movie_um, dtype=float)
-    if movie.ndim != 3 or movie.shape[1:] != (ROWS, COLS) or movie.shape[0] < 1:
-        raise InvalidInputError(f"movie_um must have shape (frames, 10, 10), got {movie.shape}")
+    movie = check_movie(movie_um)  # NaN, inf, complex: refused before the display is armed
     if not (np.isfinite(rate_hz) and 1.0 <= rate_hz <= 700.0):
         raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
     period = 1.0 / rate_hz
@@ -299,8 +299,10 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
                 # behind schedule the wait above is skipped: collect what has arrived without waiting
                 file_acks(display.collect_acks(timeout_s=0.0))
             if display.outstanding > max_outstanding:
-                raise DeviceTimeoutError(f"{display.outstanding} frames unacknowledged "
-                                         f"({display.outstanding * period * 1000:.0f} ms of movie)")
+                lost = (f"{display.outstanding} frames unacknowledged "
+                        f"({display.outstanding * period * 1000:.0f} ms of movie)")
+                display.declare_link_lost(lost)
+                raise DeviceTimeoutError(lost)
         file_acks(display.collect_acks(timeout_s=0.0))
         end = clock() + final_ack_timeout_s
         while display.outstanding and clock() < end:
@@ -474,7 +476,8 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
         movie starts, leaves no gap for the display's watchdog). Its range / slew limits apply to every frame;
         the slew limit holds between consecutive *played* frames.
     movie_um : array_like, shape (frames, 10, 10)
-        Requested positions; anything unsafe is limited by the driver (see :mod:`skinstretch.drivers.display.safety`).
+        Requested positions: finite real numbers (InvalidTargetError naming frame and contactor otherwise); out
+        of range or slew they are limited by the driver (see :mod:`skinstretch.drivers.display.safety`).
     rate_hz : float, keyword-only
         Frame rate, 1..700 Hz.
     lead_s : float, keyword-only
@@ -507,9 +510,7 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
         the display-clock playout periods. On a link failure the movie stops (``outcome="link_failure"``); the
         display plays what it holds, at most ``lead_s``, then its watchdog rests the contactors.
     """
-    movie = np.asarray(movie_um, dtype=float)
-    if movie.ndim != 3 or movie.shape[1:] != (ROWS, COLS) or movie.shape[0] < 1:
-        raise InvalidInputError(f"movie_um must have shape (frames, 10, 10), got {movie.shape}")
+    movie = check_movie(movie_um)  # NaN, inf, complex: refused before the display is armed
     if not (np.isfinite(rate_hz) and 1.0 <= rate_hz <= 700.0):
         raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
     rate_mhz = rate_to_mhz(rate_hz)

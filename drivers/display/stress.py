@@ -22,6 +22,10 @@ from .base import DisplayInfo, FrameAck, TactileDisplay, TimedFrameAck, TimedRec
 from .transports import Transport
 
 
+#: How long a command waits for its reply once the link has been declared dead (see StressDisplay._transact).
+LOST_LINK_WAIT_S = 0.005
+
+
 class StressDisplay(TactileDisplay):
     """STReSS display over a serial or USB transport.
 
@@ -74,6 +78,7 @@ class StressDisplay(TactileDisplay):
         self._in_force = np.zeros((sp.ROWS, sp.COLS))  # command in force after the last reported tick
         self._reported_tick = sp.NO_TICK
         self._expect_since: float | None = None  # first send after the last received byte
+        self._link_lost: str | None = None  # why the link was declared dead (cleared by the next byte received)
         self._frame_refusal: str | None = None
         self.lost_acks = 0
         self.naks: list[tuple[int, int]] = []
@@ -110,6 +115,7 @@ class StressDisplay(TactileDisplay):
         if not data:
             return []
         self._expect_since = None
+        self._link_lost = None
         packets = []
         for packet in self._decoder.feed(data):
             if packet.command == sp.reply_command(sp.Command.FRAME):
@@ -199,15 +205,24 @@ class StressDisplay(TactileDisplay):
             self.lost_acks += 1
 
     def _transact(self, command: sp.Command, payload: bytes = b"", *, attempts: int = 2) -> sp.Packet:
-        """Send a command and wait for its reply (same seq). Retries once: every command is idempotent."""
+        """Send a command and wait for its reply (same seq). Retries once: every command is idempotent.
+
+        On a link already declared dead (silent beyond ``link_timeout_s``) the command is sent once and given
+        :data:`LOST_LINK_WAIT_S` for a reply: REST and DISARM after a stall must not add two reply timeouts each
+        to the time the failure takes to reach the caller (the firmware's watchdog rests the contactors anyway).
+        """
         last_error = ""
+        wait = self.reply_timeout_s
+        if self._link_lost is not None:
+            attempts, wait = 1, min(wait, LOST_LINK_WAIT_S)
         for _ in range(attempts):
             seq, sent_at = self._send(command, payload)
-            deadline = sent_at + self.reply_timeout_s
+            deadline = sent_at + wait
             while True:
                 remaining = deadline - self._clock()
                 if remaining <= 0:
-                    last_error = f"no reply to {command.name} (seq {seq}) within {self.reply_timeout_s} s"
+                    last_error = f"no reply to {command.name} (seq {seq}) within {wait} s" + (
+                        f" (the link was already lost: {self._link_lost})" if self._link_lost else "")
                     break
                 for packet in self._pump(remaining):
                     if packet.seq != seq:
@@ -259,6 +274,11 @@ class StressDisplay(TactileDisplay):
 
     def _do_prepare_frame(self, command_um: np.ndarray) -> bytes:
         return sp.encode_positions(command_um)
+
+    def _do_wire_command(self, wire: bytes) -> np.ndarray:
+        if not isinstance(wire, (bytes, bytearray)):
+            raise TypeError(f"a STReSS frame payload is bytes, got {type(wire).__name__}")
+        return sp.decode_positions(wire)
 
     def _do_send_prepared(self, wire: bytes, command_um: np.ndarray) -> int:
         seq, sent_at = self._send(sp.Command.FRAME, wire)
@@ -337,10 +357,13 @@ class StressDisplay(TactileDisplay):
         if self._expect_since is not None:
             silent = self._clock() - self._expect_since
             if silent > self.link_timeout_s:
-                raise DeviceTimeoutError(f"display silent for {silent * 1000:.0f} ms with "
-                                         f"{len(self._outstanding)} frames unacknowledged "
-                                         f"({self.transport.description})")
+                self._link_lost = (f"display silent for {silent * 1000:.0f} ms with {len(self._outstanding)} frames "
+                                   f"unacknowledged ({self.transport.description})")
+                raise DeviceTimeoutError(self._link_lost)
         self._expire()
+
+    def _do_declare_link_lost(self, reason: str) -> None:
+        self._link_lost = reason
 
     def _do_close(self) -> None:
         if self._closed:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skinstretch.drivers.streaming import StreamingDevice
+from skinstretch.drivers.streaming_device import StreamingDevice
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = ["FORCE_SAMPLE_DTYPE", "ForceSample", "ForceSensor", "ForceStats"]

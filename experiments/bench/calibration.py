@@ -106,7 +106,7 @@ def _mapping_table(options: BenchOptions) -> tuple[BenchTable, dict]:
                 continue
             dt = time.perf_counter() - t0
             rms, mx = mapping_error_um(mapping.image_to_surface(xy), truth)
-            if mapping.rig["spline_coefs"]:
+            if mapping.rig.spline_coefs:
                 method += " +spline"
             rows.append([label, method, len(imgs), report.n_used, report.rms_px, rms, mx, dt, rms <= TARGET_UM])
             fitted.setdefault(label, {"optics": optics})[method.split()[0]] = mapping

@@ -34,7 +34,8 @@ from skinstretch.drivers.display.transports import SerialTransport, UsbTransport
 from skinstretch.experiments.bench import BenchOptions, BenchTable
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators import stress_links
-from skinstretch.simulators.stress_firmware import PacedLink, RealClock, StressFirmware
+from skinstretch.simulators.stress_firmware import StressFirmware
+from skinstretch.simulators.stress_wire import PacedLink, RealClock
 
 SECTION = "display"
 DESCRIPTION = "STReSS playback at 700 Hz: missed deadlines, period jitter (host and firmware clock), position error"

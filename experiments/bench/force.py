@@ -9,15 +9,13 @@ A last row runs the simulator in-process with a time-varying load and injected f
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 
 import numpy as np
 
 from skinstretch.drivers.forcesensor.netft import NetFTSensor
 from skinstretch.experiments.bench import BenchOptions, BenchTable
-from skinstretch.simulators.netft_box import NetFTFaults, NetFTSimulator, normal_force_wrench
+from skinstretch.simulators.netft_box import NetFTBoxProcess, NetFTFaults, NetFTSimulator, normal_force_wrench
 
 SECTION = "force"
 DESCRIPTION = "Net F/T RDT over loopback UDP: 1 kHz and 7 kHz, lost/reordered samples, force error, driver CPU"
@@ -58,26 +56,13 @@ def _stream(sensor: NetFTSensor, seconds: float, truth) -> tuple[list, float]:
 
 
 def _subprocess_row(rate_hz: float, seconds: float) -> list:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "skinstretch.simulators.netft_box", "--port", "0", "--rate", str(rate_hz), "--force", str(FORCE_N)],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        host, port = proc.stdout.readline().split()
-        constant = np.array([0, 0, FORCE_N, 0, 0, 0], dtype=float)
-        with NetFTSensor(host, port=int(port)) as sensor:
-            values, _ = _stream(sensor, seconds, lambda seq: constant)
-    finally:
-        proc.terminate()
-        try:
-            tail, _ = proc.communicate(timeout=5)  # the simulator prints what it sent and failed to send
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            tail, _ = proc.communicate(timeout=5)
-    box = dict(kv.split("=") for kv in (tail or "").split() if "=" in kv)
+    box = NetFTBoxProcess(rate_hz=rate_hz, force_n=FORCE_N)
+    constant = np.array([0, 0, FORCE_N, 0, 0, 0], dtype=float)
+    with box as (host, port), NetFTSensor(host, port=port) as sensor:
+        values, _ = _stream(sensor, seconds, lambda seq: constant)
     values[1] = int(round(seconds * rate_hz))
-    return [f"simulator process (send failures {box.get('lost', '?')})", rate_hz, seconds, *values]
+    lost = box.stats.lost if box.stats is not None else "?"
+    return [f"simulator process (send failures {lost})", rate_hz, seconds, *values]
 
 
 def _faulty_row(seconds: float) -> list:

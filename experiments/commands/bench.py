@@ -1,18 +1,28 @@
-"""``skinstretch bench``: run the benchmark sections and print speed-against-error tables."""
+"""``skinstretch bench``: run the benchmark sections and print speed-against-error tables.
+
+The tables are the command's output (standard output); progress and failures are logged. ``--markdown FILE``
+also writes the whole run as a Markdown document (``docs/benchmarks.md`` is written this way) with the date, the
+machine and the command line; ``--json FILE`` writes the tables as data.
+"""
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import pkgutil
+import logging
+import shlex
 import sys
 import time
 from pathlib import Path
 
 import skinstretch.experiments.bench as _bench
-from skinstretch.experiments.bench import BenchOptions
+from skinstretch.experiments.bench import BenchOptions, SectionResult, markdown_document
+from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.module_discovery import public_submodules
+from skinstretch.experiments.provenance import machine_description
+from skinstretch.processing.errors import InvalidInputError
+
+log = logging.getLogger(__name__)
 
 
 def available_sections() -> dict[str, object]:
@@ -28,7 +38,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seconds", type=float, default=None, help="duration of streaming benchmarks")
     p.add_argument("--workdir", type=Path, default=Path("bench-output"), help="scratch directory")
     p.add_argument("--json", type=Path, default=None, help="also write all tables to this JSON file")
+    p.add_argument("--markdown", type=Path, default=None, metavar="FILE",
+                   help="also write every table with its notes, the date, the machine and this command line as "
+                        "Markdown to FILE ('-': standard output instead of the plain tables), e.g. docs/benchmarks.md")
     p.set_defaults(func=run)
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The ``skinstretch bench`` command line that reproduces this run (options in a fixed order)."""
+    words = ["skinstretch", "bench"]
+    if args.only:
+        words += ["--only", args.only]
+    if args.quick:
+        words.append("--quick")
+    if args.scenes:
+        words += ["--scenes", args.scenes]
+    if args.seconds is not None:
+        words += ["--seconds", f"{args.seconds:g}"]
+    if args.markdown is not None:
+        words += ["--markdown", str(args.markdown)]
+    return shlex.join(words)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
     wanted = [s for s in args.only.split(",") if s] or list(sections)
     unknown = [s for s in wanted if s not in sections]
     if unknown:
-        print(f"unknown bench sections {unknown}; known: {sorted(sections)}", file=sys.stderr)
-        return 2
+        raise InvalidInputError(f"unknown bench sections {unknown}; known: {sorted(sections)}")
+    to_stdout_as_markdown = args.markdown is not None and str(args.markdown) == "-"
     options = BenchOptions(
         quick=args.quick,
         workdir=args.workdir,
@@ -49,21 +78,36 @@ def run(args: argparse.Namespace) -> int:
         seconds=args.seconds,
     )
     options.workdir.mkdir(parents=True, exist_ok=True)
-    everything = {}
-    failed = False
+    date = time.strftime("%Y-%m-%d %H:%M %Z")
+    machine = machine_description()
+    results: list[SectionResult] = []
     for name in wanted:
         t0 = time.perf_counter()
-        print(f"== {name}: {sections[name].DESCRIPTION}", flush=True)
+        description = sections[name].DESCRIPTION
+        log.info("running bench section %s", name)
         try:
             tables = sections[name].run(options)
         except Exception as exc:  # a broken section is reported, the others still run
-            failed = True
-            print(f"  section {name} failed: {type(exc).__name__}: {exc}\n", flush=True)
+            log.error("section %s failed: %s: %s", name, type(exc).__name__, exc)
+            results.append(SectionResult(name, description, [], time.perf_counter() - t0,
+                                         error=f"{type(exc).__name__}: {exc}"))
             continue
-        for table in tables:
-            print(table.format() + "\n", flush=True)
-        everything[name] = [t.to_dict() for t in tables]
-        print(f"  ({name} took {time.perf_counter() - t0:.1f} s)\n", flush=True)
+        seconds = time.perf_counter() - t0
+        results.append(SectionResult(name, description, tables, seconds))
+        if not to_stdout_as_markdown:
+            print(f"== {name}: {description}\n")
+            for table in tables:
+                print(table.format() + "\n", flush=True)
+        log.info("(%s took %.1f s)", name, seconds)
     if args.json:
-        args.json.write_text(json.dumps(everything, indent=2))
-    return 1 if failed else 0
+        everything = {r.name: [t.to_dict() for t in r.tables] for r in results if r.error is None}
+        args.json.write_text(json.dumps(json_safe(everything), indent=2, default=json_default))
+    if args.markdown is not None:
+        text = markdown_document(results, command=command_line(args), date=date, machine=machine, quick=args.quick)
+        if to_stdout_as_markdown:
+            sys.stdout.write(text)
+        else:
+            args.markdown.parent.mkdir(parents=True, exist_ok=True)
+            args.markdown.write_text(text)
+            log.info("wrote %s", args.markdown)
+    return 1 if any(r.error is not None for r in results) else 0

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import logging
 from pathlib import Path
 
 from skinstretch.drivers.camera_modes import FIELD_OF_VIEW_MM
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.geometric_calibration import SURFACE_KINDS
+from skinstretch.processing.grid_mapping import SURFACE_KINDS
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,8 +46,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_frames < 1:
         raise InvalidInputError(f"--max-frames must be >= 1, got {args.max_frames}")
-    if not args.field_width_mm > 0:
-        raise InvalidInputError(f"--field-width-mm must be positive, got {args.field_width_mm}")
+    for flag, value in (("--field-width-mm", args.field_width_mm), ("--spacing-mm", args.spacing_mm),
+                        ("--dot-diameter-mm", args.dot_diameter_mm), ("--max-rms-px", args.max_rms_px)):
+        if not value > 0:
+            raise InvalidInputError(f"{flag} must be positive, got {value}")
     mapping, summary = calibrate_source(
         args.source,
         surface=args.surface,
@@ -57,11 +61,11 @@ def run(args: argparse.Namespace) -> int:
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(mapping.to_dict(), indent=2))
-    print(f"{summary} -> {args.output}", file=sys.stderr)
+    log.info("%s -> %s", summary, args.output)
     if args.apply_to is not None:
         stored = store_calibration(args.apply_to, mapping)
         if stored is not mapping:
-            print(f"using the central {stored.width}x{stored.height} window of the calibration for {args.apply_to}",
-                  file=sys.stderr)
-        print(f"stored the calibration in {args.apply_to}", file=sys.stderr)
+            log.info("using the central %dx%d window of the calibration for %s", stored.width, stored.height,
+                     args.apply_to)
+        log.info("stored the calibration in %s", args.apply_to)
     return 0

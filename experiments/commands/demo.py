@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 from typing import Callable
@@ -22,6 +22,8 @@ from skinstretch.experiments.protocol import Rig, bundled_protocol, load_protoco
 import argparse
 
 __all__ = ["run_demo", "DemoResult", "register"]
+
+log = logging.getLogger(__name__)
 
 
 class DemoResult:
@@ -72,13 +74,18 @@ def _fallback_truth_figure(ridge_session: Path, out_png: Path):
     return fig
 
 
-def run_demo(outdir: str | Path, *, progress: Callable[[str], None] = print, analysis_workers: int = 2) -> DemoResult:
-    """Run the whole demo into ``outdir`` (a new session directory each run) and return where things are."""
+def run_demo(outdir: str | Path, *, progress: Callable[[str], None] | None = None,
+             analysis_workers: int = 2) -> DemoResult:
+    """Run the whole demo into ``outdir`` (a new session directory each run) and return where things are.
+
+    ``progress`` receives one line per step (default: logged at INFO level).
+    """
     from skinstretch.experiments.playback import fit_movie, load_movie, play_movie, resample_movie  # noqa: PLC0415
     from skinstretch.experiments.report import build_report  # noqa: PLC0415
     from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415
     from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415
 
+    progress = progress or log.info
     t0 = time.perf_counter()
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -175,17 +182,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     result = run_demo(args.output, analysis_workers=max(1, args.analysis_workers))
     ok = [t for t in result.run.trials if t.status == "complete"]
-    print(f"[demo] {len(ok)}/{len(result.run.trials)} trials recorded, "
-          f"{sum(1 for t in result.run.trials if t.analysis)} analysed")
+    log.info("[demo] %d/%d trials recorded, %d analysed", len(ok), len(result.run.trials),
+             sum(1 for t in result.run.trials if t.analysis))
     if len(result.playbacks) == 2 and all(p.complete for p in result.playbacks):
         o, c = result.playbacks
         ratio = o.rms_error_um / c.rms_error_um if c.rms_error_um > 0 else float("inf")
-        print(f"[demo] playback RMS position error: open loop {o.rms_error_um:.2f} um, closed loop "
-              f"{c.rms_error_um:.2f} um ({ratio:.1f}x better)")
+        log.info("[demo] playback RMS position error: open loop %.2f um, closed loop %.2f um (%.1fx better)",
+                 o.rms_error_um, c.rms_error_um, ratio)
     if result.truth_png is not None:
-        print(f"[demo] ridgeL frame with true features: {result.truth_png}")
+        log.info("[demo] ridgeL frame with true features: %s", result.truth_png)
     for p in result.problems:
-        print(f"[demo] problem: {p}", file=sys.stderr)
-    print(f"[demo] done in {result.seconds:.1f} s")
-    print(f"[demo] report: {result.report.resolve()}")
+        log.warning("[demo] problem: %s", p)
+    log.info("[demo] done in %.1f s", result.seconds)
+    print(f"report: {result.report.resolve()}")  # the demo's product, on standard output
     return 0 if not result.problems else 1

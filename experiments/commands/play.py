@@ -1,13 +1,28 @@
 """``skinstretch play MOVIE [--display URL] [--closed-loop]``: play a tactile movie on a STReSS display.
 
 MOVIE is an analysed results directory (its tactile movie, seed 5.4), a ``.npy`` (T, 10, 10) array in micrometres
-or an ``.h5`` with a ``movie`` dataset. Without ``--display`` the movie plays on the simulated display.
+or an ``.h5`` with a ``movie`` dataset. Without ``--display`` the movie plays on the simulated display;
+``--display 'stresssim://NAME?faults=stall_after:300'`` plays it on the simulated display with fault switches
+(faults: drop, corrupt, stall_after, vanish_after; also baud, seed, load in N/mm). The output file is checked
+before the display is opened, so a recording is never played and then lost.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
+
+
+def _finite(text: str) -> float:
+    """An argparse type: a finite number (NaN and infinities are refused with the value named)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -15,18 +30,33 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__.split("\n\n", 1)[1])
     p.add_argument("movie", type=Path, help="results directory, .npy or .h5 movie")
     p.add_argument("--display", default=None,
-                   help="serial port or pyserial URL of the display (default: a simulated display)")
+                   help="serial port or pyserial URL of the display, e.g. /dev/ttyUSB0 or "
+                   "'stresssim://lab?faults=stall_after:300' (default: a simulated display)")
     p.add_argument("--closed-loop", action="store_true", help="correct each contactor from its measured position")
     p.add_argument("--compare", action="store_true", help="play open loop then closed loop and compare")
-    p.add_argument("--rate", type=float, default=700.0, help="display frame rate, Hz (default 700)")
-    p.add_argument("--movie-rate", type=float, default=None,
+    p.add_argument("--rate", type=_finite, default=700.0, help="display frame rate, Hz (default 700)")
+    p.add_argument("--movie-rate", type=_finite, default=None,
                    help="frame rate of the movie, Hz (default: the camera rate of its session, else the --rate)")
-    p.add_argument("--gain", type=float, default=1.0, help="scale of the contactor positions")
-    p.add_argument("--peak-um", type=float, default=30.0, help="scale the movie down to this peak excursion")
-    p.add_argument("--force-ceiling", type=float, default=5.0, help="stop above this normal force, N")
+    p.add_argument("--gain", type=_finite, default=1.0, help="scale of the contactor positions")
+    p.add_argument("--peak-um", type=_finite, default=30.0, help="scale the movie down to this peak excursion")
+    p.add_argument("--force-ceiling", type=_finite, default=5.0, help="stop above this normal force, N")
     p.add_argument("--no-force", action="store_true", help="play without the force sensor")
     p.add_argument("-o", "--output", type=Path, default=None, help="session file recording the playback (.h5)")
     p.set_defaults(func=run)
+
+
+def _outputs(args: argparse.Namespace, loops: list[bool]) -> list[Path | None]:
+    """The playback recording of each loop (None without -o), each checked writable and new."""
+    from skinstretch.experiments.output_paths import check_output_file  # noqa: PLC0415
+
+    if args.output is None:
+        return [None] * len(loops)
+    if len(loops) == 1:
+        paths = [args.output]
+    else:
+        paths = [args.output.with_name(f"{args.output.stem}-{'closed' if closed else 'open'}"
+                                       f"{args.output.suffix or '.h5'}") for closed in loops]
+    return [check_output_file(p) for p in paths]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
     from skinstretch.experiments.protocol import DeviceSpec, Rig  # noqa: PLC0415
     from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415
 
+    loops = [False, True] if args.compare else [args.closed_loop]
+    outputs = _outputs(args, loops)  # before the display moves: a recording that cannot be written is refused
     movie, rate = load_movie(args.movie)
     movie, scale = fit_movie(movie * args.gain, peak_um=args.peak_um)
     source_rate = args.movie_rate or rate or args.rate
@@ -43,14 +75,9 @@ def run(args: argparse.Namespace) -> int:
     devices = RigDevices(rig)
     print(f"movie {args.movie}: {movie.shape[0]} frames at {args.rate:g} Hz (from {source_rate:g} Hz, scale "
           f"{scale * args.gain:.3g}), display {devices.describe()['display']}")
-    loops = [False, True] if args.compare else [args.closed_loop]
     results = []
     try:
-        for closed in loops:
-            path = None
-            if args.output is not None:
-                path = args.output if len(loops) == 1 else args.output.with_name(
-                    f"{args.output.stem}-{'closed' if closed else 'open'}{args.output.suffix or '.h5'}")
+        for closed, path in zip(loops, outputs):
             results.append(play_movie(devices.display_device(), movie, rate_hz=args.rate, closed_loop=closed,
                                       force=devices.force, force_ceiling_n=args.force_ceiling, path=path,
                                       settle_frames=min(150, movie.shape[0] // 4), progress=print,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -50,6 +50,6 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
     )
     n = args.frames or scene.n_frames
-    print(f"wrote {path} ({n} frames of scene {scene.name}, seed {args.seed}) in {time.perf_counter() - t0:.1f} s",
-          file=sys.stderr)
+    logging.getLogger(__name__).info("wrote %s (%d frames of scene %s, seed %d) in %.1f s", path, n, scene.name,
+                                     args.seed, time.perf_counter() - t0)
     return 0

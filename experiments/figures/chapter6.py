@@ -2,8 +2,10 @@
 
 Every function takes plain arrays or the typed results of :mod:`skinstretch.processing.stretch` /
 :mod:`skinstretch.processing.display_mapping` and returns a :class:`matplotlib.figure.Figure` (no pyplot state, so figures
-can be made from worker threads). Grey levels follow the seed: white / black = +/- ``limit`` (e.g. 5 % over one
-frame pair, 15 % over 11 frames, 50 % for the display's stretch fields).
+can be made from worker threads). Strain maps use a diverging colormap symmetric about 0 (blue = compression,
+white = no change, red = stretch; the seed drew black and white), scaled to the data (``limit=None``: the 99th
+percentile of the magnitudes shown, so 0.3 % strain is as visible as 30 %) or to a fixed ``limit``, with a
+colorbar in %.
 
 * :func:`measurements_figure` — seed Figures 76-93 (a)-(f): the two frames, feature flow, edge-length change,
   triangle-area change, skin-patch area change.
@@ -11,13 +13,15 @@ frame pair, 15 % over 11 frames, 50 % for the display's stretch fields).
 * :func:`trajectory_length_figure` — Figure 70: distribution of trajectory lengths.
 * :func:`stretch_profile_figure` — Figure 94: horizontal stretch profile averaged over a sequence, per sequence.
 * :func:`contactor_positions_figure` — Figure 96; :func:`stretch_fields_figure` — Figure 97.
-* :func:`playback_figure` — target vs measured contactor positions, open vs closed loop (no seed equivalent).
+* :func:`playback_figure` — target vs measured contactor positions, open vs closed loop (no seed equivalent), its
+  RMS errors those of the runs' own :class:`PlaybackTrace` (one computation for table and figure).
 * :func:`figure_to_png` — PNG bytes for the HTML report.
 """
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import matplotlib
@@ -38,14 +42,17 @@ __all__ = [
     "contactor_positions_figure",
     "stretch_fields_figure",
     "playback_figure",
+    "PlaybackTrace",
     "figure_to_png",
+    "strain_limit",
     "draw_feature_flow",
     "draw_edge_change",
     "draw_area_change",
     "draw_patch_change",
 ]
 
-_CMAP = "gray"  # black = compression, white = expansion (seed convention)
+_CMAP = "RdBu_r"  # diverging: blue = compression, white = no change, red = stretch
+_SMALLEST_LIMIT = 1e-4  # 0.01 %: an all-zero map still gets a scale
 
 
 def figure_to_png(fig: Figure, *, dpi: int = 90) -> bytes:
@@ -55,10 +62,35 @@ def figure_to_png(fig: Figure, *, dpi: int = 90) -> bytes:
     return buf.getvalue()
 
 
-def _norm(limit: float) -> Normalize:
+def strain_limit(*changes: np.ndarray, percentile: float = 99.0) -> float:
+    """The colour limit (a fraction) that fits relative changes: the ``percentile`` of their magnitudes, so a few
+    outliers saturate instead of washing out the rest; 0.01 % at least."""
+    values = [np.abs(np.asarray(c, float)).ravel() for c in changes if c is not None]
+    flat = np.concatenate(values) if values else np.zeros(0)
+    flat = flat[np.isfinite(flat)]
+    if flat.size == 0:
+        return _SMALLEST_LIMIT
+    return max(float(np.percentile(flat, percentile)), _SMALLEST_LIMIT)
+
+
+def _limit(limit: float | None, *changes: np.ndarray) -> float:
+    if limit is None:
+        return strain_limit(*changes)
     if not (np.isfinite(limit) and limit > 0):
-        raise InvalidInputError(f"limit must be a positive fraction, got {limit!r}")
-    return Normalize(vmin=-limit, vmax=limit, clip=True)
+        raise InvalidInputError(f"limit must be a positive fraction or None (scaled to the data), got {limit!r}")
+    return float(limit)
+
+
+def _norm(limit: float) -> Normalize:
+    """Symmetric about 0, in percent (the arrays drawn are changes x 100)."""
+    return Normalize(vmin=-limit * 100, vmax=limit * 100, clip=False)
+
+
+def _colorbar(fig, mappable, ax, label: str, changes: np.ndarray, limit: float) -> None:
+    """A colorbar in %, with arrows when some values lie beyond the limit."""
+    c = np.abs(np.asarray(changes, float))
+    beyond = bool(np.any(c[np.isfinite(c)] > limit))
+    fig.colorbar(mappable, ax=ax, shrink=0.8, label=label, extend="both" if beyond else "neither")
 
 
 def _frame_axes(ax, shape: tuple[int, int], title: str) -> None:
@@ -95,50 +127,76 @@ def draw_feature_flow(ax, image: np.ndarray | None, points_a: np.ndarray, points
 
 
 def draw_edge_change(ax, points: np.ndarray, edges: np.ndarray, change: np.ndarray, *, shape: tuple[int, int],
-                     limit: float, title: str = "edge length change") -> None:
-    """Triangulation edges in grey levels of their relative length change (seed 5.3.1, Figure 58 (c))."""
+                     limit: float | None = None, title: str = "edge length change", colorbar: bool = True):
+    """Triangulation edges coloured by their relative length change (seed 5.3.1, Figure 58 (c)); returns the
+    collection (a colorbar in % is added unless ``colorbar=False``)."""
     p = np.asarray(points, float)
     e = np.asarray(edges, int)
+    change = np.asarray(change, float)
+    limit = _limit(limit, change)
     segs = p[e] if len(e) else np.zeros((0, 2, 2))
-    ax.set_facecolor("0.5")
+    ax.set_facecolor("0.85")
     lc = LineCollection(segs, cmap=_CMAP, norm=_norm(limit), linewidths=2.0)
-    lc.set_array(np.asarray(change, float))
+    lc.set_array(change * 100)
     ax.add_collection(lc)
-    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+    _frame_axes(ax, shape, title)
+    if colorbar:
+        _colorbar(ax.figure, lc, ax, "edge length change (%)", change, limit)
+    return lc
 
 
 def draw_area_change(ax, points: np.ndarray, triangles: np.ndarray, change: np.ndarray, *, shape: tuple[int, int],
-                     limit: float, flipped: np.ndarray | None = None, title: str = "triangle area change") -> None:
-    """Triangles in grey levels of their relative area change (seed 5.3.1, Figure 58 (a)); flipped ones red."""
+                     limit: float | None = None, flipped: np.ndarray | None = None,
+                     title: str = "triangle area change", colorbar: bool = True):
+    """Triangles coloured by their relative area change (seed 5.3.1, Figure 58 (a)); flipped ones black."""
     p = np.asarray(points, float)
     t = np.asarray(triangles, int)
     ch = np.asarray(change, float)
     ok = np.ones(len(t), bool) if flipped is None else ~np.asarray(flipped, bool)
-    ax.set_facecolor("0.5")
-    if len(t):
-        pc = PolyCollection(p[t[ok]], cmap=_CMAP, norm=_norm(limit), edgecolors="none")
-        pc.set_array(ch[ok])
-        ax.add_collection(pc)
-        if np.any(~ok):
-            ax.add_collection(PolyCollection(p[t[~ok]], facecolors="tab:red", edgecolors="none"))
-    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+    limit = _limit(limit, ch[ok] if len(t) else ch)
+    ax.set_facecolor("0.85")
+    pc = PolyCollection(p[t[ok]] if len(t) else np.zeros((0, 3, 2)), cmap=_CMAP, norm=_norm(limit),
+                        edgecolors="none")
+    pc.set_array(ch[ok] * 100 if len(t) else np.zeros(0))
+    ax.add_collection(pc)
+    if len(t) and np.any(~ok):
+        ax.add_collection(PolyCollection(p[t[~ok]], facecolors="k", edgecolors="none"))
+        title += f", {int(np.sum(~ok))} flipped (black)"
+    _frame_axes(ax, shape, title)
+    if colorbar:
+        _colorbar(ax.figure, pc, ax, "area change (%)", ch[ok] if len(t) else ch, limit)
+    return pc
 
 
-def draw_patch_change(ax, centers: np.ndarray, change: np.ndarray, *, shape: tuple[int, int], limit: float,
-                      title: str = "skin patch area change") -> None:
-    """Tetragons between neighbouring patch centres in grey levels of their area change (seed Figure 61)."""
+def draw_patch_change(ax, centers: np.ndarray, change: np.ndarray, *, shape: tuple[int, int],
+                      limit: float | None = None, title: str = "skin patch area change", colorbar: bool = True):
+    """Tetragons between neighbouring patch centres coloured by their area change (seed Figure 61)."""
     c = np.asarray(centers, float)
     ch = np.asarray(change, float)
     if c.ndim != 3 or ch.shape != (c.shape[0] - 1, c.shape[1] - 1):
         raise InvalidInputError(f"centers {c.shape} must be (GY, GX, 2) and change (GY-1, GX-1), got {ch.shape}")
-    ax.set_facecolor("0.5")
+    limit = _limit(limit, ch)
+    ax.set_facecolor("0.85")
     quads = np.stack([c[:-1, :-1], c[:-1, 1:], c[1:, 1:], c[1:, :-1]], axis=2).reshape(-1, 4, 2)
     flat = ch.reshape(-1)
     ok = np.isfinite(flat)
     pc = PolyCollection(quads[ok], cmap=_CMAP, norm=_norm(limit), edgecolors="none")
-    pc.set_array(flat[ok])
+    pc.set_array(flat[ok] * 100)
     ax.add_collection(pc)
-    _frame_axes(ax, shape, title + f" (+/-{limit * 100:.0f} %)")
+    _frame_axes(ax, shape, title)
+    if colorbar:
+        _colorbar(ax.figure, pc, ax, "patch area change (%)", flat[ok], limit)
+    return pc
+
+
+def _arrow_scale(points_a: np.ndarray, points_b: np.ndarray, shape: tuple[int, int]) -> float:
+    """A whole-number magnification making the median arrow ~4 % of the image width (motions of a pixel or two
+    between frames are otherwise dots); 1 when they are already that long."""
+    d = np.hypot(*(np.asarray(points_b, float).reshape(-1, 2) - np.asarray(points_a, float).reshape(-1, 2)).T)
+    d = d[np.isfinite(d)]
+    if d.size == 0 or np.median(d) <= 0:
+        return 1.0
+    return float(max(1, int(0.04 * shape[1] / np.median(d))))
 
 
 def measurements_figure(
@@ -156,20 +214,22 @@ def measurements_figure(
     flipped: np.ndarray | None = None,
     patch_centers: np.ndarray | None = None,
     patch_change: np.ndarray | None = None,
-    limit: float = 0.05,
+    limit: float | None = None,
     shape_x_px: Sequence[float] | None = None,
     title: str = "",
 ) -> Figure:
     """Seed Figures 76-93: (a) frame a, (b) frame b, (c) feature movement, (d) edge length change,
-    (e) triangle area change, (f) skin patch area change. White / black = +/- ``limit``."""
+    (e) triangle area change, (f) skin patch area change, each map with its colorbar in % (scaled to its data
+    when ``limit`` is None)."""
     shape = np.asarray(frame_a).shape
-    fig = Figure(figsize=(10.5, 6.2))
+    fig = Figure(figsize=(12.5, 6.6))
     axes = fig.subplots(2, 3)
     for ax, img, k, tag in ((axes[0, 0], frame_a, index_a, "a"), (axes[0, 1], frame_b, index_b, "b")):
         ax.imshow(img, cmap="gray", vmin=0, vmax=255)
         _shape_lines(ax, shape_x_px, shape)
         _frame_axes(ax, shape, f"({tag}) frame {k}")
-    draw_feature_flow(axes[0, 2], None, points_a, points_b, shape=shape, title="(c) feature movement")
+    draw_feature_flow(axes[0, 2], None, points_a, points_b, shape=shape, title="(c) feature movement",
+                      scale=_arrow_scale(points_a, points_b, shape))
     draw_edge_change(axes[1, 0], points_a, edges, edge_change, shape=shape, limit=limit, title="(d) edge length")
     draw_area_change(axes[1, 1], points_a, triangles, area_change, shape=shape, limit=limit, flipped=flipped,
                      title="(e) triangle area")
@@ -180,30 +240,37 @@ def measurements_figure(
         axes[1, 2].text(0.5, 0.5, "no skin patch measurement", ha="center", va="center", fontsize=9)
     for ax in axes[:, 0]:
         _shape_lines(ax, shape_x_px, shape)
-    fig.suptitle(title or f"Measurements from frame {index_a} to {index_b} (white/black = +/-{limit * 100:.0f} %)",
+    fig.suptitle(title or f"Measurements from frame {index_a} to {index_b} (blue = compression, red = stretch)",
                  fontsize=10)
     return fig
 
 
 def edge_change_series_figure(
-    panels: Sequence[Mapping[str, np.ndarray]], *, shape: tuple[int, int], limit: float = 0.15, title: str = ""
+    panels: Sequence[Mapping[str, np.ndarray]], *, shape: tuple[int, int], limit: float | None = None,
+    title: str = ""
 ) -> Figure:
-    """Seed Figures 78, 81, ...: edge-length change over a span at several positions of a sequence.
+    """Seed Figures 78, 81, ...: edge-length change over a span at several positions of a sequence, on one colour
+    scale (scaled to all panels' data when ``limit`` is None) with one colorbar in %.
 
     ``panels``: mappings with ``points``, ``edges``, ``edge_change``, ``frame_a``, ``frame_b``.
     """
     if not panels:
         raise InvalidInputError("panels must hold at least one measurement")
+    limit = _limit(limit, *(p["edge_change"] for p in panels))
     cols = min(3, len(panels))
     rows = int(np.ceil(len(panels) / cols))
-    fig = Figure(figsize=(3.6 * cols, 2.9 * rows))
+    fig = Figure(figsize=(3.6 * cols + 1.0, 2.9 * rows))
     axes = np.atleast_1d(fig.subplots(rows, cols)).reshape(-1)
+    mappable = None
     for k, (ax, p) in enumerate(zip(axes, panels)):
-        draw_edge_change(ax, p["points"], p["edges"], p["edge_change"], shape=shape, limit=limit,
-                         title=f"({chr(97 + k)}) frames {int(p['frame_a'])}-{int(p['frame_b'])}")
+        mappable = draw_edge_change(ax, p["points"], p["edges"], p["edge_change"], shape=shape, limit=limit,
+                                    title=f"({chr(97 + k)}) frames {int(p['frame_a'])}-{int(p['frame_b'])}",
+                                    colorbar=False)
     for ax in axes[len(panels):]:
         ax.set_axis_off()
-    fig.suptitle(title or f"Edge length change (white/black = +/-{limit * 100:.0f} %)", fontsize=10)
+    _colorbar(fig, mappable, list(axes), "edge length change (%)",
+              np.concatenate([np.asarray(p["edge_change"], float).ravel() for p in panels]), limit)
+    fig.suptitle(title or "Edge length change (blue = compression, red = stretch)", fontsize=10)
     return fig
 
 
@@ -309,63 +376,104 @@ def contactor_positions_figure(positions_um: np.ndarray, *, frames: Sequence[int
     return fig
 
 
-def stretch_fields_figure(stretch_change: np.ndarray, *, frames: Sequence[int], limit: float = 0.5,
+def stretch_fields_figure(stretch_change: np.ndarray, *, frames: Sequence[int], limit: float | None = None,
                           title: str = "") -> Figure:
-    """Seed Figure 97: stretch applied between horizontally neighbouring contactors, white/black = +/- limit."""
+    """Seed Figure 97: stretch applied between horizontally neighbouring contactors, on one colour scale for the
+    frames shown (scaled to them when ``limit`` is None) with a colorbar in %; grey where none is applied."""
     sc = np.asarray(stretch_change, float)
     if sc.ndim != 3:
         raise InvalidInputError(f"stretch_change must be (N, R, C-1), got {sc.shape}")
     frames = [int(f) for f in frames if 0 <= int(f) < sc.shape[0]]
     if not frames:
         raise InvalidInputError("frames must name at least one frame of the movie")
+    limit = _limit(limit, sc[frames])
     cols = min(3, len(frames))
     rows = int(np.ceil(len(frames) / cols))
-    fig = Figure(figsize=(3.2 * cols, 3.2 * rows))
+    fig = Figure(figsize=(3.2 * cols + 1.0, 3.2 * rows))
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    image = None
     for k, (ax, f) in enumerate(zip(axes, frames)):
-        ax.imshow(np.nan_to_num(sc[f], nan=0.0), cmap=_CMAP, norm=_norm(limit), interpolation="nearest")
+        ax.set_facecolor("0.6")
+        image = ax.imshow(np.ma.masked_invalid(sc[f] * 100), cmap=_CMAP, norm=_norm(limit), interpolation="nearest")
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_title(f"({chr(97 + k)}) frame {f}", fontsize=9)
     for ax in axes[len(frames):]:
         ax.set_axis_off()
-    fig.suptitle(title or f"Stretch fields applied by the display (white/black = +/-{limit * 100:.0f} %) "
-                 "(seed Figure 97)", fontsize=10)
+    _colorbar(fig, image, list(axes), "stretch between contactors (%)", sc[frames], limit)
+    fig.suptitle(title or "Stretch fields applied by the display (seed Figure 97)", fontsize=10)
     return fig
 
 
-def playback_figure(runs: Mapping[str, tuple[np.ndarray, np.ndarray]], *, rate_hz: float | None = None,
+@dataclass(frozen=True)
+class PlaybackTrace:
+    """One played movie as the playback figure draws it.
+
+    Attributes
+    ----------
+    target_um, measured_um : (k, 10, 10)
+        Target and measured contactor positions (NaN: no measurement).
+    settle : int
+        Start-up frames left out of the errors.
+    rms_error_um : float
+        The run's RMS error, as the playback computed it (the number the report's table shows).
+    """
+
+    target_um: np.ndarray
+    measured_um: np.ndarray
+    settle: int
+    rms_error_um: float
+
+    @classmethod
+    def of(cls, result) -> "PlaybackTrace":
+        """From a :class:`skinstretch.experiments.playback.PlaybackResult`."""
+        return cls(result.target_um, result.measured_um, int(result.extra.get("settle", 0)), result.rms_error_um)
+
+    def contactor_rms_um(self) -> np.ndarray:
+        """(10, 10) RMS error of each contactor over the same frames as :attr:`rms_error_um` (after ``settle``)."""
+        from skinstretch.experiments.playback import rms_tracking_error  # noqa: PLC0415
+
+        t = np.asarray(self.target_um, float)
+        m = np.asarray(self.measured_um, float)
+        out = np.full(t.shape[1:], np.nan)
+        for idx in np.ndindex(*t.shape[1:]):
+            out[idx] = rms_tracking_error(t[(slice(None), *idx)], m[(slice(None), *idx)], settle=self.settle)
+        return out
+
+
+def playback_figure(runs: Mapping[str, PlaybackTrace], *, rate_hz: float | None = None,
                     contactor: tuple[int, int] | None = None, title: str = "") -> Figure:
     """Target vs measured position of one contactor (the one moving most) for each run (open / closed loop),
-    and the RMS error of every contactor.
+    and the RMS error of every contactor after the start-up frames, titled with the run's own RMS error.
 
-    ``runs``: label -> (target_um (k, 10, 10), measured_um (k, 10, 10)); NaN measurements are skipped.
+    ``runs``: label -> :class:`PlaybackTrace` (``PlaybackTrace.of(result)``).
     """
     if not runs:
         raise InvalidInputError("runs must hold at least one playback")
-    first = np.asarray(next(iter(runs.values()))[0], float)
+    first = np.asarray(next(iter(runs.values())).target_um, float)
     if contactor is None:
         contactor = np.unravel_index(np.argmax(np.ptp(first, axis=0)), first.shape[1:])
     i, j = contactor
     fig = Figure(figsize=(10, 3.2 + 2.6))
     gs = fig.add_gridspec(2, len(runs), height_ratios=[1.2, 1])
     top = fig.add_subplot(gs[0, :])
-    for label, (target, measured) in runs.items():
-        target = np.asarray(target, float)
-        measured = np.asarray(measured, float)
-        t = np.arange(target.shape[0]) / (rate_hz or 1.0)
-        top.plot(t, measured[:, i, j], label=f"measured, {label}", linewidth=1)
-    top.plot(t[: first.shape[0]], first[:, i, j], "k--", label="target", linewidth=1)
+    scale = 1.0 / rate_hz if rate_hz else 1.0
+    settle = 0
+    for label, run in runs.items():
+        measured = np.asarray(run.measured_um, float)
+        top.plot(np.arange(measured.shape[0]) * scale, measured[:, i, j], label=f"measured, {label}", linewidth=1)
+        settle = max(settle, run.settle)
+    top.plot(np.arange(first.shape[0]) * scale, first[:, i, j], "k--", label="target", linewidth=1)
+    if settle:
+        top.axvspan(0, settle * scale, color="0.9", label="start-up (not in the errors)")
     top.set_xlabel("time (s)" if rate_hz else "frame")
-    top.set_ylabel(f"contactor ({i}, {j}) um")
-    top.legend(fontsize=7, ncol=3)
-    for k, (label, (target, measured)) in enumerate(runs.items()):
+    top.set_ylabel(f"contactor ({i}, {j}) position (um)")
+    top.legend(fontsize=7, ncol=4)
+    for k, (label, run) in enumerate(runs.items()):
         ax = fig.add_subplot(gs[1, k])
-        err = np.asarray(measured, float) - np.asarray(target, float)
-        rms = np.sqrt(np.nanmean(err ** 2, axis=0))
-        im = ax.imshow(rms, cmap="viridis", vmin=0)
+        im = ax.imshow(run.contactor_rms_um(), cmap="viridis", vmin=0)
         fig.colorbar(im, ax=ax, shrink=0.8, label="RMS error (um)")
-        ax.set_title(f"{label}: RMS {np.sqrt(np.nanmean(err ** 2)):.2f} um", fontsize=9)
+        ax.set_title(f"{label}: RMS {run.rms_error_um:.3g} um", fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(title or "Tactile movie playback: target vs measured contactor positions", fontsize=10)

@@ -1,4 +1,5 @@
-"""What every streaming device shares: life cycle, one worker thread, a bounded queue, errors handed to the reader.
+"""The base of every device that streams data in (cameras, force sensors): life cycle, one worker thread, a
+bounded queue, errors handed to the reader. (Movies streamed out to a display: :mod:`~.display.movie_stream`.)
 
 :class:`skinstretch.drivers.camera.base.Camera` and :class:`skinstretch.drivers.forcesensor.base.ForceSensor` both own a device that
 produces items (frames, force samples) on its own clock. A dedicated worker thread moves them into a bounded

@@ -1,0 +1,506 @@
+"""Bench section ``faults``: the fault matrix. Each fault is injected on purpose, the way it happens in a lab, and
+the table says how long until it was detected, what was kept, where the display was left and the exit status.
+
+Faults: SIGKILL of ``record`` mid-trial (analysis on), a disk that fills mid-trial (a 50 MB tmpfs filled by another
+process when root, an injected full disk otherwise), a camera that stalls, the display link at end-of-file
+(unplugged), stalled and killed (the firmware process), a force above the ceiling, a corrupt and a truncated
+session file, a truncated video given to ``import``, a protocol with a typo.
+
+"Detected after" is the time from the fault to the moment the program acted on it (stopped the trial or movie,
+refused the file), measured on the host clock; for SIGKILL, to the moment the last process of the killed
+command's session was gone. "Kept" is what a reader finds afterwards; for recordings, "lost" is the time between
+the fault and the last frame in the file (the camera period is part of it). Every row also runs the command a
+user would run and reports its exit status. All on the simulated rig of this machine, under whatever load it has.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.session_file import open_session, write_session
+from skinstretch.experiments.bench import BenchOptions, BenchTable
+from skinstretch.experiments.runner import read_events
+from skinstretch.processing.pixel_scale import Calibration
+
+SECTION = "faults"
+DESCRIPTION = ("fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files "
+               "and videos, bad protocol")
+
+COLUMNS = ["fault", "injected", "detected after s", "kept", "display", "exit status", "as designed"]
+CLI = [sys.executable, "-m", "skinstretch.cli"]
+CAL = Calibration(px_per_mm=640 / 10.3)
+
+
+@dataclass
+class _Row:
+    fault: str
+    injected: str
+    detected_s: float
+    kept: str
+    display: str
+    exit_status: str
+    ok: bool
+
+    def cells(self) -> list:
+        return [self.fault, self.injected, self.detected_s, self.kept, self.display, self.exit_status,
+                "yes" if self.ok else "NO"]
+
+
+def _cli(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(CLI + list(args), capture_output=True, text=True, timeout=timeout_s)
+
+
+def _one_line(err: str) -> bool:
+    return len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def _protocol(path: Path, trials: list[tuple[str, float, str]], *, mode: str = "full", analysis: bool = False) -> Path:
+    body = "\n".join(f"  - {{name: {n}, duration_s: {d}, surface: {{kind: {k}}}}}" for n, d, k in trials)
+    path.write_text(f"name: {path.stem}\nsubject: {{id: s01}}\ncamera_mode: {mode}\ntrials:\n{body}\n"
+                    f"record: {{force: true}}\nanalysis: {{enabled: {str(analysis).lower()}, method: features}}\n")
+    return path
+
+
+def _session_alive(sid: int) -> list:
+    import psutil  # noqa: PLC0415
+
+    out = []
+    for proc in psutil.process_iter():
+        try:
+            if os.getsid(proc.pid) == sid and proc.status() != psutil.STATUS_ZOMBIE:
+                out.append(proc)
+        except (ProcessLookupError, PermissionError, psutil.Error):
+            continue
+    return out
+
+
+class _Lines:
+    """A child's stdout read on a thread, each line with its arrival time (time.time())."""
+
+    def __init__(self, child: subprocess.Popen) -> None:
+        self.lines: list[tuple[float, str]] = []
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(child,), daemon=True)
+        self._thread.start()
+
+    def _read(self, child) -> None:
+        for line in child.stdout:
+            with self._cond:
+                self.lines.append((time.time(), line.rstrip("\n")))
+                self._cond.notify_all()
+        with self._cond:
+            self.lines.append((time.time(), None))
+            self._cond.notify_all()
+
+    def wait_for(self, test, timeout_s: float = 120.0) -> tuple[float, str] | None:
+        deadline = time.monotonic() + timeout_s
+        seen = 0
+        with self._cond:
+            while time.monotonic() < deadline:
+                for t, line in self.lines[seen:]:
+                    if line is None:
+                        return None
+                    if test(line):
+                        return t, line
+                seen = len(self.lines)
+                self._cond.wait(0.1)
+        return None
+
+
+# ---------------------------------------------------------------------------------------------------- recordings
+
+
+def _sigkill(work: Path) -> _Row:
+    proto = _protocol(work / "killed.yaml", [("a", 1.0, "flat"), ("b", 1.0, "ridge"), ("c", 1.0, "valley")],
+                      analysis=True)
+    child = subprocess.Popen(CLI + ["record", str(proto), "-o", str(work / "killed"), "--no-movie"],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    lines = _Lines(child)
+    try:
+        hit = lines.wait_for(lambda line: line.startswith("  001-b-r1:") and "/60 frames" in line)
+        if hit is None:
+            raise RuntimeError("record never reached its second trial: " + " | ".join(l for _, l in lines.lines if l))
+        time.sleep(0.3)  # mid-trial, with trial 1 being analysed and trial 3 rendered
+        killed_at = time.time()
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(10)
+        while _session_alive(child.pid) and time.time() - killed_at < 10:
+            time.sleep(0.02)
+        gone_s = time.time() - killed_at
+        left = len(_session_alive(child.pid))
+    finally:
+        for proc in _session_alive(child.pid):
+            proc.kill()
+        child.stdout.close()
+    sdir = work / "killed" / "s01" / "killed"
+    with open_session(sdir / "001-b-r1" / "session.h5") as s:
+        n, lost = s.n_frames, killed_at - float(s.timestamps[-1])
+    resume = _cli("record", str(proto), "-o", str(work / "killed"), "--resume", "--no-movie")
+    done = {d.get("run_start"): d for name, d in read_events(sdir / "events.jsonl") if name == "stop"}
+    aborted = any(d.get("exit_status") == "abort" for d in done.values())
+    return _Row("SIGKILL of record", "mid-trial 2 of 3, analysis of trial 1 running", gone_s,
+                f"{n} frames readable, {lost:.3f} s lost; --resume: trial marked aborted, the rest recorded",
+                "twin died with record (hardware: firmware watchdog, 50 ms)",
+                f"-9; --resume {resume.returncode}",
+                left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 0)
+
+
+def replay_rig(work: Path) -> Path:
+    """A rig file replaying 90 textured 640x484 frames at 60 Hz (from ``work``), the display twin, no force."""
+    frames = np.random.default_rng(0).integers(0, 256, (90, 484, 640), dtype=np.uint8)
+    source = write_session(work / "replay-source.h5", frames, timestamps=np.arange(90) / 60.0,
+                           camera_mode=CAMERA_MODES["full"], calibration=CAL, overwrite=True)
+    rig = work / "replay-rig.yaml"
+    rig.write_text(f"name: replay\ncamera: {{kind: replay, device: {str(source)!r}}}\nforce: {{kind: none}}\n"
+                   "display: {kind: sim}\n")
+    return rig
+
+
+#: A program that fills the disk holding the file it is given, printing the time it hit ENOSPC.
+DISK_FILLER = """
+import sys, time
+with open(sys.argv[1], "wb") as fh:
+    try:
+        while True:
+            fh.write(bytes(1 << 20))
+            fh.flush()
+    except OSError:
+        print(time.time(), flush=True)
+"""
+
+
+def _disk_full(work: Path) -> _Row:
+    if os.geteuid() != 0 or not sys.platform.startswith("linux"):
+        return _disk_full_injected(work)
+    mnt = work / "tmpfs"
+    mnt.mkdir(exist_ok=True)
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=50m", "tmpfs", str(mnt)], capture_output=True).returncode:
+        return _disk_full_injected(work)
+    try:
+        rig = replay_rig(work)
+        proto = work / "fill.yaml"
+        proto.write_text("name: fill\nsubject: {id: s01}\ncamera_mode: full\ntrials:\n"
+                         "  - {name: a, duration_s: 0.7}\n  - {name: b, duration_s: 0.7}\n"
+                         "record: {force: false}\nanalysis: {enabled: false}\n")
+        child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(mnt / "d")],
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        lines = _Lines(child)
+        if lines.wait_for(lambda line: "/42 frames" in line) is None:
+            raise RuntimeError("record never started writing frames")
+        filler = subprocess.run([sys.executable, "-c", DISK_FILLER, str(mnt / "filler.bin")], capture_output=True,
+                                text=True, timeout=60)
+        full_at = float(filler.stdout.strip())
+        stopped = lines.wait_for(lambda line: "failed (" in line and "disk full" in line)
+        rc = child.wait(60)
+        lines.wait_for(lambda line: False, timeout_s=10)  # to the end of the output
+        output = [line for _, line in lines.lines if line is not None]
+        child.stdout.close()
+        with open_session(mnt / "d" / "s01" / "fill" / "000-a-r1" / "session.h5") as s:
+            n, status, lost = s.n_frames, s.status, full_at - float(s.timestamps[-1])
+        rested = "did not return to rest" not in (stopped[1] if stopped else "")
+        text = "\n".join(output)
+        clean = (output[-1].startswith("skinstretch record: 1 of 2 trials failed") and "disk full" in output[-1]
+                 and all(bad not in text for bad in ("Traceback", "Exception ignored", "Segmentation", "HDF5-DIAG")))
+        return _Row("disk full", "50 MB tmpfs filled by another process mid-trial",
+                    (stopped[0] - full_at) if stopped else math.nan,
+                    f"{n} frames readable, file {status}, {max(lost, 0.0):.3f} s lost; next trial not run",
+                    "rested" if rested else "NOT rested", str(rc),
+                    bool(stopped) and rc == 1 and status == "failed" and clean and rested)
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _disk_full_injected(work: Path) -> _Row:
+    """Without root: the same run in process, the session writer's free-space probe filling at 10 MB."""
+    from functools import partial  # noqa: PLC0415
+
+    from skinstretch.drivers.session_file import SessionWriter  # noqa: PLC0415
+    from skinstretch.experiments.protocol import Rig, load_protocol  # noqa: PLC0415
+    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415
+
+    out = work / "fill-injected"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    proto = _protocol(work / "fill-injected.yaml", [("a", 0.7, "flat"), ("b", 0.7, "flat")])
+    capacity = 10_000_000 + (8 << 20)
+
+    def free(_p) -> int:
+        return max(capacity - sum(p.stat().st_size for p in out.rglob("*") if p.is_file()), 0)
+
+    t0 = time.time()
+    run = run_protocol(load_protocol(proto), Rig(), out, writer_factory=partial(SessionWriter, free_bytes=free),
+                       progress=lambda m: None, play_movie=False, analyse=False)
+    first = run.trials[0]
+    with open_session(first.path) as s:
+        n, status = s.n_frames, s.status
+    return _Row("disk full", "injected (not root: no tmpfs): free space ends at ~10 MB", time.time() - t0,
+                f"{n} frames readable, file {status}; next trial not run", "rested", "1 (record)",
+                status == "failed" and first.disk_full and run.count("not run") == 1)
+
+
+def _camera_stall(work: Path) -> _Row:
+    proto = _protocol(work / "stall.yaml", [("a", 1.0, "flat")])
+    rig = work / "stall-rig.yaml"
+    rig.write_text("name: stall\ncamera: {kind: sim, options: {faults: {stall_at_frame: 20}}}\n"
+                   "force: {kind: sim}\ndisplay: {kind: sim}\n")
+    t0 = time.time()
+    done = _cli("record", str(proto), "--rig", str(rig), "-o", str(work / "stall"), "--no-analysis")
+    sdir = work / "stall" / "s01" / "stall"
+    stop = [d for name, d in read_events(sdir / "events.jsonl") if name == "stop"][0]
+    with open_session(sdir / "000-a-r1" / "session.h5") as s:
+        n, status, last = s.n_frames, s.status, float(s.timestamps[-1])
+    detected = stop["time"] - last - CAMERA_MODES["full"].period_s  # from the frame that never came
+    rested = "did not return to rest" not in stop.get("reason", "")
+    return _Row("camera stall", "simulated camera stops at frame 20 (forever)", detected,
+                f"{n} frames readable, file {status} ({stop.get('reason', '').split(':')[0]}: no frame for 1 s)",
+                "rested" if rested else "NOT rested", str(done.returncode),
+                done.returncode == 1 and n == 20 and status == "failed" and rested and time.time() - t0 < 120)
+
+
+# ------------------------------------------------------------------------------------------------------ playback
+
+
+def _movie(n: int = 2100) -> np.ndarray:
+    t = np.arange(n) / 700.0
+    return 20.0 * np.sin(2 * np.pi * 5 * t)[:, None, None] * np.ones((1, 10, 10))
+
+
+def _played(path: Path) -> int:
+    try:
+        with open_session(path) as s:
+            return int(s.read_stream("display_target")[0].shape[0])
+    except SessionFileError:
+        return -1
+
+
+def _link_fault(work: Path, kind: str) -> _Row:
+    """Display link end-of-file (vanished), stalled, or its firmware process killed, mid-movie (open loop, 700 Hz)."""
+    from skinstretch.drivers.display.stress import StressDisplay  # noqa: PLC0415
+    from skinstretch.drivers.display.transports import SerialTransport  # noqa: PLC0415
+    from skinstretch.experiments.playback import play_movie  # noqa: PLC0415
+    from skinstretch.simulators import stress_links  # noqa: PLC0415
+
+    path = work / f"link-{kind}.h5"
+    path.unlink(missing_ok=True)
+    fault_at: list[float] = []
+    process = None
+    if kind == "kill":
+        process = stress_links.FirmwareProcess(record_path=work / "firmware-record.npz")
+        display = StressDisplay(SerialTransport(process.port))
+        killer = threading.Timer(0.5, lambda: (fault_at.append(time.perf_counter()), process._process.kill()))
+        killer.start()
+        firmware = None
+    else:
+        stress_links.register_url_handler()
+        link = stress_links.make_link(seed=0, faults=f"{'vanish' if kind == 'eof' else 'stall'}_after:350")
+        name = f"bench_{kind}_{os.getpid()}"
+        display = StressDisplay(SerialTransport(stress_links.attach(name, link)))
+        firmware = link.firmware
+        on_packet = link._on_packet
+
+        def watch(packet, t):
+            before = link.stalled or link.vanished
+            on_packet(packet, t)
+            if (link.stalled or link.vanished) and not before:
+                fault_at.append(time.perf_counter())
+
+        link._on_packet = watch
+    try:
+        result = play_movie(display, _movie(), closed_loop=False, path=path)
+        returned = time.perf_counter()
+    finally:
+        display.close()
+        if process is not None:
+            process.close(timeout_s=2.0)
+    state = "firmware process dead"
+    if firmware is not None:
+        time.sleep(0.3)  # the watchdog (50 ms) and the soft rest ramp
+        link.advance()
+        at_rest = not firmware.armed and float(np.abs(firmware.benders.deflection_um()).max()) < 1.0
+        state = "rested by the firmware watchdog" if at_rest else "NOT at rest"
+    # the same fault from the command line, for its exit status
+    url = None if kind == "kill" else f"stresssim://cli_{kind}?faults={'vanish' if kind == 'eof' else 'stall'}_after:350"
+    rc = "-"
+    if url is not None:
+        np.save(work / "movie.npy", _movie())
+        cli_out = work / f"link-{kind}-cli.h5"
+        cli_out.unlink(missing_ok=True)
+        done = _cli("play", str(work / "movie.npy"), "--movie-rate", "700", "--display", url, "-o", str(cli_out),
+                    "--no-force")
+        rc = str(done.returncode)
+    injected = {"eof": "link vanishes after 350 frames (unplugged)", "stall": "link silent after 350 frames",
+                "kill": "firmware process SIGKILLed 0.5 s in (pty hangs up)"}[kind]
+    detected = returned - fault_at[0] if fault_at else math.nan
+    played = _played(path)
+    ok = bool(result.stopped) and played == result.frames_played > 0 and "NOT" not in state and detected < 0.4
+    return _Row(f"display link {kind.upper() if kind == 'eof' else kind}", injected, detected,
+                f"{played} of {result.frames_total} frames in the playback file (failed: link)", state,
+                f"{rc} (play)" if rc != "-" else "3 (play)", ok and rc in ("3", "-"))
+
+
+def _force_ceiling(work: Path) -> _Row:
+    from skinstretch.drivers.display.stress import StressDisplay  # noqa: PLC0415
+    from skinstretch.drivers.display.transports import SerialTransport  # noqa: PLC0415
+    from skinstretch.drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
+    from skinstretch.experiments.playback import play_movie  # noqa: PLC0415
+    from skinstretch.experiments.rig import ForceSource  # noqa: PLC0415
+    from skinstretch.simulators import stress_links  # noqa: PLC0415
+    from skinstretch.simulators.netft_box import NetFTSimulator, normal_force_wrench  # noqa: PLC0415
+
+    start = time.time()
+    cross = start + 1.0  # 1.5 N, rising at 20 N/s from 1 s on: 5 N crossed at 1.175 s
+
+    def fz(t: float) -> float:
+        return 1.5 + 20.0 * max(0.0, t - 1.0)
+
+    server = NetFTSimulator(seed=0, wrench=normal_force_wrench(fz), rate_hz=500.0)
+    server.start()
+    host, port = server.address
+    force = ForceSource(NetFTSensor(host, port=port), description="bench")
+    stress_links.register_url_handler()
+    link = stress_links.make_link(seed=0)
+    display = StressDisplay(SerialTransport(stress_links.attach(f"bench_force_{os.getpid()}", link)))
+    path = work / "force-ceiling.h5"
+    path.unlink(missing_ok=True)
+    try:
+        result = play_movie(display, _movie(2800), closed_loop=False, path=path, force=force, force_ceiling_n=5.0)
+        returned = time.time()
+    finally:
+        display.close()
+        force.close()
+        server.close()
+    with open_session(path) as s:
+        t, wrench = s.read_stream("force")
+    tripped = float(np.abs(wrench[-1, 2]))
+    crossed = cross + (5.0 - 1.5) / 20.0
+    np.save(work / "movie.npy", _movie())
+    out = work / "force-cli.h5"
+    out.unlink(missing_ok=True)
+    done = _cli("play", str(work / "movie.npy"), "--movie-rate", "700", "--force-ceiling", "1.0", "-o", str(out))
+    return _Row("force ceiling", "normal force ramps past the 5 N ceiling", returned - crossed,
+                f"{result.frames_played} frames and the tripping sample ({tripped:.2f} N) in the force stream",
+                "rested and disarmed" if result.rested else "NOT rested", f"{done.returncode} (play)",
+                tripped > 5.0 and result.rested and "safety stop" in result.stopped and done.returncode == 3)
+
+
+# ---------------------------------------------------------------------------------------------------- bad input
+
+
+def _bad_file(work: Path, kind: str) -> _Row:
+    frames = np.random.default_rng(1).integers(0, 256, (30, 484, 640), dtype=np.uint8)
+    path = write_session(work / f"{kind}.h5", frames, timestamps=np.arange(30) / 60.0,
+                         camera_mode=CAMERA_MODES["full"], calibration=CAL, overwrite=True)
+    size = path.stat().st_size
+    if kind == "truncated":
+        os.truncate(path, int(size * 0.6))
+        injected = "session file cut at 60 % (an interrupted copy)"
+    else:
+        with open(path, "r+b") as fh:  # the signature stays; the superblock and root header behind it are garbled
+            fh.seek(8)
+            head = fh.read(4088)
+            fh.seek(8)
+            fh.write(bytes(b ^ 0x5A for b in head))
+        injected = "bytes 8-4096 garbled (superblock, root object header)"
+    t0 = time.perf_counter()
+    try:
+        open_session(path).close()
+        refused = ""
+    except SessionFileError as exc:
+        refused = str(exc)
+    took = time.perf_counter() - t0
+    done = _cli("analyze", str(path), "-o", str(work / f"{kind}-out"))
+    why = refused.split(": ", 1)[-1].split(" (")[0]
+    return _Row(f"{kind} session file", injected, took, f"refused ({why}); file untouched", "-",
+                f"{done.returncode} (analyze)", bool(refused) and done.returncode == 2 and _one_line(done.stderr))
+
+
+def _bad_video(work: Path) -> _Row:
+    """An MJPEG AVI cut at a third: the import finds the frames missing that the container declares."""
+    import cv2  # noqa: PLC0415
+
+    from skinstretch.drivers.errors import FrameFileError  # noqa: PLC0415
+    from skinstretch.experiments.frame_import import import_frames  # noqa: PLC0415
+
+    good = work / "good.avi"
+    writer = cv2.VideoWriter(str(good), cv2.VideoWriter_fourcc(*"MJPG"), 60, (640, 484), isColor=False)
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        writer.write(rng.integers(0, 256, (484, 640), dtype=np.uint8))
+    writer.release()
+    bad = work / "bad.avi"
+    data = good.read_bytes()
+    bad.write_bytes(data[: len(data) // 3])
+    t0 = time.perf_counter()
+    try:
+        import_frames(bad, work / "bad-video.h5", px_per_mm=62.0)
+        refused = ""
+    except FrameFileError as exc:
+        refused = str(exc)
+    took = time.perf_counter() - t0
+    done = _cli("import", str(bad), "-o", str(work / "bad-video-cli.h5"), "--px-per-mm", "62")
+    left = (work / "bad-video.h5").exists() or (work / "bad-video-cli.h5").exists()
+    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+    return _Row("bad video file", "an AVI cut at a third (an interrupted copy)", took,
+                f"refused ({refused.split(': ', 1)[-1]}); no session left", "-", f"{done.returncode} (import)",
+                bool(refused) and done.returncode == 2 and not left and "Traceback" not in done.stderr
+                and last.startswith("skinstretch import: error:"))
+
+
+def _bad_protocol(work: Path) -> _Row:
+    bad = work / "typo.yaml"
+    bad.write_text("name: typo\nsubject: {id: s01}\ntrials:\n  - {name: a, duration_s: 1.0, duraton_s: 2}\n")
+    from skinstretch.experiments.protocol import load_protocol  # noqa: PLC0415
+    from skinstretch.processing.errors import ConfigError  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    try:
+        load_protocol(bad)
+        message = ""
+    except ConfigError as exc:
+        message = str(exc)
+    took = time.perf_counter() - t0
+    done = _cli("record", str(bad), "-o", str(work / "typo"))
+    return _Row("bad protocol", "a misspelt field (duraton_s) on line 4", took,
+                f"nothing recorded ({message.rsplit('/', 1)[-1]})", "never opened", f"{done.returncode} (record)",
+                bool(message) and done.returncode == 2 and _one_line(done.stderr) and "typo.yaml:4" in done.stderr
+                and not (work / "typo").exists())
+
+
+def run(options: BenchOptions) -> list[BenchTable]:
+    work = Path(options.workdir) / "faults"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    scenarios = [("SIGKILL", lambda: _sigkill(work)), ("disk full", lambda: _disk_full(work)),
+                 ("camera stall", lambda: _camera_stall(work)),
+                 *[(f"link {k}", (lambda k=k: _link_fault(work, k))) for k in ("eof", "stall", "kill")],
+                 ("force ceiling", lambda: _force_ceiling(work)),
+                 ("corrupt file", lambda: _bad_file(work, "corrupt")),
+                 ("truncated file", lambda: _bad_file(work, "truncated")),
+                 ("bad video", lambda: _bad_video(work)),
+                 ("bad protocol", lambda: _bad_protocol(work))]
+    rows, notes = [], []
+    for name, scenario in scenarios:
+        try:
+            rows.append(scenario().cells())
+        except Exception as exc:  # noqa: BLE001 - one broken scenario is reported, the others still run
+            rows.append([name, "-", math.nan, f"scenario failed: {type(exc).__name__}: {exc}", "-", "-", "NO"])
+    notes.append("detected after: fault -> the program acted (trial or movie stopped, file refused); SIGKILL: -> "
+                 "the last process of record's session gone. Display link timeout 0.2 s, camera read timeout 1 s.")
+    notes.append("exit status: what the command a user runs returns for that fault (1: record with a failed trial, "
+                 "3: play stopped, 2: refused before starting, -9: killed).")
+    notes.append("Measured on this machine under the load of the moment (other developers' jobs); the simulated rig.")
+    return [BenchTable(title="Fault matrix: detection, what is kept, display state, exit status",
+                       columns=COLUMNS, rows=rows, notes=notes)]

@@ -1,0 +1,333 @@
+"""A video, TIFF stack or folder of images made into a normal session file (``skinstretch import``).
+
+The frames are read one at a time by the readers the replay camera uses (:mod:`skinstretch.drivers.frame_readers`)
+and written as they come, so a file of any length imports in constant memory. The session is written under a
+temporary name beside the output and renamed only once complete: a failure (a damaged frame, a full disk,
+Ctrl-C) leaves no file at the output name. The result is an ordinary session (status complete) that ``analyze``,
+``report`` and ``view`` read like a recorded one; its metadata ``source`` says where it came from and how it was
+converted (docs/import-and-replay.md).
+
+Rules
+-----
+* **Grey**: colour becomes BT.601 luma (:mod:`skinstretch.drivers.frame_readers.base`).
+* **Bit depth**: 8-bit frames are stored unchanged. Deeper ones (16-bit, 32-bit, float) are mapped by one linear
+  map for the whole file, from the smallest to the largest value of any (cropped) frame onto 0..255, rounded to
+  the nearest level: all 256 levels are used and brightness changes between frames survive (a per-frame
+  stretch would fake them). Finding the range takes a first pass over the file.
+* **Time**: ``fps`` given: frame k is at k / fps. Otherwise each frame's own time in the file (a video's
+  presentation time stamps, OME plane times), else k over the rate the file declares; a file that declares no
+  rate (an image folder) needs ``fps``. Times are seconds after the first frame.
+* **Pixel scale**: ``px_per_mm`` given, else ``calibration`` (a fitted mapping, cut to the crop), else the pixel
+  size the file declares (OME, ImageJ); a file that declares none needs one of the two.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
+
+import numpy as np
+
+from skinstretch import __version__
+from skinstretch.drivers.camera_modes import CameraMode
+from skinstretch.drivers.frame_readers import FrameReader, SourceFrame, open_frame_reader
+from skinstretch.drivers.session_file import SessionWriter, replacing_file
+from skinstretch.processing.errors import InvalidInputError, Remedy
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.progress import progress_bar
+
+if TYPE_CHECKING:
+    from skinstretch.processing.geometric_calibration import GridMapping
+
+__all__ = ["Crop", "ImportResult", "import_frames", "IMPORTED_MODE_NAME"]
+
+log = logging.getLogger(__name__)
+
+#: Camera-mode name of an imported session (its size and rate are the file's).
+IMPORTED_MODE_NAME = "imported"
+_BATCH = 16  # frames per write: one resize of each dataset per batch, a few MB in memory
+
+
+@dataclass(frozen=True)
+class Crop:
+    """A window of the source frames in pixels: left column ``x``, top row ``y``, ``width`` and ``height``."""
+
+    x: int
+    y: int
+    width: int
+    height: int
+
+    @classmethod
+    def parse(cls, text: str) -> "Crop":
+        """``"X,Y,W,H"`` (integers)."""
+        try:
+            x, y, w, h = (int(v) for v in text.split(","))
+        except ValueError:
+            raise InvalidInputError(f"crop must be X,Y,W,H in whole pixels, got {text!r}") from None
+        return cls(x, y, w, h)
+
+    def check(self, shape: tuple[int, int], where: str) -> None:
+        h, w = shape
+        if self.width < 1 or self.height < 1 or self.x < 0 or self.y < 0 or self.x + self.width > w or \
+                self.y + self.height > h:
+            raise InvalidInputError(
+                f"crop {self.x},{self.y},{self.width},{self.height} is not inside the {w}x{h} frames of {where}"
+            )
+
+    def apply(self, image: np.ndarray) -> np.ndarray:
+        return image[self.y : self.y + self.height, self.x : self.x + self.width]
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """What an import wrote.
+
+    Attributes
+    ----------
+    path : Path
+        The session file.
+    n_frames, width, height : int
+        Frames written and their size.
+    fps : float
+        The session's nominal frame rate (Hz); ``fps_source`` says where it came from.
+    px_per_mm : float
+        Pixel scale; ``px_per_mm_source`` says where it came from.
+    conversion : str
+        How the pixels became 8-bit grey.
+    seconds : float
+        Wall time of the import.
+    """
+
+    path: Path
+    n_frames: int
+    width: int
+    height: int
+    fps: float
+    fps_source: str
+    px_per_mm: float
+    px_per_mm_source: str
+    conversion: str
+    seconds: float
+
+
+@dataclass(frozen=True)
+class _DepthMap:
+    """The linear map of deep pixels onto 0..255 (identity for 8-bit input)."""
+
+    lo: float
+    hi: float
+    identity: bool
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        if self.identity:
+            return np.ascontiguousarray(image)
+        scale = 255.0 / (self.hi - self.lo) if self.hi > self.lo else 0.0
+        out = (image.astype(np.float32) - np.float32(self.lo)) * np.float32(scale)
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+    def describe(self, dtype: np.dtype) -> str:
+        if self.identity:
+            return "8-bit grey, unchanged"
+        return f"{dtype} mapped linearly from [{self.lo:g}, {self.hi:g}] (the whole file's range) to [0, 255]"
+
+
+def _depth_map(reader: FrameReader, crop: Crop | None, progress: bool) -> _DepthMap:
+    if reader.dtype == np.uint8:
+        return _DepthMap(0.0, 255.0, True)
+    lo, hi = math.inf, -math.inf
+    with progress_bar(reader.n_frames, enabled=progress, desc="range of values") as bar:
+        for frame in reader.frames():
+            image = crop.apply(frame.image) if crop else frame.image
+            finite = image[np.isfinite(image)] if image.dtype.kind == "f" else image
+            if finite.size:
+                lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
+            bar.update(1)
+    if not math.isfinite(lo):
+        raise InvalidInputError(f"{reader.name}: no finite pixel value in any frame")
+    return _DepthMap(lo, hi, False)
+
+
+def _scale(reader: FrameReader, *, px_per_mm: float | None, calibration: GridMapping | None,
+           crop: Crop | None) -> tuple[Calibration, str]:
+    if px_per_mm is not None and calibration is not None:
+        raise InvalidInputError("give a pixel scale or a calibration, not both")
+    if px_per_mm is not None:
+        if not (math.isfinite(px_per_mm) and px_per_mm > 0):
+            raise InvalidInputError(f"px_per_mm must be a positive number, got {px_per_mm!r}")
+        return Calibration(px_per_mm=float(px_per_mm)), "given"
+    if calibration is not None:
+        from skinstretch.experiments.skin_mapping_step import mapping_for_frames  # noqa: PLC0415
+
+        h, w = reader.shape
+        if crop is not None:
+            if (calibration.width, calibration.height) != (w, h):
+                raise InvalidInputError(
+                    f"the calibration was fitted on {calibration.width}x{calibration.height} images and {reader.name} "
+                    f"is {w}x{h}: a crop needs a calibration of the uncropped frames"
+                )
+            mapping = calibration.for_window(x0=crop.x, y0=crop.y, width=crop.width, height=crop.height)
+        else:
+            mapping = mapping_for_frames(calibration, w, h)
+        return Calibration(px_per_mm=mapping.px_per_mm, mapping=mapping), "calibration"
+    if reader.px_per_mm is not None:
+        return Calibration(px_per_mm=reader.px_per_mm), f"{reader.kind} metadata"
+    raise InvalidInputError(
+        f"{reader.name} declares no pixel size",
+        remedy=Remedy(("px_per_mm", "calibration"), "to give the pixel scale"),
+    )
+
+
+def _timed(reader: FrameReader, fps: float | None) -> tuple[Iterator[tuple[SourceFrame, float]], float | None, str]:
+    """Each frame with its time (s), the nominal rate when known before reading, and where times come from."""
+    if fps is not None:
+        if not (math.isfinite(fps) and fps > 0):
+            raise InvalidInputError(f"fps must be a positive number, got {fps!r}")
+        return ((f, f.index / fps) for f in reader.frames()), float(fps), "given"
+    if reader.fps is None and not math.isfinite(reader.read(0).time_s):
+        raise InvalidInputError(f"{reader.name} declares no frame rate", remedy=Remedy(("fps",), "to give it"))
+
+    def file_times() -> Iterator[tuple[SourceFrame, float]]:
+        for f in reader.frames():
+            if math.isfinite(f.time_s):
+                yield f, f.time_s
+            elif reader.fps is not None:
+                yield f, f.index / reader.fps
+            else:
+                raise InvalidInputError(f"{reader.name} gives frame {f.index} no time and declares no frame rate",
+                                        remedy=Remedy(("fps",), "to give it"))
+
+    return file_times(), reader.fps, f"{reader.kind} time stamps"
+
+
+def import_frames(
+    source: str | os.PathLike | Sequence[str | os.PathLike],
+    output: str | os.PathLike,
+    *,
+    px_per_mm: float | None = None,
+    calibration: GridMapping | None = None,
+    fps: float | None = None,
+    crop: Crop | None = None,
+    surface: str | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> ImportResult:
+    """Import a video, TIFF stack or image folder into the session file ``output`` (see the module's rules).
+
+    Parameters
+    ----------
+    source : path-like, glob pattern or list of paths
+        A video file, a TIFF file, a folder or pattern of PNG/TIFF images, or a list of images.
+    output : path-like
+        Session file to write; an existing one is replaced only with ``overwrite``.
+    px_per_mm, calibration : optional
+        Pixel scale, or a fitted calibration mapping (:class:`GridMapping` of ``skinstretch calibrate``).
+    fps : float, optional
+        Frame rate in Hz; replaces the file's own times.
+    crop : Crop, optional
+        Window of the frames to keep.
+    surface : str, optional
+        What the finger slid on ("flat", "ridge", "valley"...): recorded as the session's ``surface`` (the
+        analysis removes the glass shading of non-flat surfaces).
+
+    Raises
+    ------
+    FrameFileError
+        The source is missing, corrupt, truncated or of a kind no reader reads (nothing is left at ``output``).
+    InvalidInputError
+        A bad option, or a rate or pixel scale the file does not declare and the caller did not give.
+    """
+    t_start = time.perf_counter()
+    output = Path(output)
+    with open_frame_reader(source) as reader:
+        if crop is not None:
+            crop.check(reader.shape, reader.name)
+        height, width = (crop.height, crop.width) if crop is not None else reader.shape
+        cal, scale_source = _scale(reader, px_per_mm=px_per_mm, calibration=calibration, crop=crop)
+        frames, nominal_fps, time_source = _timed(reader, fps)
+        if nominal_fps is None:  # times from the file and no declared rate: derived once they are known
+            nominal_fps = 1.0
+        depth = _depth_map(reader, crop, progress)
+        conversion = depth.describe(reader.dtype)
+        source_record: dict[str, Any] = {
+            **reader.describe(),
+            "times": time_source,
+            "px_per_mm": scale_source,
+            "conversion": conversion,
+            "crop": [crop.x, crop.y, crop.width, crop.height] if crop is not None else None,
+        }
+        metadata: dict[str, Any] = {"source": source_record, "imported_by": f"skinstretch {__version__}",
+                                    "imported_unix": time.time()}
+        if surface:
+            metadata["surface"] = {"kind": surface}
+        mode = CameraMode(IMPORTED_MODE_NAME, width, height, nominal_fps)
+        with replacing_file(output, overwrite=overwrite) as tmp:
+            writer = SessionWriter(tmp, camera_mode=mode, calibration=cal, metadata=metadata, flush_interval_s=1.0)
+            try:
+                n, times = _write_frames(writer, frames, crop=crop, depth=depth, total=reader.n_frames,
+                                         progress=progress, where=reader.name)
+                writer.close()
+            except BaseException as exc:
+                writer.fail(f"import stopped: {type(exc).__name__}: {exc}")
+                raise
+            fps_out, fps_source = _nominal_rate(fps, reader.fps, times, time_source)
+            if fps_out != nominal_fps:
+                _set_rate(tmp, fps_out)
+    seconds = time.perf_counter() - t_start
+    log.debug("imported %d frames of %s into %s in %.1f s (%s)", n, reader.name, output, seconds, conversion)
+    return ImportResult(path=output, n_frames=n, width=width, height=height, fps=fps_out, fps_source=fps_source,
+                        px_per_mm=cal.px_per_mm, px_per_mm_source=scale_source, conversion=conversion,
+                        seconds=seconds)
+
+
+def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _DepthMap, total: int | None,
+                  progress: bool, where: str) -> tuple[int, np.ndarray]:
+    """Write every frame in batches; returns the count and every frame's time."""
+    times: list[float] = []
+    batch: list[np.ndarray] = []
+    batch_t: list[float] = []
+
+    def flush() -> None:
+        if batch:
+            k = len(times) - len(batch)
+            ts = np.asarray(batch_t)
+            writer.append_frames(np.stack(batch), timestamps=ts, device_timestamps=ts,
+                                 frame_ids=np.arange(k, k + len(batch)))
+            batch.clear()
+            batch_t.clear()
+
+    with progress_bar(total, enabled=progress, desc="importing") as bar:
+        for frame, t in frames:
+            image = crop.apply(frame.image) if crop is not None else frame.image
+            batch.append(depth(image))
+            batch_t.append(t)
+            times.append(t)
+            if len(batch) >= _BATCH:
+                flush()
+            bar.update(1)
+        flush()
+    if not times:
+        raise InvalidInputError(f"{where} holds no frame")
+    return len(times), np.asarray(times)
+
+
+def _nominal_rate(given: float | None, declared: float | None, times: np.ndarray, source: str) -> tuple[float, str]:
+    if given is not None:
+        return float(given), "given"
+    if declared is not None:
+        return float(declared), source.replace("time stamps", "metadata")
+    span = float(times[-1] - times[0]) if times.size > 1 else 0.0
+    if span > 0:
+        return (times.size - 1) / span, source
+    raise InvalidInputError("the file's frame times do not advance", remedy=Remedy(("fps",), "to give the rate"))
+
+
+def _set_rate(path: Path, fps: float) -> None:
+    import h5py  # noqa: PLC0415
+
+    with h5py.File(path, "r+") as f:
+        f["camera"].attrs["fps"] = fps

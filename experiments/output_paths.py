@@ -1,0 +1,123 @@
+"""Output paths, checked before anything is recorded or any device is opened: one line naming the path and what
+is wrong with it (read-only file system, no permission, a file where a directory is expected, an output that
+exists already, no space left).
+
+Every command that writes uses these two checks first (``record``, ``play``; any other command may):
+
+* :func:`check_output_dir` for a directory that will receive files (created later by the caller);
+* :func:`check_output_file` for a new file (recordings are never overwritten).
+
+Both test for real: a throw-away file is created and removed in the nearest existing directory, because
+permission bits do not tell (root ignores them, a read-only mount or a full disk does not show in them). Nothing
+is created that the check does not remove. :func:`os_error_line` turns an ``OSError`` met later (while writing)
+into the same kind of line.
+
+>>> check_output_file("/proc/version")
+Traceback (most recent call last):
+...
+skinstretch.experiments.output_paths.OutputPathError: /proc/version: exists already; choose another name (nothing is overwritten)
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import tempfile
+from pathlib import Path
+
+from skinstretch.processing.errors import ConfigError, Remedy
+
+__all__ = ["OutputPathError", "check_output_dir", "check_output_file", "os_error_line"]
+
+_PROBLEMS = {
+    errno.EROFS: "is on a read-only file system",
+    errno.EACCES: "no permission to write there",
+    errno.EPERM: "no permission to write there",
+    errno.ENOSPC: "no space left on the device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.ENOTDIR: "a part of the path is a file, not a directory",
+    errno.ENAMETOOLONG: "the name is too long",
+    errno.ELOOP: "too many symbolic links",
+}
+
+
+class OutputPathError(ConfigError):
+    """An output path cannot be written; the message is ``PATH: what is wrong``."""
+
+
+def os_error_line(exc: OSError, path: str | os.PathLike | None = None) -> str:
+    """``PATH: what is wrong`` for an OSError met while writing (the path from the error when not given)."""
+    where = path if path is not None else (exc.filename or "?")
+    return f"{where}: {_PROBLEMS.get(exc.errno, exc.strerror or str(exc))}"
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path`` or its closest existing ancestor; OutputPathError when something on the way is not a directory."""
+    probe = path
+    while True:
+        try:
+            if probe.exists():
+                break
+        except OSError as exc:  # e.g. no permission to look inside the parent
+            raise OutputPathError(os_error_line(exc, probe)) from None
+        if probe.is_symlink():
+            raise OutputPathError(f"{probe}: is a dangling symbolic link")
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe != path and not probe.is_dir():
+        raise OutputPathError(f"{probe}: is a file, not a directory (on the way to {path})")
+    return probe
+
+
+def _probe_writable(directory: Path, target: Path) -> None:
+    """Create and remove a file in ``directory``; OutputPathError naming ``target`` when that fails."""
+    try:
+        fd, name = tempfile.mkstemp(dir=directory, prefix=".skinstretch-write-test-")
+    except OSError as exc:
+        detail = "" if directory == target else f" (checked at {directory})"
+        raise OutputPathError(f"{target}: {_PROBLEMS.get(exc.errno, exc.strerror or str(exc))}{detail}") from None
+    os.close(fd)
+    os.unlink(name)
+
+
+def check_output_dir(path: str | os.PathLike, *, must_be_empty: bool = False, remedy: Remedy | None = None) -> Path:
+    """Check that files can be written into directory ``path`` (existing, or creatable: its nearest existing
+    ancestor is a writable directory). Returns ``path`` as a Path; nothing is left behind.
+
+    ``must_be_empty``: an existing directory holding anything is an error (``remedy``: the argument that allows
+    it, named as the caller spells it, e.g. ``--resume`` on the command line).
+    """
+    path = Path(path)
+    base = _nearest_existing(path)
+    if base == path:
+        if not path.is_dir():
+            raise OutputPathError(f"{path}: is a file, not a directory")
+        if must_be_empty:
+            try:
+                occupied = any(path.iterdir())
+            except OSError as exc:
+                raise OutputPathError(os_error_line(exc, path)) from None
+            if occupied:
+                raise OutputPathError(f"{path}: is not empty", remedy=remedy)
+    _probe_writable(base, path)
+    return path
+
+
+def check_output_file(path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Check that a new file ``path`` can be written: not a directory, not an existing file (unless
+    ``overwrite``), in a directory that exists or can be created and is writable. Returns ``path`` as a Path."""
+    path = Path(path)
+    try:
+        exists = path.exists()
+    except OSError as exc:
+        raise OutputPathError(os_error_line(exc, path)) from None
+    if exists and path.is_dir():
+        raise OutputPathError(f"{path}: is a directory, not a file")
+    if exists and not overwrite:
+        raise OutputPathError(f"{path}: exists already; choose another name (nothing is overwritten)")
+    base = _nearest_existing(path.parent)
+    if base == path.parent and not base.is_dir():
+        raise OutputPathError(f"{base}: is a file, not a directory (on the way to {path})")
+    _probe_writable(base, path)
+    return path

@@ -1,0 +1,243 @@
+"""Online features and strain of a session while it is being recorded, for the live view.
+
+The recorder never waits on this: it runs in the viewer's process and reads the session file in HDF5 SWMR mode,
+like any other reader. Each round it takes the NEWEST frame the recorder has flushed and skips the ones it had no
+time for (lossy by design), so it never falls behind the recording: its rate is what the machine can spare.
+
+Per analysed frame: features extracted (seed 4), matched to the previously analysed frame with the global-motion
+prediction (seed 5.1.1), refined to sub-pixel by local registration, and the Delaunay triangulation of the matched
+points measured between the two frames (seed 5.3.1). The glass-shading step and the tactile movie need the whole
+sequence: they come with the analysis after the trial (``skinstretch analyze`` or the runner's worker), which
+the viewer picks up when its results appear.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.experiments.viewer.session_data import (
+    TAIL_FRAMES,
+    FeatureMarks,
+    FrameOverlays,
+    Mesh,
+    SessionSource,
+    convex_hull,
+    nice_scale,
+)
+from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.errors import InsufficientDataError, SkinstretchError
+from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.stretch import triangulation_strain
+from skinstretch.processing.tracking import FeatureTracker, MotionSample, TrackingParams
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LiveAnalyzer", "LiveStats"]
+
+MAX_EDGE_MM = 2.0  # the analysis' default (AnalysisParams.max_edge_mm): long hull slivers left out
+SCALE_WINDOW_FRAMES = 60  # the colour scale covers the strains of the last analysed frames (a few seconds)
+
+
+@dataclass
+class LiveStats:
+    """What the live analysis did: frames analysed and skipped, its rate, and per-frame analysis time."""
+
+    analysed: int
+    skipped: int
+    frames_per_s: float
+    last_frame: int
+    analysis_ms_p95: float
+    error: str
+
+
+class LiveAnalyzer:
+    """Analyse the newest frame of a session being recorded, over and over, on a thread of its own.
+
+    Parameters
+    ----------
+    source : SessionSource
+        The session, opened in SWMR mode.
+    keep_frames : int
+        Overlays of this many most recent analysed frames are kept for stepping back.
+    poll_s : float
+        Wait between looks at the file when no new frame is there.
+    """
+
+    def __init__(self, source: SessionSource, *, keep_frames: int = 900, poll_s: float = 0.005) -> None:
+        self.source = source
+        cal = Calibration(px_per_mm=float(source.session.calibration.px_per_mm))
+        self._cal = cal
+        self._extractor = FeatureExtractor(calibration=cal, params=ExtractionParams())
+        self._tracker = FeatureTracker(
+            calibration=cal, params=TrackingParams(smoothing_radius_frames=0),
+            motion_estimator=GlobalMotionEstimator(downsample=4),
+        )
+        self._refiner = SubpixelRefiner(calibration=cal)
+        self._max_edge_px = cal.px(MAX_EDGE_MM)
+        self._max_deviation_px = cal.px(TrackingParams().max_local_deviation_mm)
+        self._keep = int(keep_frames)
+        self._poll = float(poll_s)
+        self._overlays: OrderedDict[int, FrameOverlays] = OrderedDict()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="live-analysis", daemon=True)
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=TAIL_FRAMES + 1)  # (tracks, xy)
+        self._prev: tuple[int, np.ndarray, np.ndarray, object] | None = None  # frame, xy, tracks, prepared image
+        self._prev_tracks = np.zeros(0, np.int64)
+        self._n_tracks = 0
+        self._recent_changes: deque[np.ndarray] = deque(maxlen=SCALE_WINDOW_FRAMES)
+        self._analysed = 0
+        self._skipped = 0
+        self._last = -1
+        self._t_first: float | None = None
+        self._durations: deque[float] = deque(maxlen=600)
+        self._error = ""
+        self.version = 0  # bumped after every analysed frame (the server's event stream watches it)
+
+    # -- control
+    def start(self) -> "LiveAnalyzer":
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    # -- results
+    def overlays(self, frame: int) -> FrameOverlays | None:
+        with self._lock:
+            return self._overlays.get(frame)
+
+    def latest(self) -> FrameOverlays | None:
+        with self._lock:
+            return next(reversed(self._overlays.values()), None) if self._overlays else None
+
+    def stats(self) -> LiveStats:
+        with self._lock:
+            dur = np.asarray(self._durations)
+            span = (time.monotonic() - self._t_first) if self._t_first is not None else 0.0
+            return LiveStats(
+                analysed=self._analysed, skipped=self._skipped,
+                frames_per_s=(self._analysed - 1) / span if span > 0 and self._analysed > 1 else 0.0,
+                last_frame=self._last, analysis_ms_p95=float(np.percentile(dur, 95) * 1e3) if dur.size else 0.0,
+                error=self._error,
+            )
+
+    # -- the loop
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                n = self.source.n_frames()
+                if n - 1 <= self._last:
+                    if self.source.status() != "recording" and n - 1 <= self._last:
+                        break  # the recording ended and its last frame is analysed
+                    self._stop.wait(self._poll)
+                    continue
+                k = n - 1
+                if self._last >= 0:
+                    self._skipped += k - self._last - 1
+                self.analyse_frame(k)
+            except (SessionFileError, SkinstretchError, OSError) as exc:
+                self._error = f"{type(exc).__name__}: {exc}"
+                log.warning("live analysis stopped: %s", self._error)
+                break
+
+    def analyse_frame(self, k: int) -> FrameOverlays:
+        """Analyse frame ``k`` against the previously analysed frame and keep its overlays."""
+        t0 = time.perf_counter()
+        image = self.source.frame(k)
+        exposure = self.source.timestamp(k)
+        res = self._extractor.extract(image, frame_index=k)
+        feats = res.features if res.ok else res.features[:0]
+        prepared = self._tracker.prepare_image(image)
+        refine_image = self._refiner.prepare(image)
+        matches = self._tracker.add_frame(feats, prepared=prepared)
+        xy = np.column_stack([feats["x"], feats["y"]]).astype(np.float64)
+        tracks = np.full(xy.shape[0], -1, np.int64)
+        notes = ["live analysis: newest frame against the previous analysed one; glass shading not removed, "
+                 "tactile movie after the trial's analysis"]
+        if res.flags:
+            notes.append("frame flagged: " + ", ".join(sorted(res.flags)))
+        matches_seg = arrows = np.zeros((0, 4))
+        ci = np.zeros(0, np.int64)
+        mesh = None
+        if self._prev is not None and len(matches):
+            pk, pxy, ptracks, pref = self._prev
+            pi, ci = matches.prev_index, matches.curr_index
+            tracks[ci] = ptracks[pi]
+            r = self._refiner.refine(pref, refine_image, pxy[pi], xy[ci] - pxy[pi])
+            ok = r.refined.copy()
+            if ok.sum() >= 7:
+                # As the analysis does: a refined displacement far from the median of its 7 nearest refined
+                # neighbours is a registration failure (skin moves smoothly); so is an unrefined one.
+                med = local_predictions(pxy[pi], pxy[pi][ok], r.displacement[ok], neighbours=7)
+                ok &= np.hypot(*(r.displacement - med).T) <= self._max_deviation_px
+            pi, ci, d = pi[ok], ci[ok], r.displacement[ok]
+            matches_seg = np.column_stack([pxy[pi], xy[ci]])
+            arrows = np.column_stack([pxy[pi] + d, d])
+            try:
+                s = triangulation_strain(MotionSample(pk, k, pxy[pi], d, tracks[ci]), max_edge_px=self._max_edge_px)
+                ends = s.points + _displacement_of(s.ids, tracks[ci], d)
+                tri = s.triangles
+                mesh_xy = np.column_stack([ends[tri[:, 0]], ends[tri[:, 1]], ends[tri[:, 2]]])
+                mesh = Mesh(1, pk, k, mesh_xy, s.ids[tri], s.area_change, s.flipped, "frame_b")
+                self._recent_changes.append(s.area_change[~s.flipped])
+            except InsufficientDataError as exc:
+                notes.append(f"no strain: {exc}")
+        new = tracks < 0
+        tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
+        self._n_tracks += int(new.sum())
+        self._history.append((tracks, xy))
+        tails = self._tails(tracks)
+        overlays = FrameOverlays(
+            frame=k, source="live",
+            features=FeatureMarks(feats["id"].astype(np.int64), tracks, feats["kind"].astype(np.int8), xy[:, 0],
+                                  xy[:, 1], feats["quality"].astype(np.float32)),
+            matches=matches_seg, arrows=arrows, tails=tails, mesh=mesh, outline=convex_hull(xy), window=None,
+            tactile_um=None, tactile_reset=None, tactile_clipped=None, truth=None,
+            strain_scale=nice_scale(np.concatenate(self._recent_changes)) if self._recent_changes else 0.01,
+            notes=notes, exposure_time=exposure, analysed_time=time.time(),
+        )
+        if arrows.size:
+            overlays.arrow_ids = tracks[ci]
+        self._prev = (k, xy, tracks, refine_image)
+        with self._lock:
+            self._overlays[k] = overlays
+            while len(self._overlays) > self._keep:
+                self._overlays.popitem(last=False)
+            self._analysed += 1
+            self._last = k
+            if self._t_first is None:
+                self._t_first = time.monotonic()
+            self._durations.append(time.perf_counter() - t0)
+            self.version += 1
+        return overlays
+
+    def _tails(self, tracks: np.ndarray) -> list[np.ndarray]:
+        """Polylines of the current tracks through the last analysed frames."""
+        where: dict[int, list[np.ndarray]] = {int(t): [] for t in tracks}
+        for ids, xy in self._history:
+            for t, p in zip(ids.tolist(), xy):
+                if t in where:
+                    where[t].append(p)
+        return [np.asarray(v) for v in where.values() if len(v) >= 2]
+
+
+def _displacement_of(ids: np.ndarray, sample_ids: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Displacement of each of ``ids`` (rows of ``d`` are ``sample_ids``)."""
+    order = np.argsort(sample_ids)
+    return d[order[np.searchsorted(sample_ids[order], ids)]]

@@ -1,0 +1,419 @@
+"""The viewer's web server: a small Starlette app served by uvicorn, with server-sent events (sse-starlette) for
+a session that is still being recorded.
+
+Privacy: subject data never leave the machine unless asked. The server binds 127.0.0.1 unless ``host`` says
+otherwise, and every request must carry the random token of this run (``?token=`` in the URL the command prints;
+the page then keeps it in a same-site cookie), so another user of the machine, or a web page in the browser, cannot
+read the session. Routes take frame numbers, never paths: the server serves this session's frames and results
+and the page's own files, nothing else. Requests for another Host than the bound one are refused (DNS rebinding).
+
+Routes (``sid`` numbers the session shown: it changes when a followed data directory starts a new trial)::
+
+    GET /                                 the page
+    GET /static/...                       its script and style sheet
+    GET /api/info                         what is shown: size, frames, status, results, live analysis
+    GET /api/s/{sid}/frame/{k}.png        frame k (lossless PNG)
+    GET /api/s/{sid}/overlay/{k}?span=s   frame k's overlays (JSON, see session_data.FrameOverlays)
+    GET /api/events                       server-sent events: "state" on any change, "live" per analysed frame
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import threading
+import time
+import webbrowser
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import anyio
+import cv2
+from starlette.applications import Starlette
+from starlette.middleware import Middleware
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.requests import HTTPConnection, Request
+from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.experiments.viewer.live_analysis import LiveAnalyzer
+from skinstretch.experiments.viewer.session_data import (
+    ResultsIndex,
+    SessionSource,
+    ViewTarget,
+    _results_beside,
+    empty_overlays,
+    load_results_index,
+    newest_trial_session,
+)
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import KIND_NAMES
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ViewerState", "create_app", "RunningServer", "start_server", "serve"]
+
+STATIC_DIR = Path(__file__).parent / "static"
+TOKEN_COOKIE = "skinstretch_viewer_token"
+WATCH_INTERVAL_S = 0.2  # how often the state looks for new frames, results and trials
+EVENT_INTERVAL_S = 0.01  # how often the event stream looks for changes
+
+
+class ViewerState:
+    """The session shown (and the results or live analysis of it); followed as it is recorded.
+
+    Parameters
+    ----------
+    target : ViewTarget
+        A session (with results if any) or a data directory whose newest trial is followed.
+    live : bool
+        Run the live analysis on a session that is still being recorded.
+    """
+
+    def __init__(self, target: ViewTarget, *, live: bool = True) -> None:
+        self.target = target
+        self.live = bool(live)
+        self._lock = threading.RLock()
+        self.sid = 0
+        self.source: SessionSource | None = None
+        self.results: ResultsIndex | None = None
+        self.analyzer: LiveAnalyzer | None = None
+        self._status = "waiting"
+        self._n_frames = 0
+        self._results_error = ""
+        self._reopened = False
+        if target.session is not None:
+            self._switch(target.session, target.results)
+        self.update()
+
+    # -- following
+    def _switch(self, session: Path, results: Path | None) -> None:
+        with self._lock:
+            self._close_current()
+            self.source = SessionSource(session)
+            self.sid += 1
+            self._reopened = False
+            self._results_error = ""
+            self.results = self._load_results(results)
+            log.info("viewer: showing %s", session)
+
+    def _load_results(self, path: Path | None) -> ResultsIndex | None:
+        if path is None:
+            return None
+        try:
+            return load_results_index(path)
+        except SessionFileError as exc:
+            self._results_error = str(exc)
+            log.warning("viewer: results not shown: %s", exc)
+            return None
+
+    def update(self) -> None:
+        """Look for a newer trial (data directory), new frames, the end of the recording and new results."""
+        with self._lock:
+            if self.target.directory is not None:
+                newest = newest_trial_session(self.target.directory)
+                if newest is not None and (self.source is None or newest.resolve() != self.source.path.resolve()):
+                    try:
+                        self._switch(newest, _results_beside(newest))
+                    except SessionFileError as exc:  # created but not yet readable: try again next round
+                        log.debug("viewer: %s not readable yet (%s)", newest, exc)
+            if self.source is None:
+                return
+            self._n_frames = self.source.n_frames()
+            status = self.source.status()
+            if status == "recording" and self.results is None and self.live and self.analyzer is None:
+                self.analyzer = LiveAnalyzer(self.source).start()
+            if status != "recording" and not self._reopened:
+                self._reopened = True
+                if self._status == "recording":
+                    self.source.reopen_if_closed()  # a truth is attached to a simulated recording after it ends
+            self._status = status
+            if self.results is None and not self._results_error:
+                found = _results_beside(self.source.path)
+                if found is not None and status != "recording":
+                    self.results = self._load_results(found)
+
+    def _close_current(self) -> None:
+        if self.analyzer is not None:
+            self.analyzer.stop()
+            self.analyzer = None
+        if self.source is not None:
+            self.source.close()
+            self.source = None
+
+    def close(self) -> None:
+        with self._lock:
+            self._close_current()
+
+    # -- what the page asks for
+    def snapshot(self) -> dict[str, Any]:
+        """Small state compared by the event stream: any change is sent to the page."""
+        with self._lock:
+            live = self.analyzer.stats() if self.analyzer is not None else None
+            return {
+                "sid": self.sid,
+                "n_frames": self._n_frames,
+                "status": self._status,
+                "has_results": self.results is not None,
+                "live_frame": live.last_frame if live else -1,
+                "live_fps": round(live.frames_per_s, 1) if live else 0.0,
+                "live_error": live.error if live else "",
+            }
+
+    def info(self) -> dict[str, Any]:
+        with self._lock:
+            base: dict[str, Any] = {
+                "sid": self.sid,
+                "follows_directory": self.target.follows_directory,
+                "kinds": {str(k): v.replace("_", " ") for k, v in KIND_NAMES.items()},
+                "results_error": self._results_error,
+                **self.snapshot(),
+            }
+            if self.source is None:
+                return {**base, "waiting": "no trial recorded in this directory yet"}
+            truth = self.source.truth() if self._status != "recording" else None
+            return {
+                **base,
+                **self.source.describe(),
+                "has_truth": truth is not None,
+                "results": self.results.describe() if self.results is not None else None,
+                "live": self.analyzer is not None,
+            }
+
+    def frame_png(self, sid: int, k: int) -> bytes | None:
+        with self._lock:
+            if sid != self.sid or self.source is None or not 0 <= k < self.source.n_frames():
+                return None
+            image = self.source.frame(k)
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
+            raise InvalidInputError(f"frame {k} could not be encoded")
+        return buf.tobytes()
+
+    def overlays(self, sid: int, k: int, span: int) -> dict[str, Any] | None:
+        with self._lock:
+            if sid != self.sid or self.source is None or not 0 <= k < self.source.n_frames():
+                return None
+            if self.results is not None:
+                return self.results.overlays(k, span=span, truth=self.source.truth()).to_json()
+            if self.analyzer is not None:
+                ov = self.analyzer.overlays(k)
+                if ov is not None:
+                    return ov.to_json()
+                note = "not analysed live: the live analysis takes the newest frame and skips the others"
+            elif self._results_error:
+                note = f"results not shown: {self._results_error}"
+            else:
+                note = "no analysis results yet: run skinstretch analyze on this session"
+            return empty_overlays(k, note).to_json()
+
+    def live_update(self, seen_version: int) -> tuple[int, dict[str, Any] | None]:
+        """(version, the newest live overlays) when the live analysis analysed a frame since ``seen_version``."""
+        with self._lock:
+            a = self.analyzer
+            if a is None or a.version == seen_version:
+                return seen_version, None
+            ov = a.latest()
+            return a.version, (ov.to_json() if ov is not None else None)
+
+
+# ------------------------------------------------------------------------------------------- security
+
+
+class TokenGate:
+    """ASGI middleware: every request carries this run's token (query ``token`` or the cookie set with the page)."""
+
+    def __init__(self, app: ASGIApp, *, token: str) -> None:
+        self.app = app
+        self.token = token
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        conn = HTTPConnection(scope)
+        given = conn.query_params.get("token") or conn.cookies.get(TOKEN_COOKIE) or ""
+        if not secrets.compare_digest(given.encode(), self.token.encode()):
+            await PlainTextResponse("this viewer needs the token from the URL it printed", status_code=403)(
+                scope, receive, send)
+            return
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                headers += [(b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"no-referrer"),
+                            (b"x-frame-options", b"DENY")]
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+# ------------------------------------------------------------------------------------------------ app
+
+
+def create_app(state: ViewerState, *, token: str, allowed_hosts: list[str] | None = None) -> Starlette:
+    """The viewer's ASGI app for ``state``; every request must carry ``token``."""
+
+    async def index(request: Request) -> Response:
+        resp = FileResponse(STATIC_DIR / "index.html", headers={"cache-control": "no-store"})
+        resp.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        return resp
+
+    async def info(request: Request) -> Response:
+        data = await anyio.to_thread.run_sync(state.info)
+        return JSONResponse(data, headers={"cache-control": "no-store"})
+
+    async def frame(request: Request) -> Response:
+        sid, k = request.path_params["sid"], request.path_params["k"]
+        png = await anyio.to_thread.run_sync(state.frame_png, sid, k)
+        if png is None:
+            return PlainTextResponse(f"no frame {k} in session {sid}", status_code=404)
+        return Response(png, media_type="image/png", headers={"cache-control": "private, max-age=3600"})
+
+    async def overlay(request: Request) -> Response:
+        sid, k = request.path_params["sid"], request.path_params["k"]
+        try:
+            span = int(request.query_params.get("span", "1"))
+        except ValueError:
+            return PlainTextResponse("span must be an integer", status_code=400)
+        data = await anyio.to_thread.run_sync(state.overlays, sid, k, span)
+        if data is None:
+            return PlainTextResponse(f"no frame {k} in session {sid}", status_code=404)
+        return JSONResponse(data, headers={"cache-control": "no-store"})
+
+    async def events(request: Request) -> Response:
+        from sse_starlette.sse import EventSourceResponse  # noqa: PLC0415
+
+        async def stream():
+            last: dict[str, Any] | None = None
+            version = -1
+            while True:
+                snap = state.snapshot()
+                if snap != last:
+                    last = snap
+                    yield {"event": "state", "data": json.dumps(snap)}
+                version, live = state.live_update(version)
+                if live is not None:
+                    yield {"event": "live", "data": json.dumps(live)}
+                await anyio.sleep(EVENT_INTERVAL_S)
+
+        return EventSourceResponse(stream(), ping=10, headers={"cache-control": "no-store"})
+
+    @asynccontextmanager
+    async def lifespan(app):
+        stop = threading.Event()
+
+        def watch():
+            while not stop.wait(WATCH_INTERVAL_S):
+                try:
+                    state.update()
+                except (SessionFileError, OSError) as exc:
+                    log.warning("viewer: %s", exc)
+
+        watcher = threading.Thread(target=watch, name="viewer-watch", daemon=True)
+        watcher.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            watcher.join(2.0)
+            state.close()
+
+    routes = [
+        Route("/", index),
+        Route("/api/info", info),
+        Route("/api/s/{sid:int}/frame/{k:int}.png", frame),
+        Route("/api/s/{sid:int}/overlay/{k:int}", overlay),
+        Route("/api/events", events),
+        Mount("/static", app=StaticFiles(directory=STATIC_DIR), name="static"),
+    ]
+    middleware = [Middleware(TokenGate, token=token)]
+    if allowed_hosts:
+        middleware.insert(0, Middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts))
+    return Starlette(routes=routes, middleware=middleware, lifespan=lifespan)
+
+
+def allowed_hosts_for(host: str) -> list[str]:
+    """Host headers accepted for a server bound to ``host`` (loopback names for a loopback bind)."""
+    if host in ("127.0.0.1", "localhost", "::1"):
+        return ["127.0.0.1", "localhost", "[::1]", "::1"]
+    return ["*"]  # bound to another interface on purpose: the token guards it
+
+
+@dataclass
+class RunningServer:
+    """A viewer served on a thread (tests, benches, ``record --live``): its URL and how to stop it."""
+
+    url: str
+    port: int
+    token: str
+    state: ViewerState
+    _server: Any
+    _thread: threading.Thread
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self._server.should_exit = True
+        self._thread.join(timeout_s)
+
+
+def _config(state: ViewerState, host: str, port: int, token: str):
+    import uvicorn  # noqa: PLC0415
+
+    app = create_app(state, token=token, allowed_hosts=allowed_hosts_for(host))
+    return uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, lifespan="on")
+
+
+def _url(host: str, port: int, token: str) -> str:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "") else (f"[{host}]" if ":" in host else host)
+    return f"http://{shown}:{port}/?token={token}"
+
+
+def start_server(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 0, live: bool = True,
+                 timeout_s: float = 30.0) -> RunningServer:
+    """Serve ``target`` on a background thread and return once it listens (``port=0`` picks a free port)."""
+    import uvicorn  # noqa: PLC0415
+
+    token = secrets.token_urlsafe(24)
+    state = ViewerState(target, live=live)
+    server = uvicorn.Server(_config(state, host, port, token))
+    thread = threading.Thread(target=server.run, name="viewer-server", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + timeout_s
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            state.close()
+            raise InvalidInputError(f"the viewer could not listen on {host}:{port}")
+        time.sleep(0.02)
+    bound = server.servers[0].sockets[0].getsockname()[1]
+    return RunningServer(_url(host, bound, token), bound, token, state, server, thread)
+
+
+def serve(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 8765, open_browser: bool = True,
+          live: bool = True, announce: Callable[[str], None] | None = None, parent_pid: int | None = None) -> None:
+    """Serve ``target`` until interrupted (Ctrl-C), printing the URL and opening it in a browser.
+
+    ``parent_pid``: also stop when that process (a recording that started this viewer) is gone, however it ended.
+    """
+    announce = announce or log.info
+    running = start_server(target, host=host, port=port, live=live)
+    announce(f"viewer: {running.url}")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        announce(f"viewer: listening on {host}: anyone with the URL (and its token) can see this session")
+    if open_browser:
+        webbrowser.open(running.url)
+    try:
+        while running._thread.is_alive():
+            running._thread.join(0.5)
+            if parent_pid is not None and os.getppid() != parent_pid:
+                log.info("viewer: the recording that started it ended; stopping")
+                break
+    finally:
+        running.stop()

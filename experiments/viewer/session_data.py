@@ -1,0 +1,589 @@
+"""What the viewer shows, read from a session file and its analysis results: the ONE adapter between the viewer and
+the results file.
+
+Everything the viewer needs from ``results.h5`` goes through :func:`load_results_index` (built on
+:func:`skinstretch.experiments.results_file.read_results`), which turns the stored tables into per-frame indexes;
+:meth:`ResultsIndex.overlays` then cuts one frame's overlays out of them. When the results layout changes (for
+example trajectories stored as a long table), this file is the one to adapt.
+
+A session still being recorded is read in SWMR mode through :class:`SessionSource`; it has no results yet, and
+its overlays come from the live analysis (:mod:`skinstretch.experiments.viewer.live_analysis`) instead.
+
+Coordinates are image pixels, x = column, y = row; strains are fractions (the page shows %).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.session_file import STATUS_NAMES, Session, open_session
+from skinstretch.experiments.results_file import read_results
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "FeatureMarks",
+    "FrameOverlays",
+    "Mesh",
+    "ResultsIndex",
+    "SessionSource",
+    "TruthMarks",
+    "ViewTarget",
+    "find_view_target",
+    "load_results_index",
+    "nice_scale",
+]
+
+RESULTS_FILE = "results.h5"
+SESSION_FILE = "session.h5"
+ANALYSIS_DIR = "analysis"
+TAIL_FRAMES = 12  # frames of trajectory drawn behind each feature
+
+
+# ------------------------------------------------------------------------------------------- typed overlays
+
+
+@dataclass
+class FeatureMarks:
+    """Features of one frame: ids (feature row), track index (-1 when untracked), kind, position, quality."""
+
+    id: np.ndarray
+    track: np.ndarray
+    kind: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    quality: np.ndarray
+
+    @staticmethod
+    def empty() -> "FeatureMarks":
+        z = np.zeros(0)
+        return FeatureMarks(z.astype(np.int64), z.astype(np.int64), z.astype(np.int8), z, z, z.astype(np.float32))
+
+
+@dataclass
+class Mesh:
+    """Delaunay triangles of one frame pair: vertex positions (m, 6) x0 y0 x1 y1 x2 y2, their track ids (m, 3),
+    relative area change (fraction) and whether the triangle flipped (orientation change: not a strain)."""
+
+    span: int
+    frame_a: int
+    frame_b: int
+    xy: np.ndarray
+    ids: np.ndarray
+    change: np.ndarray
+    flipped: np.ndarray
+    drawn_at: str  # which frame's positions the vertices are drawn at: "frame_b" or "frame_a"
+
+
+@dataclass
+class TruthMarks:
+    """True features of a simulated session in this frame and the previous one (px), visible in this frame."""
+
+    id: np.ndarray
+    kind: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    prev_x: np.ndarray
+    prev_y: np.ndarray
+
+
+@dataclass
+class FrameOverlays:
+    """Everything drawn over one frame. Arrays of segments are (n, 4): x0, y0, x1, y1 (from the earlier frame)."""
+
+    frame: int
+    source: str  # "results", "live" or "none"
+    features: FeatureMarks
+    matches: np.ndarray
+    arrows: np.ndarray  # x, y (this frame), dx, dy (displacement from the previous frame to this one)
+    tails: list[np.ndarray]  # one (k, 2) polyline per track, oldest first
+    mesh: Mesh | None
+    outline: np.ndarray  # (k, 2) hull of the measured points of this frame
+    window: tuple[float, float, float, float] | None  # x0, y0, x1, y1 in this frame
+    tactile_um: np.ndarray | None  # (10, 10)
+    tactile_reset: np.ndarray | None
+    tactile_clipped: np.ndarray | None
+    truth: TruthMarks | None
+    strain_scale: float  # fraction; the colour scale runs from -strain_scale to +strain_scale
+    notes: list[str] = field(default_factory=list)
+    arrow_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # track (or grid node) per arrow
+    exposure_time: float | None = None  # host time stamp (s, Unix) of the frame (live view latency)
+    analysed_time: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form for the page (numbers rounded to what a screen can show)."""
+        f = self.features
+        mesh = None
+        if self.mesh is not None:
+            m = self.mesh
+            mesh = {
+                "span": m.span, "frame_a": m.frame_a, "frame_b": m.frame_b, "drawn_at": m.drawn_at,
+                "xy": _round(m.xy, 2), "ids": m.ids.astype(np.int64).ravel().tolist(),
+                "change": _round(m.change, 5), "flipped": m.flipped.astype(bool).tolist(),
+            }
+        truth = None
+        if self.truth is not None:
+            t = self.truth
+            truth = {"id": t.id.tolist(), "kind": t.kind.tolist(), "x": _round(t.x, 3), "y": _round(t.y, 3),
+                     "prev_x": _round(t.prev_x, 3), "prev_y": _round(t.prev_y, 3)}
+        return {
+            "frame": self.frame,
+            "source": self.source,
+            "features": {"id": f.id.tolist(), "track": f.track.tolist(), "kind": f.kind.tolist(),
+                         "x": _round(f.x, 3), "y": _round(f.y, 3), "quality": _round(f.quality, 3)},
+            "matches": _round(self.matches, 2),
+            "arrows": _round(self.arrows, 3),
+            "arrow_ids": np.asarray(self.arrow_ids, np.int64).tolist(),
+            "tails": [_round(t, 1) for t in self.tails],
+            "mesh": mesh,
+            "outline": _round(self.outline, 1),
+            "window": list(self.window) if self.window is not None else None,
+            "tactile_um": _round(self.tactile_um, 2) if self.tactile_um is not None else None,
+            "tactile_reset": self.tactile_reset.tolist() if self.tactile_reset is not None else None,
+            "tactile_clipped": self.tactile_clipped.tolist() if self.tactile_clipped is not None else None,
+            "truth": truth,
+            "strain_scale": self.strain_scale,
+            "notes": self.notes,
+            "exposure_time": self.exposure_time,
+            "analysed_time": self.analysed_time,
+        }
+
+
+def _round(a: np.ndarray, digits: int) -> list:
+    a = np.asarray(a, dtype=np.float64)
+    return np.where(np.isfinite(a), np.round(a, digits), 0.0).tolist()
+
+
+def empty_overlays(frame: int, note: str, *, source: str = "none", strain_scale: float = 0.02) -> FrameOverlays:
+    """Overlays of a frame that has none, saying why."""
+    return FrameOverlays(
+        frame=frame, source=source, features=FeatureMarks.empty(), matches=np.zeros((0, 4)), arrows=np.zeros((0, 4)),
+        tails=[], mesh=None, outline=np.zeros((0, 2)), window=None, tactile_um=None, tactile_reset=None,
+        tactile_clipped=None, truth=None, strain_scale=strain_scale, notes=[note],
+    )
+
+
+def nice_scale(values: np.ndarray, *, percentile: float = 98.0, floor: float = 0.001) -> float:
+    """A round colour-scale limit (fraction) covering ``percentile`` % of ``|values|``: 1, 2 or 5 times a power of
+    ten, never below ``floor`` (0.1 %) so that a still finger does not paint noise at full colour."""
+    v = np.abs(np.asarray(values, dtype=np.float64))
+    v = v[np.isfinite(v)]
+    top = float(np.percentile(v, percentile)) if v.size else floor
+    top = max(top, floor)
+    exponent = np.floor(np.log10(top))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * 10**exponent >= top * (1 - 1e-9):
+            return float(m * 10**exponent)
+    return float(10 ** (exponent + 1))  # pragma: no cover - the loop always returns
+
+
+def convex_hull(points: np.ndarray) -> np.ndarray:
+    """Counter-clockwise hull of (n, 2) points (OpenCV), empty for fewer than 3."""
+    import cv2  # noqa: PLC0415
+
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 2)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if pts.shape[0] < 3:
+        return np.zeros((0, 2))
+    return cv2.convexHull(pts).reshape(-1, 2).astype(np.float64)
+
+
+# ----------------------------------------------------------------------------------------------- sessions
+
+
+class SessionSource:
+    """A session file opened for the viewer: frames on demand, follows a recording in SWMR mode.
+
+    Reads are serialised by a lock (h5py handles are not safe to share between threads).
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._session: Session = open_session(self.path, swmr=True)
+        self._truth = None
+        self._truth_loaded = False
+
+    @property
+    def session(self) -> Session:
+        return self._session
+
+    def n_frames(self) -> int:
+        with self._lock:
+            return self._session.n_frames
+
+    def status(self) -> str:
+        """'recording', 'complete' or 'failed', read again from the file (a recorder changes it at the end)."""
+        with self._lock:
+            ds = self._session.h5["status"]
+            try:
+                ds.refresh()
+            except (AttributeError, RuntimeError, OSError, ValueError):
+                pass
+            code = int(ds[()])
+        return STATUS_NAMES.get(code, f"unknown({code})")
+
+    def frame(self, index: int) -> np.ndarray:
+        with self._lock:
+            return self._session.frame(index)
+
+    def timestamp(self, index: int) -> float:
+        with self._lock:
+            ds = self._session.h5["timestamps"]
+            return float(ds[index])
+
+    def truth(self):
+        """The simulated session's truth, or None (read once: a recording gets its truth after it is closed)."""
+        if not self._truth_loaded:
+            with self._lock:
+                if self._session.has_truth:
+                    self._truth = self._session.truth
+                    self._truth_loaded = True
+                elif self._session.complete:
+                    self._truth_loaded = True
+        return self._truth
+
+    def reopen_if_closed(self) -> None:
+        """Re-open the file once its recorder closed it: a truth attached afterwards becomes visible."""
+        with self._lock:
+            self._session.close()
+            self._session = open_session(self.path, swmr=True)
+            self._truth_loaded = False
+
+    def describe(self) -> dict[str, Any]:
+        s = self._session
+        return {
+            "path_name": self.path.name,
+            "trial_dir": self.path.parent.name,
+            "width": int(s.camera_mode.width),
+            "height": int(s.camera_mode.height),
+            "fps": float(s.camera_mode.fps),
+            "px_per_mm": float(s.calibration.px_per_mm),
+            "metadata": {k: s.metadata.get(k) for k in ("trial", "surface", "scene", "protocol", "direction")
+                         if k in s.metadata},
+        }
+
+    def close(self) -> None:
+        with self._lock:
+            self._session.close()
+
+
+# ------------------------------------------------------------------------------------------------ results
+
+
+@dataclass
+class _PerFrame:
+    """Row offsets of a table sorted by a frame (or pair) column: rows of key k are order[start[k]:start[k+1]]."""
+
+    order: np.ndarray
+    start: np.ndarray
+
+    @staticmethod
+    def build(keys: np.ndarray, n: int) -> "_PerFrame":
+        keys = np.asarray(keys, dtype=np.int64)
+        order = np.argsort(keys, kind="stable")
+        start = np.searchsorted(keys[order], np.arange(n + 1))
+        return _PerFrame(order, start)
+
+    def rows(self, k: int) -> np.ndarray:
+        if not 0 <= k < self.start.size - 1:
+            return self.order[:0]
+        return self.order[self.start[k] : self.start[k + 1]]
+
+
+@dataclass
+class ResultsIndex:
+    """The analysis results of one session, indexed per frame for the viewer."""
+
+    path: Path
+    method: str
+    n_frames: int
+    coordinates: str
+    spans: list[int]
+    strain_scale: dict[int, float]
+    motion_axis: int
+    has_tactile: bool
+    window: dict[str, Any]
+    _features: np.ndarray | None
+    _features_by_frame: _PerFrame | None
+    _feature_track: np.ndarray | None  # feature row -> track
+    _track_x: np.ndarray | None  # (N, T)
+    _track_y: np.ndarray | None
+    _track_present: np.ndarray | None
+    _track_linked: np.ndarray | None
+    _motion: np.ndarray
+    _motion_by_pair: _PerFrame
+    _triangles: dict[int, np.ndarray]
+    _triangles_by_pair: dict[int, _PerFrame]
+    _pair_frames: dict[int, tuple[np.ndarray, np.ndarray]]  # span -> (frame_a, frame_b) per pair row
+    _window_centers: np.ndarray | None
+    _tactile: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "method": self.method,
+            "coordinates": self.coordinates,
+            "spans": self.spans,
+            "strain_scale": {str(k): v for k, v in self.strain_scale.items()},
+            "motion_axis": self.motion_axis,
+            "has_tactile": self.has_tactile,
+            "window": self.window,
+        }
+
+    # -- one frame
+    def overlays(self, k: int, *, span: int = 1, truth=None) -> FrameOverlays:
+        """The overlays of frame ``k``: its features, their matches and displacements from frame k-1, trajectory
+        tails, the mesh of the pair (k - span, k) coloured by its area change, window and tactile frame."""
+        notes: list[str] = []
+        if not 0 <= k < self.n_frames:
+            return empty_overlays(k, f"frame {k} is beyond the {self.n_frames} analysed frames", source="results",
+                                  strain_scale=self.strain_scale.get(span, 0.02))
+        features = self._frame_features(k)
+        matches, tails = self._matches_and_tails(k)
+        arrows, arrow_ids = self._arrows(k)
+        if k == 0:
+            notes.append("frame 0: no previous frame, so no matches, displacements or strain")
+        mesh = self._mesh(k, span)
+        if mesh is None and k >= span:
+            notes.append(f"no strain for frames {k - span}->{k} (see the results' pair status)")
+        elif mesh is None and k > 0:
+            notes.append(f"strain over {span} frames starts at frame {span}")
+        if self.method == "flow":
+            notes.append("flow method: displacements on a grid, no features or trajectories")
+        pts = np.column_stack([features.x, features.y]) if features.x.size else arrows[:, :2]
+        window = self._window(k)
+        tm = self._tactile
+        return FrameOverlays(
+            frame=k, source="results", features=features, matches=matches, arrows=arrows, tails=tails, mesh=mesh,
+            outline=convex_hull(pts), window=window,
+            tactile_um=tm[0][k] if tm is not None else None,
+            tactile_reset=tm[1][k] if tm is not None else None,
+            tactile_clipped=tm[2][k] if tm is not None else None,
+            truth=truth_marks(truth, k), strain_scale=self.strain_scale.get(span, 0.02), notes=notes,
+            arrow_ids=arrow_ids,
+        )
+
+    def _frame_features(self, k: int) -> FeatureMarks:
+        if self._features is None or self._features_by_frame is None:
+            return FeatureMarks.empty()
+        rows = self._features_by_frame.rows(k)
+        f = self._features[rows]
+        track = self._feature_track[rows] if self._feature_track is not None else np.full(rows.size, -1)
+        return FeatureMarks(f["id"].astype(np.int64), track.astype(np.int64), f["kind"].astype(np.int8),
+                            f["x"].astype(np.float64), f["y"].astype(np.float64), f["quality"].astype(np.float32))
+
+    def _matches_and_tails(self, k: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        if self._track_x is None:
+            return np.zeros((0, 4)), []
+        present = self._track_present[k]
+        tails: list[np.ndarray] = []
+        matches = np.zeros((0, 4))
+        if k > 0:
+            linked = np.flatnonzero(present & self._track_linked[k] & self._track_present[k - 1])
+            matches = np.column_stack([self._track_x[k - 1, linked], self._track_y[k - 1, linked],
+                                       self._track_x[k, linked], self._track_y[k, linked]])
+        lo = max(0, k - TAIL_FRAMES)
+        if k > lo:
+            tracks = np.flatnonzero(present)
+            xs = self._track_x[lo : k + 1, tracks]
+            ys = self._track_y[lo : k + 1, tracks]
+            for j in range(tracks.size):
+                ok = np.isfinite(xs[:, j]) & np.isfinite(ys[:, j])
+                if ok.sum() >= 2:
+                    tails.append(np.column_stack([xs[ok, j], ys[ok, j]]))
+        return matches, tails
+
+    def _arrows(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        if k == 0:
+            return np.zeros((0, 4)), np.zeros(0, np.int64)
+        m = self._motion[self._motion_by_pair.rows(k - 1)]
+        xy = np.column_stack([m["x"] + m["dx"], m["y"] + m["dy"], m["dx"], m["dy"]]).astype(np.float64)
+        return xy, m["id"].astype(np.int64)
+
+    def _mesh(self, k: int, span: int) -> Mesh | None:
+        if span not in self._triangles or k < span:
+            return None
+        fa, fb = self._pair_frames[span]
+        pair = k - span  # pair rows are indexed by their first frame
+        if not (0 <= pair < fa.size and fa[pair] == k - span and fb[pair] == k):
+            return None
+        t = self._triangles[span][self._triangles_by_pair[span].rows(pair)]
+        if t.size == 0:
+            return None
+        ids = np.column_stack([t["id_a"], t["id_b"], t["id_c"]]).astype(np.int64)
+        xy = np.column_stack([t["x0"], t["y0"], t["x1"], t["y1"], t["x2"], t["y2"]]).astype(np.float64)
+        drawn_at = "frame_a"
+        if self._track_x is not None:
+            # Features: the triangles' ids are track indices, so the vertices can be drawn where they are now.
+            bx, by = self._track_x[k][ids], self._track_y[k][ids]
+            ok = np.all(np.isfinite(bx) & np.isfinite(by), axis=1)
+            if ok.all():
+                xy = np.column_stack([bx[:, 0], by[:, 0], bx[:, 1], by[:, 1], bx[:, 2], by[:, 2]])
+                drawn_at = "frame_b"
+        elif span == 1:
+            # Flow: the consecutive pair's motion table gives every node's position in frame k.
+            m = self._motion[self._motion_by_pair.rows(pair)]
+            lookup = dict(zip(m["id"].tolist(), range(m.size)))
+            rows = np.array([[lookup.get(int(i), -1) for i in tri] for tri in ids], dtype=np.int64)
+            if rows.size and (rows >= 0).all():
+                px, py = (m["x"] + m["dx"])[rows], (m["y"] + m["dy"])[rows]
+                xy = np.column_stack([px[:, 0], py[:, 0], px[:, 1], py[:, 1], px[:, 2], py[:, 2]])
+                drawn_at = "frame_b"
+        return Mesh(span, k - span, k, xy, ids, t["change"].astype(np.float64), t["flipped"].astype(bool), drawn_at)
+
+    def _window(self, k: int) -> tuple[float, float, float, float] | None:
+        w = self.window
+        if self._window_centers is None or "x0" not in w:
+            return None
+        cx, cy = self._window_centers[k]
+        hw, hh = (w["x1"] - w["x0"]) / 2, (w["y1"] - w["y0"]) / 2
+        return (float(cx - hw), float(cy - hh), float(cx + hw), float(cy + hh))
+
+
+def truth_marks(truth, k: int) -> TruthMarks | None:
+    """True features visible in frame ``k`` (and where they were in frame k-1), or None without truth."""
+    if truth is None:
+        return None
+    fx = np.asarray(truth.feature_x)
+    if not 0 <= k < fx.shape[0]:
+        return None
+    vis = np.asarray(truth.feature_visible)[k]
+    j = np.flatnonzero(vis)
+    prev = max(k - 1, 0)
+    return TruthMarks(
+        id=np.asarray(truth.feature_id)[j].astype(np.int64), kind=np.asarray(truth.feature_kind)[j].astype(np.int8),
+        x=fx[k, j], y=np.asarray(truth.feature_y)[k, j], prev_x=fx[prev, j], prev_y=np.asarray(truth.feature_y)[prev, j],
+    )
+
+
+def load_results_index(path: Path) -> ResultsIndex:
+    """Read a results file (``read_results``) and index it per frame for the viewer."""
+    r = read_results(path)
+    n = int(r.n_frames)
+    feats = r.features
+    by_frame = feature_track = None
+    tx = ty = tpresent = tlinked = None
+    if feats is not None:
+        by_frame = _PerFrame.build(feats["frame"], n)
+    if r.trajectories is not None:
+        tr = r.trajectories
+        tx, ty = np.asarray(tr["x"], np.float64), np.asarray(tr["y"], np.float64)
+        tpresent, tlinked = np.asarray(tr["present"], bool), np.asarray(tr["linked"], bool)
+        if feats is not None:
+            fi = np.asarray(tr["feature_index"], np.int64)
+            feature_track = np.full(feats.shape[0], -1, np.int64)
+            where = fi >= 0
+            feature_track[fi[where]] = np.nonzero(where)[1]
+    triangles, tri_by_pair, pair_frames, scale = {}, {}, {}, {}
+    for span, s in sorted(r.strain.items()):
+        triangles[span] = s.triangles
+        tri_by_pair[span] = _PerFrame.build(s.triangles["pair"], s.pairs.size)
+        pair_frames[span] = (np.asarray(s.pairs["frame_a"], np.int64), np.asarray(s.pairs["frame_b"], np.int64))
+        ok = ~np.asarray(s.triangles["flipped"], bool)
+        scale[span] = nice_scale(np.asarray(s.triangles["change"])[ok])
+    tactile = None
+    if r.tactile_positions_um is not None:
+        tactile = (np.asarray(r.tactile_positions_um, np.float64), np.asarray(r.tactile_reset, bool),
+                   np.asarray(r.tactile_clipped, bool))
+    return ResultsIndex(
+        path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
+        strain_scale=scale, motion_axis=int(r.profile_axis), has_tactile=tactile is not None, window=dict(r.window),
+        _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
+        _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
+        _motion_by_pair=_PerFrame.build(r.motion["pair"], max(n - 1, 0)), _triangles=triangles,
+        _triangles_by_pair=tri_by_pair, _pair_frames=pair_frames, _window_centers=r.window_centers, _tactile=tactile,
+    )
+
+
+# ------------------------------------------------------------------------------------------ what to show
+
+
+@dataclass(frozen=True)
+class ViewTarget:
+    """What ``skinstretch view`` was pointed at: one session (with its results if any), or a data directory whose
+    newest trial is followed (live view while recording)."""
+
+    session: Path | None
+    results: Path | None
+    directory: Path | None  # set when following the newest trial of a data directory
+
+    @property
+    def follows_directory(self) -> bool:
+        return self.directory is not None
+
+
+def _h5_format(path: Path) -> str:
+    try:
+        with h5py.File(path, "r", swmr=True, libver="latest") as f:
+            fmt = f.attrs.get("format", "")
+    except OSError:
+        try:
+            with h5py.File(path, "r") as f:
+                fmt = f.attrs.get("format", "")
+        except OSError as exc:
+            raise SessionFileError(f"{path}: HDF5 file cannot be opened ({exc})") from None
+    return fmt.decode() if isinstance(fmt, bytes) else str(fmt)
+
+
+def _results_beside(session: Path) -> Path | None:
+    cand = session.parent / ANALYSIS_DIR / RESULTS_FILE
+    return cand if cand.exists() else None
+
+
+def _session_of_results(results: Path) -> Path:
+    with h5py.File(results, "r") as f:
+        raw = f.attrs.get("session_path", "")
+    sp = Path(raw.decode() if isinstance(raw, bytes) else str(raw))
+    if not sp.exists():
+        # Moved together: the runner layout keeps the session one level up from analysis/.
+        alt = results.parent.parent / SESSION_FILE
+        if alt.exists():
+            return alt
+        raise SessionFileError(f"{results}: its session {sp} is not there (moved or deleted)")
+    return sp
+
+
+def find_view_target(path: str | Path) -> ViewTarget:
+    """Resolve what the user pointed ``view`` at: a session file, a results file, an analysis output directory,
+    a trial directory (session.h5 [+ analysis/]) or a data directory to follow; SessionFileError otherwise."""
+    p = Path(path)
+    if not p.exists():
+        raise SessionFileError(f"{p}: no such file or directory")
+    if p.is_file():
+        fmt = _h5_format(p)
+        if fmt == "skinstretch-results":
+            return ViewTarget(_session_of_results(p), p, None)
+        if fmt == "skinstretch-session":
+            return ViewTarget(p, _results_beside(p), None)
+        raise SessionFileError(f"{p}: neither a skinstretch session nor a results file (format {fmt!r})")
+    if (p / RESULTS_FILE).exists():
+        res = p / RESULTS_FILE
+        return ViewTarget(_session_of_results(res), res, None)
+    if (p / SESSION_FILE).exists():
+        return ViewTarget(p / SESSION_FILE, _results_beside(p / SESSION_FILE), None)
+    return ViewTarget(None, None, p)
+
+
+def newest_trial_session(directory: Path) -> Path | None:
+    """The session file of the trial most recently started under ``directory`` (recursively), or None."""
+    found = [q for q in directory.rglob(SESSION_FILE) if q.is_file()]
+    if not found:
+        return None
+    return max(found, key=lambda q: (q.stat().st_mtime_ns, str(q)))
+
+
+def trial_sessions(directory: Path) -> dict[str, Path]:
+    """Trial name (path relative to ``directory`` of its folder) -> session file, for every trial under it."""
+    out = {}
+    for q in sorted(directory.rglob(SESSION_FILE)):
+        if q.is_file():
+            out[str(q.parent.relative_to(directory))] = q
+    return out

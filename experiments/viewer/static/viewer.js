@@ -1,0 +1,488 @@
+// skinstretch viewer page: one canvas for the frame and its overlays, a tactile-movie canvas, colour bars, a readout.
+// Plain script, no build step. Talks to the server of skinstretch/experiments/viewer/server.py.
+"use strict";
+
+const KIND_STYLE = {  // Okabe-Ito colours (colour-blind safe)
+  0: { color: "#E69F00", shape: "circle", label: "valley ending" },
+  1: { color: "#56B4E9", shape: "square", label: "valley bifurcation" },
+  2: { color: "#009E73", shape: "dot", label: "pore" },
+};
+// ColorBrewer RdBu, reversed: blue = shrinking, red = stretching (the same map as matplotlib's RdBu_r).
+const STRAIN_MAP = ["#053061", "#2166ac", "#4393c3", "#92c5de", "#d1e5f0", "#f7f7f7", "#fddbc7", "#f4a582",
+  "#d6604d", "#b2182b", "#67001f"];
+// ColorBrewer PuOr, reversed: purple = towards the start of the sliding axis, orange = towards its end.
+const TACTILE_MAP = ["#2d004b", "#542788", "#8073ac", "#b2abd2", "#d8daeb", "#f7f7f7", "#fee0b6", "#fdb863",
+  "#e08214", "#b35806", "#7f3b08"];
+const TACTILE_RANGE_UM = 50;
+const ARROW_GAIN = 5;
+const HIT_RADIUS_SCREEN_PX = 10;
+
+const S = {
+  info: null, sid: 0, n: 0, k: 0, span: 1, scale: 1, playing: false, follow: false,
+  overlays: new Map(), images: new Map(), current: null, pinned: null, hover: null,
+  on: { features: true, matches: false, tails: true, mesh: true, arrows: false, outline: true, window: true },
+  busy: false, pendingFrame: null, direction: 1,
+};
+// Measurements the browser tests and the live bench read: per shown frame, how long it took and, for a live
+// frame, its exposure time (host clock, s) and when it was on screen (same clock: Date.now()).
+window.viewerStats = { shown: [], live: [], liveReceived: [], errors: [] };
+
+const $ = (id) => document.getElementById(id);
+const view = $("view");
+const ctx = view.getContext("2d");
+
+function colorOf(map, t) {  // t in [-1, 1]
+  const u = Math.max(0, Math.min(1, (t + 1) / 2)) * (map.length - 1);
+  const i = Math.min(map.length - 2, Math.floor(u));
+  const f = u - i;
+  const a = hex(map[i]), b = hex(map[i + 1]);
+  return `rgb(${Math.round(a[0] + f * (b[0] - a[0]))},${Math.round(a[1] + f * (b[1] - a[1]))},${Math.round(a[2] + f * (b[2] - a[2]))})`;
+}
+function hex(h) { return [1, 3, 5].map((i) => parseInt(h.slice(i, i + 2), 16)); }
+function pct(v, digits = 2) { return `${v >= 0 ? "+" : ""}${(100 * v).toFixed(digits)} %`; }
+
+// ------------------------------------------------------------------------------------------- loading
+async function getJSON(url) {
+  const r = await fetch(url);
+  if (!r.ok) throw new Error(`${url}: ${r.status}`);
+  return r.json();
+}
+
+async function loadInfo() {
+  const info = await getJSON("api/info");
+  S.info = info;
+  S.sid = info.sid;
+  S.n = info.n_frames;
+  S.overlays.clear();
+  S.images.clear();
+  $("title").textContent = info.waiting ? "skinstretch viewer: waiting for a trial" :
+    `skinstretch viewer: ${[info.metadata && info.metadata.trial, info.trial_dir, info.path_name].filter(Boolean).join(" / ")}`;
+  if (info.width) {
+    const avail = Math.max(320, $("stage").clientWidth - 4);
+    S.scale = Math.min(2, avail / info.width);
+    view.width = Math.round(info.width * S.scale);
+    view.height = Math.round(info.height * S.scale);
+  }
+  const spans = info.results ? info.results.spans : [1];
+  $("span").innerHTML = spans.map((s) => `<option value="${s}">${s}</option>`).join("");
+  S.span = spans.includes(S.span) ? S.span : spans[0];
+  $("span").value = String(S.span);
+  buildLegend();
+  setStatus(info);
+  S.follow = info.status === "recording" || info.follows_directory;
+  $("follow").checked = S.follow;
+  $("slider").max = String(Math.max(0, S.n - 1));
+  drawTactile(null);
+  if (S.n > 0) await showFrame(S.follow ? S.n - 1 : Math.min(S.k, S.n - 1));
+}
+
+function setStatus(st) {
+  const b = $("status");
+  b.textContent = st.status + (st.live_frame >= 0 ? `, live analysis ${st.live_fps} frames/s` : "");
+  b.className = "badge " + st.status;
+}
+
+function buildLegend() {
+  const ul = $("legend-items");
+  ul.innerHTML = "";
+  for (const kind of Object.keys(KIND_STYLE)) {
+    const li = document.createElement("li");
+    const c = document.createElement("canvas");
+    c.width = 18; c.height = 18;
+    const g = c.getContext("2d");
+    drawMarker(g, 9, 9, Number(kind), 1);
+    li.appendChild(c);
+    const span = document.createElement("span");
+    span.textContent = KIND_STYLE[kind].label;
+    span.id = `legend-kind-${kind}`;
+    li.appendChild(span);
+    ul.appendChild(li);
+  }
+  const extra = [["#ff4fd8", "match: line from the previous frame"], ["#ffd400", "fingertip outline (hull of measured points)"],
+    ["#00e5ff", "visibility window (seed 5.2)"], ["#7CFC00", `displacement ×${ARROW_GAIN}`]];
+  for (const [color, text] of extra) {
+    const li = document.createElement("li");
+    li.innerHTML = `<svg width="18" height="18"><line x1="2" y1="9" x2="16" y2="9" stroke="${color}" stroke-width="3"/></svg><span>${text}</span>`;
+    ul.appendChild(li);
+  }
+}
+
+async function imageFor(sid, k) {
+  const key = `${sid}/${k}`;
+  if (S.images.has(key)) return S.images.get(key);
+  const p = fetch(`api/s/${sid}/frame/${k}.png`).then((r) => {
+    if (!r.ok) throw new Error(`frame ${k}: ${r.status}`);
+    return r.blob();
+  }).then((b) => createImageBitmap(b));
+  S.images.set(key, p);
+  p.catch(() => S.images.delete(key));
+  if (S.images.size > 96) S.images.delete(S.images.keys().next().value);
+  return p;
+}
+
+async function overlaysFor(sid, k, span) {
+  const key = `${sid}/${k}/${span}`;
+  if (S.overlays.has(key)) return S.overlays.get(key);
+  const p = getJSON(`api/s/${sid}/overlay/${k}?span=${span}`);
+  // Live overlays are kept only once the trial's results replace them (see the "state" event).
+  S.overlays.set(key, p);
+  p.catch(() => S.overlays.delete(key));
+  if (S.overlays.size > 96) S.overlays.delete(S.overlays.keys().next().value);
+  return p;
+}
+
+async function showFrame(k, live = null) {
+  if (!S.info || S.n === 0) return;
+  k = Math.max(0, Math.min(S.n - 1, k));
+  if (S.busy) { S.pendingFrame = [k, live]; return; }  // newest request wins; never queue up
+  S.busy = true;
+  const t0 = performance.now();
+  const sid = S.sid;
+  try {
+    const [img, ov] = await Promise.all([imageFor(sid, k), live ? Promise.resolve(live) : overlaysFor(sid, k, S.span)]);
+    if (sid !== S.sid) return;
+    S.k = k;
+    S.current = { img, ov };
+    draw();
+    const ms = performance.now() - t0;
+    window.viewerStats.shown.push({ frame: k, ms });
+    if (ov.source === "live" && ov.exposure_time) {
+      window.viewerStats.live.push({ frame: k, exposure: ov.exposure_time, analysed: ov.analysed_time, shown: Date.now() / 1000 });
+    }
+    $("slider").value = String(k);
+    const fps = S.info.fps || 60;
+    $("frame-label").textContent = `frame ${k} / ${S.n - 1}  (t = ${(k / fps).toFixed(3)} s)`;
+    $("source-label").textContent = ov.source === "results" ? `results: ${S.info.results.method}` :
+      ov.source === "live" ? "live analysis" : "";
+    $("notes").textContent = ov.notes.join(" · ");
+    drawTactile(ov);
+    drawColorbar(ov.strain_scale, ov.mesh);
+    updateReadout();
+    prefetch(k + S.direction);
+  } catch (e) {
+    window.viewerStats.errors.push(String(e));
+    $("notes").textContent = String(e);
+  } finally {
+    S.busy = false;
+    if (S.pendingFrame) { const [pk, pl] = S.pendingFrame; S.pendingFrame = null; showFrame(pk, pl); }
+  }
+}
+
+function prefetch(k) {  // the frame the user will most likely ask for next (not while following a recording)
+  if (k >= 0 && k < S.n && S.info && !S.info.live && !S.follow) { imageFor(S.sid, k).catch(() => {}); overlaysFor(S.sid, k, S.span).catch(() => {}); }
+}
+
+// --------------------------------------------------------------------------------------------- drawing
+function draw() {
+  if (!S.current) return;
+  const { img, ov } = S.current;
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.clearRect(0, 0, view.width, view.height);
+  ctx.imageSmoothingEnabled = S.scale < 1;
+  ctx.drawImage(img, 0, 0, view.width, view.height);
+  ctx.setTransform(S.scale, 0, 0, S.scale, 0, 0);
+  const lw = 1 / S.scale;
+  if (S.on.mesh && ov.mesh) drawMesh(ov.mesh, ov.strain_scale, lw);
+  if (S.on.window && ov.window) {
+    const [x0, y0, x1, y1] = ov.window;
+    ctx.setLineDash([6 * lw, 4 * lw]);
+    ctx.strokeStyle = "#00e5ff"; ctx.lineWidth = 2 * lw;
+    ctx.strokeRect(x0, y0, x1 - x0, y1 - y0);
+    ctx.setLineDash([]);
+  }
+  if (S.on.outline && ov.outline.length >= 3) {
+    ctx.beginPath();
+    ov.outline.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+    ctx.closePath();
+    ctx.setLineDash([3 * lw, 3 * lw]);
+    ctx.strokeStyle = "#ffd400"; ctx.lineWidth = 2 * lw; ctx.stroke();
+    ctx.setLineDash([]);
+  }
+  if (S.on.tails) {
+    ctx.strokeStyle = "rgba(255,140,60,0.85)"; ctx.lineWidth = 1.3 * lw;
+    ctx.beginPath();
+    for (const t of ov.tails) t.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+    ctx.stroke();
+  }
+  if (S.on.matches) {
+    ctx.strokeStyle = "#ff4fd8"; ctx.lineWidth = 1.5 * lw;
+    ctx.beginPath();
+    for (const [x0, y0, x1, y1] of ov.matches) { ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); }
+    ctx.stroke();
+    ctx.beginPath();
+    for (const [x0, y0] of ov.matches) { ctx.moveTo(x0 + 2.5 * lw, y0); ctx.arc(x0, y0, 2.5 * lw, 0, 2 * Math.PI); }
+    ctx.stroke();
+  }
+  if (S.on.arrows) {
+    ctx.strokeStyle = "#7CFC00"; ctx.lineWidth = 1.4 * lw;
+    ctx.beginPath();
+    for (const [x, y, dx, dy] of ov.arrows) arrow(x - ARROW_GAIN * dx, y - ARROW_GAIN * dy, x, y, 4 * lw);
+    ctx.stroke();
+  }
+  if (S.on.features) {
+    const f = ov.features;
+    for (let i = 0; i < f.x.length; i++) drawMarker(ctx, f.x[i], f.y[i], f.kind[i], lw);
+  }
+  drawHighlight(lw);
+}
+
+function drawMesh(mesh, scale, lw) {
+  const xy = mesh.xy;
+  for (let i = 0; i < xy.length; i++) {
+    const [x0, y0, x1, y1, x2, y2] = xy[i];
+    ctx.beginPath(); ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.lineTo(x2, y2); ctx.closePath();
+    if (mesh.flipped[i]) {
+      ctx.fillStyle = "rgba(60,60,60,0.65)";
+    } else {
+      ctx.fillStyle = colorOf(STRAIN_MAP, mesh.change[i] / scale);
+      ctx.globalAlpha = 0.55;
+    }
+    ctx.fill();
+    ctx.globalAlpha = 1;
+  }
+  ctx.strokeStyle = "rgba(255,255,255,0.35)"; ctx.lineWidth = 0.8 * lw;
+  ctx.beginPath();
+  for (const [x0, y0, x1, y1, x2, y2] of xy) { ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.lineTo(x2, y2); ctx.closePath(); }
+  ctx.stroke();
+}
+
+function arrow(x0, y0, x1, y1, head) {
+  ctx.moveTo(x0, y0); ctx.lineTo(x1, y1);
+  const a = Math.atan2(y1 - y0, x1 - x0);
+  if (Math.hypot(x1 - x0, y1 - y0) < head) return;
+  ctx.moveTo(x1, y1); ctx.lineTo(x1 - head * Math.cos(a - 0.45), y1 - head * Math.sin(a - 0.45));
+  ctx.moveTo(x1, y1); ctx.lineTo(x1 - head * Math.cos(a + 0.45), y1 - head * Math.sin(a + 0.45));
+}
+
+function drawMarker(g, x, y, kind, lw) {
+  const st = KIND_STYLE[kind] || KIND_STYLE[2];
+  g.strokeStyle = st.color; g.fillStyle = st.color; g.lineWidth = 2 * lw;
+  const r = 4.5 * lw;
+  g.beginPath();
+  if (st.shape === "circle") { g.arc(x, y, r, 0, 2 * Math.PI); g.stroke(); }
+  else if (st.shape === "square") { g.rect(x - r, y - r, 2 * r, 2 * r); g.stroke(); }
+  else { g.arc(x, y, 2.6 * lw, 0, 2 * Math.PI); g.fill(); }
+}
+
+function drawHighlight(lw) {
+  const sel = S.pinned || S.hover;
+  if (!sel) return;
+  ctx.strokeStyle = "#fff"; ctx.lineWidth = 2.5 * lw;
+  if (sel.tri) {
+    const [x0, y0, x1, y1, x2, y2] = sel.tri.xy;
+    ctx.beginPath(); ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.lineTo(x2, y2); ctx.closePath(); ctx.stroke();
+  }
+  if (sel.feature) {
+    ctx.beginPath(); ctx.arc(sel.feature.x, sel.feature.y, 8 * lw, 0, 2 * Math.PI); ctx.stroke();
+  }
+}
+
+// A horizontal colour bar on canvas ``c``: ``map`` from -limit to +limit, five ticks labelled by ``label(t)``.
+function drawBar(c, map, label, title) {
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const x0 = 12, w = c.width - 24;
+  for (let i = 0; i < w; i++) { g.fillStyle = colorOf(map, (2 * i) / (w - 1) - 1); g.fillRect(x0 + i, 2, 1, 14); }
+  g.strokeStyle = "#333"; g.strokeRect(x0, 2, w, 14);
+  g.fillStyle = "#111"; g.font = "11px system-ui, sans-serif"; g.textAlign = "center";
+  for (const t of [-1, -0.5, 0, 0.5, 1]) {
+    const x = x0 + ((t + 1) / 2) * w;
+    g.fillRect(x, 16, 1, 4);
+    g.fillText(t === 0 ? "0" : `${t > 0 ? "+" : "−"}${label(Math.abs(t))}`, x, 31);
+  }
+  g.fillText(title, c.width / 2, 44);
+}
+
+function drawColorbar(scale, mesh) {
+  const ratio = mesh ? `A(${mesh.frame_b}) / A(${mesh.frame_a})` : "Ab / Aa";
+  drawBar($("colorbar"), STRAIN_MAP, (t) => fmt(t * scale * 100), `%   (area change ${ratio} − 1; grey = flipped)`);
+  $("colorbar").dataset.scale = String(scale);
+}
+function fmt(v) { return v >= 1 ? v.toFixed(v % 1 ? 1 : 0) : v.toPrecision(2).replace(/0+$/, ""); }
+
+function drawTactile(ov) {
+  const c = $("tactile"), g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const has = ov && ov.tactile_um;
+  const axis = S.info && S.info.results ? S.info.results.motion_axis : 0;
+  $("tactile-note").textContent = has ?
+    `Columns run along the sliding axis (image ${axis ? "y" : "x"}); each dot is offset by its contactor's position. Hollow: reset; black ring: clipped at ±50 µm.` :
+    (ov && ov.source === "live" ? "The tactile movie comes with the analysis after the trial." :
+      "No tactile movie for this frame (no results, or no visibility window).");
+  const pitch = c.width / 10;
+  for (let r = 0; r < 10; r++) for (let col = 0; col < 10; col++) {
+    const cx = (col + 0.5) * pitch, cy = (r + 0.5) * pitch;
+    g.strokeStyle = "#ddd"; g.lineWidth = 1;
+    g.strokeRect(col * pitch + 1, r * pitch + 1, pitch - 2, pitch - 2);
+    if (!has) continue;
+    const um = ov.tactile_um[r][col];
+    const x = cx + (um / TACTILE_RANGE_UM) * 0.45 * pitch;
+    g.beginPath(); g.arc(x, cy, pitch * 0.3, 0, 2 * Math.PI);
+    if (ov.tactile_reset[r][col]) { g.strokeStyle = "#999"; g.lineWidth = 1.5; g.stroke(); }
+    else { g.fillStyle = colorOf(TACTILE_MAP, um / TACTILE_RANGE_UM); g.fill(); g.strokeStyle = "#555"; g.lineWidth = 0.8; g.stroke(); }
+    if (ov.tactile_clipped[r][col]) { g.strokeStyle = "#000"; g.lineWidth = 2.5; g.stroke(); }
+  }
+  drawBar($("tactile-bar"), TACTILE_MAP, (t) => String(t * TACTILE_RANGE_UM),
+    "contactor position along the sliding axis (µm)");
+}
+
+// --------------------------------------------------------------------------------------------- readout
+function hitTest(px, py) {
+  if (!S.current) return null;
+  const ov = S.current.ov;
+  const out = {};
+  const f = ov.features;
+  let best = (HIT_RADIUS_SCREEN_PX / S.scale) ** 2;
+  for (let i = 0; i < f.x.length; i++) {
+    const d = (f.x[i] - px) ** 2 + (f.y[i] - py) ** 2;
+    if (d < best) { best = d; out.feature = { i, x: f.x[i], y: f.y[i] }; }
+  }
+  if (ov.mesh && S.on.mesh) {
+    const xy = ov.mesh.xy;
+    for (let i = 0; i < xy.length; i++) {
+      const [x0, y0, x1, y1, x2, y2] = xy[i];
+      const d1 = (px - x1) * (y0 - y1) - (x0 - x1) * (py - y1);
+      const d2 = (px - x2) * (y1 - y2) - (x1 - x2) * (py - y2);
+      const d3 = (px - x0) * (y2 - y0) - (x2 - x0) * (py - y0);
+      if (!((d1 < 0 || d2 < 0 || d3 < 0) && (d1 > 0 || d2 > 0 || d3 > 0))) { out.tri = { i, xy: xy[i] }; break; }
+    }
+  }
+  out.x = px; out.y = py;
+  return out;
+}
+
+function updateReadout() {
+  const sel = S.pinned || S.hover;
+  const el = $("readout");
+  if (!S.current) return;
+  const ov = S.current.ov, info = S.info, mm = info.px_per_mm;
+  if (!sel) { el.textContent = `frame ${S.k}: ${ov.features.x.length} features` + (ov.mesh ? `, ${ov.mesh.xy.length} triangles` : "") + "\nhover the image"; return; }
+  const lines = [`frame ${S.k}${S.pinned ? " (pinned: click to release)" : ""}`,
+    `cursor x ${sel.x.toFixed(1)} px, y ${sel.y.toFixed(1)} px (${(sel.x / mm).toFixed(3)}, ${(sel.y / mm).toFixed(3)} mm)`];
+  if (sel.feature) {
+    const f = ov.features, i = sel.feature.i;
+    const kind = KIND_STYLE[f.kind[i]] ? KIND_STYLE[f.kind[i]].label : `kind ${f.kind[i]}`;
+    lines.push(`feature ${f.id[i]}${f.track[i] >= 0 ? ` (track ${f.track[i]})` : ""}: ${kind}`);
+    lines.push(`  x ${f.x[i].toFixed(2)} px, y ${f.y[i].toFixed(2)} px; quality ${f.quality[i].toFixed(2)}`);
+    const a = ov.arrow_ids.indexOf(f.track[i]);
+    const meas = a >= 0 ? ov.arrows[a] : null;
+    if (meas) lines.push(`  displacement from the previous frame: dx ${meas[2].toFixed(3)}, dy ${meas[3].toFixed(3)} px`);
+    if (ov.truth) {
+      const t = ov.truth, r2 = (0.1 * mm) ** 2;
+      let tb = -1, td = r2;
+      for (let j = 0; j < t.x.length; j++) {
+        if (t.kind[j] !== f.kind[i]) continue;
+        const d = (t.x[j] - f.x[i]) ** 2 + (t.y[j] - f.y[i]) ** 2;
+        if (d < td) { td = d; tb = j; }
+      }
+      if (tb >= 0) {
+        const err = Math.sqrt(td);
+        lines.push(`  truth: feature ${t.id[tb]} at x ${t.x[tb].toFixed(2)}, y ${t.y[tb].toFixed(2)} px; ` +
+          `position error ${err.toFixed(3)} px (${(1000 * err / mm).toFixed(1)} µm)`);
+        if (meas && S.k > 0) {
+          const tdx = t.x[tb] - t.prev_x[tb], tdy = t.y[tb] - t.prev_y[tb];
+          lines.push(`  true displacement: dx ${tdx.toFixed(3)}, dy ${tdy.toFixed(3)} px; ` +
+            `error ${Math.hypot(meas[2] - tdx, meas[3] - tdy).toFixed(3)} px`);
+        }
+      } else {
+        lines.push("  truth: no true feature of this kind within 0.1 mm (a false feature?)");
+      }
+    }
+  }
+  if (sel.tri && ov.mesh) {
+    const m = ov.mesh, i = sel.tri.i, ids = m.ids.slice(3 * i, 3 * i + 3);
+    lines.push(`triangle of tracks ${ids.join(", ")}, frames ${m.frame_a}→${m.frame_b}:`);
+    lines.push(m.flipped[i] ? "  flipped (orientation changed: a tracking error or a fold, not a strain)" :
+      `  area change (strain) ${pct(m.change[i], 3)}`);
+  }
+  el.textContent = lines.join("\n");
+}
+
+function canvasPoint(ev) {
+  const r = view.getBoundingClientRect();
+  return [((ev.clientX - r.left) * (view.width / r.width)) / S.scale, ((ev.clientY - r.top) * (view.height / r.height)) / S.scale];
+}
+
+// ---------------------------------------------------------------------------------------- interaction
+function toggle(name, value) {
+  const box = document.querySelector(`input[data-overlay="${name}"]`);
+  S.on[name] = value === undefined ? !S.on[name] : value;
+  if (box) box.checked = S.on[name];
+  draw();
+}
+
+function setPlaying(on) {
+  S.playing = on;
+  $("play").innerHTML = on ? "&#10074;&#10074; pause" : "&#9654; play";
+  if (on) { S.follow = false; $("follow").checked = false; tick(); }
+}
+
+async function tick() {
+  if (!S.playing) return;
+  const t0 = performance.now();
+  const next = S.k + 1 >= S.n ? 0 : S.k + 1;
+  await showFrame(next);
+  const wait = Math.max(0, 1000 / Number($("speed").value) - (performance.now() - t0));
+  setTimeout(() => requestAnimationFrame(tick), wait);
+}
+
+function step(d) { setPlaying(false); setFollow(false); S.direction = d < 0 ? -1 : 1; showFrame(S.k + d); }
+function setFollow(on) { S.follow = on; $("follow").checked = on; if (on) showFrame(S.n - 1); }
+
+document.querySelectorAll("input[data-overlay]").forEach((box) => {
+  S.on[box.dataset.overlay] = box.checked;
+  box.addEventListener("change", () => toggle(box.dataset.overlay, box.checked));
+});
+$("play").addEventListener("click", () => setPlaying(!S.playing));
+$("prev").addEventListener("click", () => step(-1));
+$("next").addEventListener("click", () => step(1));
+$("slider").addEventListener("input", (e) => { setPlaying(false); setFollow(false); showFrame(Number(e.target.value)); });
+$("follow").addEventListener("change", (e) => setFollow(e.target.checked));
+$("span").addEventListener("change", (e) => { S.span = Number(e.target.value); showFrame(S.k); });
+view.addEventListener("mousemove", (ev) => {
+  const [x, y] = canvasPoint(ev);
+  S.hover = hitTest(x, y);
+  if (!S.pinned) { draw(); updateReadout(); }
+});
+view.addEventListener("mouseleave", () => { S.hover = null; if (!S.pinned) { draw(); updateReadout(); } });
+view.addEventListener("click", (ev) => {
+  const [x, y] = canvasPoint(ev);
+  S.pinned = S.pinned ? null : hitTest(x, y);
+  draw(); updateReadout();
+});
+document.addEventListener("keydown", (ev) => {
+  if (ev.target.tagName === "SELECT" || (ev.target.tagName === "INPUT" && ev.target.type !== "checkbox" && ev.target.type !== "range")) return;
+  const big = ev.shiftKey ? 10 : 1;
+  if (ev.key === "ArrowRight") { step(big); ev.preventDefault(); }
+  else if (ev.key === "ArrowLeft") { step(-big); ev.preventDefault(); }
+  else if (ev.key === "Home") { step(-S.k); ev.preventDefault(); }
+  else if (ev.key === "End") { step(S.n - 1 - S.k); ev.preventDefault(); }
+  else if (ev.key === " ") { setPlaying(!S.playing); ev.preventDefault(); }
+  else if (ev.key === "f" || ev.key === "F") setFollow(!S.follow);
+  else if (/^[1-7]$/.test(ev.key)) toggle(["features", "matches", "tails", "mesh", "arrows", "outline", "window"][Number(ev.key) - 1]);
+});
+
+// ------------------------------------------------------------------------------------------ following
+function listen() {
+  const es = new EventSource("api/events");
+  es.addEventListener("state", async (e) => {
+    const st = JSON.parse(e.data);
+    if (!S.info || st.sid !== S.sid) { await loadInfo(); return; }
+    const resultsNow = st.has_results && !S.info.results;
+    S.n = st.n_frames;
+    S.info.status = st.status;
+    $("slider").max = String(Math.max(0, S.n - 1));
+    setStatus(st);
+    if (resultsNow) { await loadInfo(); return; }  // the trial's analysis replaced the live overlays
+    if (S.follow && st.live_frame < 0 && S.n > 0) showFrame(S.n - 1);
+  });
+  es.addEventListener("live", (e) => {
+    const ov = JSON.parse(e.data);
+    if (ov.frame >= S.n) { S.n = ov.frame + 1; $("slider").max = String(S.n - 1); }  // ahead of the last "state"
+    window.viewerStats.liveReceived.push({ frame: ov.frame, exposure: ov.exposure_time, received: Date.now() / 1000 });
+    S.overlays.set(`${S.sid}/${ov.frame}/${S.span}`, Promise.resolve(ov));
+    if (S.follow) showFrame(ov.frame, ov);
+  });
+}
+
+loadInfo().then(listen).catch((e) => { window.viewerStats.errors.push(String(e)); $("notes").textContent = String(e); });

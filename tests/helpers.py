@@ -1,0 +1,26 @@
+"""Helpers shared by several test modules (not tests themselves)."""
+
+import time
+
+import numpy as np
+
+
+def wait_until(predicate, timeout_s: float = 5.0, poll_s: float = 0.005) -> None:
+    """Poll ``predicate`` until it holds: a bounded wait on another thread; AssertionError after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not reached within {timeout_s} s")
+        time.sleep(poll_s)
+
+
+def y_shaped_skeleton() -> np.ndarray:
+    """A one-pixel skeleton (60x60 uint8) shaped like a Y lying on its side: a stem along +x from (5, 30) to
+    (29, 30) and two diagonal arms to the upper and lower right, i.e. one bifurcation near (29, 30) and three
+    endings."""
+    sk = np.zeros((60, 60), np.uint8)
+    sk[30, 5:30] = 1
+    for i in range(1, 22):
+        sk[30 - i, 29 + i] = 1
+        sk[30 + i, 29 + i] = 1
+    return sk

@@ -1,0 +1,40 @@
+"""Errors name what the caller can change: Python keywords in Python, flags on the command line (issue 17)."""
+
+from __future__ import annotations
+
+import pickle
+
+import pytest
+
+from skinstretch.cli import main
+from skinstretch.processing.errors import InvalidInputError, Remedy
+
+
+def test_a_remedy_is_spelled_for_each_caller():
+    exc = InvalidInputError("out.h5 exists", remedy=Remedy(("overwrite",), "to replace it", True))
+    assert str(exc) == "out.h5 exists; pass overwrite=True to replace it"
+    flags = {"overwrite": "--overwrite", "px_per_mm": "--px-per-mm"}
+    assert exc.message_for(lambda p: flags.get(p, p)) == "out.h5 exists; pass --overwrite to replace it"
+    either = InvalidInputError("no scale", remedy=Remedy(("px_per_mm", "calibration"), "to give it"))
+    assert str(either) == "no scale; pass px_per_mm=... or calibration=... to give it"
+    assert either.message_for(lambda p: flags.get(p, p)) == "no scale; pass --px-per-mm or calibration=... to give it"
+    assert pickle.loads(pickle.dumps(either)).remedy == either.remedy  # survives a worker process
+
+
+def test_a_message_opening_with_a_parameter_opens_with_its_flag():
+    flags = {"px_per_mm": "--px-per-mm"}
+    name = lambda p: flags.get(p, p)  # noqa: E731
+    assert InvalidInputError("px_per_mm must be positive, got 0").message_for(name) == "--px-per-mm must be positive, got 0"
+    assert InvalidInputError("px_per_mmx must be positive").message_for(name) == "px_per_mmx must be positive"
+    assert InvalidInputError("the px_per_mm must be").message_for(name) == "the px_per_mm must be"
+
+
+@pytest.mark.parametrize("args,flag", [
+    (["simulate", "flatL", "--frames", "2", "--workers", "0"], "--workers must be a positive integer"),
+    (["simulate", "flatL", "--frames", "2", "--noise", "-1"], "--noise must be a non-negative number"),
+    (["calibrate", "grid.png", "--spacing-mm", "0"], "--spacing-mm must be positive"),
+])
+def test_commands_name_their_flags(tmp_path, capsys, args, flag):
+    assert main([*args, "-o", str(tmp_path / "out"), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and flag in err[0], err

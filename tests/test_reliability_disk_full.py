@@ -1,0 +1,241 @@
+"""A full disk never destroys a trial: refused before it starts when it cannot fit; when the disk fills mid-trial,
+the trial stops cleanly (frames flushed before kept and readable, file marked failed with the reason, events.jsonl
+says so), the display rests, the run ends with a one-line error and a non-zero status, never a signal or a
+traceback. On a real small file system (tmpfs, root only) filled by another process, and with injected faults."""
+
+import os
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from skinstretch.drivers import disk_space
+from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
+from skinstretch.drivers.errors import DiskFullError
+from skinstretch.drivers.session_file import SessionWriter, open_session
+from skinstretch.experiments.bench.faults import DISK_FILLER, replay_rig
+from skinstretch.experiments.protocol import Rig, parse_protocol
+from skinstretch.experiments.runner import read_events, run_protocol, session_dir
+from skinstretch.processing.pixel_scale import Calibration
+
+CAL = Calibration(px_per_mm=62.0)
+TINY = CameraMode("tiny", 64, 48, 100.0)
+CLI = [sys.executable, "-m", "skinstretch.cli"]
+
+PROTOCOL = """\
+name: fill
+subject: {id: s01}
+camera_mode: full
+trials:
+%s
+record: {force: false}
+analysis: {enabled: false}
+"""
+
+
+def _trials(n: int, duration_s: float) -> str:
+    return "\n".join(f"  - {{name: t{k}, duration_s: {duration_s}}}" for k in range(n))
+
+
+def _frame(k: int) -> np.ndarray:
+    return np.full((TINY.height, TINY.width), k % 256, np.uint8)
+
+
+# ------------------------------------------------------------------------------------------- the session writer
+
+
+class ShrinkingDisk:
+    """A disk of ``capacity`` bytes holding nothing but the files under ``root`` (an injected free-space probe)."""
+
+    def __init__(self, root: Path, capacity: int) -> None:
+        self.root, self.capacity = root, capacity
+
+    def __call__(self, _path) -> int:
+        used = sum(p.stat().st_size for p in self.root.rglob("*") if p.is_file())
+        return max(self.capacity - used, 0)
+
+
+def test_the_writer_stops_before_the_disk_is_full_and_the_file_closes_failed(tmp_path):
+    disk = ShrinkingDisk(tmp_path, capacity=disk_space.DEFAULT_RESERVE_BYTES + (1 << 20) + 200_000)
+    w = SessionWriter(tmp_path / "s.h5", camera_mode=TINY, calibration=CAL, free_bytes=disk, flush_interval_s=0.0)
+    assert (tmp_path / ".s.h5.reserve").stat().st_size == disk_space.DEFAULT_RESERVE_BYTES
+    written = 0
+    with pytest.raises(DiskFullError, match="disk full"):
+        for k in range(10_000):
+            w.append_frame(_frame(k), timestamp=k / 100, frame_id=k)
+            written += 1
+    assert 10 < written < 10_000
+    w.fail("disk full (test)")
+    assert not (tmp_path / ".s.h5.reserve").exists()  # given back before the last writes
+    with open_session(tmp_path / "s.h5") as s:
+        assert s.status == "failed" and s.status_reason == "disk full (test)" and s.n_frames == written
+        np.testing.assert_array_equal(s.frame_ids, np.arange(written))
+
+
+def test_an_enospc_met_inside_hdf5_releases_the_reserve_and_the_file_still_closes(tmp_path, monkeypatch):
+    """Another process filled the disk between the check and the write: HDF5's flush meets ENOSPC."""
+    import h5py
+
+    w = SessionWriter(tmp_path / "s.h5", camera_mode=TINY, calibration=CAL, flush_interval_s=0.0)
+    for k in range(5):
+        w.append_frame(_frame(k), timestamp=k / 100, frame_id=k)
+    real_flush = h5py.File.flush
+    calls = []
+
+    def flush_meets_enospc(self):
+        calls.append(1)
+        if len(calls) == 1:  # what h5py raises (measured on a full tmpfs)
+            raise RuntimeError("Unable to synchronously flush file (file write failed: errno = 28, "
+                               "error message = 'No space left on device')")
+        real_flush(self)
+
+    monkeypatch.setattr(h5py.File, "flush", flush_meets_enospc)
+    with pytest.raises(DiskFullError, match="ENOSPC"):
+        w.append_frame(_frame(5), timestamp=0.05, frame_id=5)
+    assert not (tmp_path / ".s.h5.reserve").exists()
+    monkeypatch.setattr(h5py.File, "flush", real_flush)
+    w.fail("disk full")
+    with open_session(tmp_path / "s.h5") as s:
+        assert s.status == "failed" and s.n_frames == 6
+
+
+def test_no_room_for_the_reserve_means_no_file(tmp_path):
+    with pytest.raises(DiskFullError, match="disk full"):
+        SessionWriter(tmp_path / "s.h5", camera_mode=TINY, calibration=CAL, free_bytes=lambda _p: 100_000)
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------------------- the runner
+
+
+class FakeDevices:
+    """A camera that never runs out (the disk does first), a display that records its rests."""
+
+    class Camera:
+        def __init__(self, mode):
+            self.mode, self.k = mode, 0
+
+        def start(self):
+            pass
+
+        def stop(self):
+            pass
+
+        def read(self, timeout_s):
+            from tests.test_exp_runner import FakeFrame
+
+            self.k += 1
+            return FakeFrame(np.full((self.mode.height, self.mode.width), self.k % 256, np.uint8), self.k, 0.0,
+                             self.k * self.mode.period_s)
+
+    def __init__(self):
+        from tests.test_exp_runner import FakeDisplay
+
+        self.force, self.display = None, FakeDisplay()
+
+    def describe(self):
+        return {"camera": "fake", "force": "none", "display": "fake"}
+
+    def camera_for(self, *, trial, protocol, n_frames):
+        return self.Camera(CAMERA_MODES[protocol.camera_mode])
+
+    def close(self):
+        pass
+
+
+def test_a_protocol_that_cannot_fit_is_refused_before_its_first_trial(tmp_path, monkeypatch):
+    monkeypatch.setattr(disk_space, "free_bytes", lambda _p: 30_000_000)  # a 30 MB disk
+    protocol = parse_protocol(PROTOCOL % _trials(3, 1.0))  # 3 x 60 frames of 640x484: ~67 MB
+    with pytest.raises(DiskFullError, match=r"72\.1 MB needed for the 3 trial\(s\) of protocol 'fill', only 30\.0 MB free"):
+        run_protocol(protocol, Rig(), tmp_path, devices=FakeDevices(), progress=lambda m: None)
+    assert not (tmp_path / "s01").exists()  # nothing created, no device touched
+
+
+def test_a_disk_filling_mid_trial_stops_it_keeps_its_frames_and_ends_the_run(tmp_path):
+    protocol = parse_protocol(PROTOCOL % _trials(2, 1.0))
+    sdir = session_dir(protocol, tmp_path)
+    capacity = 16_000_000 + disk_space.DEFAULT_RESERVE_BYTES  # the first trial's 60 frames take 18.6 MB
+    factory = partial(SessionWriter, free_bytes=ShrinkingDisk(tmp_path, capacity))
+    devices = FakeDevices()
+    msgs = []
+    run = run_protocol(protocol, Rig(), tmp_path, devices=devices, progress=msgs.append, writer_factory=factory)
+    first, second = run.trials
+    assert first.status == "failed" and first.disk_full and "disk full" in first.reason
+    assert second.status == "not run" and "disk full" in run.stopped and not run.ok
+    with open_session(first.path) as s:
+        assert s.status == "failed" and "disk full" in s.status_reason and 10 <= s.n_frames < 60
+        assert s.frame(s.n_frames - 1)[0, 0] == s.n_frames % 256  # the last frame kept is whole
+    stops = [d for n, d in read_events(sdir / "events.jsonl") if n == "stop"]
+    assert [d["exit_status"] for d in stops] == ["fail"] and "disk full" in stops[0]["reason"]
+    assert devices.display.at_rest
+    assert run.summary_line().startswith("1 of 2 trials failed, 1 not run")
+
+
+# ------------------------------------------------------------------------------------------ a real small disk
+
+
+def _root_and_tmpfs() -> bool:
+    return os.geteuid() == 0 and sys.platform.startswith("linux")
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 50 MB tmpfs (unmounted afterwards)."""
+    if not _root_and_tmpfs():
+        pytest.skip("mounting a tmpfs needs root (the injected-fault tests above cover the logic)")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=50m", "tmpfs", str(mnt)], capture_output=True)
+    if done.returncode:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
+    rig = replay_rig(tmp_path)
+    proto = tmp_path / "p.yaml"
+    proto.write_text(PROTOCOL % _trials(2, 1.5))  # 2 x 90 frames: 2 x 28 MB x 1.2 + 4 MB > 50 MB ...
+    big = subprocess.run(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
+                         capture_output=True, text=True, timeout=120)
+    assert big.returncode == 2 and not list(small_disk.iterdir())  # ... refused before the first trial
+    assert len(big.stderr.strip().splitlines()) == 1 and "needed" in big.stderr and "free" in big.stderr
+
+    proto.write_text(PROTOCOL % _trials(2, 0.7))  # 2 x 42 frames: ~35 MB, fits
+    # progress lines and the final error go to stderr (logging), the per-trial summary to stdout: read both
+    child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    filler = None
+    out_lines = []
+    try:
+        for line in child.stdout:  # bounded by pytest-timeout
+            out_lines.append(line)
+            if filler is None and ": " in line and "/42 frames" in line:  # the first trial is writing
+                filler = subprocess.Popen([sys.executable, "-c", DISK_FILLER, str(small_disk / "filler.bin")],
+                                          stdout=subprocess.DEVNULL)
+        rc = child.wait(60)
+    finally:
+        child.stdout.close()
+        if filler is not None:
+            filler.wait(30)
+    out = "".join(out_lines)
+    assert filler is not None, out
+    assert rc == 1, (rc, out)  # an exit status, not a signal (a segfault is -11)
+    for bad in ("Traceback", "Exception ignored", "Segmentation", "HDF5-DIAG"):
+        assert bad not in out, out
+    last = out_lines[-1]
+    assert last.startswith("skinstretch record: 1 of 2 trials failed, 1 not run") and "disk full" in last, out
+    sdir = small_disk / "d" / "s01" / "fill"
+    with open_session(sdir / "000-t0-r1" / "session.h5") as s:
+        assert s.status == "failed" and "disk full" in s.status_reason
+        assert 5 <= s.n_frames < 42
+        s.read_frames()  # every frame kept reads back
+    stops = [d for n, d in read_events(sdir / "events.jsonl") if n == "stop"]
+    assert [d["exit_status"] for d in stops] == ["fail"] and "disk full" in stops[0]["reason"]
+    assert not (sdir / "001-t1-r1").exists()
+    assert not list(sdir.glob("*/.*.reserve"))

@@ -1,0 +1,224 @@
+"""The session viewer without a browser: what it reads from results (the adapter), what it serves and refuses
+(token, path traversal, other files, foreign hosts), and the live analysis against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.session_file import SessionWriter, write_session
+from skinstretch.experiments.results_file import read_results
+from skinstretch.experiments.viewer.live_analysis import LiveAnalyzer
+from skinstretch.experiments.viewer.live_check import live_accuracy
+from skinstretch.experiments.viewer.server import TOKEN_COOKIE, ViewerState, create_app
+from skinstretch.experiments.viewer.session_data import (
+    SessionSource,
+    ViewTarget,
+    find_view_target,
+    load_results_index,
+    nice_scale,
+)
+
+TOKEN = "test-token-0123456789"
+
+
+@pytest.fixture(scope="module")
+def analysed(tmp_path_factory, sim_session):
+    """A 20-frame flatL session in the runner's layout (trial/session.h5 + trial/analysis/results.h5)."""
+    from skinstretch.experiments.analysis import AnalysisParams, analyze_session
+    from skinstretch.processing.tracking import TrackingParams
+
+    root = tmp_path_factory.mktemp("viewer")
+    trial = root / "subject" / "sess" / "000-flat-r1"
+    trial.mkdir(parents=True)
+    s = sim_session
+    path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
+                         calibration=s.calibration, metadata=s.metadata, truth=s.truth)
+    results = analyze_session(path, trial / "analysis", params=AnalysisParams(
+        processes=False, spans=(1, 5), tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3,
+                                                               min_length_frames=10)))
+    other = write_session(root / "other.h5", s.frames[:3], timestamps=s.timestamps[:3], camera_mode=s.camera_mode,
+                          calibration=s.calibration)
+    return root, trial, path, results, other
+
+
+def test_view_target_from_every_kind_of_path(analysed):
+    root, trial, session, results, _ = analysed
+    for given_path in (session, results, results.parent, trial):
+        t = find_view_target(given_path)
+        assert (t.session.resolve(), t.results.resolve(), t.directory) == (session.resolve(), results.resolve(), None)
+    t = find_view_target(root)
+    assert t.follows_directory and t.session is None
+    (root / "notes.h5").write_bytes(b"not hdf5 at all")
+    with pytest.raises(SessionFileError, match="notes.h5"):
+        find_view_target(root / "notes.h5")
+    with pytest.raises(SessionFileError, match="no such"):
+        find_view_target(root / "missing")
+
+
+def test_overlays_are_the_results_of_that_frame(analysed):
+    _, _, session, results_path, _ = analysed
+    r = read_results(results_path)
+    idx = load_results_index(results_path)
+    tr = r.trajectories
+    for k in (0, 1, 7, 19):
+        for span in (1, 5):
+            ov = idx.overlays(k, span=span)
+            rows = r.features["frame"] == k
+            assert sorted(ov.features.id.tolist()) == sorted(r.features["id"][rows].tolist())
+            tracked = ov.features.track >= 0
+            assert tracked.sum() > 0.5 * tracked.size
+            # A feature's track passes through it: the track's extracted position in frame k is the feature's.
+            np.testing.assert_allclose(tr["raw_x"][k, ov.features.track[tracked]], ov.features.x[tracked])
+            motion = r.motion[r.motion["pair"] == k - 1] if k else r.motion[:0]
+            assert ov.arrows.shape[0] == motion.size
+            np.testing.assert_allclose(ov.arrows[:, 2:], np.column_stack([motion["dx"], motion["dy"]]))
+            s = r.strain[span]
+            tris = s.triangles[s.triangles["pair"] == k - span] if k >= span else s.triangles[:0]
+            if tris.size:
+                assert ov.mesh is not None and ov.mesh.drawn_at == "frame_b"
+                np.testing.assert_array_equal(ov.mesh.change, tris["change"])
+                # Vertices drawn where their tracks are in frame k.
+                np.testing.assert_allclose(ov.mesh.xy[:, 0], tr["x"][k, tris["id_a"]])
+                np.testing.assert_allclose(ov.mesh.xy[:, 5], tr["y"][k, tris["id_c"]])
+            else:
+                assert ov.mesh is None and ov.notes
+    assert idx.overlays(19, span=1).tactile_um.shape == (10, 10)
+    json.dumps(idx.overlays(3).to_json(), allow_nan=False)  # JSON-able, no NaN
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-0.5, 0.5, allow_nan=False), min_size=1, max_size=200))
+def test_strain_colour_scale_is_round_and_covers_the_data(values):
+    scale = nice_scale(np.asarray(values))
+    top = max(float(np.percentile(np.abs(values), 98)), 0.001)
+    mantissa = scale / 10 ** np.floor(np.log10(scale) + 1e-12)
+    assert min(abs(mantissa - m) for m in (1, 2, 5, 10)) < 1e-6
+    assert top <= scale * (1 + 1e-9) <= 2.5 * top + 1e-12
+
+
+@pytest.fixture()
+def client(analysed):
+    from starlette.testclient import TestClient
+
+    _, trial, _, _, _ = analysed
+    state = ViewerState(find_view_target(trial))
+    app = create_app(state, token=TOKEN, allowed_hosts=["127.0.0.1", "localhost", "testserver"])
+    with TestClient(app, base_url="http://127.0.0.1") as c:
+        yield c
+
+
+def test_every_route_needs_the_token(client):
+    for url in ("/", "/api/info", "/static/viewer.js", "/api/s/1/frame/0.png", "/api/s/1/overlay/0", "/api/events"):
+        assert client.get(url).status_code == 403, url
+        assert client.get(url + ("&" if "?" in url else "?") + "token=wrong").status_code == 403, url
+    page = client.get(f"/?token={TOKEN}")
+    assert page.status_code == 200 and "skinstretch viewer" in page.text
+    assert page.cookies.get(TOKEN_COOKIE) == TOKEN
+    assert client.get("/static/viewer.js").status_code == 200  # the page's cookie carries the token
+
+
+def test_serves_this_sessions_frames_losslessly(client, sim_session):
+    info = client.get(f"/api/info?token={TOKEN}").json()
+    assert info["n_frames"] == 20 and info["has_truth"] and info["results"]["method"] == "features"
+    png = client.get(f"/api/s/{info['sid']}/frame/7.png?token={TOKEN}")
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    # Compared with the frames written (a second handle on a file this process holds open in SWMR mode reads
+    # wrong chunks with this HDF5: the viewer opens each session once).
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED),
+                                  sim_session.frames[7])
+    ov = client.get(f"/api/s/{info['sid']}/overlay/7?span=5&token={TOKEN}").json()
+    assert ov["source"] == "results" and ov["mesh"]["span"] == 5 and ov["truth"] is not None
+    assert client.get(f"/api/s/{info['sid']}/frame/20.png?token={TOKEN}").status_code == 404
+    assert client.get(f"/api/s/{info['sid'] + 1}/frame/0.png?token={TOKEN}").status_code == 404
+
+
+@pytest.mark.parametrize("url", [
+    "/static/../session.h5", "/static/%2e%2e/%2e%2e/session.h5", "/static/..%2f..%2fsession.h5",
+    "/static//etc/passwd", "/static/%2fetc%2fpasswd", "/api/s/1/frame/..%2f..%2fsession.h5",
+    "/session.h5", "/analysis/results.h5", "/api/s/1/frame/-1.png", "/api/s/1/overlay/../../other.h5",
+])
+def test_path_traversal_and_other_files_are_refused(client, url):
+    r = client.get(url + ("&" if "?" in url else "?") + f"token={TOKEN}")
+    assert r.status_code in (400, 404), (url, r.status_code)
+    assert b"HDF" not in r.content and b"root:" not in r.content
+
+
+def test_other_sessions_cannot_be_asked_for(client, analysed):
+    _, _, _, _, other = analysed
+    # No route takes a path: a path in the query is ignored and this session's data come back.
+    info = client.get(f"/api/info?token={TOKEN}&path={other}&session={other}").json()
+    assert info["n_frames"] == 20 and info["path_name"] == "session.h5"
+    assert client.get(f"/api/s/1/frame/0.png?token={TOKEN}&session={other}").status_code in (200, 404)
+
+
+def test_foreign_host_header_is_refused(client):
+    r = client.get(f"/api/info?token={TOKEN}", headers={"host": "attacker.example"})
+    assert r.status_code == 400
+
+
+def test_live_analysis_of_a_recording_matches_the_truth(tmp_path, sim_session):
+    """A session written frame by frame in SWMR mode: the live analysis reads it as it grows and measures the
+    motion and strain of every second frame within 0.1 px and 0.5 % of the truth."""
+    s = sim_session
+    path = tmp_path / "live.h5"
+    writer = SessionWriter(path, camera_mode=s.camera_mode, calibration=s.calibration)
+    source = None
+    overlays = []
+    try:
+        for k in range(s.frames.shape[0]):
+            writer.append_frame(s.frames[k], timestamp=float(s.timestamps[k]), frame_id=k)
+            writer.flush()
+            if source is None:
+                source = SessionSource(path)
+                analyzer = LiveAnalyzer(source)
+                assert source.status() == "recording"
+            assert source.n_frames() == k + 1
+            if k % 2 == 0:
+                overlays.append(analyzer.analyse_frame(k))
+    finally:
+        writer.close()
+    assert source.status() == "complete"
+    source.close()
+    assert overlays[0].mesh is None and all(o.mesh is not None for o in overlays[1:])
+    acc = live_accuracy([o.to_json() for o in overlays], s.truth, np.arange(s.frames.shape[0]),
+                        px_per_mm=s.calibration.px_per_mm)
+    assert acc.pairs == len(overlays) - 1 and acc.displacements > 100 * acc.pairs
+    assert acc.displacement_rmse_px < 0.1
+    assert acc.area_change_rmse < 0.005
+    assert all(o.tails for o in overlays[2:])
+
+
+def test_state_follows_the_newest_trial_and_picks_up_results(tmp_path, analysed, sim_session):
+    root, trial, session, results, _ = analysed
+    data = tmp_path / "data"
+    first = data / "a"
+    first.mkdir(parents=True)
+    state = ViewerState(ViewTarget(None, None, data))
+    try:
+        assert state.source is None and "waiting" in state.info()
+        s = sim_session
+        write_session(first / "session.h5", s.frames[:4], timestamps=s.timestamps[:4], camera_mode=s.camera_mode,
+                      calibration=s.calibration)
+        state.update()
+        assert state.info()["n_frames"] == 4 and state.results is None
+        assert "no analysis results" in state.overlays(state.sid, 0, 1)["notes"][0]
+        (first / "analysis").mkdir()
+        (first / "analysis" / "results.h5").write_bytes(results.read_bytes())
+        state.update()
+        assert state.results is not None
+    finally:
+        state.close()
+
+
+def test_view_command_refuses_a_bad_target(tmp_path, capsys):
+    from skinstretch.cli import main
+
+    assert main(["view", str(tmp_path / "nothing.h5"), "--no-browser"]) == 2
+    assert "no such file" in capsys.readouterr().err
