@@ -410,7 +410,9 @@ class FeatureExtractor:
                 binary, grey=excess, max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
             )
             valleys = blobs.binary_without_pores
-            pore_x, pore_y, pore_d = blobs.x, blobs.y, blobs.diameter_px
+            # The pore's size for its centring window: the diameter of a disc of its area, which changes by a
+            # fraction of a pixel when the blob gains or loses an edge pixel (its bounding box jumps by one).
+            pore_x, pore_y, pore_d = blobs.x, blobs.y, 2.0 * np.sqrt(blobs.area_px / math.pi)
         else:
             valleys = binary
             pore_x = pore_y = pore_d = np.zeros(0)

@@ -271,7 +271,7 @@ def _nearest_sq(bx, by, nb, px, py, floor):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _inscribed_centres(img, xs, ys, reach, half):  # pragma: no cover - compiled
+def _inscribed_centres(img, xs, ys, reach, half, slack):  # pragma: no cover - compiled
     """See :func:`locate_forks`: centre of the largest disc inside ``img > 0`` within ``reach`` of each start."""
     h, w = img.shape
     n = xs.size
@@ -340,9 +340,29 @@ def _inscribed_centres(img, xs, ys, reach, half):  # pragma: no cover - compiled
                         best = d
                         qx = px
                         qy = py
-        ox[k] = qx
-        oy[k] = qy
-        radius[k] = np.sqrt(best)
+        # The centre of the places nearly as wide as the widest (within ``slack`` px of its radius), weighted by
+        # how much: along a valley whose walls run parallel the widest place is a flat ridge of the distance, and
+        # its arg max alone would jump along it with a grey level of noise.
+        rmax = np.sqrt(best)
+        lo = max(rmax - slack, 0.0)
+        sw = 0.0
+        sx = 0.0
+        sy = 0.0
+        m = int(np.ceil(2.0 * slack / 0.25))
+        for j in range(-m, m + 1):
+            for i in range(-m, m + 1):
+                px = qx + i * 0.25
+                py = qy + j * 0.25
+                if not _bilinear(img, px, py) > 0:
+                    continue
+                d = np.sqrt(_nearest_sq(bx, by, nb, px, py, lo * lo))
+                if d > lo:
+                    sw += d - lo
+                    sx += (d - lo) * px
+                    sy += (d - lo) * py
+        ox[k] = sx / sw if sw > 0 else qx
+        oy[k] = sy / sw if sw > 0 else qy
+        radius[k] = rmax
         ok[k] = True
     return ox, oy, radius, ok
 
@@ -354,6 +374,7 @@ def locate_forks(
     y: np.ndarray,
     reach_px: float,
     max_radius_px: float,
+    slack_px: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel valley bifurcations: the centre of the largest disc that fits in the valleys near the fork.
 
@@ -388,7 +409,7 @@ def locate_forks(
     if not (np.isfinite(max_radius_px) and max_radius_px > 0):
         raise InvalidInputError(f"max_radius_px must be positive, got {max_radius_px!r}")
     half = int(np.ceil(reach_px + max_radius_px)) + 1
-    return _inscribed_centres(img, x, y, float(reach_px), half)
+    return _inscribed_centres(img, x, y, float(reach_px), half, float(slack_px))
 
 
 @njit(nogil=True)

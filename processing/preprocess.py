@@ -288,7 +288,7 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     Returns
     -------
     background : (H, W) bool
-        True where the contact fraction is below ``min_contact`` (nearest-cell upsampling).
+        True where the contact fraction is below ``min_contact`` (the cells' contrast upsampled bilinearly).
     reference : float
         Full contact's relative contrast in this frame (``nan`` when no cell is textured: all background).
     """
@@ -300,10 +300,11 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     if textured.size == 0:
         return np.ones((h, w), dtype=bool), float("nan")
     reference = float(np.percentile(textured, reference_percentile))
-    bg = (kappa < min_contact * reference).astype(np.uint8)
-    if bg.shape != (h, w):
-        bg = cv2.resize(bg, (w, h), interpolation=cv2.INTER_NEAREST)
-    return bg.astype(bool), reference
+    if kappa.shape != (h, w):
+        # Thresholded after a bilinear upsampling: the outline moves smoothly with the image instead of by whole
+        # cells (a cell flipping moved the fingertip's outline, and the features near it, by a few pixels).
+        kappa = cv2.resize(kappa, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.compare(kappa, min_contact * reference, cv2.CMP_LT).view(bool), reference
 
 
 def flatten_light(smoothed: np.ndarray, *, cell_px: int, window_px: float, sigma_px: float) -> np.ndarray:
