@@ -1,7 +1,25 @@
 """The feature extraction chain of seed chapter 4 (with 3.5), from one grey frame to a feature table.
 
-smoothing (4.1) -> local average (4.2) -> background (4.3) -> binarization (4.4) -> blob pores (4.5) -> thinning
-(4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6, each switchable) -> sub-pixel positions.
+smoothing (4.1) -> light (3.5, per frame) -> local average (4.2) -> contact / background (4.3) -> binarization
+(4.4) -> blob pores (4.5) -> thinning (4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6,
+each switchable) -> sub-pixel positions.
+
+Beyond the seed, what makes it hold on prints and surfaces it was not tuned on (issue 16; measured by ``skinstretch
+bench --only accuracy``):
+
+- every local statistic is taken at the scale of one ridge period (``ridge_period_mm``), not the seed's 2 mm:
+  partial contact over a ridge or a valley of the surface changes the brightness within a few tenths of a mm
+  (:func:`skinstretch.processing.preprocess.ridge_statistics`, twiced so that it does not lag across such a band);
+- the light is divided out of each frame from its upper envelope (seed 3.5 without the sequence,
+  :func:`skinstretch.processing.preprocess.flatten_light`);
+- the background of 4.3 is where the FTIR contrast says the skin does not touch the glass
+  (:func:`skinstretch.processing.preprocess.contact_map`, ``min_contact`` of full contact's contrast): no features
+  are extracted out of contact;
+- the spur and bridge rules of 4.8.3-4.8.4 judge a short branch by the direction of the ridges around it
+  (:mod:`skinstretch.processing.ridge_flow`): a pore's branch crosses the ridges, a true minutia's follows them;
+- bifurcations are located at the centre of the largest disc in the valleys' crotch
+  (:func:`skinstretch.processing.feature_localization.locate_forks`) and pores that touch a valley on their ridge
+  (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`).
 
 Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
 :class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a
@@ -48,7 +66,7 @@ STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "
 class ExtractionParams:
     """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255.
 
-    Defaults are the seed's values except where a comment says why (spur length, background window). Each
+    Defaults are the seed's values except where a comment says why (spur length, ridge-scale statistics). Each
     editing step of seed 4.8 can be switched off with its boolean. Invalid values raise InvalidInputError
     naming the field.
 
@@ -61,19 +79,14 @@ class ExtractionParams:
     # 4.1 smoothing: sigma 1 px and a 3 px kernel at the seed's ~62 px/mm.
     smoothing_sigma_mm: float = 0.016
     smoothing_kernel_mm: float = 0.048
-    # 4.2 local average: 2 mm window (at least one ridge/valley cycle).
-    local_average_mm: float = 2.0
-    # 4.3 background: local mean above min_mean AND local std below max_std (grey levels), then dilated.
-    background_min_mean: float = 150.0
-    background_max_std: float = 25.0
-    background_dilation_mm: float = 0.1
-    # The background statistics use a smaller window than 4.2 (still more than a ridge period, 0.43 mm) so the
-    # mask reaches the fingertip's edge instead of stopping half a 2 mm window short of it.
-    background_window_mm: float = 0.6
-    # Beyond the seed: the typical ridge period (0.43 mm, FACTS) sets the scale of the local statistics, and skin
-    # whose FTIR contrast is below min_contact of full contact's is out of contact (background).
+    # 4.2 local average, 4.3 background: beyond the seed (its 2 mm mean put whole bands of ridges above or below
+    # the threshold over a ridge or valley of the surface: valleyL bifurcation precision 0.26 -> 0.77 with the
+    # ridge scale alone), every local statistic is taken at the scale of the typical ridge period (0.43 mm, FACTS);
+    # skin whose FTIR contrast is below min_contact of full contact's is out of contact (the background), which is
+    # then dilated (seed: "a few morphological dilation operations").
     ridge_period_mm: float = 0.43
     min_contact: float = 0.5
+    background_dilation_mm: float = 0.1
     # 4.4 binarization threshold = scale x local average.
     binarization_scale: float = 1.0
     # 4.5 blob pores below 0.25 mm across; smaller blobs than min diameter are noise.
@@ -136,9 +149,9 @@ class ExtractionParams:
             if v < 0:
                 raise InvalidInputError(f"ExtractionParams.{f.name} must be >= 0, got {v!r}")
         positive = [
-            "smoothing_sigma_mm", "local_average_mm", "background_window_mm", "pore_max_diameter_mm", "orientation_distance_mm",
+            "smoothing_sigma_mm", "ridge_period_mm", "min_contact", "pore_max_diameter_mm", "orientation_distance_mm",
             "short_valley_max_mm", "heal_max_distance_mm", "heal_max_angle_deg", "spur_max_mm", "bridge_max_mm",
-            "density_radius_mm", "binarization_scale", "background_max_std", "fork_radius_mm",
+            "density_radius_mm", "binarization_scale", "fork_radius_mm",
         ]  # fmt: skip
         for name in positive:
             if getattr(self, name) <= 0:
@@ -162,8 +175,10 @@ class ExtractionParams:
         for name in ("saturated_fraction", "no_finger_fraction"):
             if not 0 < getattr(self, name) <= 1:
                 raise InvalidInputError(f"ExtractionParams.{name} must be in (0, 1], got {getattr(self, name)!r}")
-        if not 0 <= self.background_min_mean <= 255 or not 0 <= self.black_level <= 255:
-            raise InvalidInputError("background_min_mean and black_level must be grey levels in [0, 255]")
+        if not 0 <= self.black_level <= 255:
+            raise InvalidInputError(f"black_level must be a grey level in [0, 255], got {self.black_level!r}")
+        if not self.min_contact < 1:
+            raise InvalidInputError(f"ExtractionParams.min_contact must be below 1, got {self.min_contact!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -210,7 +225,6 @@ class _Plan:
     sigma: float
     kernel: int
     window: int
-    bg_window: int
     bg_dilation: int
     pore_max: float
     pore_min_area: int
@@ -229,7 +243,7 @@ class _Plan:
     tip_axis: int
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
-    edit_pore_radius: float
+    pore_along: float
     ridge_sigma: float
     cell: int
     flow_sigma: float
@@ -241,8 +255,8 @@ class _Plan:
         return cls(
             sigma=max(cal.px(p.smoothing_sigma_mm), 0.3),
             kernel=cal.odd_px(p.smoothing_kernel_mm, minimum=3) if p.smoothing_kernel_mm > 0 else 3,
-            window=cal.odd_px(p.local_average_mm, minimum=3),
-            bg_window=cal.odd_px(p.background_window_mm, minimum=3),
+            # The smallest frame: two ridge periods (the ridge-scale statistics and the flow need a few cells).
+            window=cal.odd_px(2 * p.ridge_period_mm, minimum=3),
             bg_dilation=cal.px_int(p.background_dilation_mm),
             pore_max=cal.px(p.pore_max_diameter_mm),
             pore_min_area=max(int(math.floor(math.pi / 4 * pore_min * pore_min)), 1),
@@ -265,10 +279,9 @@ class _Plan:
             tip_axis=max(cal.px_int(0.3), 2),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
-            # Centre-of-mass window of the pores the editing found (no blob size; they often touch a valley):
-            # flatL pore RMSE, seeds 0/1/2, 0.100/0.257/0.098 px with the 2 px minimum window, 0.067/0.088/0.064
-            # px with 0.065 mm (0.08 mm: 0.072/0.169/0.067).
-            edit_pore_radius=max(cal.px(0.065), 2.0),
+            # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
+            # 0.1 mm, past the largest pore's radius (0.08 mm) so the across-profiles sample the ridge beside it.
+            pore_along=max(cal.px(0.1), 3.0),
             ridge_sigma=cal.px(p.ridge_period_mm) / 2,
             cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
             flow_sigma=cal.px(p.ridge_period_mm),
@@ -483,11 +496,11 @@ class FeatureExtractor:
                 x[i], y[i], _ = refine_pores(s, threshold=thr, x=x[i], y=y[i], radius_px=radius)
             if (~blob).any():
                 # A pore that touches a valley (found by the editing: short valleys, spur tips, bridges, 4.8.1-4.8.4)
-                # has no window of its own: it is located on its ridge instead (locate_pores_on_ridges; valleyL RMSE of these pores 0.8 -> 0.5 px in the band
-                # of partial contact, 0.30 -> 0.12 px elsewhere).
+                # has no window of its own: it is located on its ridge instead (locate_pores_on_ridges; valleyL
+                # RMSE of these pores 0.8 -> 0.5 px in the band of partial contact, 0.30 -> 0.12 px elsewhere).
                 i = idx[~blob]
                 x[i], y[i], _ = locate_pores_on_ridges(s, threshold=thr, x=x[i], y=y[i], flow=flow,
-                                                       half_period_px=q.ridge_sigma, along_px=q.edit_pore_radius + 2)
+                                                       half_period_px=q.ridge_sigma, along_px=q.pore_along)
         ends = kind == FeatureKind.VALLEY_ENDING
         bifs = kind == FeatureKind.VALLEY_BIFURCATION
         if not self.params.subpixel_minutiae or not (ends.any() or bifs.any()):
@@ -557,7 +570,7 @@ def extract_features(
     Parameters
     ----------
     frame : (H, W) uint8
-        Grey frame, ridges dark and valleys/pores bright; at least as large as the local-average window.
+        Grey frame, ridges dark and valleys/pores bright; at least two ridge periods on each side.
     calibration : Calibration
         Pixel scale; every parameter in mm is converted through it.
     params : ExtractionParams, optional
@@ -575,7 +588,7 @@ def extract_features(
     Raises
     ------
     InvalidInputError
-        Wrong dtype or shape, or a frame smaller than the averaging window.
+        Wrong dtype or shape, or a frame smaller than two ridge periods.
     """
     return FeatureExtractor(calibration=calibration, params=params, illumination=illumination).extract(
         frame, frame_index=frame_index

@@ -1,12 +1,14 @@
-"""Pre-processing of FTIR fingerprint frames (seed 4.1-4.4): smoothing, local average, background, binarization.
+"""Pre-processing of FTIR fingerprint frames (seed 3.5, 4.1-4.4): smoothing, light, local average, contact
+(the background), binarization.
 
 Polarity: ridges in contact are DARK, valleys, pores and the uncovered prism (the background) are BRIGHT. The
 binary image of :func:`binarize` has the valleys and pores as foreground (255), because the seed's skeleton is the
 valley skeleton.
 
-Every local statistic is a box filter (``cv2.boxFilter``, running sums), so it costs a constant time per pixel
-whatever the window: this is the seed's Appendix B idea, and it lets the local variance of seed 4.3 be computed at
-every pixel instead of on a coarse grid.
+The local statistics (the seed's local average of 4.2 and local variance of 4.3, and the light of 3.5) are taken at
+the scale of one ridge period on a grid of cells an eighth of a period wide: Gaussian filters of a few cells, then
+brought back to full resolution bilinearly. Like the seed's Appendix B running sums, they cost the same whatever
+the window, and the local variance is known everywhere, not on the seed's grid of a hundred squares.
 """
 
 from __future__ import annotations
@@ -20,8 +22,7 @@ import numpy as np
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
-    "check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize", "RidgeStatistics",
-    "ridge_statistics", "contact_map",
+    "check_frame", "smooth", "binarize", "RidgeStatistics", "ridge_statistics", "contact_map", "flatten_light",
 ]
 
 
@@ -71,92 +72,6 @@ def smooth(frame: np.ndarray, *, sigma_px: float, kernel_px: int) -> np.ndarray:
     # GaussianBlur on a float copy of the frame (results differ by float rounding only, < 1e-4 grey levels).
     g = cv2.getGaussianKernel(k, float(sigma_px), cv2.CV_32F)
     return cv2.sepFilter2D(frame, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT)
-
-
-def local_mean(image: np.ndarray, *, window_px: int) -> np.ndarray:
-    """Mean of ``image`` in a centred square window of ``window_px`` pixels at every pixel (seed 4.2).
-
-    The border is handled by reflection, so the window never leaves the image. Constant time per pixel.
-    """
-    k = _odd_window(window_px, "window_px")
-    if image.ndim != 2 or min(image.shape) < k:
-        raise InvalidInputError(f"image of shape {image.shape} is smaller than the averaging window ({k} px)")
-    return cv2.boxFilter(image, cv2.CV_32F, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
-
-
-def local_mean_and_std(image: np.ndarray, *, window_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Local mean and local standard deviation (seed eq. 4.2) in a centred square window, at every pixel."""
-    img = image.astype(np.float32, copy=False)
-    mean = local_mean(img, window_px=window_px)
-    mean_sq = local_mean(cv2.multiply(img, img), window_px=window_px)
-    var = cv2.subtract(mean_sq, cv2.multiply(mean, mean))
-    np.maximum(var, 0.0, out=var)  # rounding can make a flat window's variance slightly negative
-    return mean, cv2.sqrt(var)
-
-
-def detect_background(
-    smoothed: np.ndarray,
-    *,
-    window_px: int,
-    min_mean: float,
-    max_std: float,
-    dilation_px: int,
-    grid_px: int = 4,
-) -> np.ndarray:
-    """Where the prism is uncovered (seed 4.3): high local mean AND low local variance, then dilated.
-
-    Like the seed, which evaluates the variance on a grid of about a hundred squares, the statistics are taken on
-    a grid: the image is averaged over ``grid_px`` x ``grid_px`` cells, the local mean and standard deviation
-    (eq. 4.2) are box filters of that coarse image, and the decision is brought back to full resolution. The
-    window is ~2 mm wide, so the grid loses nothing the dilation would keep.
-
-    Parameters
-    ----------
-    smoothed : (H, W) uint8 or float32
-        The (smoothed) frame.
-    window_px : int
-        Odd window width of the local statistics, full-resolution pixels.
-    min_mean : float
-        Grey level above which the local mean says "background" (the bare prism is almost white).
-    max_std : float
-        Local standard deviation (grey levels) below which the local variance says "background" (no ridge cycles).
-    dilation_px : int
-        Radius of the square dilation that closes holes and brings the background up to the fingertip (seed:
-        "a few morphological dilation operations").
-    grid_px : int
-        Cell size of the statistics grid (1 = every pixel).
-
-    Returns
-    -------
-    (H, W) bool
-        True on the background.
-    """
-    if not (0 <= min_mean <= 255):
-        raise InvalidInputError(f"min_mean must be a grey level in [0, 255], got {min_mean!r}")
-    if not max_std > 0:
-        raise InvalidInputError(f"max_std must be positive, got {max_std!r}")
-    if dilation_px < 0:
-        raise InvalidInputError(f"dilation_px must be >= 0, got {dilation_px!r}")
-    if not isinstance(grid_px, (int, np.integer)) or grid_px < 1:
-        raise InvalidInputError(f"grid_px must be a positive integer, got {grid_px!r}")
-    h, w = smoothed.shape
-    img = smoothed
-    if grid_px > 1:
-        # Cell means straight from the frame's dtype (a uint8 cell mean is rounded to the grey level, 0.3 grey
-        # levels RMS, far below the thresholds): converting the whole frame to float first cost more than the rest.
-        img = cv2.resize(img, (max(w // grid_px, 1), max(h // grid_px, 1)), interpolation=cv2.INTER_AREA)
-    img = img.astype(np.float32, copy=False)
-    k = max(int(round(window_px / grid_px)) | 1, 1)
-    k = min(k, (min(img.shape) - 1) | 1) if min(img.shape) > 1 else 1
-    mean, std = local_mean_and_std(img, window_px=k)
-    # Both tests must agree (seed 4.3): the mean alone mistakes bright, well-pressed fingerprint areas for background.
-    bg = ((mean > min_mean) & (std < max_std)).view(np.uint8)
-    if grid_px > 1:
-        bg = cv2.resize(bg, (w, h), interpolation=cv2.INTER_NEAREST)
-    if dilation_px > 0:
-        d = 2 * int(dilation_px) + 1
-        bg = cv2.dilate(bg, cv2.getStructuringElement(cv2.MORPH_RECT, (d, d)))
-    return bg.view(bool)  # 0 / 1 bytes throughout (comparison, nearest resize, dilation)
 
 
 def binarize(

@@ -12,7 +12,7 @@ from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind
 from skinstretch.processing.illumination import compensate_illumination, illumination_map
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores
-from skinstretch.processing.preprocess import binarize, detect_background, local_mean
+from skinstretch.processing.preprocess import binarize, contact_map, ridge_statistics
 from skinstretch.processing.skeleton_editing import (
     heal_broken_valleys,
     line_pixels,
@@ -200,10 +200,10 @@ def test_background_and_binarization():
     img = 128 + 90 * np.cos(2 * np.pi * xx / 27.0)
     img[:, 200:] = 235  # uncovered prism: bright, flat
     img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
-    bg = detect_background(img, window_px=37, min_mean=150, max_std=25, dilation_px=0)
+    stats = ridge_statistics(img.astype(np.float32), sigma_px=13.5, cell_px=3)
+    bg, _ = contact_map(stats, shape=img.shape, min_contact=0.5)
     assert bg[:, 230:].all() and not bg[:, :170].any()
-    avg = local_mean(img, window_px=125)
-    binary = binarize(img.astype(np.float32), local_average=avg, background=bg)
+    binary = binarize(img.astype(np.float32), local_average=stats.mean, background=bg)
     assert binary[:, 230:].max() == 0
     assert binary[100, 0] == 255 and binary[100, 13] == 0  # valley bright, ridge dark
 
@@ -336,7 +336,8 @@ def test_degenerate_frames_give_empty_flagged_results(frame, flag):
         ({"heal_max_angle_deg": 120.0}, "heal_max_angle_deg"),
         ({"spur_min_mm": 2.0}, "spur_min_mm"),
         ({"heal_broken_valleys": 1}, "heal_broken_valleys"),
-        ({"local_average_mm": float("nan")}, "local_average_mm"),
+        ({"ridge_period_mm": float("nan")}, "ridge_period_mm"),
+        ({"min_contact": 1.5}, "min_contact"),
     ],
 )
 def test_bad_parameters_are_named(kwargs, name):
