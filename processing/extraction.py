@@ -41,7 +41,12 @@ import cv2
 import numpy as np
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
-from skinstretch.processing.feature_localization import locate_forks, locate_minutiae_tips, locate_pores_on_ridges, refine_pores
+from skinstretch.processing.feature_localization import (
+    locate_forks,
+    locate_minutiae_tips,
+    locate_pores_on_ridges,
+    refine_pores,
+)
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
 from skinstretch.processing.pixel_scale import Calibration

@@ -287,28 +287,8 @@ def _inscribed_centres(img, xs, ys, reach, half, slack):  # pragma: no cover - c
     for k in range(n):
         ic = int(np.rint(xs[k]))
         ir = int(np.rint(ys[k]))
-        r0 = max(ir - half, 0)
-        r1 = min(ir + half, h - 1)
-        c0 = max(ic - half, 0)
-        c1 = min(ic + half, w - 1)
         # The region's outline: where the excess changes sign between two neighbouring pixels, interpolated.
-        nb = 0
-        for r in range(r0, r1 + 1):
-            for c in range(c0, c1):
-                a = img[r, c]
-                b = img[r, c + 1]
-                if (a > 0) != (b > 0):
-                    bx[nb] = c + a / (a - b)
-                    by[nb] = r
-                    nb += 1
-        for c in range(c0, c1 + 1):
-            for r in range(r0, r1):
-                a = img[r, c]
-                b = img[r + 1, c]
-                if (a > 0) != (b > 0):
-                    bx[nb] = c
-                    by[nb] = r + a / (a - b)
-                    nb += 1
+        nb = _outline(img, ic, ir, half, bx, by)
         if nb == 0:
             continue
         # Whole pixels inside the region within reach, then two finer grids around the best.
@@ -410,6 +390,35 @@ def locate_forks(
         raise InvalidInputError(f"max_radius_px must be positive, got {max_radius_px!r}")
     half = int(np.ceil(reach_px + max_radius_px)) + 1
     return _inscribed_centres(img, x, y, float(reach_px), half, float(slack_px))
+
+
+@njit(nogil=True)
+def _outline(img, ic, ir, half, bx, by):  # pragma: no cover - compiled
+    """Sub-pixel points of the outline of ``img > 0`` in the square of ``half`` around (ic, ir) into (bx, by):
+    where the sign changes between two neighbouring pixels, linearly interpolated; their number."""
+    h, w = img.shape
+    r0 = max(ir - half, 0)
+    r1 = min(ir + half, h - 1)
+    c0 = max(ic - half, 0)
+    c1 = min(ic + half, w - 1)
+    nb = 0
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1):
+            a = img[r, c]
+            b = img[r, c + 1]
+            if (a > 0) != (b > 0):
+                bx[nb] = c + a / (a - b)
+                by[nb] = r
+                nb += 1
+    for c in range(c0, c1 + 1):
+        for r in range(r0, r1):
+            a = img[r, c]
+            b = img[r + 1, c]
+            if (a > 0) != (b > 0):
+                bx[nb] = c
+                by[nb] = r + a / (a - b)
+                nb += 1
+    return nb
 
 
 @njit(nogil=True)
