@@ -165,20 +165,17 @@ def ridge_statistics(smoothed: np.ndarray, *, sigma_px: float, cell_px: int = 4)
     img = smoothed.astype(np.float32, copy=False)
     size = (max(w // cell_px, 1), max(h // cell_px, 1))
     cells = cv2.resize(img, size, interpolation=cv2.INTER_AREA) if cell_px > 1 else img
-    # The variance of the cell means: the ridges' own variance damped by the cells' averaging (~0.9 with cells of
-    # an eighth of a period), the same everywhere, which is all the contact map needs.
-    sq = cv2.multiply(cells, cells)
     sg = float(sigma_px) / cell_px
     k = 2 * int(math.ceil(3.0 * sg)) + 1
-    m = cv2.GaussianBlur(cells, (k, k), sg, borderType=cv2.BORDER_REFLECT)
-    sq = cv2.GaussianBlur(sq, (k, k), sg, borderType=cv2.BORDER_REFLECT)
-    var = cv2.subtract(sq, cv2.multiply(m, m))
-    np.maximum(var, 0.0, out=var)
-    std = cv2.sqrt(var)
+    m1 = cv2.GaussianBlur(cells, (k, k), sg, borderType=cv2.BORDER_REFLECT)
     # Twicing (Tukey): the mean of what the first mean left. A Gaussian mean lags where the brightness curves
     # (across a band of partial contact: ~0.16 of the band's depth at its centre with the valleyL surface); the
     # second pass removes that bias to the next order while the ridge frequency stays damped ~70 times.
-    m = m + cv2.GaussianBlur(cells - m, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    m = m1 + cv2.GaussianBlur(cells - m1, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    # The local standard deviation about the first mean (the contact map compares it with the mean).
+    var = cv2.subtract(cv2.GaussianBlur(cells * cells, (k, k), sg, borderType=cv2.BORDER_REFLECT), m1 * m1)
+    np.maximum(var, 0.0, out=var)
+    std = cv2.sqrt(var)
     if cell_px > 1:
         # Cell centres sit at (i + 0.5) * cell - 0.5 in full-resolution pixels: cv2.resize's own convention.
         full = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
