@@ -504,7 +504,7 @@ class FeatureExtractor:
                 # has no window of its own: it is located on its ridge instead (locate_pores_on_ridges; valleyL
                 # RMSE of these pores 0.8 -> 0.5 px in the band of partial contact, 0.30 -> 0.12 px elsewhere).
                 i = idx[~blob]
-                x[i], y[i], _ = locate_pores_on_ridges(s, threshold=thr, x=x[i], y=y[i], flow=flow,
+                x[i], y[i], _ = locate_pores_on_ridges(excess, x=x[i], y=y[i], flow=flow,
                                                        half_period_px=q.ridge_sigma, along_px=q.pore_along)
         ends = kind == FeatureKind.VALLEY_ENDING
         bifs = kind == FeatureKind.VALLEY_BIFURCATION

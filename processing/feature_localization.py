@@ -143,14 +143,12 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _ridge_pores(img, thr, xs, ys, fc2, fs2, fcell, half_period, along, iterations):  # pragma: no cover - compiled
+def _ridge_pores(img, xs, ys, fc2, fs2, fcell, half_period, along, iterations):  # pragma: no cover - compiled
     """See :func:`locate_pores_on_ridges`."""
     n = xs.size
     ox = xs.copy()
     oy = ys.copy()
     ok = np.zeros(n, np.bool_)
-    n_across = int(half_period / 0.5)
-    n_along = int(along / 0.5)
     for k in range(n):
         c2, s2 = flow_normal_at(fc2, fs2, fcell, xs[k], ys[k])
         if c2 == 0 and s2 == 0:
@@ -164,50 +162,21 @@ def _ridge_pores(img, thr, xs, ys, fc2, fs2, fcell, half_period, along, iteratio
         cy = ys[k]
         good = True
         for _ in range(iterations):
-            # Across: the dark ridge's centre of mass on profiles along the normal, beside the pore on both sides.
-            off = 0.0
-            m = 0
-            for side in (-1.0, 1.0):
-                px = cx + side * along * tx
-                py = cy + side * along * ty
-                sw = 0.0
-                sd = 0.0
-                for j in range(-n_across, n_across + 1):
-                    qx = px + 0.5 * j * nx
-                    qy = py + 0.5 * j * ny
-                    v = _bilinear(thr, qx, qy) - _bilinear(img, qx, qy)
-                    if not v == v:
-                        sw = 0.0
-                        break
-                    if v > 0:
-                        sw += v
-                        sd += v * 0.5 * j
-                if sw > 0:
-                    off += sd / sw
-                    m += 1
-            if m < 2:
+            # Across: the dark ridge's centre on profiles along the normal, beside the pore on both sides.
+            before = _across_peak(img, cx - along * tx, cy - along * ty, nx, ny, -1.0, half_period)
+            after = _across_peak(img, cx + along * tx, cy + along * ty, nx, ny, -1.0, half_period)
+            if not (before == before and after == after):
                 good = False
                 break
-            cx += 0.5 * off * nx
-            cy += 0.5 * off * ny
+            cx += 0.5 * (before + after) * nx
+            cy += 0.5 * (before + after) * ny
             # Along: the pore's bright excess on the ridge's centre line.
-            sw = 0.0
-            sd = 0.0
-            for j in range(-n_along, n_along + 1):
-                qx = cx + 0.5 * j * tx
-                qy = cy + 0.5 * j * ty
-                v = _bilinear(img, qx, qy) - _bilinear(thr, qx, qy)
-                if not v == v:
-                    sw = 0.0
-                    break
-                if v > 0:
-                    sw += v
-                    sd += v * 0.5 * j
-            if sw <= 0:
+            shift = _across_peak(img, cx, cy, tx, ty, 1.0, along)
+            if not shift == shift:
                 good = False
                 break
-            cx += sd / sw * tx
-            cy += sd / sw * ty
+            cx += shift * tx
+            cy += shift * ty
             if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > half_period * half_period:
                 good = False
                 break
@@ -219,9 +188,8 @@ def _ridge_pores(img, thr, xs, ys, fc2, fs2, fcell, half_period, along, iteratio
 
 
 def locate_pores_on_ridges(
-    image: np.ndarray,
+    excess: np.ndarray,
     *,
-    threshold: np.ndarray,
     x: np.ndarray,
     y: np.ndarray,
     flow: RidgeFlow,
@@ -234,23 +202,27 @@ def locate_pores_on_ridges(
     A pore opens on a ridge's centre line (FACTS). When it touches a valley its bright pixels join the valley's
     and no window around it holds the pore alone, so the two coordinates are taken where the valley cannot enter:
 
-    1. across the ridge, the centre of mass of the ridge's darkness (``threshold - image`` > 0) on two profiles along
-       the ridges' normal (``flow``), ``along_px`` before and after the pore along the ridge, within
+    1. across the ridge, the centre of mass of the ridge's darkness (``-excess`` > 0) on two profiles along the
+       ridges' normal (``flow``), ``along_px`` before and after the pore along the ridge, within
        ``half_period_px``; the pore is put half-way between the two centres;
-    2. along the ridge, the centre of mass of the pore's excess (``image - threshold`` > 0) on the centre line,
-       within ``along_px``.
+    2. along the ridge, the centre of mass of the pore's excess (> 0) on the centre line, within ``along_px``.
 
     Both are repeated ``iterations`` times. A pore whose profiles find no ridge, or that moves more than
     ``half_period_px``, is left where it was (``refined`` False).
+
+    Parameters
+    ----------
+    excess : (H, W) float32
+        The frame minus the binarization threshold (valleys and pores > 0).
     """
-    img, thr, x, y = _check(image, threshold, x, y, half_period_px)
+    img, _, x, y = _check(excess, excess, x, y, half_period_px)
     if not isinstance(flow, RidgeFlow):
         raise InvalidInputError(f"flow must be a RidgeFlow, got {type(flow).__name__}")
     if not (np.isfinite(along_px) and along_px > 0):
         raise InvalidInputError(f"along_px must be positive, got {along_px!r}")
     if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
         raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
-    return _ridge_pores(img, thr, x, y, flow.cos2, flow.sin2, flow.cell_px, float(half_period_px), float(along_px),
+    return _ridge_pores(img, x, y, flow.cos2, flow.sin2, flow.cell_px, float(half_period_px), float(along_px),
                         int(iterations))
 
 

@@ -181,8 +181,7 @@ def test_a_pore_touching_a_valley_is_located_on_its_ridge():
     img = 128 - 60 * np.cos(2 * np.pi * (yy - 40.0) / 27.0)
     img = np.maximum(img, 188 * np.exp(-((xx - 100.3) ** 2 + (yy - 40.4) ** 2) / (2 * 3.5**2)))
     flow = uniform_ridge_flow((h, w), ridge_angle_deg=0.0)
-    thr = np.full((h, w), 128.0, np.float32)
-    x, y, ok = locate_pores_on_ridges(img.astype(np.float32), threshold=thr, x=np.array([99.0]), y=np.array([37.0]),
+    x, y, ok = locate_pores_on_ridges((img - 128.0).astype(np.float32), x=np.array([99.0]), y=np.array([37.0]),
                                       flow=flow, half_period_px=13.5, along_px=6.0)
     assert ok[0] and abs(x[0] - 100.3) < 0.15 and abs(y[0] - 40.0) < 0.15  # across: the ridge's centre line
     assert FeatureKind.PORE == 2  # the kind the extractor gives them

@@ -283,19 +283,7 @@ def _score_group(kinds, truth, per_frame, frames, radius) -> KindScore:
     )
 
 
-def evaluate_features(
-    features: np.ndarray,
-    truth: SessionTruth,
-    *,
-    image_shape: tuple[int, int],
-    px_per_mm: float | None = None,
-    match_radius_px: float | None = None,
-    border_mm: float = BORDER_MM,
-    frames: list[int] | None = None,
-) -> dict:
-    """:func:`score_features` as a JSON-ready dictionary (``FeatureScores.to_dict()``): what ``skinstretch
-    evaluate`` prints."""
-    return score_features(
-        features, truth, image_shape=image_shape, px_per_mm=px_per_mm, match_radius_px=match_radius_px,
-        border_mm=border_mm, frames=frames,
-    ).to_dict()
+def evaluate_features(features: np.ndarray, truth: SessionTruth, **options) -> dict:
+    """:func:`score_features` (same arguments) as a JSON-ready dictionary (``FeatureScores.to_dict()``): what
+    ``skinstretch evaluate`` prints."""
+    return score_features(features, truth, **options).to_dict()
