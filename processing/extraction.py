@@ -252,6 +252,7 @@ class _Plan:
     ridge_sigma: float
     cell: int
     flow_sigma: float
+    min_glass: float
     fork_reach: float
 
     @classmethod
@@ -290,6 +291,8 @@ class _Plan:
             ridge_sigma=cal.px(p.ridge_period_mm) / 2,
             cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
             flow_sigma=cal.px(p.ridge_period_mm),
+            # Bare glass inside the image spans more than two ridge periods (contact_map).
+            min_glass=cal.px(2 * p.ridge_period_mm),
             # The thinning's fork lies within a quarter ridge period of the widest place of the valleys' crotch.
             fork_reach=max(cal.px(p.ridge_period_mm / 4), 2.0),
         )
@@ -409,7 +412,8 @@ class FeatureExtractor:
         s = flatten_light(s, cell_px=q.cell, window_px=2 * q.ridge_sigma, sigma_px=q.ridge_sigma)
         stats = ridge_statistics(s, sigma_px=q.ridge_sigma, cell_px=q.cell)  # 4.2 at the ridge scale
         avg = stats.mean
-        background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact)  # 4.3
+        background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact,  # 4.3
+                                    min_extent_px=q.min_glass)
         if q.bg_dilation > 0:
             d = 2 * q.bg_dilation + 1
             background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)

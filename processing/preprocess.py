@@ -184,7 +184,7 @@ def ridge_statistics(smoothed: np.ndarray, *, sigma_px: float, cell_px: int = 4)
     return RidgeStatistics(mean=full, cell_image=cells, cell_mean=m, cell_std=std, cell_px=int(cell_px))
 
 
-def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: float,
+def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: float, min_extent_px: float = 0.0,
                 texture_floor: float = 0.1, reference_percentile: float = 90.0) -> tuple[np.ndarray, float]:
     """Where the skin touches the glass: contact fraction from the local contrast, and the background mask.
 
@@ -195,7 +195,11 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     depend on vignetting, the slope's darkening or the exposure. ``valley`` and ``ridge`` are taken as mean +/-
     sqrt(2) std (a sinusoid's envelope) at the ridge scale, and full contact's ``kappa`` is the frame's
     ``reference_percentile``-th percentile over the textured cells (``kappa > texture_floor``; the bare glass
-    gives ~0.05). Cells with ``c < min_contact`` are background.
+    gives ~0.05). Cells with ``c < min_contact`` are background, except an island of them inside the image
+    narrower than ``min_extent_px`` on both axes: bare glass is the outside of the fingertip, or a band of the
+    surface that the skin does not reach, and either reaches far; a small island is skin whose pattern has few
+    ridges there (a wide valley round a minutia, in partial contact), and calling it background would delete the
+    minutia that makes it.
 
     Returns
     -------
@@ -212,11 +216,28 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     if textured.size == 0:
         return np.ones((h, w), dtype=bool), float("nan")
     reference = float(np.percentile(textured, reference_percentile))
+    threshold = min_contact * reference
+    islands = None
+    if min_extent_px > 0:
+        cell = (h / kappa.shape[0] + w / kappa.shape[1]) / 2
+        low = cv2.compare(kappa, threshold, cv2.CMP_LT)
+        n, labels, box, _ = cv2.connectedComponentsWithStats(low, connectivity=4)
+        bh, bw = kappa.shape
+        x0, y0, bx, by = box[:, 0], box[:, 1], box[:, 2], box[:, 3]
+        small = (np.maximum(bx, by) * cell < min_extent_px) & (x0 > 0) & (y0 > 0) & (x0 + bx < bw) & (y0 + by < bh)
+        small[0] = False  # label 0: the contact
+        if small.any():
+            islands = cv2.dilate(small[labels].view(np.uint8), np.ones((3, 3), np.uint8))  # and their rim cells
     if kappa.shape != (h, w):
         # Thresholded after a bilinear upsampling: the outline moves smoothly with the image instead of by whole
         # cells (a cell flipping moved the fingertip's outline, and the features near it, by a few pixels).
         kappa = cv2.resize(kappa, (w, h), interpolation=cv2.INTER_LINEAR)
-    return cv2.compare(kappa, min_contact * reference, cv2.CMP_LT).view(bool), reference
+    background = cv2.compare(kappa, threshold, cv2.CMP_LT)
+    if islands is not None:
+        if islands.shape != (h, w):
+            islands = cv2.resize(islands, (w, h), interpolation=cv2.INTER_NEAREST)
+        background[islands > 0] = 0
+    return background.view(bool), reference
 
 
 def flatten_light(smoothed: np.ndarray, *, cell_px: int, window_px: float, sigma_px: float) -> np.ndarray:
