@@ -120,6 +120,23 @@ def test_contact_map_marks_bare_glass_and_keeps_half_contact():
     assert 140 < np.argmax(bg[75]) < 165
 
 
+def test_a_small_island_of_low_contrast_is_skin_a_wide_one_is_glass():
+    # Full contact everywhere except two discs where the contact falls to 0.2: one 0.9 mm across, whose low
+    # contrast shows as a blob 14 px wide (read as skin with few ridges in partial contact, not bare glass), one
+    # 2 mm across.
+    h, w = 240, 400
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    contact = np.ones((h, w))
+    contact[np.hypot(xx - 100, yy - 120) < 28] = 0.2
+    contact[np.hypot(xx - 280, yy - 120) < 62] = 0.2
+    img = (215 + contact * (130 + 75 * _ridges((h, w), angle_deg=90.0) - 215)).astype(np.float32)
+    st = ridge_statistics(img, sigma_px=13.35, cell_px=3)
+    bg, _ = contact_map(st, shape=img.shape, min_contact=0.5, min_extent_px=53.0)
+    assert not bg[120, 100] and bg[120, 280]
+    bg0, _ = contact_map(st, shape=img.shape, min_contact=0.5)
+    assert bg0[120, 100]  # without the rule the small island is background
+
+
 def test_flatten_light_divides_out_a_slope_of_light():
     h, w = 120, 200
     xx = np.mgrid[0:h, 0:w][1].astype(np.float64)
