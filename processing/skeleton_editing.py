@@ -11,6 +11,13 @@ chain of them, as the extraction does. The public functions take and return a
 - :func:`remove_bridges` (4.8.4): a short valley between two bifurcations, roughly perpendicular to both valleys,
   is a pore joining two valleys.
 
+Beyond the seed, given the ridge flow (:mod:`skinstretch.processing.ridge_flow`), a spur or bridge is judged by the
+direction of the ridges around it instead of the valleys at its node, which the same pore (or a minutia nearby)
+bends: it is a pore's when it crosses the ridges more than it follows them (within 45 degrees of their normal). A
+true valley ending near a fork, or the stretch of valley between two facing ridge endings, runs along the ridges
+and stays (flatL bifurcation recall 0.91 -> 0.98 on 20 seeds of 12 frames); a stub of one or two pixels goes
+whatever its direction, and the spur rule repeats until nothing changes.
+
 All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 The results depend on the order of the loops, which is part of the rules: edges and nodes in id order, a pass
 visiting the edges alive when it starts (an edge a merge creates waits for the next pass), sums in the order written.
@@ -614,7 +621,8 @@ def remove_short_spurs(
     longer than ``min_length_px``, a pore is added at its tip. Returns an edited copy.
 
     Beyond the seed: the spur may also leave a crossing of four valleys where a bridge (4.8.4) continues it
-    straight on, the last pore of a row of pores across the ridges (see :func:`remove_bridges`).
+    straight on, the last pore of a row of pores across the ridges (see :func:`remove_bridges`). With ``flow``
+    (a :class:`skinstretch.processing.ridge_flow.RidgeFlow`) the angle test is against the ridges (module doc).
     """
     spurs = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
     return _edited(graph, _n_px(orientation_px), spurs=spurs, flow=flow)
@@ -634,7 +642,8 @@ def remove_bridges(
     A bridge is a valley between two distinct bifurcations of three valleys each, with a length in
     [``min_length_px``, ``max_length_px``] and all four angles with the neighbouring valleys within
     ``max_deviation_deg`` of 90 degrees. It is deleted, a pore is added at its centre of mass and both
-    bifurcations are re-evaluated. Returns an edited copy.
+    bifurcations are re-evaluated. Returns an edited copy. With ``flow`` the angle test is against the ridges
+    (module doc).
 
     Beyond the seed: a row of pores across several ridges, each wide enough to join its two valleys in the binary
     image, makes a chain of bridges that cross each valley at one point, i.e. nodes of four valleys. A bridge may
@@ -659,7 +668,8 @@ def edit_graph(
     """The skeleton rules of seed 4.8.1-4.8.4 in order, on graph arrays edited in place (the extraction's chain).
 
     Each rule runs when its parameters are given: ``short_valley_px`` (:func:`remove_short_valleys`), ``heal`` =
-    (max distance px, max angle deg), ``spurs`` and ``bridges`` = (min length px, max length px, max deviation deg).
+    (max distance px, max angle deg), ``spurs`` and ``bridges`` = (min length px, max length px, max deviation deg);
+    ``flow`` makes the spur and bridge rules judge by the ridge flow (module doc).
     The same result as the public functions in turn, in two compiled calls.
 
     Returns (5, 3) int64 counts of valley endings, valley bifurcations and pores, initially and after each rule (0
