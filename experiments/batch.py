@@ -21,13 +21,18 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from skinstretch.drivers.session_file import open_session
 from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.analysis.parameters import AnalysisParams, analysis_params
+from skinstretch.experiments.runner import TrialAnalysis, analyse_trial
 from skinstretch.processing.errors import InvalidInputError, SkinstretchError
+from skinstretch.progress import progress_bar
+
+log = logging.getLogger(__name__)
 
 __all__ = ["BatchRow", "BatchResult", "analyze_many", "find_sessions", "average_profiles"]
 
@@ -100,15 +105,10 @@ def _describe(path: Path) -> dict[str, str]:
         return {"subject": "?", "surface": "?", "scene": ""}
 
 
-def _task(session: str, outdir: str, method: str, options: dict[str, Any]) -> dict[str, Any]:
-    """One Dask task: analyse, and turn any failure into a value (the batch goes on)."""
-    from skinstretch.experiments.runner import analyse_trial  # noqa: PLC0415 - imported in the worker
-
-    try:
-        out = analyse_trial(session, outdir, method, options)
-        return {"ok": True, **out}
-    except Exception as exc:  # reported per session; a bug in one session must not sink the batch
-        return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+def _task(session: str, outdir: str, method: str, params) -> TrialAnalysis:
+    """One Dask task: analyse on the threads of that worker (no pool of its own); a failure is a value, the batch
+    goes on."""
+    return analyse_trial(session, outdir, method, params)
 
 
 def _out_dir(outdir: Path, session: Path, roots: Sequence[Path]) -> Path:
@@ -165,8 +165,8 @@ def analyze_many(
     *,
     scheduler: str | None = None,
     method: str = "features",
-    options: dict[str, Any] | None = None,
-    progress: Callable[[str], None] = logging.getLogger(__name__).info,
+    params: AnalysisParams | dict[str, Any] | None = None,
+    progress: bool = True,
 ) -> BatchResult:
     """Analyse every session of ``paths`` (files or directories) into ``outdir``; summarise across sessions.
 
@@ -181,47 +181,65 @@ def analyze_many(
         ``"synchronous"``: no cluster, one session after the other in this process (small batches, tests).
     method : {"features", "flow"}
         Analysis method.
-    options : dict, optional
-        :class:`skinstretch.experiments.analysis.AnalysisParams` fields.
+    params : AnalysisParams or dict, optional
+        The analysis' parameters (a dict is validated as :class:`AnalysisParams` options). Each session is one
+        task that analyses on the threads of its Dask worker: the batch's parallelism is the cluster's.
+    progress : bool
+        A progress bar over the sessions (with a local or an external scheduler alike); each session's outcome is
+        also logged.
     """
     if method not in ("features", "flow"):
         raise InvalidInputError(f"method must be 'features' or 'flow', got {method!r}")
+    params = analysis_params(params)
+    # A session is one task, measured on the threads of the worker that runs it.
+    params = params.model_copy(update={"execution": params.execution.model_copy(update={"kind": "threads"})})
     t0 = time.perf_counter()
     sessions = find_sessions(paths)
     roots = [Path(p) for p in paths if Path(p).is_dir()]
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     jobs = [(s, _out_dir(outdir, s, roots)) for s in sessions]
-    progress(f"batch: {len(jobs)} sessions, method {method}, scheduler {scheduler or 'local cluster'}")
-    opts = dict(options or {})
-    if scheduler == "synchronous":
-        outcomes = [_task(str(s), str(o), method, opts) for s, o in jobs]
-    else:
-        from dask.distributed import as_completed  # noqa: PLC0415
+    log.info("batch: %d sessions, method %s, scheduler %s", len(jobs), method, scheduler or "local cluster")
+    outcomes: list[TrialAnalysis | None] = [None] * len(jobs)
+    bar = progress_bar(len(jobs), enabled=progress, desc="sessions")
 
-        client, cluster = _client(scheduler)
-        try:
-            futures = {client.submit(_task, str(s), str(o), method, opts, pure=False): k for k, (s, o) in enumerate(jobs)}
-            outcomes = [None] * len(jobs)
-            for fut in as_completed(futures):
-                k = futures[fut]
-                try:
-                    outcomes[k] = fut.result()
-                except Exception as exc:  # a worker died: this session failed, the others go on
-                    outcomes[k] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-                progress(f"batch: {jobs[k][0]}: {'ok' if outcomes[k]['ok'] else 'FAILED ' + outcomes[k]['error']}")
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+    def done(k: int, out: TrialAnalysis) -> None:
+        outcomes[k] = out
+        bar.update(1)
+        log.info("batch: %s: %s", jobs[k][0], "ok" if out.ok else "FAILED " + out.error)
+
+    try:
+        if scheduler == "synchronous":
+            for k, (s, o) in enumerate(jobs):
+                done(k, _task(str(s), str(o), method, params))
+        else:
+            from dask.distributed import as_completed  # noqa: PLC0415
+
+            client, cluster = _client(scheduler)
+            try:
+                futures = {client.submit(_task, str(s), str(o), method, params, pure=False): k
+                           for k, (s, o) in enumerate(jobs)}
+                for fut in as_completed(futures):
+                    k = futures[fut]
+                    try:
+                        out = fut.result()
+                    except Exception as exc:  # a worker died: this session failed, the others go on
+                        out = TrialAnalysis(False, error=f"{type(exc).__name__}: {exc}")
+                    done(k, out)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+    finally:
+        bar.close()
     rows = []
     by_surface: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for (session, _), out in zip(jobs, outcomes):
-        row = BatchRow(session=str(session), status="ok" if out["ok"] else "failed", error=out.get("error", ""),
+        row = BatchRow(session=str(session), status="ok" if out.ok else "failed", error=out.error,
                        **_describe(session))
-        if out["ok"]:
-            row.results = out["results"]
-            row.seconds = float(out["seconds"])
+        if out.ok:
+            row.results = out.results
+            row.seconds = float(out.seconds)
             try:
                 _fill(row, by_surface)
             except (SkinstretchError, OSError, KeyError, ValueError) as exc:
@@ -248,10 +266,10 @@ def analyze_many(
         figure = outdir / "figure94.png"
         fig.savefig(figure, dpi=90, bbox_inches="tight")
     result = BatchResult(rows, outdir, table_csv, table_json, figure, averaged, time.perf_counter() - t0)
-    progress(f"batch: {len(rows) - len(result.failed)}/{len(rows)} sessions analysed in {result.seconds:.1f} s; "
-             f"table {table_csv}")
+    log.info("batch: %d/%d sessions analysed in %.1f s; table %s", len(rows) - len(result.failed), len(rows),
+             result.seconds, table_csv)
     for r in result.failed:
-        progress(f"batch: FAILED {r.session}: {r.error}")
+        log.warning("batch: FAILED %s: %s", r.session, r.error)
     return result
 
 
@@ -260,13 +278,13 @@ def _fill(row: BatchRow, by_surface: dict[str, list]) -> None:
 
     r = read_results(row.results)
     row.n_frames = r.n_frames
-    row.profile_axis = "x" if r.profile_axis == 0 else "y"
-    edges = [s.edges["change"] for s in r.strain.values() if s.span == 1 and s.edges.size]
-    if edges:
-        row.edge_change_p5, row.edge_change_p95 = (float(v) for v in np.percentile(np.concatenate(edges), [5, 95]))
-    change = np.where(r.profile_valid, r.profile_change, np.nan)
+    row.profile_axis = r.profile_axis
+    p5_p95 = r.summary.get("strain_span_1", {}).get("edge_change_p5_p95")
+    if p5_p95:
+        row.edge_change_p5, row.edge_change_p95 = (float(v) for v in p5_p95)
+    change = np.where(r.profile.valid, r.profile.change, np.nan)
     if np.any(np.isfinite(change)):
-        by_surface.setdefault(row.surface, []).append((r.profile_position / r.px_per_mm, change))
+        by_surface.setdefault(row.surface, []).append((r.profile.x / r.px_per_mm, change))
 
 
 def _nan_none(v):

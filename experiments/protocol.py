@@ -21,6 +21,7 @@ from typing import Any, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.experiments.analysis.parameters import AnalysisParams
 from skinstretch.config_file import parse_yaml_model, read_config_text
 from skinstretch.processing.errors import ConfigError
 
@@ -112,12 +113,17 @@ class RecordSpec(_Strict):
 
 
 class AnalysisSpec(_Strict):
-    """What is analysed after each trial (seed chapter 5), in a separate process so acquisition never waits."""
+    """What is analysed after each trial (seed chapter 5), in a separate process so acquisition never waits.
+
+    ``options`` are the analysis' parameters by stage (:class:`skinstretch.experiments.analysis.AnalysisParams`,
+    e.g. ``{strain: {spans: [1, 11]}, tracking: {min_length_frames: 20}, flow: {window_mm: 0.5}}``), checked when
+    the protocol loads: a misspelt or out-of-range option stops it before anything is recorded.
+    """
 
     enabled: bool = True
     when: Literal["after_trial", "later"] = "after_trial"
     method: Literal["features", "flow"] = "features"
-    options: dict[str, Any] = Field(default_factory=dict)
+    options: AnalysisParams = AnalysisParams()
 
 
 class MovieSpec(_Strict):

@@ -256,7 +256,7 @@ def _triangulated_pairs(r, span: int):
     s = r.strain.get(span)
     if s is None:
         raise KeyError(f"no strain at span {span}")
-    ok = np.nonzero(s.pairs["status"] == b"ok")[0]
+    ok = np.nonzero(s.ok)[0]
     if ok.size == 0:
         raise ValueError(f"no frame pair at span {span} gave a triangulation")
     return s, ok
@@ -339,10 +339,10 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
             Quantity("analysis speed", r.timing.get("frames_per_s", float("nan")), "frames/s"),
             Quantity("fingertip travel (x, y)", travel.tolist(), "px"),
             Quantity("fingertip travel (x, y)", (travel / r.px_per_mm).tolist(), "mm"),
-            Quantity("profile axis (sliding direction)", "x" if r.profile_axis == 0 else "y", ""),
+            Quantity("profile axis (sliding direction)", r.profile_axis, ""),
         ]
         if r.trajectories is not None:
-            lengths = r.trajectories["present"].sum(axis=0)
+            lengths = r.trajectories.lengths
             summary.append(Quantity("trajectories", int(lengths.size), ""))
             summary.append(Quantity("median trajectory length", float(np.median(lengths)) if lengths.size else 0.0,
                                     "frames"))
@@ -358,7 +358,7 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
         parts.append(_guard("edge length series", lambda: _edge_series(r, span_long)))
         if r.trajectories is not None:
             parts.append(_guard("trajectory lengths", lambda: _img(
-                fig6.trajectory_length_figure(r.trajectories["present"].sum(axis=0), n_frames=r.n_frames),
+                fig6.trajectory_length_figure(r.trajectories.lengths, n_frames=r.n_frames),
                 "Trajectory length distribution (as seed Figure 70)")))
         scale = 1.0 / r.px_per_mm
         info["profile"] = (r.profile_position * scale, np.where(r.profile_valid, r.profile_change, np.nan))
@@ -375,7 +375,7 @@ def _truth_section(r, session, info: dict[str, Any]) -> str:
     truth = session.truth
     ev = evaluate_tracking(r, truth)
     info["evaluation"] = ev
-    strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
+    strip = float(r.params["strain"]["profile_strip_mm"]) * r.px_per_mm
     _, true_change = profile_correlation(r, TruthField(truth), strip_px=strip)
     info["true_profile"] = (r.profile_position / r.px_per_mm, np.asarray(true_change, float))
     quantities = evaluation_quantities({k: ev[k] for k in ("tracking", "strain", "profile") if k in ev},

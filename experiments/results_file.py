@@ -1,8 +1,12 @@
 """The results of ``skinstretch analyze``: ``OUTDIR/results.h5`` (everything) and ``OUTDIR/summary.json``.
 
 The layout is documented in ``docs/results-format.md``; this module is the only code that reads or writes it.
-Variable-length per-pair data (motion samples, triangulation edges and triangles) are stored as flat tables
-with a ``pair`` column, indexing a per-span ``pairs`` table that carries each pair's status.
+:class:`ResultsWriter` writes a results file while the analysis runs (tables grow as frame pairs are measured, so
+memory does not grow with the session); :func:`read_results` opens one as a :class:`Results`, which reads each
+part when it is first asked for. Variable-length per-pair data (motion samples, triangulation edges and triangles)
+are flat tables with a ``pair`` column indexing a per-span ``pairs`` table that carries each pair's status.
+Every dataset has a ``units`` attribute (a JSON object naming the unit of each column for tables); enum codes
+(pair ``status``, feature ``kind``) have their keys in a ``*_codes`` attribute; image axes are named ``x``/``y``.
 """
 
 from __future__ import annotations
@@ -10,54 +14,88 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
+from enum import IntEnum
+from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator
 
 import h5py
 import numpy as np
 
 from skinstretch.drivers.errors import SessionFileError
+from skinstretch.processing.feature_table import KIND_NAMES
+from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
+from skinstretch.processing.stretch import StretchProfile
+from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
+
+__all__ = [
+    "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
+    "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "Results", "ResultsWriter", "read_results",
+    "AXIS_NAMES",
+]
 
 FORMAT_NAME = "skinstretch-results"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+
+#: Image axes by index: 0 = x (columns), 1 = y (rows).
+AXIS_NAMES = ("x", "y")
+
+
+class PairStatus(IntEnum):
+    """Why a frame pair has (or has not) a measurement; stored as int8 with its keys in ``status_codes``."""
+
+    OK = 0
+    NO_MOTION = 1  # no displacement measured between the two frames
+    TOO_FEW_POINTS = 2  # fewer than 3 distinct matched points
+    COLLINEAR = 3  # the matched points are collinear
+    NO_USABLE_TRIANGLE = 4  # every triangle too thin or too long
+
+    @property
+    def key(self) -> str:
+        return self.name.lower()
+
 
 PAIR_DTYPE = np.dtype(
-    [("frame_a", np.int32), ("frame_b", np.int32), ("n_points", np.int32), ("status", "S96")]
+    [("frame_a", np.int32), ("frame_b", np.int32), ("n_points", np.int32), ("status", np.int8), ("reason", "S96")]
 )
 MOTION_DTYPE = np.dtype(
     [("pair", np.int32), ("id", np.int64), ("x", np.float64), ("y", np.float64), ("dx", np.float64), ("dy", np.float64)]
 )
 EDGE_DTYPE = np.dtype(
-    [
-        ("pair", np.int32),
-        ("id_a", np.int64),
-        ("id_b", np.int64),
-        ("xa", np.float64),
-        ("ya", np.float64),
-        ("xb", np.float64),
-        ("yb", np.float64),
-        ("length", np.float64),
-        ("change", np.float64),
-    ]
+    [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("xa", np.float64), ("ya", np.float64),
+     ("xb", np.float64), ("yb", np.float64), ("length", np.float64), ("change", np.float64)]
 )
 TRIANGLE_DTYPE = np.dtype(
-    [
-        ("pair", np.int32),
-        ("id_a", np.int64),
-        ("id_b", np.int64),
-        ("id_c", np.int64),
-        ("x0", np.float64),
-        ("y0", np.float64),
-        ("x1", np.float64),
-        ("y1", np.float64),
-        ("x2", np.float64),
-        ("y2", np.float64),
-        ("area", np.float64),
-        ("change", np.float64),
-        ("flipped", np.bool_),
-    ]
+    [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("id_c", np.int64), ("x0", np.float64),
+     ("y0", np.float64), ("x1", np.float64), ("y1", np.float64), ("x2", np.float64), ("y2", np.float64),
+     ("area", np.float64), ("change", np.float64), ("flipped", np.bool_)]
 )
+#: One row per kept trajectory.
+TRACK_DTYPE = np.dtype([("track", np.int64), ("kind", np.int8), ("n_frames", np.int32), ("first_frame", np.int32),
+                        ("last_frame", np.int32)])
+
+_PX = "px"
+UNITS: dict[str, Any] = {
+    "frame_flags": "",
+    "pairs": {"frame_a": "frame", "frame_b": "frame", "n_points": "count", "status": "code", "reason": ""},
+    "motion": {"pair": "index", "id": "index", "x": _PX, "y": _PX, "dx": _PX, "dy": _PX},
+    "edges": {"pair": "index", "id_a": "index", "id_b": "index", "xa": _PX, "ya": _PX, "xb": _PX, "yb": _PX,
+              "length": _PX, "change": "fraction"},
+    "triangles": {"pair": "index", "id_a": "index", "id_b": "index", "id_c": "index", "x0": _PX, "y0": _PX,
+                  "x1": _PX, "y1": _PX, "x2": _PX, "y2": _PX, "area": "px^2", "change": "fraction", "flipped": ""},
+    "features": {"id": "index", "frame": "frame", "x": _PX, "y": _PX, "kind": "code", "orientation": "deg",
+                 "orientation_known": "", "quality": "1"},
+    "trajectories": {"frame": "frame", "track": "index", "x": _PX, "y": _PX, "raw_x": _PX, "raw_y": _PX,
+                     "feature_index": "index", "linked": "", "refined": "", "run": "index"},
+    "tracks": {"track": "index", "kind": "code", "n_frames": "frames", "first_frame": "frame", "last_frame": "frame"},
+}
+
+
+def _units_text(units: Any) -> str:
+    return units if isinstance(units, str) else json.dumps(units)
 
 
 @dataclass
@@ -69,170 +107,454 @@ class SpanStrain:
     edges: np.ndarray  # EDGE_DTYPE
     triangles: np.ndarray  # TRIANGLE_DTYPE
 
-
-@dataclass
-class Results:
-    """Everything ``analyze`` produces for one session. Arrays absent for a method are ``None``."""
-
-    method: str
-    session_path: str
-    n_frames: int
-    image_shape: tuple[int, int]
-    px_per_mm: float
-    coordinates: str  # "image" or "rectified" (positions are mapping(mm) * px_per_mm)
-    frame_flags: list[str]  # per frame: "" or why it gave nothing (extraction flags, flow status)
-    motion_pairs: np.ndarray  # PAIR_DTYPE, consecutive pairs
-    motion: np.ndarray  # MOTION_DTYPE
-    fingertip_displacement: np.ndarray  # (N-1, 2)
-    fingertip_valid: np.ndarray  # (N-1,)
-    fingertip_position: np.ndarray  # (N, 2)
-    window: dict[str, Any]  # x0, y0, x1, y1 or {"status": why none}
-    window_centers: np.ndarray | None  # (N, 2)
-    strain: dict[int, SpanStrain]
-    profile_axis: int
-    profile_position: np.ndarray
-    profile_change: np.ndarray
-    profile_valid: np.ndarray
-    tactile_positions_um: np.ndarray | None
-    tactile_reset: np.ndarray | None
-    tactile_clipped: np.ndarray | None
-    tactile_stretch_change: np.ndarray | None
-    timing: dict[str, float]
-    params: dict[str, Any]
-    versions: dict[str, str]
-    features: np.ndarray | None = None
-    trajectories: dict[str, np.ndarray] | None = None
-    flow_grid_x: np.ndarray | None = None
-    flow_grid_y: np.ndarray | None = None
-    flow_displacement: np.ndarray | None = None
-    flow_valid: np.ndarray | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    @property
+    def ok(self) -> np.ndarray:
+        """Pairs that gave a triangulation."""
+        return self.pairs["status"] == PairStatus.OK
 
 
-def write_results(path: str | os.PathLike, r: Results) -> Path:
-    """Write ``r`` to ``path`` (atomically: a temporary file renamed when complete)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".partial")
-    with h5py.File(tmp, "w") as f:
+@dataclass(frozen=True)
+class TactileMovieTable:
+    """The tactile movie as stored (seed 5.4): see :class:`skinstretch.processing.display_mapping.TactileMovie`."""
+
+    positions_um: np.ndarray  # (N, C, C) float32
+    reset: np.ndarray  # (N, C, C) bool
+    clipped: np.ndarray  # (N, C, C) bool
+    stretch_change: np.ndarray  # (N, C, C-1) float32
+    motion_axis: str  # "x" or "y"
+
+
+@dataclass(frozen=True)
+class FlowResults:
+    """The dense method's grid and fields: ``displacement`` (N-1, GY, GX, 2) float32 px, 0 where not ``valid``."""
+
+    grid_x: np.ndarray
+    grid_y: np.ndarray
+    displacement: np.ndarray
+    valid: np.ndarray
+
+
+# ----------------------------------------------------------------------------------------------------- writing
+
+
+class ResultsWriter:
+    """Write a results file as the analysis runs: tables are appended pair by pair, arrays written once known.
+
+    ``path`` None writes into memory (an HDF5 file image, for analyses of frames held in memory); otherwise the file
+    is written as ``path.partial`` and renamed by :meth:`finish` (a failed analysis leaves no results file).
+    """
+
+    def __init__(self, path: str | os.PathLike | None) -> None:
+        self.path = None if path is None else Path(path)
+        if self.path is None:
+            self._tmp = None
+            self._f = h5py.File(f"results-{id(self)}-{time.monotonic_ns()}.h5", "w", driver="core",
+                                backing_store=False)
+        else:
+            self._tmp = self.path.with_name(self.path.name + ".partial")
+            self._f = h5py.File(self._tmp, "w")
+        f = self._f
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["created_unix"] = time.time()
-        f.attrs["method"] = r.method
-        f.attrs["session_path"] = r.session_path
-        f.attrs["n_frames"] = r.n_frames
-        f.attrs["image_shape"] = np.asarray(r.image_shape, dtype=np.int64)
-        f.attrs["px_per_mm"] = r.px_per_mm
-        f.attrs["coordinates"] = r.coordinates
-        f.attrs["timing_json"] = json.dumps(r.timing)
-        f.attrs["params_json"] = json.dumps(r.params, default=str)
-        f.attrs["versions_json"] = json.dumps(r.versions)
-        f.attrs["window_json"] = json.dumps(r.window)
-        f.attrs["extra_json"] = json.dumps(r.extra, default=str)
-        f.create_dataset("frame_flags", data=np.array([s.encode() for s in r.frame_flags], dtype="S128"))
-        f.create_dataset("motion_pairs", data=r.motion_pairs)
-        f.create_dataset("motion", data=r.motion, compression="gzip", compression_opts=1)
-        g = f.create_group("fingertip")
-        g["displacement"] = r.fingertip_displacement
-        g["valid"] = r.fingertip_valid
-        g["position"] = r.fingertip_position
-        if r.window_centers is not None:
-            f["window_centers"] = r.window_centers
-        sg = f.create_group("strain")
-        for span, s in sorted(r.strain.items()):
-            h = sg.create_group(f"span_{span}")
-            h.attrs["span"] = span
-            h.create_dataset("pairs", data=s.pairs)
-            h.create_dataset("edges", data=s.edges, compression="gzip", compression_opts=1)
-            h.create_dataset("triangles", data=s.triangles, compression="gzip", compression_opts=1)
-        p = f.create_group("profile")
-        p.attrs["axis"] = r.profile_axis
-        p["position"] = r.profile_position
-        p["change"] = r.profile_change
-        p["valid"] = r.profile_valid
-        if r.tactile_positions_um is not None:
-            t = f.create_group("tactile_movie")
-            t["positions_um"] = r.tactile_positions_um
-            t["reset"] = r.tactile_reset
-            t["clipped"] = r.tactile_clipped
-            t["stretch_change"] = r.tactile_stretch_change
-            t.attrs["motion_axis"] = r.profile_axis
-        if r.features is not None:
-            f.create_dataset("features", data=r.features, compression="gzip", compression_opts=1)
-        if r.trajectories is not None:
-            tg = f.create_group("trajectories")
-            for name, arr in r.trajectories.items():
-                tg.create_dataset(name, data=arr, compression="gzip", compression_opts=1)
-        if r.flow_displacement is not None:
-            fg = f.create_group("flow")
-            fg["grid_x"] = r.flow_grid_x
-            fg["grid_y"] = r.flow_grid_y
-            fg.create_dataset("displacement", data=r.flow_displacement, compression="gzip", compression_opts=1)
-            fg.create_dataset("valid", data=r.flow_valid, compression="gzip", compression_opts=1)
-    os.replace(tmp, path)
-    return path
+        f.attrs["status_codes"] = json.dumps({int(s): s.key for s in PairStatus})
+        f.attrs["kind_codes"] = json.dumps(KIND_NAMES)
+        self._tables: dict[str, h5py.Dataset] = {}
+        self._done = False
+
+    @property
+    def file(self) -> h5py.File:
+        return self._f
+
+    def samples(self) -> StoredSamples:
+        """The motion samples written so far (``motion_pairs`` and ``motion``), read back lazily."""
+        return StoredSamples(lambda: nullcontext(self._f), self._f["motion_pairs"][()])
+
+    def _table(self, name: str, dtype: np.dtype, units: Any, *, compress: bool = True) -> h5py.Dataset:
+        if name not in self._tables:
+            opts = {"compression": "gzip", "compression_opts": 1} if compress else {}
+            ds = self._f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype,
+                                        chunks=(max(1, (1 << 16) // dtype.itemsize),), **opts)
+            ds.attrs["units"] = _units_text(units)
+            if "status" in (dtype.names or ()):
+                ds.attrs["status_codes"] = self._f.attrs["status_codes"]
+            if "kind" in (dtype.names or ()):
+                ds.attrs["kind_codes"] = self._f.attrs["kind_codes"]
+            self._tables[name] = ds
+        return self._tables[name]
+
+    def append(self, name: str, rows: np.ndarray, units: Any) -> None:
+        """Append ``rows`` (a structured array) to the table ``name`` (created on first use)."""
+        ds = self._table(name, rows.dtype, units)
+        n = ds.shape[0]
+        ds.resize((n + rows.shape[0],))
+        step = 1 << 16  # a block at a time: h5py converts a compound selection through a buffer of its size
+        for i in range(0, rows.shape[0], step):
+            ds[n + i : n + min(i + step, rows.shape[0])] = rows[i : i + step]
+
+    def array(self, name: str, data: np.ndarray, units: str, *, columns: Sequence[str] | None = None,
+              compress: bool = False, **attrs: Any) -> None:
+        """Write ``data`` as the dataset ``name``; ``columns`` names the last axis (e.g. ``("x", "y")``)."""
+        opts = {"compression": "gzip", "compression_opts": 1} if compress else {}
+        ds = self._f.create_dataset(name, data=data, **opts)
+        ds.attrs["units"] = units
+        if columns is not None:
+            ds.attrs["columns"] = list(columns)
+        for k, v in attrs.items():
+            ds.attrs[k] = v
+
+    def start_flow(self, grid_x: np.ndarray, grid_y: np.ndarray) -> None:
+        g = self._f.require_group("flow")
+        for name, arr in (("grid_x", grid_x), ("grid_y", grid_y)):
+            g[name] = arr
+            g[name].attrs["units"] = _PX
+        gy, gx = grid_y.size, grid_x.size
+        d = g.create_dataset("displacement", shape=(0, gy, gx, 2), maxshape=(None, gy, gx, 2), dtype=np.float32,
+                             chunks=(1, gy, gx, 2), compression="gzip", compression_opts=1)
+        d.attrs["units"] = _PX
+        d.attrs["columns"] = list(AXIS_NAMES)
+        v = g.create_dataset("valid", shape=(0, gy, gx), maxshape=(None, gy, gx), dtype=bool, chunks=(1, gy, gx),
+                             compression="gzip", compression_opts=1)
+        v.attrs["units"] = ""
+
+    def append_flow(self, displacement: np.ndarray, valid: np.ndarray) -> None:
+        """One pair's field: displacement (GY, GX, 2) with NaN where not valid (stored as 0), valid (GY, GX)."""
+        g = self._f["flow"]
+        n = g["displacement"].shape[0]
+        g["displacement"].resize(n + 1, axis=0)
+        g["valid"].resize(n + 1, axis=0)
+        g["displacement"][n] = np.nan_to_num(displacement, nan=0.0).astype(np.float32)
+        g["valid"][n] = valid
+
+    def finish(self, attrs: dict[str, Any]) -> "Results":
+        """Write the root attributes, close (rename) the file and return it opened as :class:`Results`."""
+        for k, v in attrs.items():
+            self._f.attrs[k] = v
+        self._done = True
+        if self.path is None:
+            self._f.flush()
+            return Results(self._f, source_name="(in memory)")
+        self._f.close()
+        os.replace(self._tmp, self.path)
+        return read_results(self.path)
+
+    def abort(self) -> None:
+        """Drop what was written (the analysis failed)."""
+        if self._done:
+            return
+        self._done = True
+        self._f.close()
+        if self._tmp is not None:
+            self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "ResultsWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+
+
+# ----------------------------------------------------------------------------------------------------- reading
+
+
+class StoredSamples(Sequence):
+    """The consecutive-pair motion samples of a results file (its ``motion`` table), read a block at a time, so the
+    derived quantities can be computed from them without holding them all. ``open_file`` gives the open file."""
+
+    def __init__(self, open_file: Callable[[], Any], pairs: np.ndarray, *, block: int = 256) -> None:
+        self._open = open_file
+        self._pairs = pairs
+        self._offsets = np.concatenate([[0], np.cumsum(pairs["n_points"].astype(np.int64))])
+        self._block = int(block)
+        self._cache: tuple[int, list[MotionSample]] | None = None
+
+    def __len__(self) -> int:
+        return int(self._pairs.shape[0])
+
+    def _load(self, b: int) -> list[MotionSample]:
+        if self._cache is not None and self._cache[0] == b:
+            return self._cache[1]
+        lo, hi = b * self._block, min(len(self), (b + 1) * self._block)
+        off, pairs = self._offsets, self._pairs
+        with self._open() as f:
+            rows = f["motion"][int(off[lo]) : int(off[hi])]
+        base = int(off[lo])
+        out = []
+        for i in range(lo, hi):
+            r = rows[int(off[i]) - base : int(off[i + 1]) - base]
+            out.append(MotionSample(int(pairs["frame_a"][i]), int(pairs["frame_b"][i]),
+                                    np.column_stack([r["x"], r["y"]]), np.column_stack([r["dx"], r["dy"]]),
+                                    r["id"].astype(np.int64)))
+        self._cache = (b, out)
+        return out
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = int(k) + (len(self) if int(k) < 0 else 0)
+        if not 0 <= k < len(self):
+            raise IndexError(f"pair {k} out of range for {len(self)} pairs")
+        return self._load(k // self._block)[k % self._block]
+
+    def __iter__(self) -> Iterator[MotionSample]:
+        for b in range(0, -(-len(self) // self._block)):
+            yield from self._load(b)
+
+
+class Results:
+    """One analysis' results (``docs/results-format.md``), read from the file part by part as they are used.
+
+    Scalars and small arrays are read when opened; tables (motion, strain, features, trajectories, flow fields) on
+    first use, then kept. :meth:`samples` iterates the consecutive-pair motion without loading it all.
+    """
+
+    def __init__(self, source: str | os.PathLike | h5py.File, *, source_name: str | None = None) -> None:
+        if isinstance(source, h5py.File):
+            self._file: h5py.File | None = source
+            self.path = Path(source_name or "(in memory)")
+        else:
+            self._file = None
+            self.path = Path(source)
+        with self.open() as f:
+            self._check(f)
+            a = f.attrs
+            self.method = str(a["method"])
+            self.session_path = str(a["session_path"])
+            self.n_frames = int(a["n_frames"])
+            self.image_shape = tuple(int(v) for v in a["image_shape"])
+            self.px_per_mm = float(a["px_per_mm"])
+            self.coordinates = str(a["coordinates"])
+            self.timing: dict[str, float] = json.loads(str(a["timing_json"]))
+            self.params: dict[str, Any] = json.loads(str(a["params_json"]))
+            self.versions: dict[str, str] = json.loads(str(a["versions_json"]))
+            self.window: dict[str, Any] = json.loads(str(a["window_json"]))
+            self.summary: dict[str, Any] = json.loads(str(a.get("summary_json", "{}")))
+            self.frame_flags: list[str] = [s.decode() for s in f["frame_flags"][()]]
+            ft = f["fingertip"]
+            self.fingertip = FingertipMotion(ft["displacement"][()], ft["n_points"][()], ft["valid"][()],
+                                             ft["position"][()])
+            p = f["profile"]
+            self.profile_axis: str = str(p.attrs["axis"])
+            self.profile = StretchProfile(p["position"][()], p["change"][()], p["valid"][()])
+            self.spans: tuple[int, ...] = tuple(sorted(int(f["strain"][k].attrs["span"]) for k in f["strain"]))
+            self.has_features = "features" in f
+            self.has_trajectories = "trajectories" in f
+            self.has_flow = "flow" in f
+            self.has_movie = "tactile_movie" in f
+
+    # -- the file
+    @contextmanager
+    def open(self) -> Iterator[h5py.File]:
+        """The underlying HDF5 file, open for reading (in memory, or reopened from the path each time)."""
+        if self._file is not None:
+            with nullcontext(self._file) as f:
+                yield f
+            return
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise SessionFileError(f"{self.path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
+        with f:
+            try:
+                yield f
+            except (KeyError, ValueError, TypeError) as exc:
+                raise SessionFileError(f"{self.path}: results file is missing or has a damaged part ({exc})") from None
+
+    def _check(self, f: h5py.File) -> None:
+        fmt = f.attrs.get("format")
+        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+        if fmt != FORMAT_NAME:
+            raise SessionFileError(f"{self.path}: not a skinstretch results file (format attribute {fmt!r})")
+        version = int(f.attrs.get("format_version", -1))
+        if version != FORMAT_VERSION:
+            raise SessionFileError(f"{self.path}: results format version {version} is not supported (this skinstretch "
+                                   f"reads {FORMAT_VERSION}); analyse the session again with skinstretch analyze")
+        for part in ("frame_flags", "motion_pairs", "motion", "fingertip", "profile", "strain"):
+            if part not in f:
+                raise SessionFileError(f"{self.path}: results file is missing or has a damaged part ({part!r})")
+
+    def _read(self, name: str) -> np.ndarray:
+        with self.open() as f:
+            return f[name][()]
+
+    # -- per pair
+    @cached_property
+    def motion_pairs(self) -> np.ndarray:
+        """PAIR_DTYPE: one row per consecutive pair."""
+        return self._read("motion_pairs")
+
+    @cached_property
+    def motion(self) -> np.ndarray:
+        """MOTION_DTYPE: every measured displacement, ``pair`` indexing :attr:`motion_pairs`."""
+        return self._read("motion")
+
+    def samples(self) -> StoredSamples:
+        """The consecutive-pair motion as :class:`~skinstretch.processing.tracking.MotionSample` s, read lazily."""
+        return StoredSamples(self.open, self.motion_pairs)
+
+    @cached_property
+    def strain(self) -> dict[int, SpanStrain]:
+        """Span -> triangulation strain tables."""
+        out = {}
+        with self.open() as f:
+            for name in f["strain"]:
+                h = f["strain"][name]
+                span = int(h.attrs["span"])
+                out[span] = SpanStrain(span, h["pairs"][()], h["edges"][()], h["triangles"][()])
+        return dict(sorted(out.items()))
+
+    # -- per frame
+    @property
+    def visibility_window(self) -> VisibilityWindow | None:
+        if "x0" not in self.window:
+            return None
+        with self.open() as f:
+            centers = f["window_centers"][()]
+        w = self.window
+        return VisibilityWindow(float(w["x0"]), float(w["y0"]), float(w["x1"]), float(w["y1"]), centers)
+
+    @cached_property
+    def movie(self) -> TactileMovieTable | None:
+        """The tactile movie, or None when the analysis could not make one (``window`` says why)."""
+        if not self.has_movie:
+            return None
+        with self.open() as f:
+            t = f["tactile_movie"]
+            return TactileMovieTable(t["positions_um"][()], t["reset"][()], t["clipped"][()],
+                                     t["stretch_change"][()], str(t.attrs["motion_axis"]))
+
+    @cached_property
+    def features(self) -> np.ndarray | None:
+        """(features method) every extracted feature (FEATURE_DTYPE), or None."""
+        return self._read("features") if self.has_features else None
+
+    @cached_property
+    def trajectories(self) -> Trajectories | None:
+        """(features method) the trajectories as a long table, or None."""
+        if not self.has_trajectories:
+            return None
+        with self.open() as f:
+            rows = f["trajectories"][()]
+            tracks = f["tracks"][()]
+        return Trajectories(n_frames=self.n_frames, rows=rows.astype(TRAJECTORY_DTYPE, copy=False),
+                            kind=tracks["kind"].astype(np.int8))
+
+    @cached_property
+    def tracks(self) -> np.ndarray | None:
+        """(features method) TRACK_DTYPE: kind, length, first and last frame of each trajectory, or None."""
+        return self._read("tracks") if self.has_trajectories else None
+
+    @cached_property
+    def flow(self) -> FlowResults | None:
+        """(flow method) the grid and every pair's field, or None."""
+        if not self.has_flow:
+            return None
+        with self.open() as f:
+            g = f["flow"]
+            return FlowResults(g["grid_x"][()], g["grid_y"][()], g["displacement"][()], g["valid"][()])
+
+    # -- flat shortcuts (report, playback)
+    @property
+    def fingertip_displacement(self) -> np.ndarray:
+        return self.fingertip.displacement
+
+    @property
+    def fingertip_valid(self) -> np.ndarray:
+        return self.fingertip.valid
+
+    @property
+    def fingertip_position(self) -> np.ndarray:
+        return self.fingertip.position
+
+    @property
+    def profile_position(self) -> np.ndarray:
+        return self.profile.x
+
+    @property
+    def profile_change(self) -> np.ndarray:
+        return self.profile.change
+
+    @property
+    def profile_valid(self) -> np.ndarray:
+        return self.profile.valid
+
+    @property
+    def profile_axis_index(self) -> int:
+        """0 (image x) or 1 (image y): :attr:`profile_axis` as an array index."""
+        return AXIS_NAMES.index(self.profile_axis)
+
+    @property
+    def tactile_positions_um(self) -> np.ndarray | None:
+        return None if self.movie is None else self.movie.positions_um
+
+    @property
+    def tactile_reset(self) -> np.ndarray | None:
+        return None if self.movie is None else self.movie.reset
+
+    @property
+    def tactile_clipped(self) -> np.ndarray | None:
+        return None if self.movie is None else self.movie.clipped
+
+    @property
+    def tactile_stretch_change(self) -> np.ndarray | None:
+        return None if self.movie is None else self.movie.stretch_change
+
+    # -- tables for users
+    def to_dataframe(self, part: str, *, span: int = 1):
+        """A pandas DataFrame of one part: ``"trajectories"``, ``"motion"``, ``"strain"`` (edges of ``span``),
+        ``"triangles"`` (of ``span``), ``"profile"``, ``"fingertip"`` or ``"features"``."""
+        import pandas as pd  # noqa: PLC0415 - only for users who ask for DataFrames
+
+        if part == "trajectories":
+            if self.trajectories is None:
+                raise SessionFileError(f"{self.path}: {self.method} results have no trajectories")
+            return pd.DataFrame(self.trajectories.rows)
+        if part == "motion":
+            return pd.DataFrame(self.motion)
+        if part in ("strain", "triangles"):
+            if span not in self.strain:
+                raise SessionFileError(f"{self.path}: no strain at span {span} (spans {list(self.strain)})")
+            s = self.strain[span]
+            table = pd.DataFrame(s.edges if part == "strain" else s.triangles)
+            pairs = pd.DataFrame({"pair": np.arange(s.pairs.size), "frame_a": s.pairs["frame_a"],
+                                  "frame_b": s.pairs["frame_b"]})
+            return table.merge(pairs, on="pair", how="left")
+        if part == "profile":
+            return pd.DataFrame({f"position_{self.profile_axis}_px": self.profile.x, "change": self.profile.change,
+                                 "valid": self.profile.valid})
+        if part == "fingertip":
+            d, p = self.fingertip.displacement, self.fingertip.position
+            return pd.DataFrame({"frame": np.arange(self.n_frames), "x": p[:, 0], "y": p[:, 1],
+                                 "dx_to_next": np.append(d[:, 0], np.nan), "dy_to_next": np.append(d[:, 1], np.nan),
+                                 "valid_to_next": np.append(self.fingertip.valid, False)})
+        if part == "features":
+            if self.features is None:
+                raise SessionFileError(f"{self.path}: {self.method} results have no features")
+            return pd.DataFrame(self.features)
+        raise SessionFileError(f"unknown results part {part!r} (trajectories, motion, strain, triangles, profile, "
+                               "fingertip, features)")
+
+    def __repr__(self) -> str:
+        return f"Results({str(self.path)!r}, method={self.method}, frames={self.n_frames})"
 
 
 def read_results(path: str | os.PathLike) -> Results:
-    """Read a results file, or raise SessionFileError saying why it cannot be read."""
+    """Open a results file (or an analysis directory holding ``results.h5``), or raise SessionFileError saying why
+    it cannot be read."""
     path = Path(path)
     if path.is_dir():
         path = path / "results.h5"
     if not path.exists():
         raise SessionFileError(f"{path}: no such results file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
-    with f:
-        fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        if fmt != FORMAT_NAME:
-            raise SessionFileError(f"{path}: not a skinstretch results file (format attribute {fmt!r})")
-        if int(f.attrs.get("format_version", -1)) != FORMAT_VERSION:
-            raise SessionFileError(f"{path}: results format version {f.attrs.get('format_version')} is not supported")
-        try:
-            strain = {}
-            for name in f["strain"]:
-                h = f["strain"][name]
-                span = int(h.attrs["span"])
-                strain[span] = SpanStrain(span, h["pairs"][()], h["edges"][()], h["triangles"][()])
-            tm = f.get("tactile_movie")
-            fg = f.get("flow")
-            tg = f.get("trajectories")
-            return Results(
-                method=str(f.attrs["method"]),
-                session_path=str(f.attrs["session_path"]),
-                n_frames=int(f.attrs["n_frames"]),
-                image_shape=tuple(int(v) for v in f.attrs["image_shape"]),
-                px_per_mm=float(f.attrs["px_per_mm"]),
-                coordinates=str(f.attrs["coordinates"]),
-                frame_flags=[s.decode() for s in f["frame_flags"][()]],
-                motion_pairs=f["motion_pairs"][()],
-                motion=f["motion"][()],
-                fingertip_displacement=f["fingertip/displacement"][()],
-                fingertip_valid=f["fingertip/valid"][()],
-                fingertip_position=f["fingertip/position"][()],
-                window=json.loads(str(f.attrs["window_json"])),
-                window_centers=f["window_centers"][()] if "window_centers" in f else None,
-                strain=strain,
-                profile_axis=int(f["profile"].attrs["axis"]),
-                profile_position=f["profile/position"][()],
-                profile_change=f["profile/change"][()],
-                profile_valid=f["profile/valid"][()],
-                tactile_positions_um=tm["positions_um"][()] if tm is not None else None,
-                tactile_reset=tm["reset"][()] if tm is not None else None,
-                tactile_clipped=tm["clipped"][()] if tm is not None else None,
-                tactile_stretch_change=tm["stretch_change"][()] if tm is not None else None,
-                timing=json.loads(str(f.attrs["timing_json"])),
-                params=json.loads(str(f.attrs["params_json"])),
-                versions=json.loads(str(f.attrs["versions_json"])),
-                features=f["features"][()] if "features" in f else None,
-                trajectories={k: tg[k][()] for k in tg} if tg is not None else None,
-                flow_grid_x=fg["grid_x"][()] if fg is not None else None,
-                flow_grid_y=fg["grid_y"][()] if fg is not None else None,
-                flow_displacement=fg["displacement"][()] if fg is not None else None,
-                flow_valid=fg["valid"][()] if fg is not None else None,
-                extra=json.loads(str(f.attrs.get("extra_json", "{}"))),
-            )
-        except (KeyError, ValueError, TypeError, OSError) as exc:
-            raise SessionFileError(f"{path}: results file is missing or has a damaged part ({exc})") from None
+    return Results(path)
+
+
+def pair_rows(frame_a: Sequence[int], frame_b: Sequence[int], n_points: Sequence[int], status: Sequence[int],
+              reasons: Sequence[str]) -> np.ndarray:
+    """A PAIR_DTYPE table."""
+    out = np.zeros(len(frame_a), dtype=PAIR_DTYPE)
+    out["frame_a"], out["frame_b"], out["n_points"], out["status"] = frame_a, frame_b, n_points, status
+    out["reason"] = [r.encode()[:96] for r in reasons]
+    return out
+

@@ -56,6 +56,8 @@ from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
 from skinstretch.experiments.skin_mapping_step import store_calibration
 from skinstretch.experiments.recorder import Recorder, RecorderStats
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "EventLog",
     "TrialResult",
@@ -169,17 +171,34 @@ def session_dir(protocol: Protocol, datadir: str | os.PathLike) -> Path:
 # ----------------------------------------------------------------------------------------------- analysis
 
 
-def analyse_trial(session_path: str, outdir: str, method: str, options: Mapping[str, Any]) -> dict[str, Any]:
-    """Analyse one recorded trial (runs in a worker process); returns a JSON-able summary.
+@dataclass(frozen=True)
+class TrialAnalysis:
+    """How the analysis of one trial went: its results file, or a one-line reason why it failed."""
+
+    ok: bool
+    results: str = ""
+    seconds: float = 0.0
+    error: str = ""
+
+
+def analyse_trial(session_path: str, outdir: str, method: str, options: Any = None) -> TrialAnalysis:
+    """Analyse one recorded trial (runs in a worker process, on threads of it); never raises: a failure comes back
+    as a one-line reason (a SkinstretchError's message; anything else with its exception type).
 
     Imports :mod:`skinstretch.experiments.analysis` here, in the worker, so the recording process never pays for it.
     """
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - worker-side import
+    from skinstretch.experiments.analysis import analysis_params, analyze_session  # noqa: PLC0415 - worker-side
 
     t0 = time.perf_counter()
-    params = AnalysisParams(**dict(options)) if options else None
-    result = analyze_session(session_path, outdir, method=method, params=params)
-    return {"results": str(result), "seconds": time.perf_counter() - t0}
+    try:
+        result = analyze_session(session_path, outdir, method=method, params=analysis_params(options))
+    except SkinstretchError as exc:
+        return TrialAnalysis(False, seconds=time.perf_counter() - t0, error=" ".join(str(exc).split()))
+    except Exception as exc:  # noqa: BLE001 - a bug must not sink the recording; reported in one line
+        log.exception("analysis of %s failed", session_path)
+        return TrialAnalysis(False, seconds=time.perf_counter() - t0,
+                             error=f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+    return TrialAnalysis(True, str(result.path), time.perf_counter() - t0)
 
 
 def _spawn_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
@@ -688,10 +707,13 @@ def run_protocol(
             for result, fut, run_uid in pending:
                 try:
                     out = fut.result()
-                    result.analysis = Path(out["results"])
-                    progress(f"analysis of {result.trial}: done in {out['seconds']:.1f} s -> {result.analysis}")
-                except Exception as exc:  # the worker's failure is reported, never raised into the recording
-                    result.analysis_error = f"{type(exc).__name__}: {exc}"
+                except Exception as exc:  # the worker process died: reported, never raised into the recording
+                    out = TrialAnalysis(False, error=f"analysis process failed: {type(exc).__name__}: {exc}")
+                if out.ok:
+                    result.analysis = Path(out.results)
+                    progress(f"analysis of {result.trial}: done in {out.seconds:.1f} s -> {result.analysis}")
+                else:
+                    result.analysis_error = out.error
                     progress(f"analysis of {result.trial}: FAILED ({result.analysis_error})")
                 log.emit(
                     "event",

@@ -15,12 +15,14 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from pydantic import Field
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.parameters import parameters
 
 
-@dataclass(frozen=True)
+@parameters
 class SubpixelParams:
     """Options of :class:`SubpixelRefiner`, in mm.
 
@@ -44,22 +46,12 @@ class SubpixelParams:
         Largest fraction of a registration window that may be out of contact, in either frame.
     """
 
-    window_mm: float = 0.5
-    max_correction_mm: float = 0.05
-    pyramid_levels: int = 0
-    normalize_sigma_mm: float | None = 0.15
-    min_contrast: float = 8.0
-    max_no_contact_fraction: float = 0.05
-
-    def __post_init__(self) -> None:
-        if not self.window_mm > 0:
-            raise InvalidInputError(f"window_mm must be positive, got {self.window_mm!r}")
-        if not self.max_correction_mm > 0:
-            raise InvalidInputError(f"max_correction_mm must be positive, got {self.max_correction_mm!r}")
-        if not 0 <= int(self.pyramid_levels) <= 5:
-            raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
-        if self.normalize_sigma_mm is not None and not self.normalize_sigma_mm > 0:
-            raise InvalidInputError(f"normalize_sigma_mm must be positive or None, got {self.normalize_sigma_mm!r}")
+    window_mm: float = Field(0.5, gt=0)
+    max_correction_mm: float = Field(0.05, gt=0)
+    pyramid_levels: int = Field(0, ge=0, le=5)
+    normalize_sigma_mm: float | None = Field(0.15, gt=0)
+    min_contrast: float = Field(8.0, ge=0)
+    max_no_contact_fraction: float = Field(0.05, ge=0, le=1)
 
 
 def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:

@@ -20,9 +20,11 @@ from enum import Enum
 from typing import Sequence
 
 import numpy as np
+from pydantic import Field
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.tracking import MotionSample
 
@@ -34,24 +36,14 @@ class HorizontalMapping(Enum):
     ROTATION = "rotation"
 
 
-@dataclass(frozen=True)
+@parameters
 class DisplayMappingParams:
     """Geometry and range of the display, in mm and um (seed 5.4: 10 x 10 contactors at 1 mm, +/-50 um)."""
 
-    contactors: int = 10
-    pitch_mm: float = 1.0
-    range_um: float = 50.0
+    contactors: int = Field(10, ge=2)
+    pitch_mm: float = Field(1.0, gt=0)
+    range_um: float = Field(50.0, gt=0)
     horizontal: HorizontalMapping = HorizontalMapping.PROJECTION
-
-    def __post_init__(self) -> None:
-        if int(self.contactors) < 2:
-            raise InvalidInputError(f"contactors must be >= 2, got {self.contactors!r}")
-        if not self.pitch_mm > 0:
-            raise InvalidInputError(f"pitch_mm must be positive, got {self.pitch_mm!r}")
-        if not self.range_um > 0:
-            raise InvalidInputError(f"range_um must be positive, got {self.range_um!r}")
-        if not isinstance(self.horizontal, HorizontalMapping):
-            raise InvalidInputError(f"horizontal must be a HorizontalMapping, got {self.horizontal!r}")
 
 
 @dataclass(frozen=True)

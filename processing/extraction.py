@@ -39,6 +39,8 @@ from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
+from pydantic import field_validator, model_validator
+
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
 from skinstretch.processing.feature_localization import (
@@ -49,6 +51,7 @@ from skinstretch.processing.feature_localization import (
 )
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores, fill_specks
 from skinstretch.processing.ridge_flow import ridge_flow
@@ -67,7 +70,7 @@ FEATURE_ID_STRIDE = 1_000_000
 STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "density", "border")
 
 
-@dataclass(frozen=True)
+@parameters
 class ExtractionParams:
     """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255.
 
@@ -142,7 +145,16 @@ class ExtractionParams:
     saturated_fraction: float = 0.5
     no_finger_fraction: float = 0.95
 
-    def __post_init__(self) -> None:
+    @field_validator("*", mode="before")
+    @classmethod
+    def _bools_are_bools(cls, v, info):
+        # A switch given as 1 or "yes" is a mistake, not True.
+        if cls.__dataclass_fields__[info.field_name].type in ("bool", bool) and not isinstance(v, (bool, np.bool_)):
+            raise ValueError(f"must be a bool, got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> "ExtractionParams":
         for f in fields(self):
             v = getattr(self, f.name)
             if f.type in ("bool", bool):
@@ -184,6 +196,7 @@ class ExtractionParams:
             raise InvalidInputError(f"black_level must be a grey level in [0, 255], got {self.black_level!r}")
         if not self.min_contact < 1:
             raise InvalidInputError(f"ExtractionParams.min_contact must be below 1, got {self.min_contact!r}")
+        return self
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -33,17 +33,19 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from pydantic import Field, field_validator
 from scipy.ndimage import map_coordinates
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
 from skinstretch.processing.tracking import MotionSample
 
 
-@dataclass(frozen=True)
+@parameters
 class FlowParams:
     """Options of :class:`DenseFlow`, in mm and grey levels.
 
@@ -51,6 +53,8 @@ class FlowParams:
     ----------
     grid_step_mm : float
         Spacing of the measurement grid.
+    window_px : int or None
+        The window's side in pixels (odd, >= 7) instead of ``window_mm`` (None: from ``window_mm``).
     window_mm : float
         Side of the registration window (about two ridge periods). With ``smoothness`` 1.5 it beats 0.6 mm / 1.0
         in edge strain on the seed's scenes (and DeepFlow's, on the same pairs); wider windows do better still
@@ -81,32 +85,26 @@ class FlowParams:
         Local contrast normalisation scale (see :func:`skinstretch.processing.displacement_refinement.local_normalize`).
     """
 
-    grid_step_mm: float = 0.2
-    window_mm: float = 0.8
-    pyramid_levels: int = 2
-    min_contrast: float = 8.0
-    smoothness: float = 1.5
-    refine_iterations: int = 3
-    solver_sweeps: int = 15
-    sor_omega: float = 1.8
-    prior_refits: int = 4
-    max_residual_ratio: float = 3.0
-    clg_levels: int = 0
-    normalize_sigma_mm: float | None = 0.15
+    grid_step_mm: float = Field(0.2, gt=0)
+    window_mm: float = Field(0.8, gt=0)
+    window_px: int | None = Field(None, ge=7)
+    pyramid_levels: int = Field(2, ge=0, le=5)
+    min_contrast: float = Field(8.0, ge=0)
+    smoothness: float = Field(1.5, ge=0)
+    refine_iterations: int = Field(3, ge=1)
+    solver_sweeps: int = Field(15, ge=1)
+    sor_omega: float = Field(1.8, gt=0, lt=2)
+    prior_refits: int = Field(4, ge=1)
+    max_residual_ratio: float = Field(3.0, gt=0)
+    clg_levels: int = Field(0, ge=0, le=5)
+    normalize_sigma_mm: float | None = Field(0.15, gt=0)
 
-    def __post_init__(self) -> None:
-        for name in ("grid_step_mm", "window_mm"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise InvalidInputError(f"{name} must be positive, got {v!r}")
-        if not 0 <= int(self.pyramid_levels) <= 5:
-            raise InvalidInputError(f"pyramid_levels must be in 0..5, got {self.pyramid_levels!r}")
-        if int(self.prior_refits) < 1:
-            raise InvalidInputError(f"prior_refits must be >= 1, got {self.prior_refits!r}")
-        if not 0 < self.sor_omega < 2:
-            raise InvalidInputError(f"sor_omega must be in (0, 2), got {self.sor_omega!r}")
-        if not self.min_contrast >= 0:
-            raise InvalidInputError(f"min_contrast must be >= 0, got {self.min_contrast!r}")
+    @field_validator("window_px")
+    @classmethod
+    def _odd_window(cls, v: int | None) -> int | None:
+        if v is not None and v % 2 == 0:
+            raise ValueError(f"must be odd (a window centred on its node), got {v}")
+        return v
 
 
 @dataclass(frozen=True)
@@ -213,7 +211,7 @@ class DenseFlow:
         self.params = params or FlowParams()
         self.calibration = calibration
         self._step = max(2, calibration.px_int(self.params.grid_step_mm))
-        self._win = calibration.odd_px(self.params.window_mm, minimum=7)
+        self._win = self.params.window_px or calibration.odd_px(self.params.window_mm, minimum=7)
         self._estimator = GlobalMotionEstimator()
 
     def grid(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

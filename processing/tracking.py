@@ -22,15 +22,17 @@ from functools import cached_property
 
 import numba
 import numpy as np
+from pydantic import Field
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.parameters import parameters
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 
 
-@dataclass(frozen=True)
+@parameters
 class TrackingParams:
     """Options of feature matching and trajectory building (seed 5.1), in mm and frames.
 
@@ -38,8 +40,9 @@ class TrackingParams:
     ----------
     search_radius_mm : float
         Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
-    min_length_frames : int
-        Trajectories present in fewer frames are rejected (seed 5.1.2: 30).
+    min_length_frames : int or None
+        Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30 here; the analysis uses half
+        of a clip shorter than 30 frames instead (:func:`min_length_for_clip`) and says so.
     smoothing_radius_frames : int
         Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
     smoothing_sigma_frames : float
@@ -53,24 +56,23 @@ class TrackingParams:
         the ~0.5 mm between neighbours moves them apart by far less).
     """
 
-    search_radius_mm: float = 0.3
-    min_length_frames: int = 30
-    smoothing_radius_frames: int = 1
-    smoothing_sigma_frames: float = 1.0
-    max_gap_frames: int = 0
-    max_local_deviation_mm: float = 0.008
+    search_radius_mm: float = Field(0.3, gt=0)
+    min_length_frames: int | None = Field(None, ge=1)
+    smoothing_radius_frames: int = Field(1, ge=0)
+    smoothing_sigma_frames: float = Field(1.0, gt=0)
+    max_gap_frames: int = Field(0, ge=0)
+    max_local_deviation_mm: float = Field(0.008, gt=0)
 
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.search_radius_mm) and self.search_radius_mm > 0):
-            raise InvalidInputError(f"search_radius_mm must be positive, got {self.search_radius_mm!r}")
-        if int(self.min_length_frames) < 1:
-            raise InvalidInputError(f"min_length_frames must be >= 1, got {self.min_length_frames!r}")
-        if int(self.smoothing_radius_frames) < 0:
-            raise InvalidInputError(f"smoothing_radius_frames must be >= 0, got {self.smoothing_radius_frames!r}")
-        if self.smoothing_radius_frames > 0 and not self.smoothing_sigma_frames > 0:
-            raise InvalidInputError(f"smoothing_sigma_frames must be positive, got {self.smoothing_sigma_frames!r}")
-        if int(self.max_gap_frames) < 0:
-            raise InvalidInputError(f"max_gap_frames must be >= 0, got {self.max_gap_frames!r}")
+
+#: Seed 5.1.2: trajectories shorter than 30 frames are rejected.
+DEFAULT_MIN_LENGTH_FRAMES = 30
+
+
+def min_length_for_clip(n_frames: int) -> int:
+    """The minimum trajectory length when none is given: the seed's 30 frames, or half of a clip shorter than that
+    (at least 2), which would otherwise keep no trajectory at all."""
+    n = int(n_frames)
+    return DEFAULT_MIN_LENGTH_FRAMES if n >= DEFAULT_MIN_LENGTH_FRAMES else max(2, n // 2)
 
 
 @dataclass(frozen=True)
@@ -280,26 +282,11 @@ def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, c
 
 
 @dataclass
-class Trajectories:
-    """Feature trajectories over a sequence (seed 5.1.2). Arrays are (frames, tracks); absent entries are flagged.
+class DenseTrajectories:
+    """Trajectories as (frames, tracks) arrays (:meth:`Trajectories.dense`), for short sequences and plots.
 
-    Attributes
-    ----------
-    x, y : (N, T) float64
-        Position px (refined and/or smoothed) of each track in each frame; NaN exactly where ``present`` is False.
-    present : (N, T) bool
-        The track's feature was found (and matched) in that frame.
-    raw_x, raw_y : (N, T) float64
-        Extracted positions (NaN where absent).
-    feature_index : (N, T) int64
-        Row of the feature in the concatenated feature table of the sequence, -1 where absent.
-    linked : (N, T) bool
-        The track's displacement from frame k-1 to k was measured (consecutive match), as opposed to a start or a
-        re-link across a gap.
-    refined : (N, T) bool
-        That displacement was refined to sub-pixel by image registration.
-    kind : (T,) int8
-        Feature kind of each track.
+    ``x, y`` (refined, chained, smoothed) and ``raw_x, raw_y`` (extracted) are NaN exactly where ``present`` is
+    False; ``feature_index`` is -1 there; ``linked``/``refined`` mean what :class:`Trajectories` says.
     """
 
     x: np.ndarray
@@ -322,30 +309,102 @@ class Trajectories:
 
     @property
     def lengths(self) -> np.ndarray:
-        """Number of frames each track is present in."""
         return self.present.sum(axis=0)
 
+
+#: Columns of the long trajectory table (:attr:`Trajectories.rows`, the results file's ``trajectories``).
+TRAJECTORY_DTYPE = np.dtype(
+    [
+        ("frame", np.int32),
+        ("track", np.int64),
+        ("x", np.float64),
+        ("y", np.float64),
+        ("raw_x", np.float64),
+        ("raw_y", np.float64),
+        ("feature_index", np.int64),
+        ("linked", np.bool_),
+        ("refined", np.bool_),
+        ("run", np.int32),
+    ]
+)
+
+
+@dataclass
+class Trajectories:
+    """Feature trajectories over a sequence (seed 5.1.2) as a long table: one row per track per frame it is present
+    in, sorted by frame then track. Its size grows with the features seen, never with frames x tracks.
+
+    Attributes
+    ----------
+    n_frames : int
+    rows : TRAJECTORY_DTYPE array
+        ``frame``, ``track``; ``x, y``: position px (refined and/or smoothed); ``raw_x, raw_y``: extracted position;
+        ``feature_index``: row of the feature in the concatenated feature table of the sequence; ``linked``: the
+        displacement from the track's previous frame was measured (consecutive match), as opposed to a start or a
+        re-link across a gap; ``refined``: that displacement was refined to sub-pixel by image registration;
+        ``run``: number of the linked run within the track (displacements are measured only within a run).
+    kind : (T,) int8
+        Feature kind of each track.
+    """
+
+    n_frames: int
+    rows: np.ndarray
+    kind: np.ndarray
+
+    @property
+    def n_tracks(self) -> int:
+        return int(self.kind.size)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Number of frames each track is present in."""
+        return np.bincount(self.rows["track"], minlength=self.n_tracks)
+
     @cached_property
-    def runs(self) -> np.ndarray:
-        """(N, T) run number of each sample: displacements are measured only within a run (linked steps).
-        Computed once (``present`` and ``linked`` are not changed after :meth:`FeatureTracker.finish`)."""
-        return np.cumsum(self.present & ~self.linked, axis=0)
+    def frame_offsets(self) -> np.ndarray:
+        """(N + 1,) first row of each frame (rows of frame k: ``frame_offsets[k]:frame_offsets[k + 1]``)."""
+        return np.searchsorted(self.rows["frame"], np.arange(self.n_frames + 1), side="left")
+
+    def at(self, frame: int) -> np.ndarray:
+        """The rows of ``frame`` (sorted by track)."""
+        off = self.frame_offsets
+        return self.rows[off[frame] : off[frame + 1]]
 
     def positions(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(track indices, (n, 2) positions) of the tracks present in ``frame``."""
-        idx = np.nonzero(self.present[frame])[0]
-        return idx, np.column_stack([self.x[frame, idx], self.y[frame, idx]])
+        r = self.at(frame)
+        return r["track"].copy(), np.column_stack([r["x"], r["y"]])
 
     def motion(self, frame_a: int, frame_b: int) -> MotionSample:
         """Displacements from ``frame_a`` to ``frame_b`` of the tracks present in both, linked all the way."""
         n = self.n_frames
         if not (0 <= frame_a < n and 0 <= frame_b < n):
             raise InvalidInputError(f"frames ({frame_a}, {frame_b}) out of range for {n} frames")
-        runs = self.runs
-        idx = np.nonzero(self.present[frame_a] & self.present[frame_b] & (runs[frame_a] == runs[frame_b]))[0]
-        pa = np.column_stack([self.x[frame_a, idx], self.y[frame_a, idx]])
-        pb = np.column_stack([self.x[frame_b, idx], self.y[frame_b, idx]])
-        return MotionSample(int(frame_a), int(frame_b), pa, pb - pa, idx.astype(np.int64))
+        ra, rb = self.at(frame_a), self.at(frame_b)
+        _, ia, ib = np.intersect1d(ra["track"], rb["track"], assume_unique=True, return_indices=True)
+        same = ra["run"][ia] == rb["run"][ib]
+        ia, ib = ia[same], ib[same]
+        pa = np.column_stack([ra["x"][ia], ra["y"][ia]])
+        pb = np.column_stack([rb["x"][ib], rb["y"][ib]])
+        return MotionSample(int(frame_a), int(frame_b), pa, pb - pa, ra["track"][ia].astype(np.int64))
+
+    def dense(self) -> DenseTrajectories:
+        """The same trajectories as (frames, tracks) arrays (memory frames x tracks: short sequences only)."""
+        n, t = self.n_frames, self.n_tracks
+        fr, tr = self.rows["frame"], self.rows["track"]
+        out = {name: np.full((n, t), np.nan) for name in ("x", "y", "raw_x", "raw_y")}
+        for name, arr in out.items():
+            arr[fr, tr] = self.rows[name]
+        present = np.zeros((n, t), bool)
+        present[fr, tr] = True
+        fidx = np.full((n, t), -1, np.int64)
+        fidx[fr, tr] = self.rows["feature_index"]
+        linked = np.zeros((n, t), bool)
+        linked[fr, tr] = self.rows["linked"]
+        refined = np.zeros((n, t), bool)
+        refined[fr, tr] = self.rows["refined"]
+        return DenseTrajectories(present=present, feature_index=fidx, linked=linked, refined=refined,
+                                 kind=self.kind, **out)
 
 
 class FeatureTracker:
@@ -398,6 +457,7 @@ class FeatureTracker:
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
         self._lost = _LostTracks()
+        self._released = False
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
         self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
 
@@ -423,6 +483,8 @@ class FeatureTracker:
         ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
         of the same image) is given instead.
         """
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True)")
         validate_features(features)
         needs_image = self.refiner is not None or self.motion_estimator is not None
         if needs_image and prepared is None:
@@ -570,55 +632,65 @@ class FeatureTracker:
             return np.mean(self._prev_disp[known], axis=0)
         return np.zeros(2)
 
-    def finish(self) -> Trajectories:
-        """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far."""
+    def finish(self, *, release: bool = False) -> Trajectories:
+        """Assemble, filter (minimum length) and smooth the trajectories of every frame added so far.
+
+        ``release``: free each frame's records as they are copied into the table (the tracker cannot be used
+        afterwards; what a long analysis wants, so that records and table are not both held).
+
+        ``params.min_length_frames`` None means the seed's 30 frames (the analysis adapts it to a short clip)."""
         if self._n_frames == 0:
             raise InsufficientDataError("no frames were added to the tracker")
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True)")
         n, t = self._n_frames, self._n_tracks
-        fidx = np.full((n, t), -1, np.int64)
-        raw = np.full((n, t, 2), np.nan)
-        disp = np.full((n, t, 2), np.nan)
-        refined = np.zeros((n, t), bool)
-        for k, (tracks, xy, offset, d, ref) in enumerate(self._frames):
-            fidx[k, tracks] = offset + np.arange(tracks.size)
-            raw[k, tracks] = xy
-            disp[k, tracks] = d
-            refined[k, tracks] = ref
+        min_length = self.params.min_length_frames
+        min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
+        all_tracks = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)
+        keep_track = np.bincount(all_tracks, minlength=t) >= min_length
+        del all_tracks
+        new_id = np.cumsum(keep_track) - 1
         kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
-        present = fidx >= 0
-        keep = present.sum(axis=0) >= int(self.params.min_length_frames)
-        fidx, raw, disp, refined, present, kind = (
-            fidx[:, keep],
-            raw[:, keep],
-            disp[:, keep],
-            refined[:, keep],
-            present[:, keep],
-            kind[keep],
-        )
-        linked = np.all(np.isfinite(disp), axis=2) & present
-        if self.refiner is not None:
-            # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps its
-            # identity but its positions restart there, so no measured displacement spans that step.
-            linked &= refined
-        pos = _chain_positions(raw, disp, linked, present)
-        pos = smooth_positions(
-            pos,
-            present,
-            linked,
-            radius_frames=int(self.params.smoothing_radius_frames),
-            sigma_frames=float(self.params.smoothing_sigma_frames),
-        )
-        return Trajectories(
-            x=pos[..., 0],
-            y=pos[..., 1],
-            present=present,
-            raw_x=raw[..., 0],
-            raw_y=raw[..., 1],
-            feature_index=fidx,
-            linked=linked,
-            refined=refined & linked,
-            kind=kind.astype(np.int8),
-        )
+        # The table is filled frame by frame with only the kept tracks' rows (memory: the rows, once).
+        kept_rows = [np.flatnonzero(keep_track[rec[0]]) for rec in self._frames]
+        rows = np.zeros(sum(k.size for k in kept_rows), dtype=TRAJECTORY_DTYPE)
+        dx = np.empty(rows.size)
+        dy = np.empty(rows.size)
+        i = 0
+        for k, sel in enumerate(kept_rows):
+            tracks, xy, offset, disp, refined = self._frames[k]
+            if release:
+                self._frames[k] = None
+            ids = new_id[tracks[sel]]
+            order = np.argsort(ids, kind="stable")
+            sel, ids = sel[order], ids[order]
+            r = rows[i : i + sel.size]
+            r["frame"], r["track"] = k, ids
+            r["raw_x"], r["raw_y"] = xy[sel, 0], xy[sel, 1]
+            r["feature_index"] = offset + sel
+            d = disp[sel]
+            linked = np.all(np.isfinite(d), axis=1)
+            if self.refiner is not None:
+                # A step the refinement rejected is only as good as the extraction (~1 px): the trajectory keeps
+                # its identity but its positions restart there, so no measured displacement spans that step.
+                linked &= refined[sel]
+            r["linked"], r["refined"] = linked, refined[sel] & linked
+            dx[i : i + sel.size], dy[i : i + sel.size] = d[:, 0], d[:, 1]
+            i += sel.size
+        del kept_rows
+        if release:
+            self._frames, self._released = [], True
+        n_kept = int(keep_track.sum())
+        pos, run = _chain_tracks(rows["track"], rows["raw_x"], rows["raw_y"], dx, dy, rows["linked"], n_kept)
+        del dx, dy
+        radius = int(self.params.smoothing_radius_frames)
+        if radius > 0 and n >= 2:
+            sigma = float(self.params.smoothing_sigma_frames)
+            weights = np.array([float(np.exp(-(i * i) / (2.0 * sigma**2))) for i in range(-radius, radius + 1)])
+            offsets = np.searchsorted(rows["frame"], np.arange(n + 1), side="left")
+            pos = _smooth_tracks(rows["track"], rows["frame"], run, pos, offsets, weights)
+        rows["x"], rows["y"], rows["run"] = pos[:, 0], pos[:, 1], run
+        return Trajectories(n_frames=n, rows=rows, kind=kind[keep_track].astype(np.int8))
 
 
 @dataclass(frozen=True)
@@ -675,30 +747,88 @@ class _LostTracks:
         return got_idx, got_track
 
 
-def _chain_positions(raw: np.ndarray, disp: np.ndarray, linked: np.ndarray, present: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True, nogil=True)
+def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
-    the run's extracted positions (equal to the extracted positions when displacements are raw differences)."""
-    n, t = present.shape
-    pos = np.full(raw.shape, np.nan)
-    if n == 0 or t == 0:
-        return pos
-    # A run starts at every present frame whose displacement from the previous frame is unknown; a linked frame
-    # always follows a present one, so a run has no hole.
-    start = present & ~linked
-    steps = np.where(linked[..., None], disp, 0.0)
-    chain = np.cumsum(steps, axis=0)
-    frame = np.arange(n)[:, None]
-    last_start = np.maximum.accumulate(np.where(start, frame, -1), axis=0)
-    cols = np.broadcast_to(np.arange(t), (n, t))
-    fr, tr = np.nonzero(present)  # frame-major order; a run's samples share (track, run number)
-    local = chain[fr, tr] - chain[last_start[fr, tr], tr]
-    run = np.cumsum(start, axis=0)[fr, tr]
-    key = cols[fr, tr] * (n + 1) + run
-    _, group, count = np.unique(key, return_inverse=True, return_counts=True)
-    resid = raw[fr, tr] - local
-    offset = np.stack([np.bincount(group, weights=resid[:, c]) for c in range(2)], axis=1) / count[:, None]
-    pos[fr, tr] = local + offset[group]
-    return pos
+    the run's extracted positions (equal to the extracted positions when displacements are raw differences).
+
+    Rows in frame order (any order within a frame). Each track keeps its running sum from its first row (a start
+    adds nothing), and a run's offset is the sum of its residuals in frame order over its size: the same
+    operations in the same order as a cumulative sum over (frames, tracks) arrays, so the same numbers to the bit.
+    Returns (positions (M, 2), run number of each row within its track)."""
+    m = track.shape[0]
+    cx = np.zeros(n_tracks)
+    cy = np.zeros(n_tracks)
+    sx = np.zeros(n_tracks)
+    sy = np.zeros(n_tracks)
+    runs = np.zeros(n_tracks, np.int32)
+    current = np.full(n_tracks, -1, np.int64)
+    n_starts = 0
+    for i in range(m):
+        if not linked[i]:
+            n_starts += 1
+    sums = np.zeros((n_starts, 2))
+    counts = np.zeros(n_starts, np.int64)
+    group = np.empty(m, np.int64)
+    run = np.empty(m, np.int32)
+    pos = np.empty((m, 2))
+    g_next = 0
+    for i in range(m):
+        t = track[i]
+        if linked[i]:
+            cx[t] += dx[i]
+            cy[t] += dy[i]
+        else:  # a start: a new run, whose local positions count from here
+            runs[t] += 1
+            current[t] = g_next
+            g_next += 1
+            sx[t] = cx[t]
+            sy[t] = cy[t]
+        lx = cx[t] - sx[t]
+        ly = cy[t] - sy[t]
+        g = current[t]
+        pos[i, 0] = lx
+        pos[i, 1] = ly
+        run[i] = runs[t]
+        group[i] = g
+        sums[g, 0] += raw_x[i] - lx
+        sums[g, 1] += raw_y[i] - ly
+        counts[g] += 1
+    for i in range(m):
+        g = group[i]
+        pos[i, 0] += sums[g, 0] / counts[g]
+        pos[i, 1] += sums[g, 1] / counts[g]
+    return pos, run
+
+
+@numba.njit(cache=True, nogil=True)
+def _smooth_tracks(track, frame, run, pos, offsets, weights):
+    """Gaussian smoothing along time within each linked run (see :func:`smooth_positions`) of rows sorted by
+    frame then track (``offsets``: first row of each frame); ``weights`` are the kernel's 2R + 1 values. Each sum
+    runs over the kernel in the order of :func:`smooth_positions`, so the numbers are the same."""
+    m = track.shape[0]
+    n = offsets.shape[0] - 1
+    radius = (weights.shape[0] - 1) // 2
+    out = np.empty((m, 2))
+    for i in range(m):
+        ox = 0.0
+        oy = 0.0
+        w = 0.0
+        for j in range(-radius, radius + 1):
+            f = frame[i] + j
+            if f < 0 or f >= n:
+                continue
+            lo, hi = offsets[f], offsets[f + 1]
+            q = lo + np.searchsorted(track[lo:hi], track[i])
+            if q >= hi or track[q] != track[i] or run[q] != run[i]:
+                continue
+            k = weights[j + radius]
+            ox += pos[q, 0] * k
+            oy += pos[q, 1] * k
+            w += k
+        out[i, 0] = ox / w
+        out[i, 1] = oy / w
+    return out
 
 
 def smooth_positions(

@@ -3,10 +3,25 @@
 import numpy as np
 import pytest
 
-from skinstretch.experiments.analysis import AnalysisParams, surface_kind, without_glass_shading
+from skinstretch.experiments.analysis import analysis_params, surface_kind
+from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading
 from skinstretch.processing.pixel_scale import Calibration
 
 CAL = Calibration(px_per_mm=62.0)
+
+
+def without_glass_shading(frames, *, calibration, params, surface):
+    """The frames as the measurement reads them, and what was done."""
+    source = ArrayFrames(frames)
+    shading, status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
+    if shading is None:
+        return frames, status
+    reader = FrameReader(source, shading)
+    return [reader(k) for k in range(len(source))], status
+
+
+def AnalysisParams(glass_shading=None):  # noqa: N802 - the options the tests vary
+    return analysis_params({} if glass_shading is None else {"glass_shading": {"enabled": glass_shading}})
 
 
 def _sliding_stripes(n=24, shape=(96, 128), step_px=3.0, band=True):
@@ -57,5 +72,5 @@ def test_surface_kind_from_simulated_and_recorded_metadata():
     assert surface_kind({"surface": "ridge"}) == "ridge"
     assert surface_kind({"surface": {"kind": "valley", "width_mm": 3.0}}) == "valley"
     assert surface_kind({}) is None
-    with pytest.raises(Exception, match="glass_shading_smooth_mm"):
-        AnalysisParams(glass_shading_smooth_mm=0)
+    with pytest.raises(Exception, match="glass_shading.smooth_mm"):
+        analysis_params({"glass_shading": {"smooth_mm": 0}})

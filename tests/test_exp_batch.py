@@ -26,37 +26,51 @@ def batch_dir(tmp_path, rng):
     return d
 
 
-def _fake_analyse_trial(session_path, outdir, method, options):
+def _fake_analyse_trial(session_path, outdir, method, params):
     """Stands in for the (slow, JIT-compiled) analysis: a valid results file with a known profile."""
+    import json
     from pathlib import Path
 
     from skinstretch.drivers.session_file import open_session
-    from skinstretch.experiments.results_file import MOTION_DTYPE, PAIR_DTYPE, Results, write_results
+    from skinstretch.experiments.results_file import PAIR_DTYPE, MOTION_DTYPE, UNITS, ResultsWriter
+    from skinstretch.experiments.runner import TrialAnalysis
 
-    with open_session(session_path) as s:  # a broken session fails here, as the real analysis would
-        n, h, w = s.shape
-        px = s.calibration.px_per_mm
+    try:
+        with open_session(session_path) as s:  # a broken session fails here, as the real analysis would
+            n, h, w = s.shape
+            px = s.calibration.px_per_mm
+    except Exception as exc:  # noqa: BLE001 - the real analyse_trial returns failures as values
+        return TrialAnalysis(False, error=str(exc))
     x = np.arange(0, w, 16.0)
-    r = Results(
-        method=method, session_path=str(session_path), n_frames=n, image_shape=(h, w), px_per_mm=px,
-        coordinates="image", frame_flags=[""] * n, motion_pairs=np.zeros(0, PAIR_DTYPE),
-        motion=np.zeros(0, MOTION_DTYPE), fingertip_displacement=np.zeros((n - 1, 2)),
-        fingertip_valid=np.ones(n - 1, bool), fingertip_position=np.zeros((n, 2)), window={"status": "none"},
-        window_centers=None, strain={}, profile_axis=0, profile_position=x, profile_change=1e-4 * x,
-        profile_valid=np.ones(x.size, bool), tactile_positions_um=None, tactile_reset=None, tactile_clipped=None,
-        tactile_stretch_change=None, timing={}, params={}, versions={},
-    )
     Path(outdir).mkdir(parents=True, exist_ok=True)
-    return {"results": str(write_results(Path(outdir) / "results.h5", r)), "seconds": 0.01}
+    wr = ResultsWriter(Path(outdir) / "results.h5")
+    wr.append("motion_pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
+    wr.append("motion", np.zeros(0, MOTION_DTYPE), UNITS["motion"])
+    wr.append("strain/span_1/pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
+    wr.file["strain/span_1"].attrs["span"] = 1
+    wr.array("frame_flags", np.array([b""] * n, dtype="S128"), "")
+    wr.array("fingertip/displacement", np.zeros((n - 1, 2)), "px")
+    wr.array("fingertip/n_points", np.zeros(n - 1, np.int64), "count")
+    wr.array("fingertip/valid", np.ones(n - 1, bool), "")
+    wr.array("fingertip/position", np.zeros((n, 2)), "px")
+    wr.array("profile/position", x, "px")
+    wr.array("profile/change", 1e-4 * x, "fraction")
+    wr.array("profile/valid", np.ones(x.size, bool), "")
+    wr.file["profile"].attrs["axis"] = "x"
+    attrs = {"method": method, "session_path": str(session_path), "n_frames": n, "image_shape": [h, w],
+             "px_per_mm": px, "coordinates": "image", "timing_json": "{}", "params_json": "{}", "versions_json": "{}",
+             "window_json": json.dumps({"status": "none"}), "summary_json": "{}"}
+    r = wr.finish(attrs)
+    return TrialAnalysis(True, str(r.path), 0.01)
 
 
-def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch):
-    import skinstretch.experiments.runner
+def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch, caplog, propagate_logs):
+    import skinstretch.experiments.batch
 
-    monkeypatch.setattr(skinstretch.experiments.runner, "analyse_trial", _fake_analyse_trial)
-    msgs = []
-    result = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", options={"spans": (1,)},
-                          progress=msgs.append)
+    monkeypatch.setattr(skinstretch.experiments.batch, "analyse_trial", _fake_analyse_trial)
+    with caplog.at_level("INFO", logger="skinstretch"):
+        result = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous",
+                              params={"strain": {"spans": [1]}}, progress=False)
     rows = {r.session.rsplit("/", 1)[-1]: r for r in result.rows}
     assert rows["broken.h5"].status == "failed" and "not an HDF5 file" in rows["broken.h5"].error
     good = rows["a.h5"]
@@ -69,7 +83,32 @@ def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch)
     x, mean, _, n = result.profiles["flat"]
     np.testing.assert_allclose(mean, 1e-4 * x * good_px_per_mm(batch_dir), rtol=1e-6)
     assert result.figure is not None and result.figure.exists()
-    assert any("FAILED" in m for m in msgs)
+    assert "FAILED" in caplog.text
+
+
+@pytest.fixture
+def propagate_logs():
+    """The command line stops skinstretch's log records at its own handler; let them reach caplog here."""
+    import logging
+
+    log = logging.getLogger("skinstretch")
+    before = log.propagate
+    log.propagate = True
+    yield
+    log.propagate = before
+
+
+def test_batch_on_an_external_scheduler_shows_progress(batch_dir, tmp_path, capsys, caplog, propagate_logs):
+    """Progress bar and per-session lines with a scheduler the batch did not start (issue 17 item 7)."""
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            caplog.at_level("INFO", logger="skinstretch"):
+        result = analyze_many([batch_dir / "s01" / "broken.h5"], tmp_path / "ext", scheduler=cluster.scheduler_address,
+                              progress=True)
+    assert [r.status for r in result.rows] == ["failed"] and "not an HDF5 file" in result.rows[0].error
+    assert "sessions:" in capsys.readouterr().err  # the progress bar
+    assert "broken.h5: FAILED" in caplog.text  # and a line per session
 
 
 def good_px_per_mm(batch_dir):

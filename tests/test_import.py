@@ -182,7 +182,7 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
             np.testing.assert_array_equal(source.frame(7), frames[7])
     finally:
         source.close()
-    agreement = trajectory_agreement(original.trajectories, read_results(d / kind).trajectories)
+    agreement = trajectory_agreement(vars(original.trajectories.dense()), vars(read_results(d / kind).trajectories.dense()))
     assert agreement.reference_tracks > 50 and agreement.paired_fraction >= 0.98
     assert agreement.max_px <= tolerance_px, agreement
 

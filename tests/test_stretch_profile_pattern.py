@@ -2,7 +2,6 @@
 between consecutive frames the skin compresses before a ridge and expands after it, the reverse for a valley,
 and a flat surface shows no such pattern (a much smaller profile)."""
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -82,7 +81,7 @@ def test_profile_pattern_orders_the_lobes_along_the_sliding_direction():
 
 def _true_pattern(name, n_frames):
     """Seed Figure 94 from the simulator's true motion of a short session (no rendering needed)."""
-    from skinstretch.experiments.analysis import stretch_profile
+    from skinstretch.experiments.analysis.derive import stretch_profile
     from skinstretch.experiments.evaluation.tracking import TruthField
     from skinstretch.simulators.scene import SceneRenderer, load_scene
 
@@ -110,17 +109,16 @@ def test_true_profile_compresses_before_a_ridge_and_expands_after_it_reversed_fo
 @pytest.fixture(scope="module")
 def measured():
     """The feature method on short rendered sessions, evaluated against their truth."""
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
     from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_profile
     from skinstretch.simulators.scene import render_session
 
-    base = AnalysisParams()
-    params = replace(base, tracking=replace(base.tracking, min_length_frames=10))
+    params = analysis_params({"tracking": {"min_length_frames": 10}})
     out = {}
     for name in ("ridgeL", "flatL"):
         s = render_session(name, n_frames=40, seed=0)
         r = analyze_frames(s.frames, calibration=s.calibration, method="features", params=params)
-        out[name] = evaluate_profile(r, TruthField(s.truth), strip_px=s.calibration.px(params.profile_strip_mm))
+        out[name] = evaluate_profile(r, TruthField(s.truth), strip_px=s.calibration.px(params.strain.profile_strip_mm))
     return out
 
 

@@ -98,7 +98,8 @@ def test_both_methods_refuse_noise_and_measure_nothing():
 
 
 def test_sessions_without_a_print_give_no_ok_pair_and_flag_every_frame():
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.results_file import PairStatus
 
     cal = Calibration(px_per_mm=PX_PER_MM)
     rng = np.random.default_rng(11)
@@ -106,10 +107,10 @@ def test_sessions_without_a_print_give_no_ok_pair_and_flag_every_frame():
                 "saturated": [np.full(SHAPE, 255, np.uint8)] * 8}
     for name, frames in sessions.items():
         for method in ("flow", "features"):
-            r = analyze_frames(frames, calibration=cal, method=method, params=AnalysisParams(processes=False))
+            r = analyze_frames(frames, calibration=cal, method=method, params=analysis_params({"execution": {"kind": "threads"}}))
             assert all(r.frame_flags), (name, method, r.frame_flags)
             for span in r.strain.values():
-                assert not np.any(span.pairs["status"] == b"ok"), (name, method)
+                assert not np.any(span.pairs["status"] == PairStatus.OK), (name, method)
             assert not np.any(r.fingertip_valid), (name, method)
 
 

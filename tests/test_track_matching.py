@@ -59,7 +59,7 @@ def test_bad_inputs_are_named():
     with pytest.raises(InvalidInputError, match="min_length_frames"):
         TrackingParams(min_length_frames=0)
     with pytest.raises(InsufficientDataError):
-        FeatureTracker(calibration=CAL).finish()
+        FeatureTracker(calibration=CAL).finish().dense()
 
 
 @pytest.mark.parametrize("step", [(2.0, 0.5), (10.0, 0.0)])  # 10 px/frame: fast sliding
@@ -68,7 +68,7 @@ def test_tracks_with_noise_misses_and_spurious_features(step):
     tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=10, max_gap_frames=2))
     for t in tables:
         tracker.add_frame(t)
-    tr = tracker.finish()
+    tr = tracker.finish().dense()
     assert tr.n_tracks >= 40
     ids = _truth_ids(tr, truth)
     linked = tr.linked[1:] & (ids[1:] >= 0) & (ids[:-1] >= 0)
@@ -87,7 +87,7 @@ def test_gap_relinking_keeps_identity():
     for t in tables:
         seed_tr.add_frame(t)
         robust_tr.add_frame(t)
-    assert seed_tr.finish().n_tracks > robust_tr.finish().n_tracks == 20
+    assert seed_tr.finish().dense().n_tracks > robust_tr.finish().dense().n_tracks == 20
 
 
 def test_empty_frame_mid_sequence_is_flagged_not_fatal():
@@ -97,10 +97,11 @@ def test_empty_frame_mid_sequence_is_flagged_not_fatal():
     for t in tables:
         tracker.add_frame(t)
     assert tracker.pair_status[3] == "fewer than 3 matches" and tracker.pair_status[4] == "fewer than 3 matches"
-    tr = tracker.finish()
+    table = tracker.finish()
+    tr = table.dense()
     assert not tr.present[4].any()
-    assert len(tr.motion(3, 5)) == 0  # nothing is measured across the empty frame
-    assert len(tr.motion(6, 7)) > 10
+    assert len(table.motion(3, 5)) == 0  # nothing is measured across the empty frame
+    assert len(table.motion(6, 7)) > 10
 
 
 def test_smoothing_is_normalised_and_keeps_lines():
@@ -123,7 +124,7 @@ def test_minimum_length_filter():
     tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=15))
     for t in tables:
         tracker.add_frame(t)
-    assert tracker.finish().n_tracks == 5
+    assert tracker.finish().dense().n_tracks == 5
 
 
 def test_global_motion_and_local_prediction():
@@ -154,14 +155,14 @@ def test_robust_tracker_survives_direction_reversal():
         for s in shifts:
             img = render(affine_field(s, 0.0), shape=(240, 320))
             tracker.add_frame(make_features(p0[:, 0] + s, p0[:, 1], kinds), image=img)
-        return tracker.finish()
+        return tracker.finish().dense()
     robust = run(GlobalMotionEstimator())
     assert robust.n_tracks == 40 and robust.lengths.min() == len(shifts)
     tables = [make_features(p0[:, 0] + s, p0[:, 1], kinds) for s in shifts]
     seed = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=1, search_radius_mm=0.25))
     for t in tables:
         seed.add_frame(t)
-    assert seed.finish().n_tracks > 40  # the seed's predictor loses them at the reversal
+    assert seed.finish().dense().n_tracks > 40  # the seed's predictor loses them at the reversal
 
 
 def test_subpixel_refinement_reaches_hundredths_of_a_pixel():
@@ -193,8 +194,7 @@ def test_refined_tracker_positions_are_subpixel():
         img = render(affine_field(*s), shape=(240, 320))
         noisy = p0 + s + rng.normal(0, 0.5, p0.shape)  # extraction noise of half a pixel
         tracker.add_frame(make_features(noisy[:, 0], noisy[:, 1], kinds), image=img)
-    tr = tracker.finish()
-    m = tr.motion(0, 4)
+    m = tracker.finish().motion(0, 4)
     assert len(m) >= 20
     err = np.hypot(*(m.displacement - (steps[4] - steps[0])).T)
     assert np.median(err) < 0.03 and np.sqrt(np.mean(err**2)) < 0.06  # vs 0.7 px for the extracted positions
@@ -272,7 +272,7 @@ def test_prepared_images_give_the_same_tracks_as_raw_images():
     for img, t in zip(images, tables):
         a.add_frame(t, image=img)
         b.add_frame(t, prepared=b.prepare_image(img))
-    ta, tb = a.finish(), b.finish()
+    ta, tb = a.finish().dense(), b.finish().dense()
     assert ta.n_tracks >= 25 and ta.refined.sum() > 50
     np.testing.assert_array_equal(ta.x, tb.x)
     np.testing.assert_array_equal(ta.refined, tb.refined)

@@ -5,9 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from skinstretch.experiments.analysis import AnalysisParams, analyze_frames, analyze_session, chain_flows
 from skinstretch.cli import main
-from skinstretch.experiments.results_file import read_results, write_results
+from skinstretch.experiments.analysis import analysis_params, analyze_frames, analyze_session
+from skinstretch.experiments.analysis.derive import chain_flows
+from skinstretch.experiments.results_file import PairStatus, read_results
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
@@ -37,10 +38,12 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
     assert summary["method"] == method and summary["n_frames"] == N_FRAMES
     r = read_results(out)
     assert set(r.strain) == {1, 3}
-    assert (r.strain[1].pairs["status"] == b"ok").all()
+    assert r.strain[1].ok.all()
+    assert r.summary["min_track_frames"] == (4 if method == "features" else None)
     assert r.tactile_positions_um.shape == (N_FRAMES, 10, 10)
     assert np.all(np.abs(r.tactile_positions_um) <= 50)
     assert np.all(np.isfinite(r.motion["dx"]))
+    _every_dataset_has_units_and_codes(out / "results.h5")
     capsys.readouterr()
     assert main(["evaluate", str(out), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -53,6 +56,21 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
         assert result["features"]["pore"]["recall"] > 0.5
     else:
         assert result["tracking"]["wrong_match_rate"] is None
+
+
+def _every_dataset_has_units_and_codes(path):
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs["status_codes"])["0"] == "ok" and json.loads(f.attrs["kind_codes"])["2"] == "pore"
+        assert f["profile"].attrs["axis"] in ("x", "y")
+        missing = []
+        f.visititems(lambda name, obj: missing.append(name)
+                     if isinstance(obj, h5py.Dataset) and "units" not in obj.attrs else None)
+        assert not missing, missing
+        for name in ("motion", "strain/span_1/edges"):
+            units = json.loads(f[name].attrs["units"])
+            assert set(units) == set(f[name].dtype.names) and units.get("x", units.get("xa")) == "px"
 
 
 def test_results_file_errors(tmp_path):
@@ -77,18 +95,20 @@ def test_pipeline_on_a_sequence_with_an_empty_frame_and_lost_contact(tmp_path):
     frames[3] = np.full_like(frames[3], 235)  # no finger in this frame
     for f in frames[4:]:
         f[:, 240:] = 235  # contact lost on the right
-    r = analyze_frames(frames, calibration=cal, method="flow", params=AnalysisParams(spans=(1, 2)))
+    params = analysis_params({"strain": {"spans": [1, 2]}, "execution": {"kind": "serial"}})
+    r = analyze_frames(frames, calibration=cal, method="flow", params=params)
     assert r.frame_flags[3] == "no contact"
     status = r.strain[1].pairs["status"]
-    assert status[3] != b"ok" and status[0] == b"ok"
-    assert not r.fingertip_valid[3]
-    assert np.all(np.isfinite(r.fingertip_position))
-    valid_after = r.flow_valid[4]
-    assert not valid_after[:, r.flow_grid_x > 260].any()
-    path = write_results(tmp_path / "results.h5", r)
-    back = read_results(path)
+    assert status[3] != PairStatus.OK and status[0] == PairStatus.OK
+    assert not r.fingertip.valid[3]
+    assert np.all(np.isfinite(r.fingertip.position))
+    valid_after = r.flow.valid[4]
+    assert not valid_after[:, r.flow.grid_x > 260].any()
+    back = analyze_frames(frames, calibration=cal, method="flow", params=params, results_path=tmp_path / "r.h5")
+    back = read_results(tmp_path / "r.h5")
     assert back.frame_flags == r.frame_flags
     np.testing.assert_array_equal(back.strain[2].edges, r.strain[2].edges)
+    assert not (tmp_path / "r.h5.partial").exists()
     with pytest.raises(InsufficientDataError):
         analyze_frames(frames[:1], calibration=cal)
     with pytest.raises(InvalidInputError, match="method"):
@@ -109,8 +129,23 @@ def test_chained_flow_follows_skin_points():
 def test_analyze_session_rejects_bad_method(session_file, tmp_path):
     with pytest.raises(InvalidInputError, match="method"):
         analyze_session(session_file, tmp_path, method="optical")
-    with pytest.raises(InvalidInputError):
-        AnalysisParams(spans=(0,))
+    with pytest.raises(InvalidInputError, match="strain.spans"):
+        analysis_params({"strain": {"spans": [0]}})
     with pytest.raises(SessionFileError):
         analyze_session(tmp_path / "nope.h5", tmp_path)
-    assert TrackingParams().min_length_frames == 30
+    assert TrackingParams().min_length_frames is None  # the seed's 30, adapted by the analysis to short clips
+
+
+def test_a_short_clip_adapts_the_minimum_trajectory_length_and_says_so(session_file, tmp_path, caplog):
+    with caplog.at_level("WARNING"):
+        r = analyze_session(session_file, tmp_path / "a", params={"execution": {"kind": "serial"}})
+    assert "8-frame clip" in caplog.text and "at least 4 frames" in caplog.text
+    assert r.params["tracking"]["min_length_frames"] == 4 and r.summary["n_trajectories"] > 10
+
+
+def test_a_minimum_length_longer_than_the_clip_is_one_line(session_file, tmp_path, capsys):
+    code = main(["analyze", str(session_file), "-o", str(tmp_path / "b"), "--min-track", "30", "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--min-track" in err[0] and "8-frame" in err[0]
+    assert not (tmp_path / "b" / "results.h5").exists() and not (tmp_path / "b" / "results.h5.partial").exists()

@@ -41,8 +41,8 @@ def analysed(tmp_path_factory, sim_session):
     path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
                          calibration=s.calibration, metadata=s.metadata, truth=s.truth)
     results = analyze_session(path, trial / "analysis", params=AnalysisParams(
-        processes=False, spans=(1, 5), tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3,
-                                                               min_length_frames=10)))
+        execution={"kind": "threads"}, strain={"spans": (1, 5)},
+        tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, min_length_frames=10))).path
     other = write_session(root / "other.h5", s.frames[:3], timestamps=s.timestamps[:3], camera_mode=s.camera_mode,
                           calibration=s.calibration)
     return root, trial, path, results, other
@@ -66,7 +66,7 @@ def test_overlays_are_the_results_of_that_frame(analysed):
     _, _, session, results_path, _ = analysed
     r = read_results(results_path)
     idx = load_results_index(results_path)
-    tr = r.trajectories
+    tr = vars(r.trajectories.dense())
     for k in (0, 1, 7, 19):
         for span in (1, 5):
             ov = idx.overlays(k, span=span)

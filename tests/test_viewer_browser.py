@@ -42,7 +42,7 @@ def served(tmp_path_factory, sim_session):
     s = sim_session
     path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
                          calibration=s.calibration, metadata={**s.metadata, "trial": "flat"}, truth=s.truth)
-    params = AnalysisParams(processes=False, tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3,
+    params = AnalysisParams(execution={"kind": "threads"}, tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3,
                                                                       min_length_frames=10))
     analyze_session(path, trial / "analysis", params=params)
     server = start_server(find_view_target(trial))

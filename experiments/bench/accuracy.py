@@ -2,8 +2,8 @@
 
 Each scene of :data:`SCENES` is rendered for every seed as a short clip (12 frames by default, like
 ``skinstretch simulate SCENE --seed S --frames 12``), its frames are prepared exactly as ``skinstretch analyze``
-prepares them (the glass-shading step of :func:`skinstretch.experiments.analysis.without_glass_shading`, which a
-clip this short does not allow and leaves out, as the analysis does) and the default extractor runs on them. The
+prepares them (the glass-shading step of :func:`skinstretch.experiments.analysis.frames.estimate_shading`, which a
+clip this short does not allow and leaves out, as the analysis does) and the analysis' extractor runs on them. The
 features are scored with :func:`skinstretch.experiments.evaluation.features.score_features`, the code of
 ``skinstretch evaluate``, per kind: valley endings, valley bifurcations and pores separately.
 
@@ -80,27 +80,29 @@ class ClipResult:
 
 def analysis_frames(rendered, *, params=None):
     """The frames of a rendered session as ``skinstretch analyze`` gives them to the extractor, and the
-    glass-shading status (see :func:`skinstretch.experiments.analysis.without_glass_shading`)."""
-    from skinstretch.experiments.analysis import AnalysisParams, without_glass_shading  # noqa: PLC0415
+    glass-shading status (:func:`skinstretch.experiments.analysis.frames.estimate_shading`)."""
+    from skinstretch.experiments.analysis import AnalysisParams  # noqa: PLC0415
+    from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading  # noqa: PLC0415
 
     params = params or AnalysisParams()
-    frames, status = without_glass_shading(
-        list(rendered.frames), calibration=rendered.calibration, params=params, surface=rendered.metadata.get("surface")
-    )
-    return [np.asarray(frames[k]) for k in range(len(frames))], status
+    source = ArrayFrames(list(rendered.frames))
+    shading, status = estimate_shading(source, calibration=rendered.calibration, params=params,
+                                       surface=rendered.metadata.get("surface"))
+    reader = FrameReader(source, shading)
+    return [np.asarray(reader(k)) for k in range(len(source))], status
 
 
 def run_clip(scene: str, seed: int, *, frames: int = 12) -> ClipResult:
     """Render one clip, extract its features as the analysis does (timed) and score them per kind."""
     from skinstretch.experiments.analysis import AnalysisParams  # noqa: PLC0415
+    from skinstretch.experiments.analysis.measure import make_extractor  # noqa: PLC0415
     from skinstretch.experiments.evaluation.features import score_features  # noqa: PLC0415
-    from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor  # noqa: PLC0415
     from skinstretch.simulators.scene import render_session  # noqa: PLC0415
 
     rendered = render_session(scene, n_frames=frames, seed=seed)
     params = AnalysisParams()
     images, status = analysis_frames(rendered, params=params)
-    extractor = FeatureExtractor(calibration=rendered.calibration, params=params.extraction or ExtractionParams())
+    extractor = make_extractor(rendered.calibration, params)
     extractor.extract(images[0])  # compiled kernels and caches warm outside the timing
     t0, c0 = time.perf_counter(), time.process_time()
     results = [extractor.extract(image, frame_index=k) for k, image in enumerate(images)]

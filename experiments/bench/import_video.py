@@ -89,7 +89,7 @@ def _agreement_table(options: BenchOptions) -> BenchTable:
             surface = s.metadata.get("surface")
         kind = surface.get("kind") if isinstance(surface, dict) else surface
         analyze_session(original, d / "original-analysis")
-        reference = read_results(d / "original-analysis").trajectories
+        reference = vars(read_results(d / "original-analysis").trajectories.dense())
         for k, (label, source, kwargs) in enumerate(_copies(d, frames, fps, ppm)):
             size = sum(p.stat().st_size for p in ([source] if source.is_file() else source.iterdir()))
             t0 = time.perf_counter()
@@ -99,7 +99,7 @@ def _agreement_table(options: BenchOptions) -> BenchTable:
                 change = int(np.abs(s.read_frames().astype(np.int16) - frames).max())
             out = d / f"imported-{k}-analysis"
             analyze_session(result.path, out)
-            a = trajectory_agreement(reference, read_results(out).trajectories)
+            a = trajectory_agreement(reference, vars(read_results(out).trajectories.dense()))
             rows.append((scene, label, result.n_frames / seconds, size / 1e6, change, a.paired_fraction,
                          a.mean_px, a.p99_px, a.max_px))
     return BenchTable(

@@ -47,42 +47,57 @@ def _pattern_ok(profile: dict) -> str:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_frames, stretch_profile, without_glass_shading
-    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
-    from skinstretch.processing.flow import DenseFlow, sample_dense_flow
-    from skinstretch.processing.tracking import MotionSample
-    from skinstretch.simulators.scene import load_scene, render_session
+    from skinstretch.experiments.analysis import analysis_params, make_executor
 
     scenes = list(options.scenes or (["ridgeL"] if options.quick else SCENES))
     n_frames = 24 if options.quick else 180
     n_peer_pairs = 4 if options.quick else 16
     full_rows, pair_rows, notes = [], [], []
     warmed: set[str] = set()
+    executor = make_executor(analysis_params().execution)  # one executor for the whole run, as a batch would
+    try:
+        return _run(options, scenes, n_frames, n_peer_pairs, full_rows, pair_rows, notes, warmed, executor)
+    finally:
+        executor.shutdown()
+
+
+def _run(options, scenes, n_frames, n_peer_pairs, full_rows, pair_rows, notes, warmed, executor):
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.analysis.derive import stretch_profile
+    from skinstretch.experiments.analysis.executor import WorkerProcesses
+    from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading
+    from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
+    from skinstretch.processing.flow import DenseFlow, sample_dense_flow
+    from skinstretch.processing.tracking import MotionSample
+    from skinstretch.simulators.scene import load_scene, render_session
+
     for name in scenes:
         sc = load_scene(name)
         n = min(n_frames, sc.n_frames)
         s = render_session(sc, n_frames=n, seed=0)
         frames, cal, truth = s.frames, s.calibration, s.truth
         tf = TruthField(truth)
-        base = AnalysisParams()
-        params = replace(base, tracking=replace(base.tracking, min_length_frames=min(30, max(2, n // 3))))
-        if not warmed and params.processes and params.workers >= 2:
-            # The feature method's worker processes start once per process (then kept): not a per-session cost.
-            from skinstretch.experiments.analysis_pool import warm_up  # noqa: PLC0415
-
-            notes.append(f"feature method: its {params.workers} worker processes were started before timing "
-                         f"({warm_up(params.workers):.1f} s, once per process; kept for later analyses)")
+        base = analysis_params()
+        params = base.model_copy(update={"tracking": replace(base.tracking,
+                                                             min_length_frames=min(30, max(2, n // 3)))})
+        if not warmed and isinstance(executor, WorkerProcesses):
+            t0 = time.perf_counter()
+            executor.submit(int, 0).result()  # the worker processes start once per run (then kept)
+            notes.append(f"the run's {executor.workers} worker processes were started before timing "
+                         f"({time.perf_counter() - t0:.1f} s, once per run; kept for later analyses)")
             notes.append("each method analysed the first scene once untimed before its timed run (compiled kernels "
-                         "loaded, shared frame blocks written once): the figures are a batch analysis' later sessions")
+                         "loaded): the figures are a batch analysis' later sessions")
         for method in ("features", "flow"):
             if method not in warmed:
                 # An untimed first analysis of the same frames: compiled kernels (numba) load or compile at their
                 # first call, and the first analysis of a process writes into fresh memory (the feature method's
                 # shared frame blocks, kept afterwards; large arrays), which costs this VM a page fault per 4 KiB.
                 # The timed run is then what every later session of a batch analysis costs.
-                analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind)
+                analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind,
+                               executor=executor)
                 warmed.add(method)
-            r = analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind)
+            r = analyze_frames(frames, calibration=cal, method=method, params=params, surface=sc.surface.kind,
+                               executor=executor)
             ev = evaluate_tracking(r, truth)
             t = r.timing
             full_rows.append(
@@ -103,7 +118,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
                     ev["tracking"]["displacement_median_px"],
                     ev["tracking"]["wrong_match_rate"],
                     ev["strain"]["edge_rmse_1"] * 100,
-                    ev["strain"]["edge_rmse_11"] * 100 if 11 in r.strain else math.nan,
+                    ev["strain"]["edge_rmse_11"] * 100 if 11 in r.spans else math.nan,
                     ev["strain"]["area_rmse_1"] * 100,
                     ev["profile"]["correlation"],
                     ev["profile"]["amplitude"] * 100,
@@ -112,16 +127,18 @@ def run(options: BenchOptions) -> list[BenchTable]:
                 ]
             )
         # The same pairs, and the same frames (glass-fixed shading removed as our pipeline does), for every method.
-        shaded, _ = without_glass_shading(frames, calibration=cal, params=params, surface=sc.surface.kind)
-        frames = np.stack([shaded[k] for k in range(len(shaded))])
+        source = ArrayFrames(frames)
+        shading, _ = estimate_shading(source, calibration=cal, params=params, surface=sc.surface.kind)
+        shaded = FrameReader(source, shading)
+        frames = np.stack([shaded(k) for k in range(len(source))])
         pairs = np.linspace(0, n - 2, n_peer_pairs).round().astype(int)
         ours = DenseFlow(calibration=cal, params=params.flow)
         methods = {"ours flow": None}
         methods.update(_peers())
-        strip = cal.px(params.profile_strip_mm)
+        strip = cal.px(params.strain.profile_strip_mm)
         axis = int(np.argmax(np.ptp(truth.rigid[:n, :2], axis=0)))
         length = frames.shape[2] if axis == 0 else frames.shape[1]
-        step = cal.px(params.profile_step_mm)
+        step = cal.px(params.strain.profile_step_mm)
         positions = np.arange(step, length - step / 2, step)
         true_samples, true_ft = [], []
         for k in pairs:

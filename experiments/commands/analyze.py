@@ -1,13 +1,15 @@
-"""``skinstretch analyze SESSION.h5 -o OUTDIR [--method features|flow] [--span 1,11]``: measure skin stretch."""
+"""``skinstretch analyze SESSION.h5 -o OUTDIR [--method features|flow] [--span 1,11] [--min-track N]``: measure skin
+stretch. Several sessions (or a directory) run as a batch on Dask."""
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
+import logging
 from pathlib import Path
 
 from skinstretch.processing.errors import InvalidInputError
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +27,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", dest="outdir", type=Path, required=True, help="output directory")
     p.add_argument("--method", choices=("features", "flow"), default="features", help="measurement method")
     p.add_argument("--span", default="1,11", help="comma-separated frame spans of the strain (default 1,11)")
-    p.add_argument("--min-track", type=int, default=None, help="minimum trajectory length in frames (default 30)")
+    p.add_argument("--min-track", type=int, default=None,
+                   help="minimum trajectory length in frames (default 30, or half a clip shorter than that)")
+    p.add_argument("--flow-scale", type=float, default=None, metavar="MM",
+                   help="flow method: side of the registration window in mm (default 0.8): smaller resolves finer "
+                   "strain, larger averages more noise")
+    p.add_argument("--flow-scale-px", type=int, default=None, metavar="N",
+                   help="flow method: the same in pixels (odd, >= 7), instead of --flow-scale")
+    p.add_argument("--workers", type=int, default=None, help="parallel workers (default 2)")
+    p.add_argument("--parallel", choices=("processes", "threads", "serial"), default=None,
+                   help="how the workers run (default processes)")
     p.set_defaults(func=run)
 
 
@@ -39,29 +50,39 @@ def parse_spans(text: str) -> tuple[int, ...]:
     return spans
 
 
+def options_from_args(args: argparse.Namespace) -> dict:
+    """The analysis options (nested by stage, as in a protocol's ``analysis.options``) the flags ask for."""
+    if args.flow_scale is not None and args.flow_scale_px is not None:
+        raise InvalidInputError("give --flow-scale (mm) or --flow-scale-px (pixels), not both")
+    if (args.flow_scale is not None or args.flow_scale_px is not None) and args.method != "flow":
+        raise InvalidInputError("--flow-scale and --flow-scale-px set the flow method's window: add --method flow")
+    if args.min_track is not None and args.min_track < 1:
+        raise InvalidInputError(f"--min-track must be >= 1, got {args.min_track}")
+    options: dict = {"strain": {"spans": parse_spans(args.span)}}
+    if args.min_track is not None:
+        options["tracking"] = {"min_length_frames": args.min_track}
+    if args.flow_scale is not None:
+        options["flow"] = {"window_mm": args.flow_scale}
+    if args.flow_scale_px is not None:
+        options["flow"] = {"window_px": args.flow_scale_px}
+    execution = {k: v for k, v in (("workers", args.workers), ("kind", args.parallel)) if v is not None}
+    if execution:
+        options["execution"] = execution
+    return options
+
+
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
+    from skinstretch.experiments.analysis import analysis_params, analyze_session  # noqa: PLC0415 - keeps --help fast
 
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_session  # noqa: PLC0415 - keeps --help fast
-
+    params = analysis_params(options_from_args(args))
     if len(args.session) > 1 or args.session[0].is_dir():
         from skinstretch.experiments.batch import analyze_many  # noqa: PLC0415
 
-        options = {"spans": parse_spans(args.span)}
-        result = analyze_many(args.session, args.outdir, scheduler=args.scheduler, method=args.method, options=options)
+        result = analyze_many(args.session, args.outdir, scheduler=args.scheduler, method=args.method, params=params,
+                              progress=not args.quiet)
         return 0 if not result.failed else 1
-    args.session = args.session[0]
-    params = AnalysisParams(spans=parse_spans(args.span))
-    if args.min_track is not None:
-        if args.min_track < 1:
-            raise InvalidInputError(f"--min-track must be >= 1, got {args.min_track}")
-        params = replace(params, tracking=replace(params.tracking, min_length_frames=args.min_track))
-    path = analyze_session(args.session, args.outdir, method=args.method, params=params, progress=not args.quiet)
-    summary = json.loads((args.outdir / "summary.json").read_text())
-    t = summary["timing"]
-    print(
-        f"{args.method}: {summary['n_frames']} frames in {t['total_s']:.1f} s ({t['frames_per_s']:.1f} frames/s) "
-        f"-> {path}",
-        file=sys.stderr,
-    )
+    r = analyze_session(args.session[0], args.outdir, method=args.method, params=params, progress=not args.quiet)
+    t = r.timing
+    log.info("%s: %d frames in %.1f s (%.1f frames/s) -> %s", args.method, r.n_frames, t["total_s"],
+             t["frames_per_s"], r.path)
     return 0

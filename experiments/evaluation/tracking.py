@@ -21,7 +21,7 @@ from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
 from skinstretch.drivers.session_file import SessionTruth
-from skinstretch.experiments.results_file import Results
+from skinstretch.experiments.results_file import PairStatus, Results
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.tracking import MotionSample
 
@@ -98,7 +98,7 @@ def edge_strain_errors(r: Results, tf: TruthField, span: int) -> tuple[np.ndarra
     s = r.strain[span]
     e_err, a_err = [], []
     for i, pair in enumerate(s.pairs):
-        if pair["status"] != b"ok":
+        if pair["status"] != PairStatus.OK:
             continue
         fa, fb = int(pair["frame_a"]), int(pair["frame_b"])
         e = s.edges[s.edges["pair"] == i]
@@ -132,23 +132,26 @@ def edge_strain_errors(r: Results, tf: TruthField, span: int) -> tuple[np.ndarra
 def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tuple[float, int]:
     """Fraction of consecutive matches whose two extracted features are nearest to different truth features
     (both within ``assoc_px`` of one); also returns how many matches could be judged."""
-    if r.trajectories is None:
+    if r.trajectories is None or r.coordinates != "image":
         return math.nan, 0
-    rx, ry, linked = r.trajectories["raw_x"], r.trajectories["raw_y"], r.trajectories["linked"]
+    rows = r.trajectories.rows
     fx, fy, vis = truth.feature_x, truth.feature_y, truth.feature_visible
-    if r.coordinates != "image":
-        return math.nan, 0
-    ids = np.full(rx.shape, -1, np.int64)
-    for k in range(min(rx.shape[0], fx.shape[0])):
-        have = np.isfinite(rx[k])
+    truth_id = np.full(rows.size, -1, np.int64)  # nearest visible truth feature of each row, within assoc_px
+    off = r.trajectories.frame_offsets
+    for k in range(min(r.n_frames, fx.shape[0])):
+        lo, hi = int(off[k]), int(off[k + 1])
         v = np.nonzero(vis[k])[0]
-        if not np.any(have) or v.size == 0:
+        if hi == lo or v.size == 0:
             continue
-        dist, j = cKDTree(np.column_stack([fx[k, v], fy[k, v]])).query(np.column_stack([rx[k, have], ry[k, have]]))
-        got = np.where(dist <= assoc_px, v[j], -1)
-        ids[k, np.nonzero(have)[0]] = got
-    judged = linked[1:] & (ids[1:] >= 0) & (ids[:-1] >= 0)
-    wrong = judged & (ids[1:] != ids[:-1])
+        dist, j = cKDTree(np.column_stack([fx[k, v], fy[k, v]])).query(
+            np.column_stack([rows["raw_x"][lo:hi], rows["raw_y"][lo:hi]]))
+        truth_id[lo:hi] = np.where(dist <= assoc_px, v[j], -1)
+    # A linked row follows the same track's row of the previous frame: judge the pair of truth ids.
+    order = np.lexsort((rows["frame"], rows["track"]))
+    tr, fr, tid, linked = rows["track"][order], rows["frame"][order], truth_id[order], rows["linked"][order]
+    follows = (tr[1:] == tr[:-1]) & (fr[1:] == fr[:-1] + 1) & linked[1:]
+    judged = follows & (tid[1:] >= 0) & (tid[:-1] >= 0)
+    wrong = judged & (tid[1:] != tid[:-1])
     n = int(judged.sum())
     return (float(wrong.sum()) / n if n else math.nan), n
 
@@ -156,7 +159,7 @@ def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tup
 def true_profile(r: Results, tf: TruthField, *, strip_px: float):
     """The seed Figure 94 profile computed by the analysis code from the true motion of the truth grid's skin points
     (every consecutive pair, the results' axis and positions)."""
-    from skinstretch.experiments.analysis import stretch_profile
+    from skinstretch.experiments.analysis.derive import stretch_profile
 
     samples, ft = [], []
     for k in range(r.n_frames - 1):
@@ -164,7 +167,7 @@ def true_profile(r: Results, tf: TruthField, *, strip_px: float):
         samples.append(s)
         ft.append(s.displacement.mean(axis=0) if len(s) else np.zeros(2))
     return stretch_profile(
-        samples, np.asarray(ft), axis=r.profile_axis, positions=r.profile_position, strip_px=strip_px
+        samples, np.asarray(ft), axis=r.profile_axis_index, positions=r.profile.x, strip_px=strip_px
     )
 
 
@@ -179,7 +182,7 @@ def profile_correlation(r: Results, tf: TruthField, *, strip_px: float) -> tuple
 
 
 def _sliding_direction(r: Results) -> float:
-    travel = np.nansum(np.asarray(r.fingertip_displacement, dtype=np.float64)[:, r.profile_axis])
+    travel = np.nansum(np.asarray(r.fingertip.displacement, dtype=np.float64)[:, r.profile_axis_index])
     return 1.0 if travel >= 0 else -1.0
 
 
@@ -199,7 +202,7 @@ def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str
     surface = str(tf.truth.attrs.get("surface", "unknown"))
     true = true_profile(r, tf, strip_px=strip_px)
     ok = true.valid & r.profile_valid
-    out: dict[str, Any] = {"axis": "x" if r.profile_axis == 0 else "y", "surface": surface}
+    out: dict[str, Any] = {"axis": r.profile_axis, "surface": surface}
     corr = math.nan
     if ok.sum() >= 3 and np.std(true.change[ok]) > 0 and np.std(r.profile_change[ok]) > 0:
         corr = float(np.corrcoef(true.change[ok], r.profile_change[ok])[0, 1])
@@ -233,8 +236,8 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
     assoc = 0.1 * r.px_per_mm  # 0.1 mm: well under the spacing of features of one kind
     wrong, judged = wrong_match_rate(r, truth, assoc_px=assoc)
     med_len = math.nan
-    if r.trajectories is not None and r.trajectories["present"].size:
-        med_len = float(np.median(r.trajectories["present"].sum(axis=0)))
+    if r.tracks is not None and r.tracks.size:
+        med_len = float(np.median(r.tracks["n_frames"]))
     out: dict[str, Any] = {
         "tracking": {
             "displacement_rmse_px": _rms(derr),
@@ -254,7 +257,7 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
         out["strain"][f"n_edges_{span}"] = int(e_err.size)
     for key in ("edge_rmse_1", "edge_rmse_11", "area_rmse_1"):
         out["strain"].setdefault(key, math.nan)
-    strip = float(r.params.get("profile_strip_mm", 1.0)) * r.px_per_mm
+    strip = float(r.params["strain"]["profile_strip_mm"]) * r.px_per_mm
     out["profile"] = evaluate_profile(r, tf, strip_px=strip)
     out["timing"] = {"frames_per_s": float(r.timing.get("frames_per_s", math.nan))}
     return out

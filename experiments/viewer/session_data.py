@@ -474,11 +474,11 @@ def load_results_index(path: Path) -> ResultsIndex:
     if feats is not None:
         by_frame = _PerFrame.build(feats["frame"], n)
     if r.trajectories is not None:
-        tr = r.trajectories
-        tx, ty = np.asarray(tr["x"], np.float64), np.asarray(tr["y"], np.float64)
-        tpresent, tlinked = np.asarray(tr["present"], bool), np.asarray(tr["linked"], bool)
+        tr = r.trajectories.dense()
+        tx, ty = np.asarray(tr.x, np.float64), np.asarray(tr.y, np.float64)
+        tpresent, tlinked = np.asarray(tr.present, bool), np.asarray(tr.linked, bool)
         if feats is not None:
-            fi = np.asarray(tr["feature_index"], np.int64)
+            fi = np.asarray(tr.feature_index, np.int64)
             feature_track = np.full(feats.shape[0], -1, np.int64)
             where = fi >= 0
             feature_track[fi[where]] = np.nonzero(where)[1]
@@ -495,11 +495,11 @@ def load_results_index(path: Path) -> ResultsIndex:
                    np.asarray(r.tactile_clipped, bool))
     return ResultsIndex(
         path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
-        strain_scale=scale, motion_axis=int(r.profile_axis), has_tactile=tactile is not None, window=dict(r.window),
+        strain_scale=scale, motion_axis=r.profile_axis_index, has_tactile=tactile is not None, window=dict(r.window),
         _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
         _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
         _motion_by_pair=_PerFrame.build(r.motion["pair"], max(n - 1, 0)), _triangles=triangles,
-        _triangles_by_pair=tri_by_pair, _pair_frames=pair_frames, _window_centers=r.window_centers, _tactile=tactile,
+        _triangles_by_pair=tri_by_pair, _pair_frames=pair_frames, _window_centers=r.visibility_window.centers if r.visibility_window else None, _tactile=tactile,
     )
 
 

@@ -1,0 +1,173 @@
+"""What is derived from the measured motion (seed 5.2-5.4), in pixels: strain tables, fingertip motion, visibility
+window, stretch profile and tactile movie.
+
+Every function takes per-pair :class:`~skinstretch.processing.tracking.MotionSample` s in pixels (rectified to the
+skin when the session has a geometric mapping: that is done once, where the motion leaves the measurement) and
+lengths already converted to pixels by :class:`PixelScales`. Samples may be a lazy sequence read back from the
+results file, so nothing here holds the whole session's motion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from skinstretch.experiments.results_file import (
+    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
+)
+from skinstretch.processing.display_mapping import TactileMovie, tactile_movie
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow, fingertip_motion, visibility_window
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.stretch import (
+    COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, StretchProfile, horizontal_stretch_profile, mean_profile,
+    triangulation_strains,
+)
+from skinstretch.processing.tracking import MotionSample
+
+__all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "stretch_profile", "sliding_axis",
+           "chain_flows", "rectified_sample"]
+
+_STATUS_OF_STRAIN = {STRAIN_OK: PairStatus.OK, TOO_FEW_POINTS: PairStatus.TOO_FEW_POINTS,
+                     COLLINEAR: PairStatus.COLLINEAR}
+
+
+@dataclass(frozen=True)
+class PixelScales:
+    """The analysis' lengths in pixels, converted once from the parameters' millimetres."""
+
+    max_edge_px: float
+    profile_strip_px: float
+    profile_step_px: float
+
+    @classmethod
+    def of(cls, calibration: Calibration, strain_params) -> "PixelScales":
+        return cls(calibration.px(strain_params.max_edge_mm), calibration.px(strain_params.profile_strip_mm),
+                   calibration.px(strain_params.profile_step_mm))
+
+
+def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: float, first_pair: int = 0) -> SpanStrain:
+    """Triangulation strain of a run of pairs of one span (one compiled call for all of them, see
+    :func:`~skinstretch.processing.stretch.triangulation_strains`); pair ``i`` of the run is pair ``first_pair + i``
+    of the span. Pairs that cannot give one carry the status and the reason."""
+    b = triangulation_strains(samples, max_edge_px=max_edge_px)
+    n = len(samples)
+    reasons = [b.failure(i) or "" for i in range(n)]
+    status = [_STATUS_OF_STRAIN.get(int(c), PairStatus.NO_USABLE_TRIANGLE) for c in b.status]
+    pairs = pair_rows(b.frame_a, b.frame_b, b.n_points, status, reasons)
+    where = np.arange(first_pair, first_pair + n, dtype=np.int64)
+    # The edge and triangle tables are filled field by field over the batch's flat arrays.
+    edges = np.zeros(b.edges.shape[0], dtype=EDGE_DTYPE)
+    edges["pair"] = np.repeat(where, np.diff(b.edge_offsets))
+    edges["id_a"], edges["id_b"] = b.ids[b.edges].T
+    edges["xa"], edges["ya"], edges["xb"], edges["yb"] = b.points[b.edges].reshape(-1, 4).T
+    edges["length"], edges["change"] = b.edge_length, b.edge_change
+    tris = np.zeros(b.triangles.shape[0], dtype=TRIANGLE_DTYPE)
+    tris["pair"] = np.repeat(where, np.diff(b.triangle_offsets))
+    tris["id_a"], tris["id_b"], tris["id_c"] = b.ids[b.triangles].T
+    xy = b.points[b.triangles].reshape(-1, 6)  # x0, y0, x1, y1, x2, y2
+    for j in range(3):
+        tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
+    tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
+    return SpanStrain(span, pairs, edges, tris)
+
+
+def motion_rows(samples: Sequence[MotionSample], *, first_pair: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The ``motion_pairs`` and ``motion`` rows of a run of consecutive pairs."""
+    pairs = pair_rows([s.frame_a for s in samples], [s.frame_b for s in samples], [len(s) for s in samples],
+                      [PairStatus.OK if len(s) else PairStatus.NO_MOTION for s in samples],
+                      ["" if len(s) else "no motion measured" for s in samples])
+    parts = []
+    for i, s in enumerate(samples):
+        t = np.zeros(len(s), dtype=MOTION_DTYPE)
+        t["pair"] = first_pair + i
+        t["id"] = s.ids
+        t["x"], t["y"] = s.points.T
+        t["dx"], t["dy"] = s.displacement.T
+        parts.append(t)
+    return pairs, (np.concatenate(parts) if parts else np.zeros(0, MOTION_DTYPE))
+
+
+def rectified_sample(s: MotionSample, mapping, px_per_mm: float) -> MotionSample:
+    """Image px -> skin px (the mapping's mm times px_per_mm), so strains are on the skin (seed 3.4)."""
+    if mapping is None or len(s) == 0:
+        return s
+    pa = np.asarray(mapping.image_to_surface(s.points), dtype=np.float64) * px_per_mm
+    pb = np.asarray(mapping.image_to_surface(s.points + s.displacement), dtype=np.float64) * px_per_mm
+    return MotionSample(s.frame_a, s.frame_b, pa, pb - pa, s.ids)
+
+
+def chain_flows(fields: Sequence, *, stride: int = 1) -> MotionSample:
+    """Displacement from the first field's frame to the last field's second frame, following skin points
+    (every ``stride``-th node of the first grid) through each field in turn; points lost on the way drop out."""
+    if not fields:
+        raise InvalidInputError("chain_flows needs at least one field")
+    first = fields[0].motion(stride=stride)
+    p0 = first.points
+    p = p0 + first.displacement
+    ids = first.ids
+    for f in fields[1:]:
+        d, ok = f.sample(p)
+        p, p0, ids = p[ok] + d[ok], p0[ok], ids[ok]
+    return MotionSample(fields[0].frame_a, fields[-1].frame_b, p0, p - p0, ids)
+
+
+def sliding_axis(fingertip_position: np.ndarray) -> int:
+    """0 (x) or 1 (y): the axis along which the fingertip travelled furthest (the profile's axis)."""
+    travel = np.ptp(fingertip_position, axis=0) if fingertip_position.shape[0] else np.zeros(2)
+    return int(np.argmax(travel))
+
+
+def stretch_profile(samples: Iterable[MotionSample], fingertip_displacement: np.ndarray, *, axis: int,
+                    positions: np.ndarray, strip_px: float) -> StretchProfile:
+    """Seed Figure 94: the change in stretch along ``axis`` averaged over every consecutive pair.
+
+    A position is kept when at least a quarter of the pairs measured it, so a few pairs cannot make the average
+    where the skin is seldom seen (the edge of the contact area, a dark band without features).
+    """
+    profiles = []
+    for k, s in enumerate(samples):
+        if axis == 1:
+            s = MotionSample(s.frame_a, s.frame_b, s.points[:, ::-1], s.displacement[:, ::-1], s.ids)
+            ft = fingertip_displacement[k][::-1]
+        else:
+            ft = fingertip_displacement[k]
+        profiles.append(
+            horizontal_stretch_profile(s, fingertip_displacement=ft, x_positions=positions, strip_width_px=strip_px)
+        )
+    return mean_profile(profiles, min_pairs=max(1, len(profiles) // 4))
+
+
+@dataclass(frozen=True)
+class Derived:
+    """Everything computed from the consecutive pairs' motion (seed 5.2-5.4)."""
+
+    fingertip: FingertipMotion
+    window: VisibilityWindow | None
+    window_status: str  # "ok" or why there is no visibility window (and so no movie)
+    profile_axis: str  # "x" or "y"
+    profile: StretchProfile
+    movie: TactileMovie | None
+
+
+def derive(samples: Sequence[MotionSample], *, n_frames: int, image_shape: tuple[int, int], calibration: Calibration,
+           scales: PixelScales, display_params, profile_axis: int | None = None) -> Derived:
+    """Fingertip motion and visibility window (seed 5.2), stretch profile (5.3.2, Figure 94) and tactile movie
+    (5.4) from the consecutive pairs' samples (iterated once for each)."""
+    ft = fingertip_motion(samples, n_frames=n_frames)
+    try:
+        win, status = visibility_window(ft, image_shape=image_shape), "ok"
+    except InsufficientDataError as exc:
+        win, status = None, str(exc)
+    axis = sliding_axis(ft.position) if profile_axis is None else int(profile_axis)
+    length = image_shape[1] if axis == 0 else image_shape[0]
+    step = scales.profile_step_px
+    positions = np.arange(step, length - step / 2, step)
+    profile = stretch_profile(samples, ft.displacement, axis=axis, positions=positions, strip_px=scales.profile_strip_px)
+    movie = None
+    if win is not None:
+        movie = tactile_movie(samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape,
+                              params=display_params, motion_axis=axis)
+    return Derived(ft, win, status, AXIS_NAMES[axis], profile, movie)

@@ -1,0 +1,157 @@
+"""Where the analysis gets its frames: a session file read frame by frame, or frames already in memory.
+
+A :class:`FrameSource` is a sequence of 2-D uint8 frames that can be sent to a worker process cheaply: a
+:class:`SessionFrames` travels as its path (each process opens the file itself and reads only its chunk), an
+:class:`ArrayFrames` as the frames of the chunk asked for (:meth:`FrameSource.part`). Nothing holds the whole
+session in memory. Glass-fixed shading (:mod:`skinstretch.processing.glass_shading`) is estimated in one streaming
+pass here and removed from each frame as the measurement reads it (:class:`FrameReader`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skinstretch.drivers.session_file import open_session
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.pixel_scale import Calibration
+
+__all__ = ["FrameSource", "SessionFrames", "ArrayFrames", "Shading", "FrameReader", "estimate_shading"]
+
+log = logging.getLogger(__name__)
+
+
+class FrameSource(Sequence):
+    """Frames numbered 0..N-1 (2-D uint8). ``source[k]`` reads frame k; :meth:`part` is what a worker needs."""
+
+    shape: tuple[int, int]
+
+    def part(self, first: int, last: int) -> "FrameSource":
+        """A source that can read frames ``first..last`` (inclusive; numbering unchanged), cheap to pickle."""
+        return self
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(f"frame {k} out of range for {len(self)} frames")
+        return self._frame(k)
+
+    def _frame(self, k: int) -> np.ndarray:
+        raise NotImplementedError
+
+
+class SessionFrames(FrameSource):
+    """The frames of a session file, read one at a time (each process opens the file itself)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        with open_session(self.path) as s:
+            self._n, height, width = s.shape
+        self.shape = (int(height), int(width))
+        self._session = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _frame(self, k: int) -> np.ndarray:
+        if self._session is None:
+            self._session = open_session(self.path)
+        return self._session.frame(k)
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_session": None}  # the other process opens its own
+
+
+class ArrayFrames(FrameSource):
+    """Frames in memory (an (N, H, W) array or a list of 2-D arrays); :meth:`part` copies only the chunk."""
+
+    def __init__(self, frames: Sequence[np.ndarray] | np.ndarray, *, first: int = 0, n_frames: int | None = None) -> None:
+        self._frames = frames
+        self._first = int(first)
+        self._n = int(n_frames) if n_frames is not None else len(frames)
+        if len(frames) == 0:
+            raise InsufficientDataError("no frames to analyse")
+        f0 = np.asarray(frames[0])
+        if f0.ndim != 2:
+            raise InvalidInputError(f"frames must be 2-D grey images, got shape {f0.shape}")
+        self.shape = (int(f0.shape[0]), int(f0.shape[1]))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _frame(self, k: int) -> np.ndarray:
+        i = k - self._first
+        if not 0 <= i < len(self._frames):
+            raise IndexError(f"frame {k} is not in this part (frames {self._first}..{self._first + len(self._frames) - 1})")
+        return np.asarray(self._frames[i])
+
+    def part(self, first: int, last: int) -> "ArrayFrames":
+        lo, hi = first - self._first, last + 1 - self._first
+        return ArrayFrames([np.asarray(self._frames[i]) for i in range(lo, hi)], first=first, n_frames=self._n)
+
+
+@dataclass(frozen=True)
+class Shading:
+    """Glass-fixed shading to remove (:class:`skinstretch.processing.glass_shading.GlassShading`) and the frames it
+    applies to (the others, all black or saturated, are passed on untouched)."""
+
+    shading: object  # GlassShading
+    good: np.ndarray  # (N,) bool
+
+
+class FrameReader:
+    """Frame k as the measurement sees it: read from the source, glass-fixed shading removed where it applies."""
+
+    def __init__(self, source: FrameSource, shading: Shading | None = None) -> None:
+        self.source = source
+        self.shading = shading
+
+    def __call__(self, k: int) -> np.ndarray:
+        frame = self.source[k]
+        if self.shading is not None and self.shading.good[k]:
+            from skinstretch.processing.glass_shading import remove_glass_shading  # noqa: PLC0415
+
+            return remove_glass_shading(frame, self.shading.shading)
+        return frame
+
+    def part(self, first: int, last: int) -> "FrameReader":
+        return FrameReader(self.source.part(first, last), self.shading)
+
+
+def estimate_shading(source: FrameSource, *, calibration: Calibration, params, surface: str | None
+                     ) -> tuple[Shading | None, str]:
+    """The glass-fixed shading of ``source`` when ``params`` (:class:`AnalysisParams`) ask for it, and what was
+    done (the results' ``glass_shading_status``). One streaming pass finds the frames to leave out (all black,
+    saturated: extraction flags them), one more takes the statistics."""
+    from skinstretch.processing.extraction import frame_flags  # noqa: PLC0415
+    from skinstretch.processing.glass_shading import glass_shading  # noqa: PLC0415
+
+    gs = params.glass_shading
+    use = gs.enabled if gs.enabled is not None else surface not in (None, "", "flat")
+    if not use:
+        return None, "off" if gs.enabled is False else f"off (surface {surface or 'unknown'})"
+    good = np.array([not frame_flags(source[k], params.extraction) for k in range(len(source))], dtype=bool)
+    try:  # InsufficientDataError: fewer than 2 usable frames, or skin that barely moved
+        shading = glass_shading(
+            source,
+            use=np.flatnonzero(good),
+            smooth_px=calibration.px(gs.smooth_mm),
+            along_shape_px=calibration.px(gs.along_shape_mm),
+            min_motion_ratio=gs.min_motion,
+        )
+    except InsufficientDataError as exc:
+        return None, f"not applied: {exc}"
+    return Shading(shading, good), f"applied (motion ratio {shading.motion_ratio:.2f})"

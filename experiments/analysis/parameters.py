@@ -1,0 +1,152 @@
+"""The analysis' parameters: one frozen pydantic model per stage, gathered in :class:`AnalysisParams`.
+
+Each stage keeps its own model: extraction, tracking, sub-pixel refinement, flow and display mapping are the
+processing layer's parameter classes (:mod:`skinstretch.processing.parameters`); strain/profile, glass shading and
+execution are defined here. Unknown fields and out-of-range values are refused where the parameters enter: on the
+command line, in a protocol's ``analysis.options`` when the protocol loads (with file, line and field), or when a
+Python user builds them. Everything is in mm, degrees, frames and grey levels; the analysis converts to pixels once.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import fields, is_dataclass, replace
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from skinstretch.processing.display_mapping import DisplayMappingParams
+from skinstretch.processing.displacement_refinement import SubpixelParams
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.extraction import ExtractionParams
+from skinstretch.processing.flow import FlowParams
+from skinstretch.processing.parameters import describe_validation_error
+from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TrackingParams, min_length_for_clip
+
+__all__ = ["AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params",
+           "for_clip"]
+
+log = logging.getLogger(__name__)
+
+METHODS = ("features", "flow")
+
+
+class _Stage(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class StrainParams(_Stage):
+    """Strain and profile (seed 5.3).
+
+    ``spans`` are the frame spans of the triangulation strain (seed 6.3.2: 1 and 11). ``max_edge_mm`` drops long
+    hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
+    profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the feature
+    triangulation's ~48 px, seed 6.3.3).
+    """
+
+    spans: tuple[int, ...] = (1, 11)
+    max_edge_mm: float = Field(2.0, gt=0)
+    profile_strip_mm: float = Field(1.0, gt=0)
+    profile_step_mm: float = Field(0.25, gt=0)
+    flow_stride: int = Field(4, ge=1)
+
+    @field_validator("spans")
+    @classmethod
+    def _positive_spans(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if not v or any(s < 1 for s in v):
+            raise ValueError(f"spans must be positive frame counts, got {list(v)}")
+        return tuple(dict.fromkeys(int(s) for s in v))
+
+
+class GlassShadingParams(_Stage):
+    """Removal of brightness patterns that stay on the prism while the skin slides
+    (:mod:`skinstretch.processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias
+    every motion estimate towards zero there).
+
+    ``enabled``: True / False, or None for "when the session's surface is not flat" (its metadata ``surface``).
+    ``smooth_mm`` smooths the per-pixel maps across the shape and ``along_shape_mm`` along it; a sequence whose skin
+    moved less than ``min_motion`` (temporal over spatial contrast) is left as it is.
+    """
+
+    enabled: bool | None = None
+    smooth_mm: float = Field(0.025, gt=0)
+    along_shape_mm: float = Field(0.13, gt=0)
+    min_motion: float = Field(1.1, ge=0)
+
+
+class ExecutionParams(_Stage):
+    """How the measurement runs in parallel, chosen once per run (:func:`skinstretch.experiments.analysis.executor.
+    make_executor`): ``processes`` (worker processes, each measuring a chunk of frames; the default), ``threads``
+    (of this process) or ``serial``; ``workers`` of them. Inside a worker process (a Dask task, the recorder's
+    analysis process) the analysis keeps to threads of that process."""
+
+    kind: Literal["processes", "threads", "serial"] = "processes"
+    workers: int = Field(2, ge=1, le=64)
+
+
+class AnalysisParams(_Stage):
+    """Every parameter of the analysis, one model per stage. ``robust_matching`` predicts feature displacements
+    from the measured global motion (:class:`skinstretch.processing.global_motion.GlobalMotionEstimator`);
+    ``subpixel`` None leaves displacements at the extraction's accuracy."""
+
+    extraction: ExtractionParams = ExtractionParams()
+    tracking: TrackingParams = TrackingParams(smoothing_radius_frames=0, max_gap_frames=3)
+    subpixel: SubpixelParams | None = SubpixelParams()
+    robust_matching: bool = True
+    flow: FlowParams = FlowParams()
+    display: DisplayMappingParams = DisplayMappingParams()
+    strain: StrainParams = StrainParams()
+    glass_shading: GlassShadingParams = GlassShadingParams()
+    execution: ExecutionParams = ExecutionParams()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fields_given_change_the_analysis_defaults(cls, data: Any) -> Any:
+        """``{tracking: {min_length_frames: 10}}`` changes that field of the analysis' tracking defaults (not of
+        TrackingParams' own, which differ: no smoothing and re-linking over 3 frames here)."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            default = cls.model_fields[name].default if name in cls.model_fields else None
+            if isinstance(value, dict) and is_dataclass(default):
+                out[name] = {**{f.name: getattr(default, f.name) for f in fields(default)}, **value}
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able nested dict (what the results' ``params_json`` records)."""
+        return self.model_dump(mode="json")
+
+
+def analysis_params(options: dict[str, Any] | AnalysisParams | None = None, **stages: Any) -> AnalysisParams:
+    """AnalysisParams from nested options (a protocol's ``analysis.options``, a dict of stages and fields), with
+    ``stages`` overriding whole stages; InvalidInputError names every bad field."""
+    if isinstance(options, AnalysisParams):
+        return options.model_copy(update=stages) if stages else options
+    try:
+        return AnalysisParams.model_validate({**dict(options or {}), **stages})
+    except ValidationError as exc:
+        raise InvalidInputError(describe_validation_error(exc, "analysis")) from None
+
+
+def for_clip(params: AnalysisParams, n_frames: int, method: str) -> AnalysisParams:
+    """The parameters as they apply to a clip of ``n_frames``: a minimum trajectory length left to its default
+    adapts to a short clip (logged; the results record the value used). One the clip cannot satisfy is refused."""
+    if n_frames < 2:
+        raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n_frames}")
+    if method != "features":
+        return params
+    given = params.tracking.min_length_frames
+    if given is not None:
+        if given > n_frames:
+            raise InsufficientDataError(
+                f"the minimum trajectory length ({given} frames, --min-track) is longer than the {n_frames}-frame "
+                f"session: no trajectory could be kept; give at most {n_frames}"
+            )
+        return params
+    effective = min_length_for_clip(n_frames)
+    if effective < DEFAULT_MIN_LENGTH_FRAMES:
+        log.warning("a %d-frame clip is shorter than the default minimum trajectory length (%d frames): "
+                    "trajectories of at least %d frames are kept (set --min-track to choose)", n_frames,
+                    DEFAULT_MIN_LENGTH_FRAMES, effective)
+    return params.model_copy(update={"tracking": replace(params.tracking, min_length_frames=effective)})

@@ -1,0 +1,380 @@
+"""The analysis of one session, start to end (seed chapters 4-5): frames in, a results file out.
+
+``analyze_session(path, outdir)`` and ``analyze_frames(frames, calibration=...)`` both run :func:`analyze`:
+
+1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked;
+2. motion between consecutive frames is measured in chunks on the run's executor (:mod:`.measure`): tracked
+   features refined to sub-pixel, or the dense flow grid;
+3. the motion is rectified to the skin once (when the session has a geometric mapping), written to the results
+   file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive;
+4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion
+   (:mod:`.derive`), and the file is closed as ``results.h5`` (``docs/results-format.md``).
+
+Memory does not grow with the session beyond a few numbers per frame (flags, fingertip, movie) and, for the feature
+method, the compact per-feature records of the trajectories.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from collections.abc import Sequence
+from concurrent.futures import Executor, Future
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from skinstretch.drivers.session_file import open_session
+from skinstretch.experiments.analysis.derive import (
+    PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain,
+)
+from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
+from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
+from skinstretch.experiments.analysis.measure import measure_features, measure_flow
+from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params, for_clip
+from skinstretch.experiments.json_encoding import json_default, json_safe
+from skinstretch.experiments.provenance import software_versions
+from skinstretch.experiments.results_file import AXIS_NAMES, TRACK_DTYPE, UNITS, PairStatus, Results, ResultsWriter
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.tracking import MotionSample, Trajectories
+
+__all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
+
+log = logging.getLogger(__name__)
+
+#: Pairs of one span triangulated in one task (one compiled call).
+STRAIN_BATCH_PAIRS = 128
+
+
+class _StrainTables:
+    """The strain of every span, computed in batches on the executor as pairs arrive and written in pair order."""
+
+    def __init__(self, writer: ResultsWriter, executor: Executor, spans: Sequence[int], max_edge_px: float) -> None:
+        self.writer, self.executor, self.max_edge_px = writer, executor, max_edge_px
+        self.buffers: dict[int, list[MotionSample]] = {int(s): [] for s in spans}
+        self.done: dict[int, int] = {int(s): 0 for s in spans}  # pairs submitted per span
+        self.pending: deque[tuple[int, Future, list, dict]] = deque()
+        self.ok: dict[int, int] = {int(s): 0 for s in spans}
+
+    def add(self, span: int, sample: MotionSample) -> None:
+        buf = self.buffers[span]
+        buf.append(sample)
+        if len(buf) >= STRAIN_BATCH_PAIRS:
+            self._submit(span)
+
+    def _submit(self, span: int) -> None:
+        buf = self.buffers[span]
+        if not buf:
+            return
+        self.buffers[span] = []
+        kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span])
+        fut = self.executor.submit(span_strain, buf, **kwargs)
+        self.done[span] += len(buf)
+        self.pending.append((span, fut, buf, kwargs))
+        while len(self.pending) > 4:  # keep a few batches in flight, write the rest
+            self._write_next()
+
+    def _write_next(self) -> None:
+        span, fut, buf, kwargs = self.pending.popleft()
+        try:
+            s = fut.result()
+        except (BrokenProcessPool, OSError) as exc:  # the workers died: this process carries on (as measure does)
+            log.warning("worker processes failed (%s); the strain is computed in this process", exc)
+            self.executor = InlineExecutor()
+            s = span_strain(buf, **kwargs)
+        g = f"strain/span_{span}"
+        self.writer.append(f"{g}/pairs", s.pairs, UNITS["pairs"])
+        self.writer.append(f"{g}/edges", s.edges, UNITS["edges"])
+        self.writer.append(f"{g}/triangles", s.triangles, UNITS["triangles"])
+        self.writer.file[g].attrs["span"] = span
+        self.ok[span] += int(np.sum(s.pairs["status"] == PairStatus.OK))
+
+    def finish(self) -> None:
+        for span in self.buffers:
+            self._submit(span)
+        while self.pending:
+            self._write_next()
+        for span in self.buffers:  # a span longer than the session: an empty table says so
+            g = f"strain/span_{span}"
+            if g not in self.writer.file:
+                for name in ("pairs", "edges", "triangles"):
+                    self.writer.append(f"{g}/{name}", np.zeros(0, _dtype_of(name)), UNITS[name])
+                self.writer.file[g].attrs["span"] = span
+
+
+def _dtype_of(name: str):
+    from skinstretch.experiments.results_file import EDGE_DTYPE, PAIR_DTYPE, TRIANGLE_DTYPE  # noqa: PLC0415
+
+    return {"pairs": PAIR_DTYPE, "edges": EDGE_DTYPE, "triangles": TRIANGLE_DTYPE}[name]
+
+
+def _rectify_trajectories(tr: Trajectories, mapping, px_per_mm: float) -> None:
+    """Image px -> skin px for every position of the trajectories, all in one call (seed 3.4)."""
+    for a, b in (("x", "y"), ("raw_x", "raw_y")):
+        xy = np.column_stack([tr.rows[a], tr.rows[b]])
+        out = np.asarray(mapping.image_to_surface(xy), dtype=np.float64) * px_per_mm
+        tr.rows[a], tr.rows[b] = out[:, 0], out[:, 1]
+
+
+def analyze(
+    source: FrameSource | Sequence[np.ndarray] | np.ndarray,
+    *,
+    calibration: Calibration,
+    method: str = "features",
+    params: AnalysisParams | dict | None = None,
+    executor: Executor | None = None,
+    mapping=None,
+    results_path: str | Path | None = None,
+    session_path: str = "",
+    surface: str | None = None,
+    progress: bool = False,
+) -> Results:
+    """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
+    results file in memory) and return it opened.
+
+    ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
+    ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
+    glass-shading step when ``params.glass_shading.enabled`` is None.
+    """
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    params = analysis_params(params)
+    if not isinstance(source, FrameSource):
+        source = ArrayFrames(source)
+    n = len(source)
+    params = for_clip(params, n, method)
+    image_shape = tuple(int(v) for v in source.shape)
+    scales = PixelScales.of(calibration, params.strain)
+    spans = [int(s) for s in params.strain.spans]
+    with ExitStack() as stack:
+        if executor is None:
+            executor = stack.enter_context(make_executor(params.execution))
+        t_start = time.perf_counter()
+        shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
+        reader = FrameReader(source, shading)
+        t_shading = time.perf_counter() - t_start
+        writer = stack.enter_context(ResultsWriter(results_path))
+        flags = [""] * n
+        strain = _StrainTables(writer, executor, spans, scales.max_edge_px)
+        n_features = [0]
+
+        def write_motion(samples: list[MotionSample], first_pair: int) -> None:
+            pairs, rows = motion_rows(samples, first_pair=first_pair)
+            writer.append("motion_pairs", pairs, UNITS["pairs"])
+            writer.append("motion", rows, UNITS["motion"])
+
+        if method == "features":
+            def on_frames(first: int, tables: list, chunk_flags: list) -> None:
+                sizes = [t.shape[0] for t in tables]
+                feats = validate_features(np.concatenate(tables)) if tables else np.zeros(0, FEATURE_DTYPE)
+                feats["frame"] = np.repeat(np.arange(first, first + len(tables), dtype=np.int32), sizes)
+                feats["id"] = np.arange(n_features[0], n_features[0] + feats.shape[0])
+                n_features[0] += feats.shape[0]
+                writer.append("features", feats, UNITS["features"])
+                flags[first : first + len(chunk_flags)] = chunk_flags
+
+            m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
+                                 on_frames=on_frames, progress=progress)
+            t0 = time.perf_counter()
+            tr = m.tracker.finish(release=True)  # records freed as the table fills
+            m.tracker = None
+            if mapping is not None:
+                _rectify_trajectories(tr, mapping, calibration.px_per_mm)
+            writer.append("trajectories", tr.rows, UNITS["trajectories"])
+            writer.append("tracks", _track_table(tr), UNITS["tracks"])
+            block = []
+            for k in range(n - 1):
+                s = tr.motion(k, k + 1)
+                block.append(s)
+                for span in spans:
+                    if span == 1:
+                        strain.add(1, s)
+                    elif k + span < n:
+                        strain.add(span, tr.motion(k, k + span))
+                if len(block) == STRAIN_BATCH_PAIRS or k == n - 2:
+                    write_motion(block, k + 1 - len(block))
+                    block = []
+            m.timing["tracking_s"] += time.perf_counter() - t0
+            timing, parallel = dict(m.timing), m.parallel
+        else:
+            recent: deque = deque(maxlen=max(spans))
+            block: list[MotionSample] = []
+            stride = params.strain.flow_stride
+            done = [0]
+
+            def on_field(f) -> None:
+                if not recent and done[0] == 0:
+                    writer.start_flow(f.grid_x, f.grid_y)
+                writer.append_flow(f.displacement, f.valid)
+                if f.status != "ok" and not any(f.frame_flags):
+                    flags[f.frame_a] = f.status
+                for k, refused in zip((f.frame_a, f.frame_b), f.frame_flags):  # the texture gate names each frame's
+                    flags[k] = refused or flags[k]                              # reason
+                recent.append(f)
+                block.append(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
+                for span in spans:
+                    if len(recent) >= span:
+                        chained = chain_flows(list(recent)[len(recent) - span:], stride=stride)
+                        strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
+                done[0] += 1
+                if len(block) == STRAIN_BATCH_PAIRS or done[0] == n - 1:
+                    write_motion(block, done[0] - len(block))
+                    block.clear()
+
+            m = measure_flow(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
+                             on_field=on_field, progress=progress)
+            timing, parallel = dict(m.timing), m.parallel
+        t0 = time.perf_counter()
+        strain.finish()
+        d = derive(writer.samples(), n_frames=n, image_shape=image_shape, calibration=calibration, scales=scales,
+                   display_params=params.display)
+        timing["derive_s"] = time.perf_counter() - t0
+        _write_derived(writer, d, flags)
+        total = time.perf_counter() - t_start
+        timing.update({"glass_shading_s": t_shading, "total_s": total, "frames_per_s": n / total if total > 0 else 0.0})
+        attrs = {
+            "method": method,
+            "session_path": session_path,
+            "n_frames": n,
+            "image_shape": np.asarray(image_shape, dtype=np.int64),
+            "px_per_mm": float(calibration.px_per_mm),
+            "coordinates": "image" if mapping is None else "rectified",
+            "timing_json": json.dumps(timing),
+            "params_json": json.dumps({**params.to_dict(), "glass_shading_status": shading_status,
+                                       "parallel": parallel}),
+            "versions_json": json.dumps(software_versions()),
+            "window_json": json.dumps({"x0": d.window.x0, "y0": d.window.y0, "x1": d.window.x1, "y1": d.window.y1}
+                                      if d.window is not None else {"status": d.window_status}),
+        }
+        writer.file.attrs.update(attrs)
+        summary = summarize(writer, d, strain, n_frames=n, results_path=results_path, session_path=session_path,
+                            method=method, timing=timing, shading_status=shading_status, flags=flags)
+        attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
+        return writer.finish(attrs)
+
+
+def _track_table(tr: Trajectories) -> np.ndarray:
+    t = np.zeros(tr.n_tracks, dtype=TRACK_DTYPE)
+    t["track"] = np.arange(tr.n_tracks)
+    t["kind"] = tr.kind
+    t["n_frames"] = tr.lengths
+    fr, tk = tr.rows["frame"], tr.rows["track"]
+    first = np.full(tr.n_tracks, np.iinfo(np.int32).max, np.int64)
+    last = np.full(tr.n_tracks, -1, np.int64)
+    np.minimum.at(first, tk, fr)
+    np.maximum.at(last, tk, fr)
+    t["first_frame"], t["last_frame"] = first, last
+    return t
+
+
+def _write_derived(w: ResultsWriter, d, flags: list[str]) -> None:
+    w.array("frame_flags", np.array([s.encode() for s in flags], dtype="S128"), "")
+    ft = d.fingertip
+    w.array("fingertip/displacement", ft.displacement, "px", columns=AXIS_NAMES)
+    w.array("fingertip/n_points", ft.n_features, "count")
+    w.array("fingertip/valid", ft.valid, "")
+    w.array("fingertip/position", ft.position, "px", columns=AXIS_NAMES)
+    if d.window is not None:
+        w.array("window_centers", d.window.centers, "px", columns=AXIS_NAMES)
+    w.array("profile/position", d.profile.x, "px")
+    w.array("profile/change", d.profile.change, "fraction")
+    w.array("profile/valid", d.profile.valid, "")
+    w.file["profile"].attrs["axis"] = d.profile_axis
+    if d.movie is not None:
+        mv = d.movie
+        w.array("tactile_movie/positions_um", mv.positions_um, "um")
+        w.array("tactile_movie/reset", mv.reset, "")
+        w.array("tactile_movie/clipped", mv.clipped, "")
+        w.array("tactile_movie/stretch_change", mv.stretch_change, "fraction")
+        w.file["tactile_movie"].attrs["motion_axis"] = d.profile_axis
+
+
+def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int, results_path, session_path: str,
+              method: str, timing: dict, shading_status: str, flags: list[str]) -> dict[str, Any]:
+    """The small JSON summary written next to the results (and into them)."""
+    f = writer.file
+    out: dict[str, Any] = {
+        "results": str(results_path) if results_path is not None else "(in memory)",
+        "session": session_path,
+        "method": method,
+        "n_frames": n_frames,
+        "coordinates": str(f.attrs["coordinates"]),
+        "timing": timing,
+        "glass_shading": shading_status,
+        "frames_flagged": int(sum(1 for s in flags if s)),
+        "fingertip_travel_px": np.ptp(d.fingertip.position, axis=0).tolist(),
+        "profile_axis": d.profile_axis,
+        "window": json.loads(str(f.attrs["window_json"])),
+        "min_track_frames": json.loads(str(f.attrs["params_json"]))["tracking"]["min_length_frames"]
+        if method == "features" else None,
+    }
+    if "tracks" in f:
+        lengths = f["tracks"]["n_frames"]
+        out["n_trajectories"] = int(lengths.size)
+        out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
+    for span in strain.buffers:
+        g = f[f"strain/span_{span}"]
+        e = g["edges"]["change"]
+        out[f"strain_span_{span}"] = {
+            "pairs": int(g["pairs"].shape[0]),
+            "pairs_ok": strain.ok[span],
+            "edges": int(e.size),
+            "edge_change_p5_p95": np.percentile(e, [5, 95]).tolist() if e.size else None,
+        }
+    return out
+
+
+def surface_kind(metadata: dict) -> str | None:
+    """The surface of a session's metadata: a simulated scene's "ridge", or a protocol's {"kind": "ridge", ...}."""
+    surface = metadata.get("surface")
+    if isinstance(surface, dict):
+        surface = surface.get("kind")
+    return str(surface) if surface else None
+
+
+#: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
+#: results stay in memory unless ``results_path`` is given.
+analyze_frames = analyze
+
+
+def analyze_session(
+    session_path: str | Path,
+    outdir: str | Path,
+    *,
+    method: str = "features",
+    params: AnalysisParams | dict | None = None,
+    executor: Executor | None = None,
+    progress: bool = False,
+) -> Results:
+    """Analyse one session file into ``outdir`` (created): ``results.h5`` and ``summary.json``; returns the results.
+
+    Frames are read from the file as they are measured, so a session of any length fits in memory."""
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    session_path, outdir = Path(session_path), Path(outdir)
+    with open_session(session_path) as session:
+        mapping = None
+        if session.mapping_json:
+            from skinstretch.processing.geometric_calibration import mapping_from_dict  # noqa: PLC0415
+
+            mapping = mapping_from_dict(json.loads(session.mapping_json))
+        calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
+        surface = surface_kind(session.metadata)
+    source = SessionFrames(session_path)
+    outdir.mkdir(parents=True, exist_ok=True)
+    try:
+        r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
+                    mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
+                    surface=surface, progress=progress)
+    finally:
+        source.close()
+    (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
+    return r
+

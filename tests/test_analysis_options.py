@@ -1,0 +1,69 @@
+"""Analysis options are checked where they enter: a protocol at load (file, line, field), the command line, the
+Python API; the recorder's analysis call reports a failure as a value with a one-line reason."""
+
+import pytest
+
+from skinstretch.cli import main
+from skinstretch.experiments.analysis import analysis_params
+from skinstretch.experiments.protocol import load_protocol, parse_protocol
+from skinstretch.experiments.runner import analyse_trial
+from skinstretch.processing.errors import ConfigError, InvalidInputError
+from skinstretch.processing.tracking import TrackingParams
+
+PROTOCOL = """\
+name: p1
+subject: {id: s01}
+trials:
+  - name: flat
+    duration_s: 1.0
+analysis:
+  method: features
+  options: OPTIONS
+"""
+
+
+@pytest.mark.parametrize(
+    "options, field",
+    [
+        ("{spanz: [1, 11]}", "analysis.options.spanz"),
+        ("{tracking: {min_trak: 10}}", "analysis.options.tracking.min_trak"),
+        ("{strain: {spans: [0, 11]}}", "analysis.options.strain.spans"),
+        ("{flow: {window_px: 16}}", "analysis.options.flow.window_px"),
+        ("{tracking: {min_length_frames: 0}}", "analysis.options.tracking.min_length_frames"),
+        ("{extraction: {heal_broken_valleys: 1}}", "analysis.options.extraction.heal_broken_valleys"),
+    ],
+)
+def test_a_bad_option_stops_the_protocol_at_load_with_file_line_and_field(tmp_path, options, field):
+    path = tmp_path / "protocol.yaml"
+    path.write_text(PROTOCOL.replace("OPTIONS", options))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}:8: {field}:") and "\n" not in message
+
+
+def test_good_options_keep_the_analysis_defaults_of_fields_not_given():
+    p = parse_protocol(PROTOCOL.replace("OPTIONS", "{tracking: {min_length_frames: 12}, flow: {window_mm: 0.5}}"))
+    o = p.analysis.options
+    assert o.tracking == TrackingParams(min_length_frames=12, smoothing_radius_frames=0, max_gap_frames=3)
+    assert o.flow.window_mm == 0.5 and o.strain.spans == (1, 11)
+
+
+def test_the_python_api_and_the_command_line_name_the_field(tmp_path, capsys):
+    with pytest.raises(InvalidInputError, match=r"analysis\.strain\.max_edge_mm"):
+        analysis_params({"strain": {"max_edge_mm": -1}})
+    with pytest.raises(InvalidInputError, match=r"TrackingParams\.search_radius_mm"):
+        TrackingParams(search_radius_mm=float("nan"))
+    code = main(["analyze", str(tmp_path / "s.h5"), "-o", str(tmp_path / "o"), "--flow-scale-px", "16", "-q",
+                 "--method", "flow"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "window_px" in err[0]
+    assert main(["analyze", str(tmp_path / "s.h5"), "-o", str(tmp_path / "o"), "--flow-scale", "0.5", "-q"]) == 2
+    assert "--method flow" in capsys.readouterr().err
+
+
+def test_a_failed_analysis_is_a_value_with_one_line(tmp_path):
+    out = analyse_trial(str(tmp_path / "missing.h5"), str(tmp_path / "o"), "features", {})
+    assert not out.ok and "no such session file" in out.error and "\n" not in out.error
+    out = analyse_trial(str(tmp_path / "missing.h5"), str(tmp_path / "o"), "features", {"tracking": {"x": 1}})
+    assert not out.ok and "analysis.tracking.x" in out.error
