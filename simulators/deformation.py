@@ -37,7 +37,8 @@ What is modelled
    ``F(z) = integral of exp(-z^2 / 2 sigma^2)``, i.e. strain ``A (g(n.X - c(t)) - g(n.X - c(0)))`` along ``n``: a
    compression band where the front is now and, relative to frame 0, the opposite where it started (start it
    outside the contact); between two frames, compression ahead of the front and extension behind it. Skin the
-   front has passed is shifted by ``A sigma sqrt(2 pi)`` along ``n`` against skin it has not reached. It is added
+   front has passed is shifted by ``-A sigma sqrt(2 pi)`` along ``n`` (forward, for a compression) against skin it
+   has not reached. It is added
    to the rigid + plastic part (skin coordinates), so it is exactly zero in frame 0.
 All time-dependent non-rigid terms are multiplied by a ramp ``smoothstep(t / ramp_s)`` so frame 0 is undeformed.
 

@@ -11,9 +11,9 @@ How an image becomes skin texture (:func:`prepare_print`)
 1. **Grey levels.** 8- or 16-bit, grey or colour (OpenCV's BGR order; converted to luminance); an alpha channel
    marks where the print is (transparent = no print).
 2. **Where the print is.** Fingerprint segmentation by local contrast: the grey-level standard deviation over a
-   Gaussian window (sigma 0.5 mm) above 0.3 times its 95th percentile, cleaned (opening, holes filled, the largest
-   region and any region at least a tenth of it kept), eroded by 0.3 mm (a print's ragged border, where ridges
-   break up, is not kept) and given a soft 0.1 mm edge. This *coverage* multiplies the contact: skin outside the
+   Gaussian window (sigma 0.3 mm) above 0.3 times its 95th percentile, cleaned (opening, holes filled, the largest
+   region and any region at least a tenth of it kept), eroded by the window's reach (0.4 mm) and 0.3 mm more (a
+   print's ragged border, where ridges break up, is not kept) and given a soft 0.1 mm edge. This *coverage* multiplies the contact: skin outside the
    print renders as out of contact (bright glass, no ridges) and the truth marks it invalid there. A print smaller
    than the contact therefore shows a bright hole or border that moves with the skin; the renderer logs how much
    of the contact in view the print covers.
@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 
 Polarity = Literal["auto", "dark_ridges", "bright_ridges"]
 
-_SEGMENT_SIGMA_MM = 0.5
+_SEGMENT_SIGMA_MM = 0.3
 _SEGMENT_THRESHOLD = 0.3
 _BORDER_EROSION_MM = 0.3
 _COVERAGE_EDGE_MM = 0.1
@@ -150,7 +150,9 @@ def prepare_print(
     if mask.sum() < (1.0 * ppm) ** 2:
         raise InvalidInputError(f"print image {name}: no fingerprint found (no region of ridges of 1 mm^2 or more)")
     around = ~ndi.binary_dilation(mask, iterations=max(1, int(round(0.5 * ppm)))) & (alpha > 0.5)
-    inside = ndi.binary_erosion(mask, iterations=max(1, int(round(_BORDER_EROSION_MM * ppm))))
+    # The contrast window reaches ~1.3 sigma beyond the print (where the threshold is met), then the ragged border.
+    erosion_mm = _BORDER_EROSION_MM + 1.3 * _SEGMENT_SIGMA_MM
+    inside = ndi.binary_erosion(mask, iterations=max(1, int(round(erosion_mm * ppm))))
     if not inside.any():
         inside = mask
     if polarity == "auto":

@@ -20,6 +20,16 @@ from skinstretch.processing.errors import ConfigError
 Pair = tuple[float, float]
 
 
+def _times_increasing(keyframes: list) -> list:
+    """Keyframes whose first entries (times) increase strictly; at least one."""
+    if not keyframes:
+        raise ValueError("needs at least one keyframe")
+    times = [k[0] for k in keyframes]
+    if any(b <= a for a, b in zip(times, times[1:])):
+        raise ValueError(f"keyframe times must increase strictly, got {times}")
+    return keyframes
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -105,12 +115,7 @@ class MotionSpec(_Model):
     @field_validator("keyframes")
     @classmethod
     def _increasing(cls, v):
-        if not v:
-            raise ValueError("needs at least one keyframe")
-        times = [k[0] for k in v]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ValueError(f"keyframe times must increase strictly, got {times}")
-        return v
+        return _times_increasing(v)
 
 
 class PlasticSpec(_Model):
@@ -155,12 +160,7 @@ class SlipFrontSpec(_Model):
     @field_validator("keyframes")
     @classmethod
     def _increasing(cls, v):
-        if not v:
-            raise ValueError("needs at least one keyframe")
-        times = [k[0] for k in v]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ValueError(f"keyframe times must increase strictly, got {times}")
-        return v
+        return _times_increasing(v)
 
 
 class TextureSpec(_Model):

@@ -37,48 +37,55 @@ def evaluate_trajectories(r: Results, truth: SessionTruth) -> dict[str, Any] | N
     ``drift_rmse_px`` / ``drift_median_px`` / ``drift_p95_px``: error of every tracked position (after the first)
     against the true motion from the trajectory's start; ``drift_rmse_px_at_end``: the same at each trajectory's
     last frame only; ``jumped_fraction``: trajectories that are more than 1 px off at some frame (a wrong link
-    to a neighbouring landmark);
-    ``points_per_frame``: tracked points in a frame (mean); ``features_per_frame``: features extracted per frame
-    (mean); ``n_trajectories``, ``median_frames``.
+    to a neighbouring landmark); ``points_per_frame``: tracked points in a frame (mean); ``features_per_frame``:
+    features extracted per frame (mean); ``n_trajectories``, ``median_frames``.
     """
-    if r.trajectories is None or r.coordinates != "image":
+    tr = r.trajectories
+    if tr is None or r.coordinates != "image":
         return None
     tf = TruthField(truth)
-    x = np.asarray(r.trajectories["x"], dtype=np.float64)
-    y = np.asarray(r.trajectories["y"], dtype=np.float64)
-    present = np.asarray(r.trajectories["present"], dtype=bool) & np.isfinite(x) & np.isfinite(y)
-    n_frames, n_traj = present.shape
-    lengths = present.sum(axis=0)
-    first = np.argmax(present, axis=0)
-    errors, at_end, jumped = [], [], np.zeros(n_traj, bool)
-    last = n_frames - 1 - np.argmax(present[::-1], axis=0)
-    for k0 in np.unique(first[lengths >= 2]):
-        cols = np.nonzero((first == k0) & (lengths >= 2))[0]
-        p0 = np.column_stack([x[k0, cols], y[k0, cols]])
-        for k in range(k0 + 1, min(n_frames, tf.n_frames)):
-            here = present[k, cols]
-            if not here.any():
-                continue
-            d, ok = tf.between(p0[here], int(k0), int(k))
-            meas = np.column_stack([x[k, cols[here]], y[k, cols[here]]])
-            err = np.hypot(*(meas - p0[here] - d).T)[ok]
-            jumped[cols[here][ok][err > 1.0]] = True
-            errors.append(err)
-            at_end.append(err[(last[cols[here]] == k)[ok]])
-    err = np.concatenate(errors) if errors else np.zeros(0)
-    end = np.concatenate(at_end) if at_end else np.zeros(0)
+    rows = tr.rows[np.isfinite(tr.rows["x"]) & np.isfinite(tr.rows["y"])]
+    n_tracks = int(tr.n_tracks)
+    track = rows["track"].astype(np.int64)
+    frame = rows["frame"].astype(np.int64)
+    first = np.full(n_tracks, np.iinfo(np.int64).max)
+    last = np.full(n_tracks, -1)
+    np.minimum.at(first, track, frame)
+    np.maximum.at(last, track, frame)
+    start = frame == first[track]
+    x0 = np.full(n_tracks, np.nan)
+    y0 = np.full(n_tracks, np.nan)
+    x0[track[start]], y0[track[start]] = rows["x"][start], rows["y"][start]
+    later = ~start & (frame < tf.n_frames)
+    k0, k, tk = first[track[later]], frame[later], track[later]
+    meas = np.column_stack([rows["x"][later], rows["y"][later]])
+    err = np.full(k.size, np.nan)
+    key = k0 * (tf.n_frames + 1) + k
+    for g in np.unique(key):  # one truth lookup per (start frame, frame)
+        sel = np.nonzero(key == g)[0]
+        p0 = np.column_stack([x0[tk[sel]], y0[tk[sel]]])
+        d, ok = tf.between(p0, int(k0[sel[0]]), int(k[sel[0]]))
+        e = np.hypot(*(meas[sel] - p0 - d).T)
+        err[sel] = np.where(ok, e, np.nan)
+    scored = np.isfinite(err)
+    e = err[scored]
+    end = err[scored & (k == last[tk])]
+    jumped = np.zeros(n_tracks, bool)
+    jumped[tk[scored & (err > 1.0)]] = True
+    lengths = tr.lengths
+    long_enough = lengths >= 2
     per_frame = math.nan
     if r.features is not None and len(r.features):
         per_frame = float(np.bincount(np.asarray(r.features["frame"], dtype=np.int64), minlength=r.n_frames).mean())
     return {
-        "n_trajectories": int(n_traj),
-        "median_frames": float(np.median(lengths)) if n_traj else math.nan,
-        "points_per_frame": float(present.sum(axis=1).mean()) if n_frames else math.nan,
+        "n_trajectories": n_tracks,
+        "median_frames": float(np.median(lengths)) if n_tracks else math.nan,
+        "points_per_frame": float(np.bincount(frame, minlength=r.n_frames).mean()) if r.n_frames else math.nan,
         "features_per_frame": per_frame,
-        "drift_rmse_px": float(np.sqrt(np.mean(err**2))) if err.size else math.nan,
-        "drift_median_px": float(np.median(err)) if err.size else math.nan,
-        "drift_p95_px": float(np.percentile(err, 95)) if err.size else math.nan,
+        "drift_rmse_px": float(np.sqrt(np.mean(e**2))) if e.size else math.nan,
+        "drift_median_px": float(np.median(e)) if e.size else math.nan,
+        "drift_p95_px": float(np.percentile(e, 95)) if e.size else math.nan,
         "drift_rmse_px_at_end": float(np.sqrt(np.mean(end**2))) if end.size else math.nan,
-        "n_positions_scored": int(err.size),
-        "jumped_fraction": float(jumped[lengths >= 2].mean()) if np.any(lengths >= 2) else math.nan,
+        "n_positions_scored": int(e.size),
+        "jumped_fraction": float(jumped[long_enough].mean()) if long_enough.any() else math.nan,
     }
