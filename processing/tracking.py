@@ -29,7 +29,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.parameters import parameters
-from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 
 
@@ -55,6 +55,11 @@ class TrackingParams:
         With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
         refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
         the ~0.5 mm between neighbours moves them apart by far less).
+    max_bridge_frames : int or None
+        With sub-pixel refinement: a tracked point whose feature is not found again is followed by registration
+        alone (bridged) for at most this many frames (None: as long as its registration holds, i.e. while it stays
+        in view and in contact and moves like its neighbours); found again within ``merge_radius_mm``, the feature
+        continues it. 0: no bridging.
     merge_radius_mm : float
         With sub-pixel refinement: a feature this close to where the registration measured a tracked point to be
         is that point's landmark: it confirms the point's match, or continues it when the point's own feature was
@@ -69,6 +74,7 @@ class TrackingParams:
     smoothing_sigma_frames: float = Field(1.0, gt=0)
     max_gap_frames: int = Field(0, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
+    max_bridge_frames: int | None = Field(0, ge=0)
     merge_radius_mm: float = Field(0.1, gt=0)
 
 
@@ -533,8 +539,10 @@ class FeatureTracker:
             matched_prev = np.zeros(prev.xy.shape[0], bool)
             matched_prev[pi] = True
             if self.refiner is not None and self._prev_frame is not None:
-                # Points left unmatched, seen at most max_gap_frames ago, are looked for by registration alone.
-                candidates = np.flatnonzero(~matched_prev & (self._prev_age < self.params.max_gap_frames))
+                # Points left unmatched, seen at most max_bridge_frames ago, are looked for by registration alone.
+                limit = self.params.max_bridge_frames
+                young = self._prev_age < limit if limit is not None else np.ones(prev.xy.shape[0], bool)
+                candidates = np.flatnonzero(~matched_prev & young)
                 if pi.size or candidates.size:
                     rf = self._refine(prev, pi, ci, cols, d, candidates, pred[candidates], prepared)
                     bridged, bridged_disp = rf.bridged, rf.bridged_disp
@@ -739,6 +747,14 @@ class FeatureTracker:
             detached[:] = False
             found[:] = False
         ok &= ~detached
+        # The skin deforming inside the registration window biases each step the same way (see
+        # SubpixelRefiner.deformation_bias): removed with the gradient of the refined neighbours' motion.
+        good = np.concatenate([ok | detached, found])
+        if int(good.sum()) >= 3:
+            sel = np.flatnonzero(good)
+            grad = local_gradients(points[sel], disp[sel])
+            disp[sel] -= self.refiner.deformation_bias(a, points[sel], grad)
+            dd, cand_disp = disp[:m], disp[m:]
         bridged = np.concatenate([candidates[found], pi[detached]])
         bridged_disp = np.concatenate([cand_disp[found], dd[detached]])
         return _Refinement(dd, ok, detached, bridged, bridged_disp)
@@ -833,17 +849,12 @@ class FeatureTracker:
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
-        # A point bridged by registration belongs to its track only between two detections of its feature (a gap
-        # filled): bridged points after a track's last detection are dropped.
-        # Features with track -1 (a skin point detected twice) belong to no trajectory.
-        last_seen = np.full(t + 1, -1, np.int64)  # the extra last entry: track -1's
-        for k, rec in enumerate(self._frames):
-            last_seen[rec[0][np.isfinite(rec[1][:, 0])]] = k
-        in_track = [(rec[0] >= 0) & (np.isfinite(rec[1][:, 0]) | (last_seen[rec[0]] > k))
-                    for k, rec in enumerate(self._frames)]
+        # Features with track -1 (a skin point detected twice) belong to no trajectory; a point bridged by
+        # registration (no feature) belongs to its track.
+        in_track = [rec[0] >= 0 for rec in self._frames]
         all_tracks = np.concatenate([rec[0][m] for rec, m in zip(self._frames, in_track)]).astype(np.int64)
         keep_track = np.bincount(all_tracks, minlength=t) >= min_length
-        del all_tracks, last_seen
+        del all_tracks
         new_id = np.cumsum(keep_track) - 1
         kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
         # The table is filled frame by frame with only the kept tracks' rows (memory: the rows, once).
