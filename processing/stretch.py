@@ -102,7 +102,7 @@ def _distinct_finite(pa, d):  # pragma: no cover - compiled
 def _spaced(pa, rows, ids, min_spacing):  # pragma: no cover - compiled
     """The ``rows`` of ``pa`` kept when points are taken in increasing ``ids`` (the oldest tracks first) and a point
     closer than ``min_spacing`` to one already taken is left out; in increasing row order. A grid of cells
-    ``min_spacing`` wide holds the points taken (each point looks at its 3 x 3 cells)."""
+    at least ``min_spacing`` wide holds the points taken (each point looks at its 3 x 3 cells)."""
     m = rows.size
     if min_spacing <= 0 or m < 2:
         return rows
@@ -115,16 +115,18 @@ def _spaced(pa, rows, ids, min_spacing):  # pragma: no cover - compiled
         y0 = min(y0, pa[rows[k], 1])
         x1 = max(x1, pa[rows[k], 0])
         y1 = max(y1, pa[rows[k], 1])
-    nx = int((x1 - x0) / min_spacing) + 1
-    ny = int((y1 - y0) / min_spacing) + 1
+    # Cells at least min_spacing wide (so a close point is in the 3 x 3 around), at most ~512 per side.
+    cell = max(min_spacing, (x1 - x0) / 512.0, (y1 - y0) / 512.0)
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
     head = np.full(nx * ny, -1, np.int64)
     nxt = np.full(m, -1, np.int64)
     keep = np.zeros(m, np.bool_)
     s2 = min_spacing * min_spacing
     for k in np.argsort(ids[rows], kind="mergesort"):
         x, y = pa[rows[k], 0], pa[rows[k], 1]
-        cx = int((x - x0) / min_spacing)
-        cy = int((y - y0) / min_spacing)
+        cx = int((x - x0) / cell)
+        cy = int((y - y0) / cell)
         free = True
         for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
             for gx in range(max(cx - 1, 0), min(cx + 2, nx)):

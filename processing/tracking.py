@@ -752,8 +752,11 @@ class FeatureTracker:
         good = np.concatenate([ok | detached, found])
         if int(good.sum()) >= 3:
             sel = np.flatnonzero(good)
-            grad = local_gradients(points[sel], disp[sel])
-            disp[sel] -= self.refiner.deformation_bias(a, points[sel], grad)
+            bias = self.refiner.deformation_bias(a, points[sel], local_gradients(points[sel], disp[sel]))
+            # A correction as large as the consistency bound comes from a window with texture in one direction
+            # only (parallel ridges, no landmark), where it is ill-determined: left alone.
+            bias[np.hypot(*bias.T) > self._max_deviation] = 0.0
+            disp[sel] -= bias
             dd, cand_disp = disp[:m], disp[m:]
         bridged = np.concatenate([candidates[found], pi[detached]])
         bridged_disp = np.concatenate([cand_disp[found], dd[detached]])

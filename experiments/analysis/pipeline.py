@@ -334,7 +334,8 @@ def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int,
         out["n_trajectories"] = int(lengths.size)
         out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
     out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
-                                  spans=list(strain.buffers), max_edge_px=strain.max_edge_px).to_dict()
+                                  spans=list(strain.buffers), max_edge_px=strain.max_edge_px,
+                                  window=out["min_track_frames"]).to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
         e = g["edges"]["change"]
