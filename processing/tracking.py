@@ -1,6 +1,7 @@
-"""Feature matching between consecutive frames and feature trajectories (seed 5.1).
+"""Feature tracking over a sequence and feature trajectories (seed 5.1).
 
-Matching (seed 5.1.1): each feature of frame k-1 is looked for near its expected position in frame k. The
+Matching (seed 5.1.1, :mod:`skinstretch.processing.feature_matching`): each feature of frame k-1 is looked for near
+its expected position in frame k. The
 expected displacement is the feature's previous displacement when it has one, otherwise the average of the
 predictions (or, with a :class:`skinstretch.processing.global_motion.GlobalMotionEstimator`, the measured global motion).
 Candidates are the features of the same kind inside a circular search window (0.3 mm); each candidate pair is
@@ -17,18 +18,21 @@ extraction's accuracy divided by the square root of the track length.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import numba
 import numpy as np
 from pydantic import Field
-from scipy.spatial import cKDTree
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.parameters import parameters
+from skinstretch.processing.feature_matching import (  # noqa: F401 - match_features: the public matching
+    FeatureColumns, LostFeatures, Matches, crowded_points, duplicate_starts, feature_columns, match_columns,
+    match_features, merge_bridged,
+)
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 
@@ -78,6 +82,16 @@ class TrackingParams:
     merge_radius_mm: float = Field(0.1, gt=0)
 
 
+def join_overlap_frames(params: TrackingParams) -> int:
+    """Frames two trackers of one sequence must share for :meth:`FeatureTracker.continue_with` to join them: past
+    them a tracker remembers nothing the other did not see (a point waiting to be re-linked expires after
+    ``max_gap_frames``, one followed by registration alone after a finite ``max_bridge_frames``). A point followed
+    for as long as its registration holds may outlive any overlap: a join whose frames disagree is then refused and
+    the caller tracks those frames itself."""
+    bridge = params.max_bridge_frames
+    return max(int(params.max_gap_frames), int(bridge or 0)) + 2
+
+
 #: Seed 5.1.2: trajectories shorter than 30 frames are rejected.
 DEFAULT_MIN_LENGTH_FRAMES = 30
 
@@ -87,18 +101,6 @@ def min_length_for_clip(n_frames: int) -> int:
     (at least 2), which would otherwise keep no trajectory at all."""
     n = int(n_frames)
     return DEFAULT_MIN_LENGTH_FRAMES if n >= DEFAULT_MIN_LENGTH_FRAMES else max(2, n // 2)
-
-
-@dataclass(frozen=True)
-class Matches:
-    """Matched pairs between two feature tables: row indices into each, and the eq. 5.1 confidence."""
-
-    prev_index: np.ndarray  # (m,) int64
-    curr_index: np.ndarray  # (m,) int64
-    confidence: np.ndarray  # (m,) float64
-
-    def __len__(self) -> int:
-        return int(self.prev_index.size)
 
 
 @dataclass(frozen=True)
@@ -116,183 +118,6 @@ class MotionSample:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
-
-
-def match_features(
-    prev: np.ndarray,
-    curr: np.ndarray,
-    *,
-    calibration: Calibration,
-    predicted_displacement: np.ndarray | None = None,
-    search_radius_mm: float = 0.3,
-) -> Matches:
-    """Match the features of two consecutive frames (seed 5.1.1).
-
-    Parameters
-    ----------
-    prev, curr : FEATURE_DTYPE arrays
-        Features of frame k-1 and frame k.
-    calibration : Calibration
-        Converts the search radius to pixels.
-    predicted_displacement : array of shape (2,) or (len(prev), 2), optional
-        Expected displacement (dx, dy) px of every feature of ``prev`` (default: none).
-    search_radius_mm : float
-        Radius of the circular search window around each expected position.
-
-    Returns
-    -------
-    Matches
-        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
-
-    Examples
-    --------
-    >>> from skinstretch.processing.feature_table import make_features
-    >>> a = make_features([10.0, 50.0], [10.0, 10.0], [2, 2])
-    >>> b = make_features([52.0, 12.0], [10.0, 11.0], [2, 2])
-    >>> m = match_features(a, b, calibration=Calibration(px_per_mm=62.0))
-    >>> m.prev_index.tolist(), m.curr_index.tolist()
-    ([0, 1], [1, 0])
-    """
-    validate_features(prev)
-    validate_features(curr)
-    if not (np.isfinite(search_radius_mm) and search_radius_mm > 0):
-        raise InvalidInputError(f"search_radius_mm must be positive, got {search_radius_mm!r}")
-    radius = calibration.px(search_radius_mm)
-    pred = _broadcast_prediction(predicted_displacement, prev.shape[0])
-    return _match(_columns(prev), _columns(curr), pred, radius)
-
-
-def _broadcast_prediction(pred, n: int) -> np.ndarray:
-    if pred is None:
-        return np.zeros((n, 2))
-    pred = np.asarray(pred, dtype=np.float64)
-    if pred.shape == (2,):
-        return np.tile(pred, (n, 1))
-    if pred.shape != (n, 2):
-        raise InvalidInputError(f"predicted_displacement must have shape (2,) or ({n}, 2), got {pred.shape}")
-    if not np.all(np.isfinite(pred)):
-        raise InvalidInputError("predicted_displacement holds non-finite values")
-    return pred
-
-
-@dataclass(frozen=True)
-class _Cols:
-    xy: np.ndarray
-    kind: np.ndarray
-    orientation: np.ndarray
-    known: np.ndarray
-
-
-def _columns(table: np.ndarray) -> _Cols:
-    return _Cols(
-        np.column_stack([table["x"], table["y"]]).astype(np.float64),
-        table["kind"].astype(np.int8),
-        table["orientation"].astype(np.float64),
-        table["orientation_known"].astype(bool),
-    )
-
-
-def _match(prev: _Cols, curr: _Cols, pred: np.ndarray, radius: float) -> Matches:
-    if prev.xy.shape[0] == 0 or curr.xy.shape[0] == 0:
-        return Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-    expected = np.ascontiguousarray(prev.xy + pred, dtype=np.float64)
-    order = np.argsort(curr.xy[:, 0], kind="stable")
-    i, j, conf = _match_kernel(
-        expected,
-        prev.kind,
-        prev.orientation,
-        prev.known,
-        np.ascontiguousarray(curr.xy[order], dtype=np.float64),
-        order.astype(np.int64),
-        curr.kind,
-        curr.orientation,
-        curr.known,
-        float(radius),
-    )
-    return Matches(i, j, conf)
-
-
-@numba.njit(cache=True, nogil=True)
-def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, corient, cknown, radius):
-    """Candidates (same kind, distance <= radius from the expected position; ``cxy_sorted`` is the current
-    frame's positions sorted by x, ``corder`` their rows), rated by eq. 5.1, then finalised greedily in decreasing
-    confidence (ties: shorter distance first), each feature used once. Returns the pairs sorted by prev row."""
-    n = expected.shape[0]
-    m = cxy_sorted.shape[0]
-    r2 = radius * radius
-    cap = 16
-    ci = np.empty(cap, np.int64)
-    cj = np.empty(cap, np.int64)
-    cd = np.empty(cap, np.float64)
-    cc = np.empty(cap, np.float64)
-    k = 0
-    for a in range(n):
-        ex = expected[a, 0]
-        ey = expected[a, 1]
-        lo = np.searchsorted(cxy_sorted[:, 0], ex - radius, side="left")
-        for t in range(lo, m):
-            dx = cxy_sorted[t, 0] - ex
-            if dx > radius:
-                break
-            dy = cxy_sorted[t, 1] - ey
-            d2 = dx * dx + dy * dy
-            if d2 > r2:
-                continue
-            b = corder[t]
-            if pkind[a] != ckind[b]:
-                continue
-            d = np.sqrt(d2)
-            # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
-            orient = 0.0
-            if pknown[a] and cknown[b]:
-                dtheta = abs((porient[a] - corient[b] + 180.0) % 360.0 - 180.0)
-                orient = (180.0 - dtheta) / 180.0
-            if k == cap:
-                cap *= 2
-                ci2 = np.empty(cap, np.int64)
-                cj2 = np.empty(cap, np.int64)
-                cd2 = np.empty(cap, np.float64)
-                cc2 = np.empty(cap, np.float64)
-                ci2[:k] = ci
-                cj2[:k] = cj
-                cd2[:k] = cd
-                cc2[:k] = cc
-                ci, cj, cd, cc = ci2, cj2, cd2, cc2
-            ci[k] = a
-            cj[k] = b
-            cd[k] = d
-            cc[k] = orient + (radius - d) / radius
-            k += 1
-    ci, cj, cd, cc = ci[:k], cj[:k], cd[:k], cc[:k]
-    by_d = np.argsort(cd, kind="mergesort")
-    order = by_d[np.argsort(-cc[by_d], kind="mergesort")]
-    used_p = np.zeros(n, np.bool_)
-    used_c = np.zeros(ckind.shape[0], np.bool_)
-    owner = np.full(n, -1, np.int64)
-    for t in order:
-        a = ci[t]
-        b = cj[t]
-        if used_p[a] or used_c[b]:
-            continue
-        used_p[a] = True
-        used_c[b] = True
-        owner[a] = t
-    count = 0
-    for a in range(n):
-        if owner[a] >= 0:
-            count += 1
-    pi = np.empty(count, np.int64)
-    pj = np.empty(count, np.int64)
-    pc = np.empty(count, np.float64)
-    q = 0
-    for a in range(n):
-        t = owner[a]
-        if t >= 0:
-            pi[q] = a
-            pj[q] = cj[t]
-            pc[q] = cc[t]
-            q += 1
-    return pi, pj, pc
 
 
 @dataclass
@@ -464,7 +289,7 @@ class FeatureTracker:
         self._n_frames = 0
         self._n_tracks = 0
         self._n_features = 0
-        self._prev: _Cols | None = None
+        self._prev: FeatureColumns | None = None
         self._prev_frame: FrameImages | None = None
         self._prev_tracks = np.zeros(0, np.int64)
         self._prev_disp = np.zeros((0, 2))
@@ -475,7 +300,7 @@ class FeatureTracker:
         # come first, in their table's order, then its bridged points
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
-        self._lost = _LostTracks()
+        self._lost = LostFeatures()
         self._released = False
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
         self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
@@ -511,7 +336,7 @@ class FeatureTracker:
             if image is None:
                 raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
             prepared = self.prepare_image(image)
-        cols = _columns(features)
+        cols = feature_columns(features)
         n = cols.xy.shape[0]
         disp = np.full((n, 2), np.nan)
         refined = np.zeros(n, bool)
@@ -528,12 +353,12 @@ class FeatureTracker:
                 # A previous displacement disagreeing with the measured global motion is stale (direction change).
                 stale = np.hypot(*(pred - shift).T) > self._radius / 2
                 pred[stale] = shift
-            matches = _match(prev, cols, pred, self._radius)
+            matches = match_columns(prev, cols, pred, self._radius)
             if self.motion_estimator is not None and len(matches) >= 3:
                 # Second pass: predict from matched neighbours (local structure, sticking and slipping regions).
                 d1 = cols.xy[matches.curr_index] - prev.xy[matches.prev_index]
                 pred = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
-                matches = _match(prev, cols, pred, self._radius)
+                matches = match_columns(prev, cols, pred, self._radius)
             pi, ci = matches.prev_index, matches.curr_index
             d = cols.xy[ci] - prev.xy[pi]
             matched_prev = np.zeros(prev.xy.shape[0], bool)
@@ -556,8 +381,8 @@ class FeatureTracker:
             self.global_shifts.append(shift)
             self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
             if bridged.size and n:
-                bridged, bridged_disp = self._merge_bridged(prev, bridged, bridged_disp, cols, tracks, disp, refined,
-                                                            matched_prev)
+                bridged, bridged_disp = merge_bridged(prev.xy, self._prev_tracks, bridged, bridged_disp, cols.xy,
+                                                      tracks, disp, refined, matched_prev, radius=self._merge_radius)
             # Points of frame k-1 neither matched nor bridged may be re-linked within max_gap_frames of their last
             # detection (beyond the seed), with a new run: their motion across the gap is not measured.
             matched_prev[bridged] = True
@@ -574,21 +399,23 @@ class FeatureTracker:
                     prev,
                     unmatched_prev,
                     self._prev_tracks[unmatched_prev],
-                    self._prev_age[unmatched_prev],
                 )
             self._lost.expire(self.params.max_gap_frames)
             rows = self._prev_feature_row[matches.prev_index]
             matches = Matches(rows, matches.curr_index, matches.confidence)
         bridged_xy = self._prev.xy[bridged] + bridged_disp if bridged.size else np.zeros((0, 2))
         untrack = np.zeros(n, bool)
-        if bridged.size + n >= 2:
-            untrack, drop = self._crowded(cols.xy, tracks, bridged_xy, self._prev_tracks[bridged])
+        if self.refiner is not None and bridged.size + n >= 2:
+            untrack, drop = crowded_points(cols.xy, tracks, bridged_xy, self._prev_tracks[bridged],
+                                           radius=self._merge_radius / 2)
             if drop.any():
                 bridged, bridged_disp, bridged_xy = bridged[~drop], bridged_disp[~drop], bridged_xy[~drop]
             tracks[untrack] = -1
             disp[untrack] = np.nan
             refined[untrack] = False
-        new = (tracks < 0) & ~untrack & ~self._duplicates(cols.xy, tracks, bridged_xy)
+        new = (tracks < 0) & ~untrack
+        if self.refiner is not None:  # without registration the seed's matching is left as it is
+            new &= ~duplicate_starts(cols.xy, tracks, bridged_xy, radius=self._merge_radius)
         tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
         self._n_tracks += int(new.sum())
         self._track_kind.append(cols.kind[new])
@@ -606,7 +433,7 @@ class FeatureTracker:
         self._frames.append((rec_tracks, raw, self._n_features, rec_disp, rec_refined))
         # The points the next frame is matched to: the tracked features, then the bridged points.
         p = self._prev
-        self._prev = _Cols(
+        self._prev = FeatureColumns(
             np.concatenate([cols.xy[tracked], bridged_xy]),
             np.concatenate([cols.kind[tracked], p.kind[bridged] if nb else np.zeros(0, np.int8)]),
             np.concatenate([cols.orientation[tracked], p.orientation[bridged] if nb else np.zeros(0)]),
@@ -622,77 +449,7 @@ class FeatureTracker:
         self._n_frames += 1
         return matches
 
-    def _duplicates(self, xy: np.ndarray, tracks: np.ndarray, bridged_xy: np.ndarray) -> np.ndarray:
-        """Features that would start a track within ``merge_radius_mm`` of a tracked point of this frame (another
-        feature's or a bridged one) or of an earlier such feature: one skin point detected twice (two kinds at one
-        place), which must not start a second track (an edge a fraction of a pixel long). Only with a refiner:
-        without one the seed's matching is left as it is."""
-        start = tracks < 0
-        if self.refiner is None or not start.any() or xy.shape[0] + bridged_xy.shape[0] < 2:
-            return np.zeros(xy.shape[0], bool)
-        everything = np.concatenate([xy, bridged_xy])
-        pairs = cKDTree(everything).query_pairs(self._merge_radius, output_type="ndarray")
-        starts = np.concatenate([start, np.zeros(bridged_xy.shape[0], bool)])
-        out = np.zeros(everything.shape[0], bool)
-        if pairs.size:
-            a, b = pairs[:, 0], pairs[:, 1]  # a < b
-            out[a[starts[a] & ~starts[b]]] = True  # next to a tracked point
-            out[b[starts[b] & ~starts[a]]] = True
-            both = starts[a] & starts[b]
-            for i, j in sorted(zip(a[both].tolist(), b[both].tolist())):
-                if not out[i]:  # two new features: the later one, unless the earlier is a duplicate itself
-                    out[j] = True
-        return out[: xy.shape[0]]
-
-    def _merge_bridged(self, prev: _Cols, bridged, bridged_disp, cols: _Cols, tracks, disp, refined, done):
-        """A point bridged to within ``merge_radius_mm`` of a feature that started no track of its own is that
-        feature (whatever its kind: a valley ending and a bifurcation trade places as a ridge gap opens or closes):
-        the feature continues the bridged track, with the displacement the registration measured. A bridged point
-        within half that distance of a feature that continues another track is dropped (two tracks on one skin
-        point would make an edge a fraction of a pixel long). Fills ``tracks``, ``disp``, ``refined`` and ``done``
-        (previous points finished with) in place; returns the bridged points left."""
-        q = prev.xy[bridged] + bridged_disp
-        dist, j = cKDTree(cols.xy).query(q, distance_upper_bound=self._merge_radius)
-        hit = np.flatnonzero(np.isfinite(dist))
-        merged = np.zeros(bridged.size, bool)
-        for b in hit[np.argsort(dist[hit], kind="stable")]:  # the nearest first
-            f = j[b]
-            if tracks[f] < 0:
-                tracks[f] = self._prev_tracks[bridged[b]]
-                disp[f] = bridged_disp[b]
-                refined[f] = True
-                merged[b] = True
-        done[bridged[merged]] = True  # neither bridged further nor waiting to be re-linked
-        return bridged[~merged], bridged_disp[~merged]
-
-    def _crowded(self, xy: np.ndarray, tracks: np.ndarray, bridged_xy: np.ndarray, bridged_tracks: np.ndarray):
-        """Tracked points of this frame closer than half ``merge_radius_mm`` to another are one skin point followed
-        twice (a skin point detected as two kinds, each matched to a track of its kind; a bridged point drifting onto
-        a feature): one of each pair is dropped, a bridged point before a feature, then the younger track. Returns
-        (features to untrack, bridged points to drop), boolean masks."""
-        on = np.flatnonzero(tracks >= 0)
-        drop_f = np.zeros(xy.shape[0], bool)
-        drop_b = np.zeros(bridged_xy.shape[0], bool)
-        pts = np.concatenate([xy[on], bridged_xy])
-        if self.refiner is None or pts.shape[0] < 2:
-            return drop_f, drop_b
-        pairs = cKDTree(pts).query_pairs(self._merge_radius / 2, output_type="ndarray")
-        if not pairs.size:
-            return drop_f, drop_b
-        m = on.size
-        ids = np.concatenate([tracks[on], bridged_tracks])
-        rank = np.stack([np.arange(pts.shape[0]) >= m, ids], axis=1)  # (bridged, track id): larger is dropped
-        dist = np.hypot(*(pts[pairs[:, 0]] - pts[pairs[:, 1]]).T)
-        gone = np.zeros(pts.shape[0], bool)
-        for a, b in pairs[np.argsort(dist, kind="stable")]:
-            if gone[a] or gone[b]:
-                continue
-            gone[b if tuple(rank[b]) > tuple(rank[a]) else a] = True
-        drop_f[on[gone[:m]]] = True
-        drop_b[gone[m:]] = True
-        return drop_f, drop_b
-
-    def _refine(self, prev: _Cols, pi, ci, cols: _Cols, d, candidates, candidate_pred, prepared) -> "_Refinement":
+    def _refine(self, prev: FeatureColumns, pi, ci, cols: FeatureColumns, d, candidates, candidate_pred, prepared) -> "_Refinement":
         """Refine the displacements ``d`` of the matched points ``pi`` of ``prev`` (to features ``ci`` of ``cols``)
         and look for the unmatched ``candidates`` by registration alone.
 
@@ -768,7 +525,9 @@ class FeatureTracker:
 
         ``other`` has the same parameters and was fed this tracker's last ``overlap + 1`` frames (the same
         features and images), then the frames that follow. A tracker's state before a frame depends only on
-        the last ``max_gap_frames + 2`` frames it saw (previous displacements, features waiting to be re-linked).
+        the last :func:`join_overlap_frames` frames it saw (previous displacements, features waiting to be
+        re-linked, points followed by registration), or on what those frames hold (a point followed for longer is
+        in them).
         When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
         numbering, the same displacements, refinement flags and, after the first, global shifts), its later frames are those this
         tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
@@ -776,10 +535,10 @@ class FeatureTracker:
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
         result of one sequential pass (:mod:`skinstretch.experiments.analysis.measure`).
         """
-        window = int(self.params.max_gap_frames) + 2
+        window = join_overlap_frames(self.params)
         if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:
             raise InvalidInputError(
-                f"overlap must be at least {window} frames (max_gap_frames + 2) and shorter than both trackers' "
+                f"overlap must be at least {window} frames (join_overlap_frames) and shorter than both trackers' "
                 f"frames, got overlap {overlap} for {self._n_frames} and {other._n_frames} frames"
             )
         if other.params != self.params or (other.refiner is None) != (self.refiner is None):
@@ -825,7 +584,7 @@ class FeatureTracker:
         self._prev_feature_row = other._prev_feature_row
         self._prev_frame = other._prev_frame
         lost = other._lost
-        self._lost = _LostTracks(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
+        self._lost = LostFeatures(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
         return True
 
     def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:
@@ -923,52 +682,6 @@ class _Refinement:
     detached: np.ndarray
     bridged: np.ndarray
     bridged_disp: np.ndarray
-
-
-@dataclass
-class _LostTracks:
-    """Features lost by matching, kept with a predicted position for re-linking (beyond the seed)."""
-
-    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
-    orientation: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    known: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    track: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    age: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    def __len__(self) -> int:
-        return int(self.track.size)
-
-    def add(self, xy, cols: _Cols, rows, tracks, age) -> None:
-        """``age``: frames the points had already been missed (bridged by registration) before this one."""
-        self.xy = np.concatenate([self.xy, xy])
-        self.kind = np.concatenate([self.kind, cols.kind[rows]])
-        self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
-        self.known = np.concatenate([self.known, cols.known[rows]])
-        self.track = np.concatenate([self.track, tracks])
-        self.age = np.concatenate([self.age, np.asarray(age, np.int64)])
-
-    def advance(self, step: np.ndarray) -> None:
-        self.xy = self.xy + step
-        self.age = self.age + 1
-
-    def expire(self, max_age: int) -> None:
-        self._select(self.age < max_age)
-
-    def _select(self, keep) -> None:
-        for name in ("xy", "kind", "orientation", "known", "track", "age"):
-            setattr(self, name, getattr(self, name)[keep])
-
-    def relink(self, cols: _Cols, free: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        lost = _Cols(self.xy, self.kind, self.orientation, self.known)
-        sub = _Cols(cols.xy[free], cols.kind[free], cols.orientation[free], cols.known[free])
-        m = _match(lost, sub, np.zeros_like(self.xy), radius)
-        got_idx = free[m.curr_index]
-        got_track = self.track[m.prev_index]
-        keep = np.ones(len(self), bool)
-        keep[m.prev_index] = False
-        self._select(keep)
-        return got_idx, got_track
 
 
 @numba.njit(cache=True, nogil=True)

@@ -39,6 +39,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
+import cv2
 import h5py
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
@@ -172,6 +173,24 @@ def fraction_kept(n_frames: int, window: int, features_of: Callable[[int], tuple
     return FractionKept(window, n_features, n_in_view, n_kept, n_kept / n_in_view if n_in_view else None)
 
 
+class _FrameRows:
+    """Rows of a table grouped by frame (``offsets``: first row of each frame), read from the file a block of
+    frames at a time and kept until another block is asked for (the passes go through the frames in order)."""
+
+    def __init__(self, dataset: h5py.Dataset, offsets: np.ndarray, *, block_frames: int = 64) -> None:
+        self._d, self._off, self._n = dataset, offsets, int(block_frames)
+        self._block = (-1, None)
+
+    def __call__(self, k: int) -> np.ndarray:
+        b = int(k) // self._n
+        if self._block[0] != b:
+            lo = b * self._n
+            hi = min(lo + self._n, self._off.size - 1)
+            self._block = (b, self._d[self._off[lo] : self._off[hi]])
+        base = self._off[b * self._n]
+        return self._block[1][self._off[k] - base : self._off[k + 1] - base]
+
+
 class MeasuredMotion:
     """The analysis' own :class:`SkinPointMotion`, from a results file being written: a skin point moves by the
     median displacement of the 6 nearest points measured between the two frames (none within 1 mm: it is not
@@ -179,10 +198,10 @@ class MeasuredMotion:
     longer than ``max_edge_px`` left out)."""
 
     def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
-        self._f = f
-        self._features = feature_offsets
+        self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
         n = f["motion_pairs"].fields("n_points")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
         self._pairs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        self._motion = _FrameRows(f["motion"], self._pairs) if "motion" in f else None
         frame_a = f["motion_pairs"].fields("frame_a")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
         self._pair_of = {int(a): i for i, a in enumerate(frame_a)}
         self._reach = _REACH_MM * float(px_per_mm)
@@ -195,7 +214,7 @@ class MeasuredMotion:
         ok = np.zeros(points.shape[0], bool)
         if i is None or self._pairs[i + 1] - self._pairs[i] < 3:
             return points, ok
-        rows = self._f["motion"][self._pairs[i] : self._pairs[i + 1]]
+        rows = self._motion(i)
         src = np.column_stack([rows["x"], rows["y"]])
         d = np.column_stack([rows["dx"], rows["dy"]])
         if frame_to < frame_from:
@@ -205,19 +224,26 @@ class MeasuredMotion:
 
     def in_view(self, points, frame):
         if self._region[0] != frame:
-            lo, hi = self._features[frame], self._features[frame + 1]
-            rows = self._f["features"][lo:hi]
+            rows = self._features(frame)
             self._region = (frame, _region(np.column_stack([rows["x"], rows["y"]]), self._max_edge))
         region = self._region[1]
         if region is None or points.shape[0] == 0:
             return np.zeros(points.shape[0], bool)
-        tri, usable = region
-        s = tri.find_simplex(points)
-        return (s >= 0) & usable[np.maximum(s, 0)]
+        mask, origin = region
+        c = np.round((points[:, 0] - origin[0]) / _REGION_PX).astype(np.int64)
+        r = np.round((points[:, 1] - origin[1]) / _REGION_PX).astype(np.int64)
+        inside = (c >= 0) & (r >= 0) & (c < mask.shape[1]) & (r < mask.shape[0])
+        out = np.zeros(points.shape[0], bool)
+        out[inside] = mask[r[inside], c[inside]] > 0
+        return out
+
+
+_REGION_PX = 2.0  # the in-view region is drawn at this resolution
 
 
 def _region(xy: np.ndarray, max_edge: float):
-    """(Delaunay triangulation of ``xy``, which of its triangles have no edge longer than ``max_edge``), or None."""
+    """The triangles of the Delaunay triangulation of ``xy`` without an edge longer than ``max_edge``, drawn as a
+    mask (one cell every :data:`_REGION_PX` pixels) and the mask's origin; None without a triangle."""
     xy = np.unique(xy[np.all(np.isfinite(xy), axis=1)], axis=0)
     if xy.shape[0] < 3:
         return None
@@ -227,7 +253,15 @@ def _region(xy: np.ndarray, max_edge: float):
         return None
     p = xy[tri.simplices]
     longest = np.max(np.hypot(*(p - np.roll(p, 1, axis=1)).transpose(2, 0, 1)), axis=1)
-    return tri, longest <= max_edge
+    p = p[longest <= max_edge]
+    if p.shape[0] == 0:
+        return None
+    origin = xy.min(axis=0)
+    size = np.ceil((xy.max(axis=0) - origin) / _REGION_PX).astype(int) + 2
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    corners = np.round((p - origin) / _REGION_PX).astype(np.int32)
+    cv2.fillPoly(mask, list(corners), 1)
+    return mask, origin
 
 
 @dataclass(frozen=True)
@@ -342,9 +376,10 @@ def mesh_density(f: h5py.File, *, method: str, n_frames: int, px_per_mm: float, 
         offsets = _frame_offsets(f["features"], n_frames)
         kept = kept_features(f, n_features)
         motion = MeasuredMotion(f, feature_offsets=offsets, px_per_mm=px_per_mm, max_edge_px=max_edge_px)
+        rows_of = _FrameRows(f["features"], offsets)
 
         def features_of(k: int):
-            rows = f["features"][offsets[k] : offsets[k + 1]]
+            rows = rows_of(k)
             return np.column_stack([rows["x"], rows["y"]]), kept[offsets[k] : offsets[k + 1]]
 
         fk = fraction_kept(n_frames, int(window or 1), features_of, motion, kept_stay_in_view=True)

@@ -283,16 +283,13 @@ def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, p
 
 def texture_rows(spec: TextureScene, texture: str, method: str, runs: list[TextureRun]) -> list:
     """One table row: mean and worst over the seeds of every error, density and speed."""
-    def col(name):
-        return [float(getattr(r, name)) for r in runs]
+    def col(name):  # the seeds' defined values (the flow method has no fraction kept)
+        return [v for v in (float(getattr(r, name)) for r in runs) if np.isfinite(v)]
 
-    def mean(v):
-        v = [x for x in v if np.isfinite(x)]
-        return float(np.mean(v)) if v else float("nan")
+    mean = _mean
 
     def worst(v, *, low=False):
-        v = [x for x in v if np.isfinite(x)]
-        return (float(np.min(v)) if low else float(np.max(v))) if v else float("nan")
+        return _worst(v, low=low)
 
     disp, e1, e11 = col("disp_rmse_px"), col("edge_rmse_1"), col("edge_rmse_11")
     frac, frac_truth = col("fraction_kept"), col("fraction_kept_truth")
@@ -303,7 +300,7 @@ def texture_rows(spec: TextureScene, texture: str, method: str, runs: list[Textu
         spec.field, spec.scene, texture, method, len(runs), spec.frames,
         mean(disp), worst(disp), 100 * mean(e1), 100 * worst(e1), 100 * mean(e11), 100 * worst(e11),
         mean(col("features_per_frame")), mean(frac), worst(frac, low=True), mean(frac_truth),
-        worst(frac_truth, low=True), mean(col("mesh_edge_mm")), statistics.median(col("frames_per_s")),
+        worst(frac_truth, low=True), mean(col("mesh_edge_mm")), statistics.median(r.frames_per_s for r in runs),
         sum(r.too_sparse for r in runs), bool(met),
     ]  # fmt: skip
 
