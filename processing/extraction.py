@@ -42,12 +42,13 @@ import numpy as np
 from pydantic import field_validator, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
+from skinstretch.processing.feature_filters import clear_of_background, feature_density_mask
 from skinstretch.processing.feature_localization import (
     locate_forks,
     locate_minutiae_tips,
     locate_pores_on_ridges,
     refine_pores,
+    tip_curvature_centres,
 )
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
@@ -126,7 +127,8 @@ class ExtractionParams:
     filter_feature_density: bool = True
     density_radius_mm: float = 0.25
     density_max_count: int = 3
-    # 4.8.6
+    # 4.8.6: features within border_dilation_mm of the background dilated by background_dilation_mm, i.e. within
+    # their sum of where the skin is out of contact (or of the image edge), Euclidean distance.
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
     # Beyond the seed (7.2.2): sub-pixel positions of pores (subpixel) and of minutiae (subpixel_minutiae, which
@@ -256,9 +258,12 @@ class _Plan:
     bridge_min: float
     bridge_max: float
     density_radius: float
-    border_dilation: int
+    contact_clearance: float
+    open_reach: float
+    edge_clearance: float
     minutia_reach: float
     tip_axis: int
+    tip_step: int
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
     pore_along: float
@@ -289,13 +294,20 @@ class _Plan:
             bridge_min=cal.px(p.bridge_min_mm),
             bridge_max=cal.px(p.bridge_max_mm),
             density_radius=cal.px(p.density_radius_mm),
-            border_dilation=cal.px_int(p.border_dilation_mm),
+            contact_clearance=cal.px(p.background_dilation_mm + p.border_dilation_mm),
+            edge_clearance=cal.px(p.border_dilation_mm),
+            # A skeleton branch ending within 0.05 mm (3 px) of the background runs into it: thinning ends a branch
+            # cut by the mask one to three pixels inside (skeleton_editing).
+            open_reach=max(cal.px(0.05), 1.5),
             # A quarter ridge period (~0.11 mm) covers the skeleton-to-minutia offsets of thinning.
             minutia_reach=max(cal.px(0.15), 3.0),
             # Centre-line length behind a valley ending (one lateral profile per px): 0.3 mm, about two thirds
             # of a ridge period; shorter lines leave the tip's lateral position noisier (flatL ending jitter:
             # 5 px 0.19, 9 px 0.13, 15 px 0.11, 21 px 0.106 px), longer ones follow curved valleys less well.
             tip_axis=max(cal.px_int(0.3), 2),
+            # Central differences of the tip's curvature 0.05 mm apart (3 px), about the minutiae's smoothing: at
+            # 1 px the noise, at 4 px the valley's sides weigh in (flatL ending jitter 0.105, 0.097 px at 2, 3 px).
+            tip_step=max(int(round(cal.px(0.05))), 1),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
             # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
@@ -427,6 +439,7 @@ class FeatureExtractor:
         avg = stats.mean
         background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact,  # 4.3
                                     min_extent_px=q.min_glass)
+        out_of_contact = background
         if q.bg_dilation > 0:
             d = 2 * q.bg_dilation + 1
             background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
@@ -463,6 +476,7 @@ class FeatureExtractor:
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
         rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
+        rules["background"], rules["open_reach_px"] = background, q.open_reach
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
             lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
             lambda g: edit_graph(g, **rules),
@@ -478,7 +492,9 @@ class FeatureExtractor:
             keep &= feature_density_mask(x, y, kind, radius_px=q.density_radius, max_count=int(p.density_max_count))
             counts["density"] = _counts(kind[keep])
         if p.remove_border_features:  # 4.8.6
-            keep &= outside_border(x, y, border_mask(background, dilation_px=q.border_dilation))
+            # Within 0.2 mm of the background dilated by 0.1 mm (0.3 mm of where the skin is out of contact) or of
+            # the image edge.
+            keep &= clear_of_background(x, y, out_of_contact, radius_px=q.contact_clearance, edge_px=q.edge_clearance)
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
@@ -533,14 +549,18 @@ class FeatureExtractor:
             # one, with the same jitter.
             k = 2 * int(math.ceil(1.6 * q.minutia_sigma)) + 1
             excess = cv2.GaussianBlur(excess, (k, k), q.minutia_sigma)
-        # Valley endings: where the bright valley's centre line falls to the local mean (locate_minutiae_tips; on
-        # flatL ~0.08 px repeatable, against ~0.26 px for the apex of the region and ~1.5 px for the skeleton end,
-        # at a constant offset of ~2-3 px beyond the true minutia, which tracking does not see).
+        # Valley endings: the tip, where the bright valley's centre line falls to the local mean
+        # (locate_minutiae_tips), is a smooth function of the image but lies ~3 px beyond the skeleton's ending
+        # (6-7 px where the valley is blunt, at the edge of contact: a match radius of 0.1 mm then misses it); the
+        # skeleton ends at the tip's centre of curvature (tip_curvature_centres), equally smooth (flatL: 0.5 px
+        # from the simulator's minutia instead of 3.2, frame-to-frame jitter 0.09 px instead of 0.06). A tip
+        # flatter than the search reach keeps the skeleton's ending.
         if ends.any():
             tip = dict(direction_deg=orient[ends], is_ending=np.ones(int(ends.sum()), dtype=bool),
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
-            rx, ry, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
-            x[ends], y[ends] = rx, ry
+            tx, ty, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
+            cx, cy, _, ok = tip_curvature_centres(excess, x=tx, y=ty, step_px=q.tip_step, max_radius_px=q.minutia_reach)
+            x[ends], y[ends] = np.where(ok, cx, x[ends]), np.where(ok, cy, y[ends])
         # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).
         if bifs.any():
             rx, ry, _, _ = locate_forks(forks, x=x[bifs], y=y[bifs], reach_px=q.fork_reach,
