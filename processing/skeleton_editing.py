@@ -21,7 +21,9 @@ whatever its direction, and the spur rule repeats until nothing changes.
 Also beyond the seed, given the background (where the skin is out of contact, seed 4.3): a branch that ends at it
 is a valley that leaves the contact, its length cut by the contact's edge, not a spur; it stays, and so does its
 fork (a ridge that ends at the fork and fades out of contact before the edge leaves the fork's third valley only
-a few pixels long in the image). Its own ending, at the edge, goes with the border rule (4.8.6).
+a few pixels long in the image). Its own ending, at the edge, goes with the border rule (4.8.6). Likewise a valley
+between two forks that runs along the background joins valleys round a ridge that has left the contact, not
+across a pore: it is no bridge.
 
 All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 The results depend on the order of the loops, which is part of the rules: edges and nodes in id order, a pass
@@ -435,6 +437,21 @@ def _near_background(background, reach, x, y):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
+def _path_near_background(G, e, background, reach):  # pragma: no cover - compiled
+    """Whether a pixel of edge ``e`` (its end nodes included) lies within ``reach`` of ``background``."""
+    if background.shape[0] == 0:
+        return False
+    for node in (G.edge_ab[e, 0], G.edge_ab[e, 1]):
+        if _near_background(background, reach, G.node_xy[node, 0], G.node_xy[node, 1]):
+            return True
+    s = G.edge_span[e, 0]
+    for k in range(s, s + G.edge_span[e, 1]):
+        if _near_background(background, reach, G.path[k, 0], G.path[k, 1]):
+            return True
+    return False
+
+
+@njit(nogil=True)
 def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
     """4.8.3 in one pass over the edges (the seed's), or with the flow in passes until nothing changes: deleting a
     stub can merge what is left of a pore's spur into a new edge, which only the next pass sees. A branch that ends
@@ -477,8 +494,10 @@ def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell, background, open_rea
 
 
 @njit(nogil=True)
-def _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell):  # pragma: no cover - compiled
-    """Whether the alive edge ``e`` is a bridge of 4.8.4 (see :func:`remove_bridges`)."""
+def _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
+    """Whether the alive edge ``e`` is a bridge of 4.8.4 (see :func:`remove_bridges`); one that comes within
+    ``open_reach`` of the background joins two valleys where the ridge between them has left the contact, which
+    is no pore."""
     a = G.edge_ab[e, 0]
     b = G.edge_ab[e, 1]
     length = G.edge_length[e]
@@ -486,11 +505,13 @@ def _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell):  # pragma: n
         return False
     if not (_branch_end(G, a, e, n_px, max_dev, flow) and _branch_end(G, b, e, n_px, max_dev, flow)):
         return False
-    return not flow or _across_flow(G, a, b, fc2, fs2, fcell)
+    if flow and not _across_flow(G, a, b, fc2, fs2, fcell):
+        return False
+    return not _path_near_background(G, e, background, open_reach)
 
 
 @njit(nogil=True)
-def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - compiled
+def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
     flow = fc2.size > 0
     changed = True
     while changed:
@@ -503,11 +524,11 @@ def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - c
             keys = np.zeros(edges.size)
             for i in range(edges.size):
                 e = edges[i]
-                if _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell):
+                if _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):
                     keys[i] = -_across_amount(G, G.edge_ab[e, 0], G.edge_ab[e, 1], fc2, fs2, fcell)
             edges = edges[_stable_argsort(keys)]
         for e in edges:
-            if not G.edge_alive[e] or not _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell):
+            if not G.edge_alive[e] or not _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):
                 continue
             a = G.edge_ab[e, 0]
             b = G.edge_ab[e, 1]
@@ -557,7 +578,7 @@ def _edit_from_healing(
         _short_spurs(G, spur_lo, spur_hi, spur_dev, n_px, fc2, fs2, fcell, background, open_reach)
         _counts(G, counts[3])
     if bridge_hi > 0:
-        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px, fc2, fs2, fcell)
+        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px, fc2, fs2, fcell, background, open_reach)
         _counts(G, counts[4])
 
 
@@ -699,14 +720,17 @@ def remove_bridges(
     max_deviation_deg: float,
     orientation_px: int,
     flow: RidgeFlow | None = None,
+    background: np.ndarray | None = None,
+    open_reach_px: float = 3.0,
 ) -> SkeletonGraph:
     """Replace bridges between adjacent valleys by pores (seed 4.8.4, Figures 43-44).
 
     A bridge is a valley between two distinct bifurcations of three valleys each, with a length in
     [``min_length_px``, ``max_length_px``] and all four angles with the neighbouring valleys within
     ``max_deviation_deg`` of 90 degrees. It is deleted, a pore is added at its centre of mass and both
-    bifurcations are re-evaluated. Returns an edited copy. With ``flow`` the angle test is against the ridges
-    (module doc).
+    bifurcations are re-evaluated. Returns an edited copy. With ``flow`` the angle test is against the ridges,
+    the bridges most squarely across them first; with ``background`` (bool mask) a valley that comes within
+    ``open_reach_px`` of it is no bridge (module doc).
 
     Beyond the seed: a row of pores across several ridges, each wide enough to join its two valleys in the binary
     image, makes a chain of bridges that cross each valley at one point, i.e. nodes of four valleys. A bridge may
@@ -715,7 +739,8 @@ def remove_bridges(
     next bridge of the chain is taken on the next pass. Passes repeat until nothing changes.
     """
     bridges = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
-    return _edited(graph, _n_px(orientation_px), bridges=bridges, flow=flow)
+    return _edited(graph, _n_px(orientation_px), bridges=bridges, flow=flow, background=background,
+                   open_reach_px=open_reach_px)
 
 
 def edit_graph(
@@ -735,7 +760,7 @@ def edit_graph(
     Each rule runs when its parameters are given: ``short_valley_px`` (:func:`remove_short_valleys`), ``heal`` =
     (max distance px, max angle deg), ``spurs`` and ``bridges`` = (min length px, max length px, max deviation deg);
     ``flow`` makes the spur and bridge rules judge by the ridge flow, ``background`` keeps the spurs that end
-    within ``open_reach_px`` of it (module doc).
+    within ``open_reach_px`` of it and the bridges that come that close (module doc).
     The same result as the public functions in turn, in two compiled calls.
 
     Returns (5, 3) int64 counts of valley endings, valley bifurcations and pores, initially and after each rule (0
