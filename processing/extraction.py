@@ -17,9 +17,14 @@ bench --only accuracy``):
   are extracted out of contact;
 - the spur and bridge rules of 4.8.3-4.8.4 judge a short branch by the direction of the ridges around it
   (:mod:`skinstretch.processing.ridge_flow`): a pore's branch crosses the ridges, a true minutia's follows them;
-- bifurcations are located at the centre of the largest disc in the valleys' crotch
-  (:func:`skinstretch.processing.feature_localization.locate_forks`) and pores that touch a valley on their ridge
-  (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`).
+- minutiae are located where the valleys' medial axis (the ideal skeleton) ends or forks, from the grey image:
+  valley endings at the centre of curvature of the valley's tip
+  (:func:`skinstretch.processing.feature_localization.tip_curvature_centres`), bifurcations at the centre of the
+  largest disc in the valleys' crotch (:func:`skinstretch.processing.feature_localization.locate_forks`); pores
+  that touch a valley on their ridge (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`);
+- near the skin's outline the editing knows where it is: a skeleton branch that runs into the background is a
+  valley leaving the contact, neither a spur nor a bridge (:mod:`skinstretch.processing.skeleton_editing`), and
+  features within 0.3 mm of the out-of-contact region are deleted by Euclidean distance (seed 4.8.6).
 
 Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
 :class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a
@@ -263,7 +268,6 @@ class _Plan:
     edge_clearance: float
     minutia_reach: float
     tip_axis: int
-    tip_step: int
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
     pore_along: float
@@ -305,9 +309,6 @@ class _Plan:
             # of a ridge period; shorter lines leave the tip's lateral position noisier (flatL ending jitter:
             # 5 px 0.19, 9 px 0.13, 15 px 0.11, 21 px 0.106 px), longer ones follow curved valleys less well.
             tip_axis=max(cal.px_int(0.3), 2),
-            # Central differences of the tip's curvature 0.05 mm apart (3 px), about the minutiae's smoothing: at
-            # 1 px the noise, at 4 px the valley's sides weigh in (flatL ending jitter 0.105, 0.097 px at 2, 3 px).
-            tip_step=max(int(round(cal.px(0.05))), 1),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
             # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
@@ -551,15 +552,16 @@ class FeatureExtractor:
             excess = cv2.GaussianBlur(excess, (k, k), q.minutia_sigma)
         # Valley endings: the tip, where the bright valley's centre line falls to the local mean
         # (locate_minutiae_tips), is a smooth function of the image but lies ~3 px beyond the skeleton's ending
-        # (6-7 px where the valley is blunt, at the edge of contact: a match radius of 0.1 mm then misses it); the
-        # skeleton ends at the tip's centre of curvature (tip_curvature_centres), equally smooth (flatL: 0.5 px
-        # from the simulator's minutia instead of 3.2, frame-to-frame jitter 0.09 px instead of 0.06). A tip
-        # flatter than the search reach keeps the skeleton's ending.
+        # (6-7 px where the valley is blunt, at the edge of contact, beyond a match radius of 0.1 mm); the skeleton
+        # ends at the tip's centre of curvature (tip_curvature_centres), as smooth a function of the image (flatL
+        # seeds 1000-1019: 0.5 px from the simulator's minutia instead of 3.2 px, frame-to-frame jitter 0.09 px
+        # instead of 0.06). Where no tip or no curvature is found, the skeleton's ending stays.
         if ends.any():
             tip = dict(direction_deg=orient[ends], is_ending=np.ones(int(ends.sum()), dtype=bool),
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
-            tx, ty, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
-            cx, cy, _, ok = tip_curvature_centres(excess, x=tx, y=ty, step_px=q.tip_step, max_radius_px=q.minutia_reach)
+            tx, ty, at_tip = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
+            cx, cy, _, ok = tip_curvature_centres(excess, x=tx, y=ty, max_radius_px=q.minutia_reach)
+            ok &= at_tip
             x[ends], y[ends] = np.where(ok, cx, x[ends]), np.where(ok, cy, y[ends])
         # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).
         if bifs.any():

@@ -562,9 +562,8 @@ def locate_minutiae_tips(
     2. along that line, the excess averaged across 1 px (weights 1/4, 1/2, 1/4) is sampled every 1/4 px toward
        the tip, and the tip is its zero crossing (linear interpolation).
 
-    The result sits a constant distance beyond the phase singularity of the ridge pattern (the valley's bright
-    centre outlasts the singularity by about a quarter ridge period); tracking needs a stable landmark, not that
-    offset, and the evaluation reports it separately (``loc_bias_px``).
+    The tip lies on the valley's outline, beyond where its skeleton ends (~3 px on the simulated prints, up to 7 px
+    where the valley is blunt); :func:`tip_curvature_centres` moves a valley ending from its tip to that end.
 
     Parameters
     ----------
@@ -652,7 +651,7 @@ def locate_minutiae_tips(
 
 
 @njit(nogil=True)
-def _curvature_centres(img, xs, ys, step, max_radius):  # pragma: no cover - compiled
+def _curvature_centres(img, xs, ys, max_radius):  # pragma: no cover - compiled
     """See :func:`tip_curvature_centres`."""
     n = xs.size
     ox = xs.copy()
@@ -663,25 +662,25 @@ def _curvature_centres(img, xs, ys, step, max_radius):  # pragma: no cover - com
         x = xs[k]
         y = ys[k]
         c = _bilinear(img, x, y)
-        e = _bilinear(img, x + step, y)
-        wst = _bilinear(img, x - step, y)
-        s = _bilinear(img, x, y + step)
-        nth = _bilinear(img, x, y - step)
-        se = _bilinear(img, x + step, y + step)
-        ne = _bilinear(img, x + step, y - step)
-        sw = _bilinear(img, x - step, y + step)
-        nw = _bilinear(img, x - step, y - step)
-        gx = (e - wst) / (2 * step)
-        gy = (s - nth) / (2 * step)
-        gxx = (e - 2 * c + wst) / (step * step)
-        gyy = (s - 2 * c + nth) / (step * step)
-        gxy = (se - ne - sw + nw) / (4 * step * step)
+        e = _bilinear(img, x + 1.0, y)
+        wst = _bilinear(img, x - 1.0, y)
+        s = _bilinear(img, x, y + 1.0)
+        nth = _bilinear(img, x, y - 1.0)
+        se = _bilinear(img, x + 1.0, y + 1.0)
+        ne = _bilinear(img, x + 1.0, y - 1.0)
+        sw = _bilinear(img, x - 1.0, y + 1.0)
+        nw = _bilinear(img, x - 1.0, y - 1.0)
+        gx = 0.5 * (e - wst)
+        gy = 0.5 * (s - nth)
+        gxx = e - 2.0 * c + wst
+        gyy = s - 2.0 * c + nth
+        gxy = 0.25 * (se - ne - sw + nw)
         g2 = gx * gx + gy * gy
         if not g2 > 0:  # also NaN: a sample outside the image
             continue
         g = np.sqrt(g2)
         # Curvature of the isophote through (x, y), positive where the bright side is convex (a valley's tip).
-        kappa = -(gxx * gy * gy - 2 * gxy * gx * gy + gyy * gx * gx) / (g2 * g)
+        kappa = -(gxx * gy * gy - 2.0 * gxy * gx * gy + gyy * gx * gx) / (g2 * g)
         if not kappa * max_radius > 1.0:
             continue
         r = 1.0 / kappa
@@ -697,7 +696,6 @@ def tip_curvature_centres(
     *,
     x: np.ndarray,
     y: np.ndarray,
-    step_px: int,
     max_radius_px: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Valley endings at the centre of curvature of the valley's outline at its tip.
@@ -707,8 +705,9 @@ def tip_curvature_centres(
     behind the tip, a pointed one at the tip itself. The tip (:func:`locate_minutiae_tips`, where the valley's
     centre line falls to the local mean) lies on the outline, the isophote ``excess = const`` through it; its
     curvature ``kappa = -(e_xx e_y^2 - 2 e_xy e_x e_y + e_yy e_x^2) / |grad e|^3`` comes from central differences
-    ``step_px`` apart (bilinear samples of the smoothed excess), and the centre is ``1 / kappa`` from the tip along
-    the gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending
+    one pixel apart (bilinear samples of the excess, which must be smooth at that scale: the minutiae's smoothing
+    makes it so; wider steps bias the curvature of a steep profile), and the centre is ``1 / kappa`` from the tip
+    along the gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending
     (6-7 px where the valley is blunt, at the edge of contact), its centre of curvature within ~0.5 px.
 
     Parameters
@@ -717,10 +716,6 @@ def tip_curvature_centres(
         The smoothed frame minus the binarization threshold (valleys > 0), the image the tips were found on.
     x, y : (M,) float
         Tips of valleys (on the outline, or near it).
-    step_px : int
-        Spacing of the central differences, whole pixels (so that all nine bilinear samples share one sub-pixel
-        phase and interpolate alike; about the smoothing's sigma: shorter steps add noise, longer ones average the
-        tip's curvature with its sides').
     max_radius_px : float
         Largest radius of curvature of a tip: a flatter (or concave) outline is no tip and the point is left as is.
 
@@ -737,14 +732,11 @@ def tip_curvature_centres(
     >>> import numpy as np
     >>> yy, xx = np.mgrid[0:60, 0:60].astype(np.float32)
     >>> dome = np.exp(-((xx - 30.0) ** 2 + (yy - 28.5) ** 2) / 32.0).astype(np.float32) - 0.5  # circular isophotes
-    >>> cx, cy, r, ok = tip_curvature_centres(dome, x=np.array([34.71]), y=np.array([28.5]), step_px=2,
-    ...                                       max_radius_px=10.0)
+    >>> cx, cy, r, ok = tip_curvature_centres(dome, x=np.array([34.71]), y=np.array([28.5]), max_radius_px=10.0)
     >>> round(float(cx[0]), 1), round(float(cy[0]), 1), round(float(r[0]), 1), bool(ok[0])
     (30.0, 28.5, 4.7, True)
     """
-    if not (isinstance(step_px, (int, np.integer)) and step_px >= 1):
-        raise InvalidInputError(f"step_px must be a positive integer, got {step_px!r}")
-    img, _, x, y = _check(excess, excess, x, y, step_px)
-    if not (np.isfinite(max_radius_px) and max_radius_px > 0):
-        raise InvalidInputError(f"max_radius_px must be positive, got {max_radius_px!r}")
-    return _curvature_centres(img, x, y, float(step_px), float(max_radius_px))
+    img, _, x, y = _check(excess, excess, x, y, max_radius_px)
+    if not np.isfinite(max_radius_px):
+        raise InvalidInputError(f"max_radius_px must be a positive number, got {max_radius_px!r}")
+    return _curvature_centres(img, x, y, float(max_radius_px))
