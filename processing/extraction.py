@@ -268,6 +268,7 @@ class _Plan:
     edge_clearance: float
     minutia_reach: float
     tip_axis: int
+    tip_sigma: float
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
     pore_along: float
@@ -309,6 +310,11 @@ class _Plan:
             # of a ridge period; shorter lines leave the tip's lateral position noisier (flatL ending jitter:
             # 5 px 0.19, 9 px 0.13, 15 px 0.11, 21 px 0.106 px), longer ones follow curved valleys less well.
             tip_axis=max(cal.px_int(0.3), 2),
+            # Scale of the derivatives that give a valley tip's curvature: 0.05 mm (3 px). The ending's frame-to-
+            # frame jitter on flatL (seed 0, 20 frames) is 0.11 px at 0.04 mm (the minutiae's smoothing), 0.10 px
+            # at 0.05 mm, 0.09 px at 0.056 mm but 1.4 px from the skeleton's end (0.5-1 px below); at 0.07 mm the
+            # kernel reaches the next valleys.
+            tip_sigma=max(cal.px(0.05), 1.0),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
             # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
@@ -553,14 +559,15 @@ class FeatureExtractor:
         # Valley endings: the tip, where the bright valley's centre line falls to the local mean
         # (locate_minutiae_tips), is a smooth function of the image but lies ~3 px beyond the skeleton's ending
         # (6-7 px where the valley is blunt, at the edge of contact, beyond a match radius of 0.1 mm); the skeleton
-        # ends at the tip's centre of curvature (tip_curvature_centres), as smooth a function of the image (flatL
-        # seeds 1000-1019: 0.5 px from the simulator's minutia instead of 3.2 px, frame-to-frame jitter 0.09 px
-        # instead of 0.06). Where no tip or no curvature is found, the skeleton's ending stays.
+        # ends at the tip's centre of curvature (tip_curvature_centres, on the excess before the minutiae's
+        # smoothing: it smooths at its own scale), as smooth a function of the image (flatL seeds 1000-1009: 1.0 px
+        # from the simulator's minutia instead of 3.1 px, frame-to-frame jitter 0.09 px instead of 0.06). Where no
+        # tip or no curvature is found, the skeleton's ending stays.
         if ends.any():
             tip = dict(direction_deg=orient[ends], is_ending=np.ones(int(ends.sum()), dtype=bool),
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
             tx, ty, at_tip = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
-            cx, cy, _, ok = tip_curvature_centres(excess, x=tx, y=ty, max_radius_px=q.minutia_reach)
+            cx, cy, _, ok = tip_curvature_centres(forks, x=tx, y=ty, sigma_px=q.tip_sigma, max_radius_px=q.minutia_reach)
             ok &= at_tip
             x[ends], y[ends] = np.where(ok, cx, x[ends]), np.where(ok, cy, y[ends])
         # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).

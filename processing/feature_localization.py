@@ -651,42 +651,62 @@ def locate_minutiae_tips(
 
 
 @njit(nogil=True)
-def _curvature_centres(img, xs, ys, max_radius):  # pragma: no cover - compiled
+def _curvature_centres(img, xs, ys, sigma, max_radius):  # pragma: no cover - compiled
     """See :func:`tip_curvature_centres`."""
+    h, w = img.shape
     n = xs.size
     ox = xs.copy()
     oy = ys.copy()
     radius = np.full(n, np.nan)
     ok = np.zeros(n, np.bool_)
+    half = int(np.ceil(3.0 * sigma))
+    s2 = sigma * sigma
     for k in range(n):
         x = xs[k]
         y = ys[k]
-        c = _bilinear(img, x, y)
-        e = _bilinear(img, x + 1.0, y)
-        wst = _bilinear(img, x - 1.0, y)
-        s = _bilinear(img, x, y + 1.0)
-        nth = _bilinear(img, x, y - 1.0)
-        se = _bilinear(img, x + 1.0, y + 1.0)
-        ne = _bilinear(img, x + 1.0, y - 1.0)
-        sw = _bilinear(img, x - 1.0, y + 1.0)
-        nw = _bilinear(img, x - 1.0, y - 1.0)
-        gx = 0.5 * (e - wst)
-        gy = 0.5 * (s - nth)
-        gxx = e - 2.0 * c + wst
-        gyy = s - 2.0 * c + nth
-        gxy = 0.25 * (se - ne - sw + nw)
-        g2 = gx * gx + gy * gy
-        if not g2 > 0:  # also NaN: a sample outside the image
+        ic = int(np.rint(x))
+        ir = int(np.rint(y))
+        if ic - half < 0 or ir - half < 0 or ic + half > w - 1 or ir + half > h - 1:
             continue
-        g = np.sqrt(g2)
+        # Derivatives at the sub-pixel point from a quadratic fitted to the pixels within 3 sigma, weighted by a
+        # Gaussian of ``sigma`` centred there (exact for a quadratic, whatever the point's sub-pixel phase).
+        ata = np.zeros((6, 6))
+        atv = np.zeros(6)
+        basis = np.empty(6)
+        for r in range(ir - half, ir + half + 1):
+            dy = r - y
+            for c in range(ic - half, ic + half + 1):
+                dx = c - x
+                g = np.exp(-(dx * dx + dy * dy) / (2.0 * s2))
+                basis[0] = 1.0
+                basis[1] = dx
+                basis[2] = dy
+                basis[3] = 0.5 * dx * dx
+                basis[4] = dx * dy
+                basis[5] = 0.5 * dy * dy
+                v = img[r, c]
+                for i in range(6):
+                    atv[i] += g * basis[i] * v
+                    for j in range(6):
+                        ata[i, j] += g * basis[i] * basis[j]
+        coef = np.linalg.solve(ata, atv)
+        gx = coef[1]
+        gy = coef[2]
+        gxx = coef[3]
+        gxy = coef[4]
+        gyy = coef[5]
+        g2 = gx * gx + gy * gy
+        if not g2 > 0:
+            continue
+        gn = np.sqrt(g2)
         # Curvature of the isophote through (x, y), positive where the bright side is convex (a valley's tip).
-        kappa = -(gxx * gy * gy - 2.0 * gxy * gx * gy + gyy * gx * gx) / (g2 * g)
+        kappa = -(gxx * gy * gy - 2.0 * gxy * gx * gy + gyy * gx * gx) / (g2 * gn)
         if not kappa * max_radius > 1.0:
             continue
-        r = 1.0 / kappa
-        ox[k] = x + r * gx / g
-        oy[k] = y + r * gy / g
-        radius[k] = r
+        rad = 1.0 / kappa
+        ox[k] = x + rad * gx / gn
+        oy[k] = y + rad * gy / gn
+        radius[k] = rad
         ok[k] = True
     return ox, oy, radius, ok
 
@@ -696,6 +716,7 @@ def tip_curvature_centres(
     *,
     x: np.ndarray,
     y: np.ndarray,
+    sigma_px: float,
     max_radius_px: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Valley endings at the centre of curvature of the valley's outline at its tip.
@@ -704,20 +725,23 @@ def tip_curvature_centres(
     outline where it is most curved, i.e. at the tip of a valley: a round tip of radius r ends the skeleton r
     behind the tip, a pointed one at the tip itself. The tip (:func:`locate_minutiae_tips`, where the valley's
     centre line falls to the local mean) lies on the outline, the isophote ``excess = const`` through it; its
-    curvature ``kappa = -(e_xx e_y^2 - 2 e_xy e_x e_y + e_yy e_x^2) / |grad e|^3`` comes from central differences
-    one pixel apart (bilinear samples of the excess, which must be smooth at that scale: the minutiae's smoothing
-    makes it so; wider steps bias the curvature of a steep profile), and the centre is ``1 / kappa`` from the tip
-    along the gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending
-    (6-7 px where the valley is blunt, at the edge of contact), its centre of curvature within ~0.5 px.
+    curvature ``kappa = -(e_xx e_y^2 - 2 e_xy e_x e_y + e_yy e_x^2) / |grad e|^3`` comes from the derivatives of
+    a quadratic fitted to the excess around the sub-pixel point itself, its pixels weighted by a Gaussian of
+    ``sigma_px`` centred there, and the centre is ``1 / kappa`` from the tip along the
+    gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending (6-7 px where
+    the valley is blunt, at the edge of contact), its centre of curvature ~1 px from it.
 
     Parameters
     ----------
     excess : (H, W) float32
-        The smoothed frame minus the binarization threshold (valleys > 0), the image the tips were found on.
+        The frame minus the binarization threshold (valleys > 0).
     x, y : (M,) float
         Tips of valleys (on the outline, or near it).
+    sigma_px : float
+        Scale of the derivatives: larger averages more noise out, and the valley's sides into the tip's curvature.
     max_radius_px : float
-        Largest radius of curvature of a tip: a flatter (or concave) outline is no tip and the point is left as is.
+        Largest radius of curvature of a tip: a flatter (or concave) outline is no tip and the point is left as is;
+        so is a point within ``3 sigma_px`` of the image edge.
 
     Returns
     -------
@@ -732,11 +756,14 @@ def tip_curvature_centres(
     >>> import numpy as np
     >>> yy, xx = np.mgrid[0:60, 0:60].astype(np.float32)
     >>> dome = np.exp(-((xx - 30.0) ** 2 + (yy - 28.5) ** 2) / 32.0).astype(np.float32) - 0.5  # circular isophotes
-    >>> cx, cy, r, ok = tip_curvature_centres(dome, x=np.array([34.71]), y=np.array([28.5]), max_radius_px=10.0)
+    >>> cx, cy, r, ok = tip_curvature_centres(dome, x=np.array([34.71]), y=np.array([28.5]), sigma_px=1.5,
+    ...                                       max_radius_px=10.0)
     >>> round(float(cx[0]), 1), round(float(cy[0]), 1), round(float(r[0]), 1), bool(ok[0])
     (30.0, 28.5, 4.7, True)
     """
     img, _, x, y = _check(excess, excess, x, y, max_radius_px)
     if not np.isfinite(max_radius_px):
         raise InvalidInputError(f"max_radius_px must be a positive number, got {max_radius_px!r}")
-    return _curvature_centres(img, x, y, float(max_radius_px))
+    if not (np.isfinite(sigma_px) and sigma_px >= 0.5):
+        raise InvalidInputError(f"sigma_px must be at least 0.5 px, got {sigma_px!r}")
+    return _curvature_centres(img, x, y, float(sigma_px), float(max_radius_px))

@@ -56,6 +56,7 @@ def test_the_accuracy_section_rows_summarize_the_clips(clips):
     for row, kind in zip(rows, ("valley_ending", "valley_bifurcation", "pore")):
         recalls = [c.scores.kinds[kind].recall for c in clips["valleyL"]]
         assert row[2] == len(SEEDS) and row[5] == pytest.approx(np.mean(recalls)) and row[6] == min(recalls)
+        assert row[13] == sum(c.scores.n_out_of_contact for c in clips["valleyL"])
         assert row[-1] in (True, False)
 
 
@@ -222,11 +223,12 @@ def test_a_valley_ending_is_located_where_its_skeleton_ends():
     tx, ty, ok = locate_minutiae_tips(excess, x=np.array([90.0]), y=np.array([40.0]), direction_deg=np.array([180.0]),
                                       is_ending=np.array([True]), reach_px=9.3, n_centres=18)
     assert ok[0] and abs(tx[0] - (end_x + 7.0)) < 0.3 and abs(ty[0] - end_y) < 0.1
-    cx, cy, r, found = tip_curvature_centres(excess, x=tx, y=ty, max_radius_px=9.3)
+    cx, cy, r, found = tip_curvature_centres(excess, x=tx, y=ty, sigma_px=3.0, max_radius_px=9.3)
     assert found[0] and abs(cx[0] - end_x) < 0.3 and abs(cy[0] - end_y) < 0.1 and abs(r[0] - 7.0) < 0.3
     # A flat outline (no tip) has no centre within the radius: the point is left as is.
     flat = np.tanh((xx - 80.0) / 3.0).astype(np.float32)
-    fx, fy, _, none = tip_curvature_centres(flat, x=np.array([80.0]), y=np.array([40.0]), max_radius_px=9.3)
+    fx, fy, _, none = tip_curvature_centres(flat, x=np.array([80.0]), y=np.array([40.0]), sigma_px=3.0,
+                                            max_radius_px=9.3)
     assert not none[0] and (fx[0], fy[0]) == (80.0, 40.0)
 
 
