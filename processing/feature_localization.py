@@ -661,6 +661,8 @@ def _curvature_centres(img, xs, ys, sigma, max_radius):  # pragma: no cover - co
     ok = np.zeros(n, np.bool_)
     half = int(np.ceil(3.0 * sigma))
     s2 = sigma * sigma
+    wx = np.empty(2 * half + 1)
+    wy = np.empty(2 * half + 1)
     for k in range(n):
         x = xs[k]
         y = ys[k]
@@ -673,11 +675,15 @@ def _curvature_centres(img, xs, ys, sigma, max_radius):  # pragma: no cover - co
         ata = np.zeros((6, 6))
         atv = np.zeros(6)
         basis = np.empty(6)
+        for i in range(2 * half + 1):  # the Gaussian is separable: one exp per row and per column
+            wy[i] = np.exp(-((ir - half + i - y) ** 2) / (2.0 * s2))
+            wx[i] = np.exp(-((ic - half + i - x) ** 2) / (2.0 * s2))
         for r in range(ir - half, ir + half + 1):
             dy = r - y
+            gr = wy[r - ir + half]
             for c in range(ic - half, ic + half + 1):
                 dx = c - x
-                g = np.exp(-(dx * dx + dy * dy) / (2.0 * s2))
+                g = gr * wx[c - ic + half]
                 basis[0] = 1.0
                 basis[1] = dx
                 basis[2] = dy
@@ -686,9 +692,13 @@ def _curvature_centres(img, xs, ys, sigma, max_radius):  # pragma: no cover - co
                 basis[5] = 0.5 * dy * dy
                 v = img[r, c]
                 for i in range(6):
-                    atv[i] += g * basis[i] * v
-                    for j in range(6):
-                        ata[i, j] += g * basis[i] * basis[j]
+                    gb = g * basis[i]
+                    atv[i] += gb * v
+                    for j in range(i, 6):
+                        ata[i, j] += gb * basis[j]
+        for i in range(6):
+            for j in range(i):
+                ata[i, j] = ata[j, i]
         coef = np.linalg.solve(ata, atv)
         gx = coef[1]
         gy = coef[2]
