@@ -8,8 +8,9 @@ features are scored with :func:`skinstretch.experiments.evaluation.features.scor
 ``skinstretch evaluate``, per kind: valley endings, valley bifurcations and pores separately.
 
 For each scene and kind the table prints the mean over seeds and the worst seed of recall, precision and
-localisation (RMS distance of matched pairs), the pooled counts behind them, and the extraction's speed on one
-thread (CPU ms a frame and wall-clock frames/s, median over the seeds). A seed whose clip holds no eligible truth
+localisation (RMS distance of matched pairs), the pooled counts behind them, the extraction's speed on one
+thread (CPU ms a frame and wall-clock frames/s, median over the seeds), and how many features of the scene's clips
+lie where the skin is out of contact (any kind, any distance from the contact's edge: there should be none). A seed whose clip holds no eligible truth
 feature of a kind (or no detection) has no ratio for it and is left out of that kind's mean and worst; the close-up
 ``S`` scenes hold only ~2 valley endings a frame, so their per-seed ratios are coarse.
 
@@ -143,6 +144,7 @@ def scene_rows(spec: AccuracyScene, clips: list[ClipResult]) -> list[list]:
     rows = []
     cpu = statistics.median(c.cpu_ms for c in clips)
     fps = statistics.median(c.fps for c in clips)
+    out_of_contact = sum(c.scores.n_out_of_contact for c in clips)
     for kind in KINDS:
         rec, prec, loc = (_values(clips, kind, f) for f in ("recall", "precision", "loc_rmse_px"))
         n_truth = sum(c.scores.kinds[kind].n_truth for c in clips)
@@ -155,7 +157,7 @@ def scene_rows(spec: AccuracyScene, clips: list[ClipResult]) -> list[list]:
             spec.scene, SHORT[kind], len(clips), spec.frames, n_truth / (len(clips) * spec.frames),
             r_mean, r_worst, p_mean, p_worst, l_mean, l_worst,
             n_match / n_truth if n_truth else float("nan"), n_match / n_det if n_det else float("nan"),
-            cpu, fps, _met(spec, kind, r_mean, r_worst, p_mean, p_worst, l_mean),
+            out_of_contact, cpu, fps, _met(spec, kind, r_mean, r_worst, p_mean, p_worst, l_mean),
         ])  # fmt: skip
     return rows
 
@@ -177,7 +179,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         columns=[
             "scene", "kind", "seeds", "frames", "truth/frame", "recall mean", "recall worst", "precision mean",
             "precision worst", "loc RMSE px mean", "loc RMSE px worst", "recall pooled", "precision pooled",
-            "cpu ms/frame", "frames/s 1 thr", "met",
+            "out of contact", "cpu ms/frame", "frames/s 1 thr", "met",
         ],  # fmt: skip
         rows=rows,
         notes=[
@@ -187,8 +189,10 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "the image edge and the true contact edge; a detection out of contact beyond that band is a false "
             "positive (experiments/evaluation/features.py).",
             "loc RMSE: raw distance to the simulator's minutia (the skeleton's ending or fork of the print); valley "
-            "endings are located at the valley's grey-level tip, ~3 px (0.05 mm) beyond it, a constant offset that "
-            "tracking does not see.",
+            "endings are located at the centre of curvature of the valley's tip, bifurcations at the centre of the "
+            "largest disc in the valleys' crotch (processing/feature_localization.py).",
+            "out of contact: features of all kinds, summed over the scene's clips, where the truth says the skin is "
+            "out of contact, at any distance from the contact's edge (precision counts those beyond the band).",
             "speed: extraction + editing + sub-pixel on one thread after a warm-up frame, median over the seeds (this "
             "2-core machine is shared: compare CPU ms in one run).",
             f"glass shading: {', '.join(sorted(shading))} (the analysis removes it over a ridge or a valley when the "
