@@ -181,7 +181,9 @@ def measure_features(
 ) -> FeatureMeasurement:
     """Track every frame in chunks on ``executor``; ``on_frames(first, tables, flags)`` receives each run of
     frames' feature tables and flags in frame order, once (the caller writes them out)."""
-    overlap = int(params.tracking.max_gap_frames) + 2  # the least FeatureTracker.continue_with accepts
+    from skinstretch.processing.tracking import join_overlap_frames  # noqa: PLC0415
+
+    overlap = join_overlap_frames(params.tracking)  # the least FeatureTracker.continue_with accepts
     width = executor_width(executor)
     plan = chunk_plan(n_frames, width=width, overlap=overlap)
     here = len(plan) == 1
