@@ -458,6 +458,7 @@ class FeatureTracker:
         self._track_kind: list[np.ndarray] = []
         self._lost = _LostTracks()
         self._released = False
+        self._n_taken = 0  # frames handed out by take_frames
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
         self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
 
@@ -641,8 +642,8 @@ class FeatureTracker:
         ``params.min_length_frames`` None means the seed's 30 frames (the analysis adapts it to a short clip)."""
         if self._n_frames == 0:
             raise InsufficientDataError("no frames were added to the tracker")
-        if self._released:
-            raise InvalidInputError("this tracker's records were released by finish(release=True)")
+        if self._released or self._n_taken:
+            raise InvalidInputError("this tracker's records were released by finish(release=True) or take_frames")
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
@@ -691,6 +692,49 @@ class FeatureTracker:
             pos = _smooth_tracks(rows["track"], rows["frame"], run, pos, offsets, weights)
         rows["x"], rows["y"], rows["run"] = pos[:, 0], pos[:, 1], run
         return Trajectories(n_frames=n, rows=rows, kind=kind[keep_track].astype(np.int8))
+
+    def take_frames(self, *, last: bool = False) -> list["TrackedFrame"]:
+        """Hand out the frames that matching will not read again, oldest first, and forget them: every frame but
+        the last ``max_gap_frames + 2`` (what :meth:`continue_with` compares), or every frame when the sequence is
+        over (``last``; the tracker then takes no more frames). A long analysis stores them as they come and builds
+        the trajectories itself, so the tracker's memory does not grow; :meth:`finish` cannot be used afterwards.
+        """
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True) or take_frames")
+        end = self._n_frames if last else max(0, self._n_frames - int(self.params.max_gap_frames) - 2)
+        out = []
+        for k in range(self._n_taken, end):
+            tracks, xy, offset, disp, refined = self._frames[k]
+            new_kinds = self._track_kind[k]
+            self._frames[k] = self._track_kind[k] = None
+            order = np.argsort(tracks, kind="stable")
+            linked = np.all(np.isfinite(disp), axis=1)
+            if self.refiner is not None:
+                linked &= refined  # as in finish: a rejected refinement restarts the positions
+            out.append(TrackedFrame(k, tracks[order], xy[order], offset + order, disp[order], linked[order],
+                                    (refined & linked)[order], new_kinds))
+        self._n_taken = max(self._n_taken, end)
+        self._released = last
+        return out
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """One frame's tracked features as :meth:`FeatureTracker.take_frames` hands them out, sorted by track.
+
+    ``linked``: the displacement from the previous frame chains this row to the track's previous position (a
+    consecutive match whose refinement, when there is one, was kept); ``new_track_kinds``: the kinds of the tracks
+    that start in this frame, whose numbers follow those of every earlier frame's.
+    """
+
+    frame: int
+    track: np.ndarray  # (n,) int64, increasing
+    xy: np.ndarray  # (n, 2) extracted positions px
+    feature_index: np.ndarray  # (n,) row in the sequence's concatenated feature table
+    displacement: np.ndarray  # (n, 2) px from the previous frame, NaN where not matched
+    linked: np.ndarray  # (n,) bool
+    refined: np.ndarray  # (n,) bool
+    new_track_kinds: np.ndarray  # (m,) int8
 
 
 @dataclass(frozen=True)
