@@ -1,9 +1,13 @@
-"""A session of any length in bounded memory: trajectories stored as the tracker hands frames out
-(skinstretch.experiments.analysis.trajectories), to the bit."""
+"""A session of any length in bounded memory: trajectories stored as the tracker hands frames out, percentiles of
+more values than are held (skinstretch.experiments.analysis.trajectories, .percentiles), to the bit."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
+from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
 from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.pixel_scale import Calibration
@@ -55,3 +59,30 @@ def test_a_tracker_that_handed_frames_out_cannot_finish_and_the_store_wants_ever
         store.add(frames)
         with pytest.raises(InsufficientDataError, match="3 of 6 frames"):
             next(store.blocks())
+
+
+_FLOATS = st.floats(allow_nan=False, allow_infinity=False, width=64) | st.sampled_from([0.0, -0.0, 1e-3, -2.5, 7.0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, st.integers(1, 300), elements=_FLOATS), st.lists(st.floats(0, 100), min_size=1, max_size=4),
+       st.integers(1, 50), st.integers(1, 64))
+def test_streamed_percentiles_are_numpys_to_the_bit(values, q, in_memory, block):
+    with StreamedPercentiles(in_memory=in_memory, block=block) as sp:
+        for i in range(0, values.size, 37):
+            sp.add(values[i : i + 37])
+        got = sp.percentiles(q)
+    np.testing.assert_array_equal(np.array(got), np.percentile(values, q))
+
+
+def test_streamed_percentiles_of_many_values_narrow_the_bin_in_passes():
+    rng = np.random.default_rng(0)
+    v = np.concatenate([rng.normal(0, 0.01, 200_000), np.zeros(50_000), rng.standard_cauchy(1000)])
+    rng.shuffle(v)
+    with StreamedPercentiles(in_memory=1000, block=1 << 14) as sp:
+        for part in np.array_split(v, 7):
+            sp.add(part)
+        assert sp.count == v.size
+        assert sp.percentiles([5, 50, 95]) == np.percentile(v, [5, 50, 95]).tolist()
+    with StreamedPercentiles() as empty, pytest.raises(InsufficientDataError):
+        empty.percentiles([5])
