@@ -1,7 +1,25 @@
 """The feature extraction chain of seed chapter 4 (with 3.5), from one grey frame to a feature table.
 
-smoothing (4.1) -> local average (4.2) -> background (4.3) -> binarization (4.4) -> blob pores (4.5) -> thinning
-(4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6, each switchable) -> sub-pixel positions.
+smoothing (4.1) -> light (3.5, per frame) -> local average (4.2) -> contact / background (4.3) -> binarization
+(4.4) -> blob pores (4.5) -> thinning (4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6,
+each switchable) -> sub-pixel positions.
+
+Beyond the seed, what makes it hold on prints and surfaces it was not tuned on (issue 16; measured by ``skinstretch
+bench --only accuracy``):
+
+- every local statistic is taken at the scale of one ridge period (``ridge_period_mm``), not the seed's 2 mm:
+  partial contact over a ridge or a valley of the surface changes the brightness within a few tenths of a mm
+  (:func:`skinstretch.processing.preprocess.ridge_statistics`, twiced so that it does not lag across such a band);
+- the light is divided out of each frame from its upper envelope (seed 3.5 without the sequence,
+  :func:`skinstretch.processing.preprocess.flatten_light`);
+- the background of 4.3 is where the FTIR contrast says the skin does not touch the glass
+  (:func:`skinstretch.processing.preprocess.contact_map`, ``min_contact`` of full contact's contrast): no features
+  are extracted out of contact;
+- the spur and bridge rules of 4.8.3-4.8.4 judge a short branch by the direction of the ridges around it
+  (:mod:`skinstretch.processing.ridge_flow`): a pore's branch crosses the ridges, a true minutia's follows them;
+- bifurcations are located at the centre of the largest disc in the valleys' crotch
+  (:func:`skinstretch.processing.feature_localization.locate_forks`) and pores that touch a valley on their ridge
+  (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`).
 
 Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
 :class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a
@@ -25,13 +43,19 @@ from pydantic import field_validator, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
-from skinstretch.processing.feature_localization import locate_minutiae_tips, refine_bifurcations, refine_pores
+from skinstretch.processing.feature_localization import (
+    locate_forks,
+    locate_minutiae_tips,
+    locate_pores_on_ridges,
+    refine_pores,
+)
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.pores import detect_blob_pores
-from skinstretch.processing.preprocess import binarize, check_frame, detect_background, local_mean, smooth
+from skinstretch.processing.pores import detect_blob_pores, fill_specks
+from skinstretch.processing.ridge_flow import ridge_flow
+from skinstretch.processing.preprocess import binarize, check_frame, contact_map, flatten_light, ridge_statistics, smooth
 from skinstretch.processing.skeleton_editing import edit_graph
 from skinstretch.processing.skeleton_graph import GraphArrays, edit_with_room, graph_features, trace_arrays
 from skinstretch.processing.texture_gate import TextureGateParams, texture_verdict
@@ -50,7 +74,7 @@ STEP_NAMES = ("initial", "short_valleys", "healing", "short_spurs", "bridges", "
 class ExtractionParams:
     """Parameters of the extraction chain: lengths in mm, angles in degrees, grey levels 0-255.
 
-    Defaults are the seed's values except where a comment says why (spur length, background window). Each
+    Defaults are the seed's values except where a comment says why (spur length, ridge-scale statistics). Each
     editing step of seed 4.8 can be switched off with its boolean. Invalid values raise InvalidInputError
     naming the field.
 
@@ -63,15 +87,14 @@ class ExtractionParams:
     # 4.1 smoothing: sigma 1 px and a 3 px kernel at the seed's ~62 px/mm.
     smoothing_sigma_mm: float = 0.016
     smoothing_kernel_mm: float = 0.048
-    # 4.2 local average: 2 mm window (at least one ridge/valley cycle).
-    local_average_mm: float = 2.0
-    # 4.3 background: local mean above min_mean AND local std below max_std (grey levels), then dilated.
-    background_min_mean: float = 150.0
-    background_max_std: float = 25.0
+    # 4.2 local average, 4.3 background: beyond the seed (its 2 mm mean put whole bands of ridges above or below
+    # the threshold over a ridge or valley of the surface: valleyL bifurcation precision 0.26 -> 0.77 with the
+    # ridge scale alone), every local statistic is taken at the scale of the typical ridge period (0.43 mm, FACTS);
+    # skin whose FTIR contrast is below min_contact of full contact's is out of contact (the background), which is
+    # then dilated (seed: "a few morphological dilation operations").
+    ridge_period_mm: float = 0.43
+    min_contact: float = 0.5
     background_dilation_mm: float = 0.1
-    # The background statistics use a smaller window than 4.2 (still more than a ridge period, 0.43 mm) so the
-    # mask reaches the fingertip's edge instead of stopping half a 2 mm window short of it.
-    background_window_mm: float = 0.6
     # 4.4 binarization threshold = scale x local average.
     binarization_scale: float = 1.0
     # 4.5 blob pores below 0.25 mm across; smaller blobs than min diameter are noise.
@@ -107,7 +130,8 @@ class ExtractionParams:
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
     # Beyond the seed (7.2.2): sub-pixel positions of pores (subpixel) and of minutiae (subpixel_minutiae, which
-    # needs subpixel too); fork_radius_mm is the mean-shift disc of bifurcations (about half a ridge period).
+    # needs subpixel too); fork_radius_mm bounds the radius of the disc that locates a bifurcation (about half a
+    # ridge period, see locate_forks).
     subpixel: bool = True
     subpixel_minutiae: bool = True
     fork_radius_mm: float = 0.21
@@ -142,9 +166,9 @@ class ExtractionParams:
             if v < 0:
                 raise InvalidInputError(f"ExtractionParams.{f.name} must be >= 0, got {v!r}")
         positive = [
-            "smoothing_sigma_mm", "local_average_mm", "background_window_mm", "pore_max_diameter_mm", "orientation_distance_mm",
+            "smoothing_sigma_mm", "ridge_period_mm", "min_contact", "pore_max_diameter_mm", "orientation_distance_mm",
             "short_valley_max_mm", "heal_max_distance_mm", "heal_max_angle_deg", "spur_max_mm", "bridge_max_mm",
-            "density_radius_mm", "binarization_scale", "background_max_std", "fork_radius_mm",
+            "density_radius_mm", "binarization_scale", "fork_radius_mm",
         ]  # fmt: skip
         for name in positive:
             if getattr(self, name) <= 0:
@@ -168,8 +192,10 @@ class ExtractionParams:
         for name in ("saturated_fraction", "no_finger_fraction"):
             if not 0 < getattr(self, name) <= 1:
                 raise InvalidInputError(f"ExtractionParams.{name} must be in (0, 1], got {getattr(self, name)!r}")
-        if not 0 <= self.background_min_mean <= 255 or not 0 <= self.black_level <= 255:
-            raise InvalidInputError("background_min_mean and black_level must be grey levels in [0, 255]")
+        if not 0 <= self.black_level <= 255:
+            raise InvalidInputError(f"black_level must be a grey level in [0, 255], got {self.black_level!r}")
+        if not self.min_contact < 1:
+            raise InvalidInputError(f"ExtractionParams.min_contact must be below 1, got {self.min_contact!r}")
         return self
 
     def to_dict(self) -> dict:
@@ -217,10 +243,10 @@ class _Plan:
     sigma: float
     kernel: int
     window: int
-    bg_window: int
     bg_dilation: int
     pore_max: float
     pore_min_area: int
+    pore_min: float
     pore_radius: float
     orient_n: int
     short_valley: float
@@ -235,7 +261,12 @@ class _Plan:
     tip_axis: int
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
-    edit_pore_radius: float
+    pore_along: float
+    ridge_sigma: float
+    cell: int
+    flow_sigma: float
+    min_glass: float
+    fork_reach: float
 
     @classmethod
     def make(cls, cal: Calibration, p: ExtractionParams) -> "_Plan":
@@ -243,11 +274,12 @@ class _Plan:
         return cls(
             sigma=max(cal.px(p.smoothing_sigma_mm), 0.3),
             kernel=cal.odd_px(p.smoothing_kernel_mm, minimum=3) if p.smoothing_kernel_mm > 0 else 3,
-            window=cal.odd_px(p.local_average_mm, minimum=3),
-            bg_window=cal.odd_px(p.background_window_mm, minimum=3),
+            # The smallest frame: two ridge periods (the ridge-scale statistics and the flow need a few cells).
+            window=cal.odd_px(2 * p.ridge_period_mm, minimum=3),
             bg_dilation=cal.px_int(p.background_dilation_mm),
             pore_max=cal.px(p.pore_max_diameter_mm),
             pore_min_area=max(int(math.floor(math.pi / 4 * pore_min * pore_min)), 1),
+            pore_min=pore_min,
             pore_radius=max(cal.px(p.pore_max_diameter_mm) / 2, 1.5),
             orient_n=cal.px_int(p.orientation_distance_mm, minimum=2),
             short_valley=cal.px(p.short_valley_max_mm),
@@ -266,10 +298,16 @@ class _Plan:
             tip_axis=max(cal.px_int(0.3), 2),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
-            # Centre-of-mass window of the pores the editing found (no blob size; they often touch a valley):
-            # flatL pore RMSE, seeds 0/1/2, 0.100/0.257/0.098 px with the 2 px minimum window, 0.067/0.088/0.064
-            # px with 0.065 mm (0.08 mm: 0.072/0.169/0.067).
-            edit_pore_radius=max(cal.px(0.065), 2.0),
+            # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
+            # 0.1 mm, past the largest pore's radius (0.08 mm) so the across-profiles sample the ridge beside it.
+            pore_along=max(cal.px(0.1), 3.0),
+            ridge_sigma=cal.px(p.ridge_period_mm) / 2,
+            cell=max(cal.px_int(p.ridge_period_mm / 8), 1),
+            flow_sigma=cal.px(p.ridge_period_mm),
+            # Bare glass inside the image spans more than two ridge periods (contact_map).
+            min_glass=cal.px(2 * p.ridge_period_mm),
+            # The thinning's fork lies within a quarter ridge period of the widest place of the valleys' crotch.
+            fork_reach=max(cal.px(p.ridge_period_mm / 4), 2.0),
         )
 
 
@@ -383,15 +421,15 @@ class FeatureExtractor:
             # the variance test of 4.3 relies on (without it valleyL's minutiae precision fell from 0.94 to 0.40).
             frame = apply_illumination_gain(frame, gain=self._gain)
         s = smooth(frame, sigma_px=q.sigma, kernel_px=q.kernel)  # 4.1
-        # 4.2: a 2 mm mean is blind to the 1-px smoothing, so it is taken on the uint8 frame (faster).
-        avg = local_mean(frame, window_px=q.window)
-        background = detect_background(  # 4.3
-            frame,
-            window_px=q.bg_window,
-            min_mean=p.background_min_mean,
-            max_std=p.background_max_std,
-            dilation_px=q.bg_dilation,
-        )
+        # Beyond the seed: the light's slow changes divided out of every frame (seed 3.5 from the frame alone).
+        s = flatten_light(s, cell_px=q.cell, window_px=2 * q.ridge_sigma, sigma_px=q.ridge_sigma)
+        stats = ridge_statistics(s, sigma_px=q.ridge_sigma, cell_px=q.cell)  # 4.2 at the ridge scale
+        avg = stats.mean
+        background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact,  # 4.3
+                                    min_extent_px=q.min_glass)
+        if q.bg_dilation > 0:
+            d = 2 * q.bg_dilation + 1
+            background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
         if np.count_nonzero(background) > p.no_finger_fraction * background.size:
             return self._empty(frame.shape, {"no_finger"}, background=background)
         gate = TextureGateParams(black_level=p.black_level, saturated_fraction=p.saturated_fraction)
@@ -407,10 +445,15 @@ class FeatureExtractor:
                 binary, grey=excess, max_diameter_px=q.pore_max, min_area_px=q.pore_min_area
             )
             valleys = blobs.binary_without_pores
-            pore_x, pore_y, pore_d = blobs.x, blobs.y, blobs.diameter_px
+            # The pore's size for its centring window: the diameter of a disc of its area, which changes by a
+            # fraction of a pixel when the blob gains or loses an edge pixel (its bounding box jumps by one).
+            pore_x, pore_y, pore_d = blobs.x, blobs.y, 2.0 * np.sqrt(blobs.area_px / math.pi)
         else:
             valleys = binary
             pore_x = pore_y = pore_d = np.zeros(0)
+        # Dark specks narrower than the smallest pore inside a valley are noise, as bright ones are (4.5): left,
+        # thinning rings them with a tiny loop whose two junctions pass for bifurcations.
+        valleys = fill_specks(valleys, max_diameter_px=q.pore_min)
         skeleton = thin(valleys)  # 4.6
         rules = dict(  # 4.8.1-4.8.4, each when switched on
             orientation_px=q.orient_n,
@@ -419,6 +462,7 @@ class FeatureExtractor:
             spurs=(q.spur_min, q.spur_max, p.spur_max_deviation_deg) if p.remove_short_spurs else None,
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
+        rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
             lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
             lambda g: edit_graph(g, **rules),
@@ -438,7 +482,7 @@ class FeatureExtractor:
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
-            x, y = self._refine(s, thr, excess, x, y, kind, orient, size)
+            x, y = self._refine(s, thr, excess, valleys, rules["flow"], x, y, kind, orient, size)
         n = x.size
         features = make_features(
             x,
@@ -458,22 +502,32 @@ class FeatureExtractor:
             flags=set(),
         )
 
-    def _refine(self, s, thr, excess, x, y, kind, orient, size):
+    def _refine(self, s, thr, excess, valleys, flow, x, y, kind, orient, size):
         q = self._plan
         x = x.copy()
         y = y.copy()
         pores = kind == FeatureKind.PORE
         if pores.any():
-            # Window: the blob's own radius plus 1.5 px of edge, never more than half the largest pore, so the
-            # neighbouring (bright) valleys stay out of it. Pores the editing found (short valleys, spur tips,
-            # bridges: 4.8.1-4.8.4) have no blob size and often touch a valley: a fixed radius (edit_pore_radius).
-            radius = np.clip(np.where(size[pores] > 0, size[pores] / 2 + 1.5, q.edit_pore_radius), 2.0, q.pore_radius)
-            rx, ry, _ = refine_pores(s, threshold=thr, x=x[pores], y=y[pores], radius_px=radius)
-            x[pores], y[pores] = rx, ry
+            blob = size[pores] > 0
+            idx = np.flatnonzero(pores)
+            if blob.any():
+                # Window: the blob's own radius plus 1.5 px of edge, never more than half the largest pore, so the
+                # neighbouring (bright) valleys stay out of it.
+                i = idx[blob]
+                radius = np.clip(size[i] / 2 + 1.5, 2.0, q.pore_radius)
+                x[i], y[i], _ = refine_pores(s, threshold=thr, x=x[i], y=y[i], radius_px=radius)
+            if (~blob).any():
+                # A pore that touches a valley (found by the editing: short valleys, spur tips, bridges, 4.8.1-4.8.4)
+                # has no window of its own: it is located on its ridge instead (locate_pores_on_ridges; valleyL
+                # RMSE of these pores 0.8 -> 0.5 px in the band of partial contact, 0.30 -> 0.12 px elsewhere).
+                i = idx[~blob]
+                x[i], y[i], _ = locate_pores_on_ridges(excess, x=x[i], y=y[i], flow=flow,
+                                                       half_period_px=q.ridge_sigma, along_px=q.pore_along)
         ends = kind == FeatureKind.VALLEY_ENDING
         bifs = kind == FeatureKind.VALLEY_BIFURCATION
         if not self.params.subpixel_minutiae or not (ends.any() or bifs.any()):
             return x, y
+        forks = excess  # the outline of the valleys, before the minutiae's extra smoothing
         if q.minutia_sigma > 0:
             # Gaussian cut at 1.6 sigma (a 9 px kernel at 2.5 px): 0.33 ms a frame against 0.57 ms for an 11 px
             # one, with the same jitter.
@@ -487,9 +541,10 @@ class FeatureExtractor:
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
             rx, ry, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
             x[ends], y[ends] = rx, ry
-        # Valley bifurcations: mean shift on the valley excess from the skeleton fork (see refine_bifurcations).
+        # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).
         if bifs.any():
-            rx, ry, _ = refine_bifurcations(excess, threshold=None, x=x[bifs], y=y[bifs], radius_px=q.fork_radius)
+            rx, ry, _, _ = locate_forks(forks, x=x[bifs], y=y[bifs], reach_px=q.fork_reach,
+                                        max_radius_px=q.fork_radius)
             x[bifs], y[bifs] = rx, ry
         return x, y
 
@@ -537,7 +592,7 @@ def extract_features(
     Parameters
     ----------
     frame : (H, W) uint8
-        Grey frame, ridges dark and valleys/pores bright; at least as large as the local-average window.
+        Grey frame, ridges dark and valleys/pores bright; at least two ridge periods on each side.
     calibration : Calibration
         Pixel scale; every parameter in mm is converted through it.
     params : ExtractionParams, optional
@@ -555,7 +610,7 @@ def extract_features(
     Raises
     ------
     InvalidInputError
-        Wrong dtype or shape, or a frame smaller than the averaging window.
+        Wrong dtype or shape, or a frame smaller than two ridge periods.
     """
     return FeatureExtractor(calibration=calibration, params=params, illumination=illumination).extract(
         frame, frame_index=frame_index

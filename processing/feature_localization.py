@@ -7,7 +7,7 @@ a blob is pulled toward the brighter side of the window).
 
 Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds where the
 valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`locate_minutiae_tips`
-(valley endings) and :func:`refine_bifurcations`.
+(valley endings) and :func:`locate_forks` (valley bifurcations).
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
+from skinstretch.processing.ridge_flow import RidgeFlow, flow_normal_at
 
-__all__ = ["refine_pores", "refine_bifurcations", "locate_minutiae_tips"]
+__all__ = ["refine_pores", "locate_pores_on_ridges", "locate_forks", "locate_minutiae_tips"]
 
 
 @njit(nogil=True)
@@ -102,7 +103,6 @@ def refine_pores(
         neighbouring valleys (they are bright too and would pull the centre).
     iterations : int
         Re-centring iterations.
-
     Returns
     -------
     x, y : (P,) float64
@@ -143,93 +143,254 @@ def _bilinear(img, x, y):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _gaussian_mean_shift(img, xs, ys, sigma, iterations):  # pragma: no cover - compiled
-    """Mean shift of ``max(img, 0)`` under a Gaussian window (cut at 3 sigma) from each start point."""
+def _ridge_pores(img, xs, ys, fc2, fs2, fcell, half_period, along, iterations):  # pragma: no cover - compiled
+    """See :func:`locate_pores_on_ridges`."""
+    n = xs.size
+    ox = xs.copy()
+    oy = ys.copy()
+    ok = np.zeros(n, np.bool_)
+    for k in range(n):
+        c2, s2 = flow_normal_at(fc2, fs2, fcell, xs[k], ys[k])
+        if c2 == 0 and s2 == 0:
+            continue
+        phi = 0.5 * np.arctan2(s2, c2)
+        nx = np.cos(phi)
+        ny = np.sin(phi)
+        tx = -ny
+        ty = nx
+        cx = xs[k]
+        cy = ys[k]
+        good = True
+        for _ in range(iterations):
+            # Across: the dark ridge's centre on profiles along the normal, beside the pore on both sides.
+            before = _across_peak(img, cx - along * tx, cy - along * ty, nx, ny, -1.0, half_period)
+            after = _across_peak(img, cx + along * tx, cy + along * ty, nx, ny, -1.0, half_period)
+            if not (before == before and after == after):
+                good = False
+                break
+            cx += 0.5 * (before + after) * nx
+            cy += 0.5 * (before + after) * ny
+            # Along: the pore's bright excess on the ridge's centre line.
+            shift = _across_peak(img, cx, cy, tx, ty, 1.0, along)
+            if not shift == shift:
+                good = False
+                break
+            cx += shift * tx
+            cy += shift * ty
+            if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > half_period * half_period:
+                good = False
+                break
+        if good:
+            ox[k] = cx
+            oy[k] = cy
+            ok[k] = True
+    return ox, oy, ok
+
+
+def locate_pores_on_ridges(
+    excess: np.ndarray,
+    *,
+    x: np.ndarray,
+    y: np.ndarray,
+    flow: RidgeFlow,
+    half_period_px: float,
+    along_px: float,
+    iterations: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel centres of pores that touch a valley, from the ridge they sit on.
+
+    A pore opens on a ridge's centre line (FACTS). When it touches a valley its bright pixels join the valley's
+    and no window around it holds the pore alone, so the two coordinates are taken where the valley cannot enter:
+
+    1. across the ridge, the centre of mass of the ridge's darkness (``-excess`` > 0) on two profiles along the
+       ridges' normal (``flow``), ``along_px`` before and after the pore along the ridge, within
+       ``half_period_px``; the pore is put half-way between the two centres;
+    2. along the ridge, the centre of mass of the pore's excess (> 0) on the centre line, within ``along_px``.
+
+    Both are repeated ``iterations`` times. A pore whose profiles find no ridge, or that moves more than
+    ``half_period_px``, is left where it was (``refined`` False).
+
+    Parameters
+    ----------
+    excess : (H, W) float32
+        The frame minus the binarization threshold (valleys and pores > 0).
+    """
+    img, _, x, y = _check(excess, excess, x, y, half_period_px)
+    if not isinstance(flow, RidgeFlow):
+        raise InvalidInputError(f"flow must be a RidgeFlow, got {type(flow).__name__}")
+    if not (np.isfinite(along_px) and along_px > 0):
+        raise InvalidInputError(f"along_px must be positive, got {along_px!r}")
+    if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
+        raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
+    return _ridge_pores(img, x, y, flow.cos2, flow.sin2, flow.cell_px, float(half_period_px), float(along_px),
+                        int(iterations))
+
+
+@njit(nogil=True, inline="always")
+def _nearest_sq(bx, by, nb, px, py, floor):  # pragma: no cover - compiled
+    """Squared distance from (px, py) to the nearest of the ``nb`` points; any value <= ``floor`` once one is found
+    that close (the caller only wants points farther than ``floor`` from all of them)."""
+    best = np.inf
+    for i in range(nb):
+        dx = bx[i] - px
+        dy = by[i] - py
+        d = dx * dx + dy * dy
+        if d < best:
+            best = d
+            if best <= floor:
+                return best
+    return best
+
+
+@njit(nogil=True)
+def _inscribed_centres(img, xs, ys, reach, half, slack):  # pragma: no cover - compiled
+    """See :func:`locate_forks`: centre of the largest disc inside ``img > 0`` within ``reach`` of each start."""
     h, w = img.shape
     n = xs.size
     ox = xs.copy()
     oy = ys.copy()
-    ok = np.ones(n, np.bool_)
-    r = int(np.ceil(3.0 * sigma))
-    inv = 1.0 / (2.0 * sigma * sigma)
-    gx = np.empty(2 * r + 1)
-    gy = np.empty(2 * r + 1)
+    radius = np.full(n, np.nan)
+    ok = np.zeros(n, np.bool_)
+    side = 2 * half + 1
+    cap = 2 * side * side
+    bx = np.empty(cap)
+    by = np.empty(cap)
+    rr = int(np.ceil(reach))
     for k in range(n):
-        cx = xs[k]
-        cy = ys[k]
-        for _ in range(iterations):
-            ic = int(np.rint(cx))
-            ir = int(np.rint(cy))
-            # The Gaussian is separable: one exp per row and per column, not per pixel.
-            for j in range(2 * r + 1):
-                dx = ic - r + j - cx
-                dy = ir - r + j - cy
-                gx[j] = np.exp(-dx * dx * inv)
-                gy[j] = np.exp(-dy * dy * inv)
-            sw = 0.0
-            sx = 0.0
-            sy = 0.0
-            for rr in range(max(ir - r, 0), min(ir + r + 1, h)):
-                wy = gy[rr - ir + r]
-                for cc in range(max(ic - r, 0), min(ic + r + 1, w)):
-                    v = img[rr, cc]
-                    if v > 0:
-                        g = v * wy * gx[cc - ic + r]
-                        sw += g
-                        sx += g * cc
-                        sy += g * rr
-            if sw <= 0:
-                ok[k] = False
-                break
-            cx = sx / sw
-            cy = sy / sw
-            if (cx - xs[k]) ** 2 + (cy - ys[k]) ** 2 > 9.0 * sigma * sigma:
-                ok[k] = False
-                break
-        if ok[k]:
-            ox[k] = cx
-            oy[k] = cy
-    return ox, oy, ok
+        ic = int(np.rint(xs[k]))
+        ir = int(np.rint(ys[k]))
+        # The region's outline: where the excess changes sign between two neighbouring pixels, interpolated.
+        nb = _outline(img, ic, ir, half, bx, by)
+        if nb == 0:
+            continue
+        # Whole pixels inside the region within reach, then two finer grids around the best.
+        best = -1.0
+        qx = 0.0
+        qy = 0.0
+        for r in range(max(ir - rr, 0), min(ir + rr, h - 1) + 1):
+            for c in range(max(ic - rr, 0), min(ic + rr, w - 1) + 1):
+                if (c - xs[k]) ** 2 + (r - ys[k]) ** 2 > reach * reach or not img[r, c] > 0:
+                    continue
+                d = _nearest_sq(bx, by, nb, c, r, best)
+                if d > best:
+                    best = d
+                    qx = c
+                    qy = r
+        if best < 0:
+            continue
+        for step in (0.25, 0.0625):
+            cx = qx
+            cy = qy
+            for j in range(-4, 5):
+                for i in range(-4, 5):
+                    px = cx + i * step
+                    py = cy + j * step
+                    if not _bilinear(img, px, py) > 0:
+                        continue
+                    d = _nearest_sq(bx, by, nb, px, py, best)
+                    if d > best:
+                        best = d
+                        qx = px
+                        qy = py
+        # The centre of the places nearly as wide as the widest (within ``slack`` px of its radius), weighted by
+        # how much: along a valley whose walls run parallel the widest place is a flat ridge of the distance, and
+        # its arg max alone would jump along it with a grey level of noise.
+        rmax = np.sqrt(best)
+        lo = max(rmax - slack, 0.0)
+        sw = 0.0
+        sx = 0.0
+        sy = 0.0
+        m = int(np.ceil(2.0 * slack / 0.25))
+        for j in range(-m, m + 1):
+            for i in range(-m, m + 1):
+                px = qx + i * 0.25
+                py = qy + j * 0.25
+                if not _bilinear(img, px, py) > 0:
+                    continue
+                d = np.sqrt(_nearest_sq(bx, by, nb, px, py, lo * lo))
+                if d > lo:
+                    sw += d - lo
+                    sx += (d - lo) * px
+                    sy += (d - lo) * py
+        ox[k] = sx / sw if sw > 0 else qx
+        oy[k] = sy / sw if sw > 0 else qy
+        radius[k] = rmax
+        ok[k] = True
+    return ox, oy, radius, ok
 
 
-def refine_bifurcations(
-    image: np.ndarray,
+def locate_forks(
+    excess: np.ndarray,
     *,
-    threshold: np.ndarray | None,
     x: np.ndarray,
     y: np.ndarray,
-    radius_px: float,
-    iterations: int = 12,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel valley bifurcations: a few mean-shift steps on the valley excess intensity from the skeleton fork.
+    reach_px: float,
+    max_radius_px: float,
+    slack_px: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel valley bifurcations: the centre of the largest disc that fits in the valleys near the fork.
 
-    ``threshold=None`` means ``image`` is already the excess over the threshold (the extractor passes its
-    smoothed excess). The centre of mass of ``max(image - threshold, 0)`` under a Gaussian window of standard deviation
-    ``radius_px / 2`` (cut at 3 sigma; ``radius_px`` is about half a ridge period) around the fork is recomputed
-    ``iterations`` times. The bright mass of the three valleys meeting there pulls the point to the same place in
-    every frame, which removes the pixel quantisation and thinning jitter of the skeleton fork. The Gaussian
-    window, unlike a hard disc, does not let pixels enter or leave the window's rim as the point moves, so the
-    position is a smooth function of the image (flatL jitter: skeleton 0.60, disc 0.17, Gaussian 0.15 px;
-    sigma radius/1.5 or radius/3 and 20 iterations were worse).
-    Along the valleys the mean shift converges slowly, so after a few steps the point still remembers the
-    pixel-quantised skeleton start; too many let it creep along the widest valley. 12 steps on the extractor's
-    smoothed excess (:attr:`ExtractionParams.minutia_smoothing_mm`) balance the two (flatL jitter 0.146 px with
-    8 steps on the unsmoothed excess, 0.123 px now).
+    Where three valleys meet, the widest place of the valley region is the crotch in front of the ridge that ends
+    between two of them; its centre is where the medial axis (the ideal skeleton, seed 4.6) of the three valleys
+    forks. The region's outline is the excess's zero crossing between neighbouring pixels (linear interpolation,
+    so it moves smoothly with the image), and the centre is searched on whole pixels within ``reach_px`` of the
+    skeleton's fork, then on grids of 1/4 and 1/16 px around the best. Unlike a mean shift of the valleys'
+    brightness, it does not creep toward the brightest of the three valleys where partial contact dims the ridges
+    around the fork unevenly.
+
+    Parameters
+    ----------
+    excess : (H, W) float32
+        The frame minus the binarization threshold (valleys > 0).
+    x, y : (M,) float
+        The skeleton's forks.
+    reach_px : float
+        Search radius around each start.
+    max_radius_px : float
+        Largest disc radius looked for: the outline is collected within ``reach_px + max_radius_px``.
 
     Returns
     -------
     x, y : (M,) float64
-        Refined positions (unchanged where not refined).
-    refined : (M,) bool
-        False where there was no excess intensity or the point drifted more than 1.5 ``radius_px`` away.
+        The centres (unchanged where none was found).
+    radius : (M,) float64
+        The disc radii (NaN where none was found).
+    found : (M,) bool
     """
-    img, thr, x, y = _check(image, image if threshold is None else threshold, x, y, radius_px)
-    if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
-        raise InvalidInputError(f"iterations must be a positive integer, got {iterations!r}")
-    if threshold is not None:
-        img = img - thr
-    rx, ry, ok = _gaussian_mean_shift(img, x, y, float(radius_px) / 2.0, int(iterations))
-    return rx, ry, ok
+    img, _, x, y = _check(excess, excess, x, y, reach_px)
+    if not (np.isfinite(max_radius_px) and max_radius_px > 0):
+        raise InvalidInputError(f"max_radius_px must be positive, got {max_radius_px!r}")
+    half = int(np.ceil(reach_px + max_radius_px)) + 1
+    return _inscribed_centres(img, x, y, float(reach_px), half, float(slack_px))
+
+
+@njit(nogil=True)
+def _outline(img, ic, ir, half, bx, by):  # pragma: no cover - compiled
+    """Sub-pixel points of the outline of ``img > 0`` in the square of ``half`` around (ic, ir) into (bx, by):
+    where the sign changes between two neighbouring pixels, linearly interpolated; their number."""
+    h, w = img.shape
+    r0 = max(ir - half, 0)
+    r1 = min(ir + half, h - 1)
+    c0 = max(ic - half, 0)
+    c1 = min(ic + half, w - 1)
+    nb = 0
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1):
+            a = img[r, c]
+            b = img[r, c + 1]
+            if (a > 0) != (b > 0):
+                bx[nb] = c + a / (a - b)
+                by[nb] = r
+                nb += 1
+    for c in range(c0, c1 + 1):
+        for r in range(r0, r1):
+            a = img[r, c]
+            b = img[r + 1, c]
+            if (a > 0) != (b > 0):
+                bx[nb] = c
+                by[nb] = r + a / (a - b)
+                nb += 1
+    return nb
 
 
 @njit(nogil=True)

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
 
-__all__ = ["BlobPores", "detect_blob_pores"]
+__all__ = ["BlobPores", "detect_blob_pores", "fill_specks"]
 
 
 @dataclass(frozen=True)
@@ -208,3 +209,19 @@ def detect_blob_pores(
         np.ascontiguousarray(binary), weights, float(max_diameter_px), int(min_area_px)
     )
     return BlobPores(x=x, y=y, diameter_px=diameter, area_px=area, binary_without_pores=without)
+
+
+def fill_specks(binary: np.ndarray, *, max_diameter_px: float) -> np.ndarray:
+    """``binary`` with its 4-connected background (0) blobs narrower than ``max_diameter_px`` filled (255).
+
+    The dark counterpart of the noise blobs :func:`detect_blob_pores` drops: a speck of a few pixels inside a valley.
+    """
+    if binary.ndim != 2 or binary.dtype != np.uint8:
+        raise InvalidInputError(f"binary must be a 2-D uint8 image, got {binary.dtype} {binary.shape}")
+    if not max_diameter_px > 0:
+        raise InvalidInputError(f"max_diameter_px must be positive, got {max_diameter_px!r}")
+    inverse = cv2.bitwise_not(binary)
+    # No blob is reported (the minimum area is never reached), so the weights are never read.
+    unread = np.empty(binary.shape, np.float32)
+    _, _, _, _, without = _small_blobs(inverse, unread, float(max_diameter_px), np.iinfo(np.int64).max)
+    return cv2.bitwise_not(without)

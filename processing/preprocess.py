@@ -1,22 +1,29 @@
-"""Pre-processing of FTIR fingerprint frames (seed 4.1-4.4): smoothing, local average, background, binarization.
+"""Pre-processing of FTIR fingerprint frames (seed 3.5, 4.1-4.4): smoothing, light, local average, contact
+(the background), binarization.
 
 Polarity: ridges in contact are DARK, valleys, pores and the uncovered prism (the background) are BRIGHT. The
 binary image of :func:`binarize` has the valleys and pores as foreground (255), because the seed's skeleton is the
 valley skeleton.
 
-Every local statistic is a box filter (``cv2.boxFilter``, running sums), so it costs a constant time per pixel
-whatever the window: this is the seed's Appendix B idea, and it lets the local variance of seed 4.3 be computed at
-every pixel instead of on a coarse grid.
+The local statistics (the seed's local average of 4.2 and local variance of 4.3, and the light of 3.5) are taken at
+the scale of one ridge period on a grid of cells an eighth of a period wide: Gaussian filters of a few cells, then
+brought back to full resolution bilinearly. Like the seed's Appendix B running sums, they cost the same whatever
+the window, and the local variance is known everywhere, not on the seed's grid of a hundred squares.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
 
-__all__ = ["check_frame", "smooth", "local_mean", "local_mean_and_std", "detect_background", "binarize"]
+__all__ = [
+    "check_frame", "smooth", "binarize", "RidgeStatistics", "ridge_statistics", "contact_map", "flatten_light",
+]
 
 
 def check_frame(frame: np.ndarray, *, name: str = "frame", min_size: int = 1) -> np.ndarray:
@@ -67,92 +74,6 @@ def smooth(frame: np.ndarray, *, sigma_px: float, kernel_px: int) -> np.ndarray:
     return cv2.sepFilter2D(frame, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT)
 
 
-def local_mean(image: np.ndarray, *, window_px: int) -> np.ndarray:
-    """Mean of ``image`` in a centred square window of ``window_px`` pixels at every pixel (seed 4.2).
-
-    The border is handled by reflection, so the window never leaves the image. Constant time per pixel.
-    """
-    k = _odd_window(window_px, "window_px")
-    if image.ndim != 2 or min(image.shape) < k:
-        raise InvalidInputError(f"image of shape {image.shape} is smaller than the averaging window ({k} px)")
-    return cv2.boxFilter(image, cv2.CV_32F, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
-
-
-def local_mean_and_std(image: np.ndarray, *, window_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Local mean and local standard deviation (seed eq. 4.2) in a centred square window, at every pixel."""
-    img = image.astype(np.float32, copy=False)
-    mean = local_mean(img, window_px=window_px)
-    mean_sq = local_mean(cv2.multiply(img, img), window_px=window_px)
-    var = cv2.subtract(mean_sq, cv2.multiply(mean, mean))
-    np.maximum(var, 0.0, out=var)  # rounding can make a flat window's variance slightly negative
-    return mean, cv2.sqrt(var)
-
-
-def detect_background(
-    smoothed: np.ndarray,
-    *,
-    window_px: int,
-    min_mean: float,
-    max_std: float,
-    dilation_px: int,
-    grid_px: int = 4,
-) -> np.ndarray:
-    """Where the prism is uncovered (seed 4.3): high local mean AND low local variance, then dilated.
-
-    Like the seed, which evaluates the variance on a grid of about a hundred squares, the statistics are taken on
-    a grid: the image is averaged over ``grid_px`` x ``grid_px`` cells, the local mean and standard deviation
-    (eq. 4.2) are box filters of that coarse image, and the decision is brought back to full resolution. The
-    window is ~2 mm wide, so the grid loses nothing the dilation would keep.
-
-    Parameters
-    ----------
-    smoothed : (H, W) uint8 or float32
-        The (smoothed) frame.
-    window_px : int
-        Odd window width of the local statistics, full-resolution pixels.
-    min_mean : float
-        Grey level above which the local mean says "background" (the bare prism is almost white).
-    max_std : float
-        Local standard deviation (grey levels) below which the local variance says "background" (no ridge cycles).
-    dilation_px : int
-        Radius of the square dilation that closes holes and brings the background up to the fingertip (seed:
-        "a few morphological dilation operations").
-    grid_px : int
-        Cell size of the statistics grid (1 = every pixel).
-
-    Returns
-    -------
-    (H, W) bool
-        True on the background.
-    """
-    if not (0 <= min_mean <= 255):
-        raise InvalidInputError(f"min_mean must be a grey level in [0, 255], got {min_mean!r}")
-    if not max_std > 0:
-        raise InvalidInputError(f"max_std must be positive, got {max_std!r}")
-    if dilation_px < 0:
-        raise InvalidInputError(f"dilation_px must be >= 0, got {dilation_px!r}")
-    if not isinstance(grid_px, (int, np.integer)) or grid_px < 1:
-        raise InvalidInputError(f"grid_px must be a positive integer, got {grid_px!r}")
-    h, w = smoothed.shape
-    img = smoothed
-    if grid_px > 1:
-        # Cell means straight from the frame's dtype (a uint8 cell mean is rounded to the grey level, 0.3 grey
-        # levels RMS, far below the thresholds): converting the whole frame to float first cost more than the rest.
-        img = cv2.resize(img, (max(w // grid_px, 1), max(h // grid_px, 1)), interpolation=cv2.INTER_AREA)
-    img = img.astype(np.float32, copy=False)
-    k = max(int(round(window_px / grid_px)) | 1, 1)
-    k = min(k, (min(img.shape) - 1) | 1) if min(img.shape) > 1 else 1
-    mean, std = local_mean_and_std(img, window_px=k)
-    # Both tests must agree (seed 4.3): the mean alone mistakes bright, well-pressed fingerprint areas for background.
-    bg = ((mean > min_mean) & (std < max_std)).view(np.uint8)
-    if grid_px > 1:
-        bg = cv2.resize(bg, (w, h), interpolation=cv2.INTER_NEAREST)
-    if dilation_px > 0:
-        d = 2 * int(dilation_px) + 1
-        bg = cv2.dilate(bg, cv2.getStructuringElement(cv2.MORPH_RECT, (d, d)))
-    return bg.view(bool)  # 0 / 1 bytes throughout (comparison, nearest resize, dilation)
-
-
 def binarize(
     smoothed: np.ndarray,
     *,
@@ -191,3 +112,153 @@ def binarize(
         foreground = cv2.compare(bg.view(np.uint8), 0, cv2.CMP_EQ)
         binary = cv2.bitwise_and(binary, foreground)
     return binary
+
+
+@dataclass(frozen=True)
+class RidgeStatistics:
+    """Local statistics of a frame at the scale of one ridge period (see :func:`ridge_statistics`).
+
+    Attributes
+    ----------
+    mean : (H, W) float32
+        Local mean, full resolution (the binarization threshold).
+    cell_image : (h, w) float32
+        The image averaged over each of the ``cell_px`` x ``cell_px`` cells of the grid (not smoothed further).
+    cell_mean, cell_std : (h, w) float32
+        Local mean and standard deviation on the grid.
+    cell_px : int
+        Cell size of the grid.
+    """
+
+    mean: np.ndarray
+    cell_image: np.ndarray
+    cell_mean: np.ndarray
+    cell_std: np.ndarray
+    cell_px: int
+
+
+def ridge_statistics(smoothed: np.ndarray, *, sigma_px: float, cell_px: int = 4) -> RidgeStatistics:
+    """Gaussian-weighted local mean and standard deviation of ``smoothed`` with a standard deviation of half a ridge
+    period (the ridge pattern's own frequency is then damped ~140 times, so the mean follows the brightness of the
+    skin, not its ridges).
+
+    Beyond the seed (4.2 uses a 2 mm mean): partial contact over a ridge or a valley of the surface and the light
+    change the brightness over a few tenths of a millimetre, and a 2 mm mean then puts whole bands of ridges above
+    or below the threshold. The statistics vary slowly, so they are computed on a grid of ``cell_px`` pixel cells
+    (exact cell means of the image) and the mean is brought back to full resolution bilinearly.
+
+    Parameters
+    ----------
+    smoothed : (H, W) float32
+    sigma_px : float
+        Standard deviation of the Gaussian window, full-resolution pixels (> 0).
+    cell_px : int
+        Cell size of the grid (1 = every pixel).
+    """
+    if smoothed.ndim != 2:
+        raise InvalidInputError(f"smoothed must be a 2-D image, got shape {smoothed.shape}")
+    if not (np.isfinite(sigma_px) and sigma_px > 0):
+        raise InvalidInputError(f"sigma_px must be positive, got {sigma_px!r}")
+    if not isinstance(cell_px, (int, np.integer)) or cell_px < 1:
+        raise InvalidInputError(f"cell_px must be a positive integer, got {cell_px!r}")
+    h, w = smoothed.shape
+    img = smoothed.astype(np.float32, copy=False)
+    size = (max(w // cell_px, 1), max(h // cell_px, 1))
+    cells = cv2.resize(img, size, interpolation=cv2.INTER_AREA) if cell_px > 1 else img
+    sg = float(sigma_px) / cell_px
+    k = 2 * int(math.ceil(3.0 * sg)) + 1
+    m1 = cv2.GaussianBlur(cells, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    # Twicing (Tukey): the mean of what the first mean left. A Gaussian mean lags where the brightness curves
+    # (across a band of partial contact: ~0.16 of the band's depth at its centre with the valleyL surface); the
+    # second pass removes that bias to the next order while the ridge frequency stays damped ~70 times.
+    m = m1 + cv2.GaussianBlur(cells - m1, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    # The local standard deviation about the first mean (the contact map compares it with the mean).
+    var = cv2.subtract(cv2.GaussianBlur(cells * cells, (k, k), sg, borderType=cv2.BORDER_REFLECT), m1 * m1)
+    np.maximum(var, 0.0, out=var)
+    std = cv2.sqrt(var)
+    if cell_px > 1:
+        # Cell centres sit at (i + 0.5) * cell - 0.5 in full-resolution pixels: cv2.resize's own convention.
+        full = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
+    else:
+        full = m
+    return RidgeStatistics(mean=full, cell_image=cells, cell_mean=m, cell_std=std, cell_px=int(cell_px))
+
+
+def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: float, min_extent_px: float = 0.0,
+                texture_floor: float = 0.1, reference_percentile: float = 90.0) -> tuple[np.ndarray, float]:
+    """Where the skin touches the glass: contact fraction from the local contrast, and the background mask.
+
+    FTIR model (seed 3.2): the camera sees ``g (B + c (S - B))``, the bright glass ``B`` blended with the skin's
+    ridge/valley pattern ``S`` by the contact fraction ``c`` and multiplied by the light's gain ``g``. The valleys
+    are nearly as bright as the bare glass, so the local relative contrast
+    ``kappa = (valley - ridge) / valley`` is ``c`` times that of full contact, whatever the gain: it does not
+    depend on vignetting, the slope's darkening or the exposure. ``valley`` and ``ridge`` are taken as mean +/-
+    sqrt(2) std (a sinusoid's envelope) at the ridge scale, and full contact's ``kappa`` is the frame's
+    ``reference_percentile``-th percentile over the textured cells (``kappa > texture_floor``; the bare glass
+    gives ~0.05). Cells with ``c < min_contact`` are background, except an island of them inside the image
+    narrower than ``min_extent_px`` on both axes: bare glass is the outside of the fingertip, or a band of the
+    surface that the skin does not reach, and either reaches far; a small island is skin whose pattern has few
+    ridges there (a wide valley round a minutia, in partial contact), and calling it background would delete the
+    minutia that makes it.
+
+    Returns
+    -------
+    background : (H, W) bool
+        True where the contact fraction is below ``min_contact`` (the cells' contrast upsampled bilinearly).
+    reference : float
+        Full contact's relative contrast in this frame (``nan`` when no cell is textured: all background).
+    """
+    m, s = stats.cell_mean, stats.cell_std
+    env = cv2.scaleAdd(s, math.sqrt(2.0), m)
+    kappa = cv2.divide(s, np.maximum(env, 1.0), scale=2.0 * math.sqrt(2.0))
+    textured = kappa[kappa > texture_floor]
+    h, w = shape
+    if textured.size == 0:
+        return np.ones((h, w), dtype=bool), float("nan")
+    reference = float(np.percentile(textured, reference_percentile))
+    threshold = min_contact * reference
+    islands = None
+    if min_extent_px > 0:
+        cell = (h / kappa.shape[0] + w / kappa.shape[1]) / 2
+        low = cv2.compare(kappa, threshold, cv2.CMP_LT)
+        n, labels, box, _ = cv2.connectedComponentsWithStats(low, connectivity=4)
+        bh, bw = kappa.shape
+        x0, y0, bx, by = box[:, 0], box[:, 1], box[:, 2], box[:, 3]
+        small = (np.maximum(bx, by) * cell < min_extent_px) & (x0 > 0) & (y0 > 0) & (x0 + bx < bw) & (y0 + by < bh)
+        small[0] = False  # label 0: the contact
+        if small.any():
+            islands = cv2.dilate(small[labels].view(np.uint8), np.ones((3, 3), np.uint8))  # and their rim cells
+    if kappa.shape != (h, w):
+        # Thresholded after a bilinear upsampling: the outline moves smoothly with the image instead of by whole
+        # cells (a cell flipping moved the fingertip's outline, and the features near it, by a few pixels).
+        kappa = cv2.resize(kappa, (w, h), interpolation=cv2.INTER_LINEAR)
+    background = cv2.compare(kappa, threshold, cv2.CMP_LT)
+    if islands is not None:
+        if islands.shape != (h, w):
+            islands = cv2.resize(islands, (w, h), interpolation=cv2.INTER_NEAREST)
+        background[islands > 0] = 0
+    return background.view(bool), reference
+
+
+def flatten_light(smoothed: np.ndarray, *, cell_px: int, window_px: float, sigma_px: float) -> np.ndarray:
+    """``smoothed`` divided by the light that falls on it, estimated from the frame alone (seed 3.5 per frame).
+
+    The valleys and pores are almost as bright as the bare glass whatever the contact (FTIR, seed 3.2), so the
+    upper envelope of the frame (its local maximum over ``window_px``, about a ridge period, smoothed by a Gaussian
+    of ``sigma_px``) is the light times a constant. Dividing by it removes the light's slow changes (vignetting,
+    a surface slope's darkening) that tilt a pore's or a minutia's brightness and pull its centre uphill; the
+    result is scaled so the envelope becomes 255 (the seed's eq. 3.7 without the clip). Computed on the grid of
+    ``cell_px`` cell means.
+    """
+    h, w = smoothed.shape
+    size = (max(w // cell_px, 1), max(h // cell_px, 1))
+    cells = cv2.resize(smoothed, size, interpolation=cv2.INTER_AREA) if cell_px > 1 else smoothed
+    kd = max(int(round(window_px / cell_px)) | 1, 3)
+    env = cv2.dilate(cells, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd)))
+    sg = float(sigma_px) / cell_px
+    k = 2 * int(math.ceil(3.0 * sg)) + 1
+    env = cv2.GaussianBlur(env, (k, k), sg, borderType=cv2.BORDER_REFLECT)
+    gain = cv2.divide(np.full_like(env, 255.0), np.maximum(env, 1.0))
+    if cell_px > 1:
+        gain = cv2.resize(gain, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.multiply(smoothed, gain)

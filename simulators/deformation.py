@@ -31,14 +31,23 @@ What is modelled
    valley. ``W`` depends only on where the skin point is and where it started, so it is the same whatever the
    frame order, and it is zero in frame 0. The lag per mm of travel does not depend on the sliding speed
    (rate-independent friction); ``speed_scale_mm_s`` is accepted for scene files and not used.
+4. **Slip front** (optional): the partial-slip front that runs across the contact at the onset of sliding, as a band
+   of uniaxial strain ``A`` (negative: compression) along a unit direction ``n``, Gaussian across (``sigma``),
+   centred at ``c(t)`` along ``n`` and travelling with it: ``d_f(X) = n A (F(n.X - c(t)) - F(n.X - c(0)))`` with
+   ``F(z) = integral of exp(-z^2 / 2 sigma^2)``, i.e. strain ``A (g(n.X - c(t)) - g(n.X - c(0)))`` along ``n``: a
+   compression band where the front is now and, relative to frame 0, the opposite where it started (start it
+   outside the contact); between two frames, compression ahead of the front and extension behind it. Skin the
+   front has passed is shifted by ``-A sigma sqrt(2 pi)`` along ``n`` (forward, for a compression) against skin it
+   has not reached. It is added
+   to the rigid + plastic part (skin coordinates), so it is exactly zero in frame 0.
 All time-dependent non-rigid terms are multiplied by a ramp ``smoothstep(t / ramp_s)`` so frame 0 is undeformed.
 
 What is not modelled
 --------------------
 Normal (out-of-plane) deformation and the bulging of the finger pad, visco-elastic creep, the dependence of
 the sticking area on the friction coefficient, inertia, incompressibility (area is not conserved), skin
-folding, the change of the mechanics with normal force. The field is smooth, so it cannot represent the
-discontinuities of a real slip front.
+folding, the change of the mechanics with normal force. The field is smooth: the slip front is a smooth band, not
+the discontinuity of slip a real front may carry.
 """
 
 from __future__ import annotations
@@ -167,6 +176,45 @@ class RidgeMechanics:
 
 
 @dataclass(frozen=True)
+class SlipFront:
+    """A band of uniaxial strain ``amplitude`` (negative: compression) travelling along ``direction_deg``
+    (counter-clockwise on the image from +x), Gaussian across with ``width_mm`` full width at half height, at
+    ``position_mm`` along the direction interpolated linearly between ``keyframes`` ``(t_s, position_mm)``.
+    ``amplitude`` 0 turns it off (see the module doc, 4.)."""
+
+    amplitude: float = 0.0
+    width_mm: float = 0.8
+    direction_deg: float = -90.0
+    keyframes: tuple[tuple[float, float], ...] = ((0.0, 0.0),)
+
+    def __post_init__(self) -> None:
+        if not abs(self.amplitude) < 0.3:
+            raise InvalidInputError(f"amplitude must be below 0.3 in magnitude, got {self.amplitude}")
+        if not self.width_mm > 0:
+            raise InvalidInputError(f"width_mm must be positive, got {self.width_mm}")
+        k = np.asarray(self.keyframes, dtype=np.float64)
+        if k.ndim != 2 or k.shape[1] != 2 or k.shape[0] < 1 or not np.all(np.isfinite(k)):
+            raise InvalidInputError(f"keyframes must be a list of finite (t_s, position_mm), got {self.keyframes}")
+        if np.any(np.diff(k[:, 0]) <= 0):
+            raise InvalidInputError(f"keyframe times must increase strictly, got {k[:, 0].tolist()}")
+
+    @property
+    def sigma_mm(self) -> float:
+        """Gaussian sigma of the band (``width_mm`` is its full width at half height)."""
+        return self.width_mm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Unit vector (u, s) of the direction of travel."""
+        return rotation_matrix(self.direction_deg) @ np.array([1.0, 0.0])
+
+    def position(self, t_s: float) -> float:
+        """Position (mm along the direction) of the band at time ``t_s``; held constant outside the keyframes."""
+        k = np.asarray(self.keyframes, dtype=np.float64)
+        return float(np.interp(float(t_s), k[:, 0], k[:, 1]))
+
+
+@dataclass(frozen=True)
 class FrameDeformation:
     """The deformation of one frame: ``forward`` maps skin coordinates (frame-0 mm) to current mm."""
 
@@ -181,6 +229,11 @@ class FrameDeformation:
     mech_a: float
     mech_center: float
     mech_sigma: float
+    front_a: float = 0.0
+    front_n: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0]))
+    front_c: float = 0.0
+    front_c0: float = 0.0
+    front_sigma: float = 1.0
     _ra: np.ndarray = field(init=False, repr=False)
     _rb: np.ndarray = field(init=False, repr=False)
     _rai: np.ndarray = field(init=False, repr=False)
@@ -218,13 +271,23 @@ class FrameDeformation:
         return self.mech_sigma * np.sqrt(0.5 * np.pi) * _erf((s - self.mech_center) / (self.mech_sigma * np.sqrt(2.0)))
 
     def _intermediate(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Displacement and displacement gradient of the rigid + plastic part (before the ridge mechanics)."""
+        """Displacement and displacement gradient of the rigid + plastic part and the slip front (before the ridge
+        mechanics)."""
         rel = X - self.center
         da = rel @ self._rai.T + self.t_a
         diff = rel @ (self._rb - self._ra).T + (self.t_b - self.t_a)
         beta, gbeta = self._brake(X)
         d = da + beta[..., None] * diff
         h = self._rai + beta[..., None, None] * (self._rb - self._ra) + diff[..., :, None] * gbeta[..., None, :]
+        if self.front_a != 0.0:
+            n = self.front_n
+            z = X @ n
+            sig = self.front_sigma
+            big_f = sig * np.sqrt(0.5 * np.pi) * (_erf((z - self.front_c) / (sig * np.sqrt(2.0)))
+                                                  - _erf((z - self.front_c0) / (sig * np.sqrt(2.0))))
+            g = np.exp(-0.5 * ((z - self.front_c) / sig) ** 2) - np.exp(-0.5 * ((z - self.front_c0) / sig) ** 2)
+            d = d + self.front_a * big_f[..., None] * n
+            h = h + self.front_a * g[..., None, None] * np.outer(n, n)
         return d, h
 
     # -- public
@@ -262,7 +325,8 @@ class FrameDeformation:
         out = _inverse_kernel(
             flat, self.t_a, self.t_b, self._ra, self._rb, self._rai, self.center, self.ellipse_center,
             self.semi_axes, float(self.band), float(self.mech_a), float(self.mech_center), float(self.mech_sigma),
-            int(iterations),
+            float(self.front_a), np.asarray(self.front_n, dtype=np.float64), float(self.front_c),
+            float(self.front_c0), float(self.front_sigma), int(iterations),
         )
         return out.reshape(x.shape)
 
@@ -285,13 +349,15 @@ class FrameDeformation:
 
 
 @numba.njit(cache=True, nogil=True)
-def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, mech_sig, iterations):  # pragma: no cover
+def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, mech_sig, front_a, fn, front_c,
+                    front_c0, front_sig, iterations):  # pragma: no cover
     n = x.shape[0]
     out = np.empty_like(x)
     a, b = axes[0], axes[1]
     rmean = 0.5 * (a + b)
     d00, d01, d10, d11 = rb[0, 0] - ra[0, 0], rb[0, 1] - ra[0, 1], rb[1, 0] - ra[1, 0], rb[1, 1] - ra[1, 1]
     sq = np.sqrt(0.5 * np.pi) * mech_sig
+    fsq = np.sqrt(0.5 * np.pi) * front_sig
     for p in numba.prange(n):
         x0, x1 = x[p, 0], x[p, 1]
         q0, q1 = x0 - tb[0] - c[0], x1 - tb[1] - c[1]
@@ -320,9 +386,23 @@ def _inverse_kernel(x, ta, tb, ra, rb, rai, c, ec, axes, band, mech_a, mech_c, m
             j01 = rai[0, 1] + beta * d01 + df0 * gb1
             j10 = rai[1, 0] + beta * d10 + df1 * gb0
             j11 = 1.0 + rai[1, 1] + beta * d11 + df1 * gb1
+            fs = 0.0
+            if front_a != 0.0:
+                # Slip front n A (F(n.X - c) - F(n.X - c0)) (see FrameDeformation._intermediate).
+                z = fn[0] * X0 + fn[1] * X1
+                z1, z0 = (z - front_c) / front_sig, (z - front_c0) / front_sig
+                amp = front_a * fsq * (math.erf(z1 / np.sqrt(2.0)) - math.erf(z0 / np.sqrt(2.0)))
+                gz = front_a * (np.exp(-0.5 * z1 * z1) - np.exp(-0.5 * z0 * z0))
+                f0 += fn[0] * amp
+                f1 += fn[1] * amp
+                fs = fn[1] * amp
+                j00 += gz * fn[0] * fn[0]
+                j01 += gz * fn[0] * fn[1]
+                j10 += gz * fn[1] * fn[0]
+                j11 += gz * fn[1] * fn[1]
             if mech_a != 0.0:
                 # Ridge lag W = -a (G(y_s) - G(X_s)) on the s row (see FrameDeformation.displacement).
-                ys = X1 + da1 + beta * df1
+                ys = X1 + da1 + beta * df1 + fs
                 zy, z0 = (ys - mech_c) / mech_sig, (X1 - mech_c) / mech_sig
                 gy, g0 = np.exp(-0.5 * zy * zy), np.exp(-0.5 * z0 * z0)
                 f1 -= mech_a * sq * (math.erf(zy / np.sqrt(2.0)) - math.erf(z0 / np.sqrt(2.0)))
@@ -351,11 +431,13 @@ def green_lagrange(h: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class DeformationModel:
-    """Bulk motion + plastic distortion + ridge/valley mechanics; ``at(t)`` gives one frame's deformation."""
+    """Bulk motion + plastic distortion + slip front + ridge/valley mechanics; ``at(t)`` gives one frame's
+    deformation."""
 
     motion: MotionProfile
     plastic: PlasticDistortion = PlasticDistortion()
     mechanics: RidgeMechanics = RidgeMechanics()
+    slip_front: SlipFront = SlipFront()
     rotation_center_mm: tuple[float, float] = (0.0, 0.0)
     ramp_s: float = 0.1
 
@@ -400,4 +482,9 @@ class DeformationModel:
             mech_a=a,
             mech_center=mech.center_s_mm,
             mech_sigma=mech.sigma_mm,
+            front_a=float(self.slip_front.amplitude),
+            front_n=self.slip_front.direction,
+            front_c=self.slip_front.position(t),
+            front_c0=self.slip_front.position(0.0),
+            front_sigma=self.slip_front.sigma_mm,
         )

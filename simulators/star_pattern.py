@@ -1,0 +1,156 @@
+"""A DIC-Challenge-like "star" image pair: a speckle pattern and the same pattern under a sinusoidal vertical
+displacement whose period shrinks along x, with its exact displacement (after the DIC Challenge 2.0 Star images,
+Reu et al. 2022; our own speckle and layout, not the Challenge's files).
+
+Displacement: ``v(x, y) = A cos(2 pi (y - y_c) f(x))``, ``u = 0``. ``f`` is 0 in a *flat* part on the left (a
+uniform shift by A, where the noise is measured), rises linearly to ``1 / max_period`` over a ramp, then the period
+``1 / f`` falls geometrically from ``max_period`` to ``min_period`` and stays there over a last ``tail`` of columns.
+Lines of constant phase fan out from the centre row like a star; on the centre row ``v = A`` everywhere, so the
+measured amplitude there, against the true one, gives the bias at each period (the DIC community's spatial
+resolution: the period at which the bias reaches 10 %).
+
+Speckle: random Gaussian dots (sigma ``dot_sigma_px``, ``dot_density`` per px^2, random strengths) composed as
+``I = dark + (bright - dark) (1 - exp(-S))`` with ``S`` the sum of the dots; both images are that function sampled
+at pixel centres, the second at the skin point now there (the displacement inverted by fixed-point iteration, a
+contraction since ``|dv/dy| <= 2 pi A / min_period < 1``), so the pair is exact up to the added Gaussian noise and
+8-bit quantisation. The dots are band-limited (their spectrum at the Nyquist frequency is below 1e-5 for sigma
+1.6 px), so point sampling needs no pixel integration.
+
+Hand-written: no library renders a speckle pair under a given displacement field exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from skinstretch.processing.errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class StarLayout:
+    """Size and displacement of a star pair (px, grey levels)."""
+
+    width: int = 2048
+    height: int = 384
+    amplitude_px: float = 0.5
+    max_period_px: float = 300.0
+    min_period_px: float = 10.0
+    flat_px: int = 256
+    ramp_px: int = 150
+    tail_px: int = 64
+    dot_sigma_px: float = 1.6
+    dot_density: float = 0.04
+    dark: float = 30.0
+    bright: float = 220.0
+    noise_sigma: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.width < self.flat_px + self.ramp_px + self.tail_px + 64 or self.height < 32:
+            raise InvalidInputError(f"a star of {self.width} x {self.height} px has no room for its parts")
+        if not 0 < self.min_period_px < self.max_period_px:
+            raise InvalidInputError("need 0 < min_period_px < max_period_px")
+        if not 0 < 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
+            raise InvalidInputError("amplitude_px must be below min_period_px / (2 pi) (the warp must invert)")
+        if self.dot_sigma_px < 1.0 or self.dot_density <= 0 or self.noise_sigma < 0:
+            raise InvalidInputError("dot_sigma_px >= 1, dot_density > 0 and noise_sigma >= 0 needed")
+
+    @property
+    def center_row(self) -> float:
+        return (self.height - 1) / 2.0
+
+    def frequency(self) -> np.ndarray:
+        """f(x) in cycles per px, for every column."""
+        x = np.arange(self.width, dtype=np.float64)
+        f = np.zeros(self.width)
+        f0 = 1.0 / self.max_period_px
+        x_ramp, x_star, x_tail = self.flat_px, self.flat_px + self.ramp_px, self.width - self.tail_px
+        ramp = (x >= x_ramp) & (x < x_star)
+        f[ramp] = f0 * (x[ramp] - x_ramp) / self.ramp_px
+        star = (x >= x_star) & (x < x_tail)
+        t = (x[star] - x_star) / (x_tail - x_star)
+        f[star] = 1.0 / (self.max_period_px * (self.min_period_px / self.max_period_px) ** t)
+        f[x >= x_tail] = 1.0 / self.min_period_px
+        return f
+
+    def period(self) -> np.ndarray:
+        """Period 1 / f(x) in px for every column (inf in the flat part)."""
+        with np.errstate(divide="ignore"):
+            return 1.0 / self.frequency()
+
+    def displacement(self) -> np.ndarray:
+        """True v (H, W) px of the skin point at each pixel of the *first* image (u is 0)."""
+        y = np.arange(self.height, dtype=np.float64)[:, None] - self.center_row
+        return self.amplitude_px * np.cos(2.0 * np.pi * y * self.frequency()[None, :])
+
+    @property
+    def flat_columns(self) -> slice:
+        """Columns of the flat part used for the noise (away from the image border and the ramp)."""
+        return slice(self.flat_px // 4, 3 * self.flat_px // 4)
+
+    @property
+    def star_columns(self) -> slice:
+        """Columns from the start of the star to the start of the tail."""
+        return slice(self.flat_px + self.ramp_px, self.width - self.tail_px)
+
+
+@dataclass(frozen=True)
+class StarPair:
+    """Two 8-bit images and the truth: ``v_true`` (H, W) px, the vertical displacement from image a to image b of
+    the point at each pixel of image a (``u`` is 0)."""
+
+    layout: StarLayout
+    image_a: np.ndarray
+    image_b: np.ndarray
+    v_true: np.ndarray
+
+
+def render_star_pair(layout: StarLayout | None = None, *, seed: int = 0) -> StarPair:
+    """Render a star pair (see the module doc); the same seed gives the same bytes."""
+    lay = layout or StarLayout()
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(7,)))
+    h, w = lay.height, lay.width
+    pad = 6.0 * lay.dot_sigma_px
+    n = int(round(lay.dot_density * (w + 2 * pad) * (h + 2 * pad)))
+    dots_x = rng.uniform(-pad, w - 1 + pad, n)
+    dots_y = rng.uniform(-pad, h - 1 + pad, n)
+    strength = rng.uniform(0.3, 1.2, n)
+    f = lay.frequency()
+    yy = np.arange(h, dtype=np.float64)[:, None] - lay.center_row
+    # Image b at pixel (x, y) shows the point (x, Y) with Y + v(x, Y) = y: fixed point (a contraction).
+    rows_a = np.broadcast_to(np.arange(h, dtype=np.float64)[:, None], (h, w)).copy()
+    rows_b = rows_a.copy()
+    for _ in range(60):
+        rows_b = rows_a - lay.amplitude_px * np.cos(2.0 * np.pi * (rows_b - lay.center_row) * f[None, :])
+    sums = []
+    for rows in (rows_a, rows_b):
+        s = np.zeros((h, w))
+        _add_dots(s, rows, dots_x, dots_y, strength, float(lay.dot_sigma_px))
+        sums.append(s)
+    images = []
+    for s in sums:
+        img = lay.dark + (lay.bright - lay.dark) * (1.0 - np.exp(-s))
+        img = img + rng.normal(0.0, lay.noise_sigma, img.shape) if lay.noise_sigma > 0 else img
+        images.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    v = lay.amplitude_px * np.cos(2.0 * np.pi * yy * f[None, :])
+    return StarPair(lay, images[0], images[1], v)
+
+
+@numba.njit(cache=True)
+def _add_dots(out, rows, dots_x, dots_y, strength, sigma):  # pragma: no cover - compiled
+    """out[y, x] += strength_i exp(-((x - x_i)^2 + (rows[y, x] - y_i)^2) / (2 sigma^2)) for every dot i (the
+    point shown at pixel (x, y) is (x, rows[y, x]); rows differ from y by less than 1 px)."""
+    h, w = out.shape
+    reach = int(np.ceil(5.0 * sigma)) + 2
+    inv = 0.5 / (sigma * sigma)
+    for i in range(dots_x.size):
+        cx, cy = dots_x[i], dots_y[i]
+        x0, x1 = max(int(cx) - reach, 0), min(int(cx) + reach + 1, w)
+        y0, y1 = max(int(cy) - reach, 0), min(int(cy) + reach + 1, h)
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                dx = x - cx
+                dy = rows[y, x] - cy
+                out[y, x] += strength[i] * np.exp(-(dx * dx + dy * dy) * inv)

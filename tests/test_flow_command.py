@@ -1,0 +1,111 @@
+"""``skinstretch flow`` (two images -> u, v arrays) and the star pattern behind the resolution knob."""
+
+import cv2
+import numpy as np
+import pytest
+
+from skinstretch.cli import main
+from skinstretch.experiments.evaluation.star import score_star
+from skinstretch.processing.flow import DenseFlow, FlowParams
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.simulators.star_pattern import StarLayout, render_star_pair
+
+SHIFT = (1.5, -0.5)  # half-pixel parts: the cubic warp that makes image b is exact there (no phase bias)
+
+
+def _texture(shape=(160, 200), seed=3):
+    rng = np.random.default_rng(seed)
+    a = cv2.GaussianBlur((rng.random(shape) * 255).astype(np.float32), (0, 0), 2.0)
+    return cv2.normalize(a, None, 10, 245, cv2.NORM_MINMAX)
+
+
+@pytest.fixture
+def image_pair(tmp_path):
+    a = _texture()
+    m = np.float32([[1, 0, SHIFT[0]], [0, 1, SHIFT[1]]])
+    b = cv2.warpAffine(a, m, (a.shape[1], a.shape[0]), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    a8, b8 = a.round().astype(np.uint8), b.round().astype(np.uint8)
+    a8[:, :40] = b8[:, :40] = 200  # a flat band: no texture, nothing measured there
+    pa, pb = tmp_path / "a.png", tmp_path / "b.tif"
+    cv2.imwrite(str(pa), a8)
+    cv2.imwrite(str(pb), b8.astype(np.uint16) * 257)  # 16 bit: read back scaled to 8
+    return pa, pb
+
+
+def test_flow_command_writes_u_v_with_nan_outside(tmp_path, image_pair, capsys):
+    pa, pb = image_pair
+    out = tmp_path / "field.npz"
+    assert main(["flow", str(pa), str(pb), "-o", str(out), "--window-px", "15"]) == 0
+    z = np.load(out)
+    u, v = z["u"], z["v"]
+    assert u.dtype == v.dtype == np.float32 and u.shape == v.shape == (160, 200)
+    assert int(z["window_px"]) == 15 and int(z["grid_step_px"]) == 4
+    ok = np.isfinite(u)
+    assert np.array_equal(ok, np.isfinite(v))
+    # NaN: outside the grid of windows that fit in the image, and over the flat band (no texture = no contact).
+    assert not ok[:7].any() and not ok[-7:].any() and not ok[:, -7:].any() and not ok[:, :40].any()
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(np.median(u[ok]), SHIFT[0], atol=0.02)
+    np.testing.assert_allclose(np.median(v[ok]), SHIFT[1], atol=0.02)
+    assert "wrote" in capsys.readouterr().err
+    # An existing output is kept unless asked; bad inputs are one-line errors (exit 2).
+    assert main(["flow", str(pa), str(pb), "-o", str(out)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["flow", str(pa), str(tmp_path / "missing.png"), "-o", str(tmp_path / "x.npz")]) == 2
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((50, 60), np.uint8))
+    assert main(["flow", str(pa), str(small), "-o", str(tmp_path / "x.npz")]) == 2
+    assert "differ in size" in capsys.readouterr().err
+    flat = tmp_path / "flat.png"
+    cv2.imwrite(str(flat), np.full((160, 200), 128, np.uint8))
+    assert main(["flow", str(flat), str(flat), "-o", str(tmp_path / "x.npz")]) == 2
+    assert "no displacement measured" in capsys.readouterr().err
+    # A speckle is not a print: the fingerprint gate, when asked for, refuses it.
+    assert main(["flow", str(pa), str(pb), "-o", str(tmp_path / "g.npz"), "--fingerprint-gate"]) == 2
+    assert "no_texture" in capsys.readouterr().err
+
+
+def test_window_px_overrides_window_mm_and_sets_the_grid():
+    cal = Calibration(px_per_mm=62.0)
+    assert DenseFlow(calibration=cal).window_px == 51 and DenseFlow(calibration=cal).grid_step_px == 12
+    f = DenseFlow(calibration=cal, params=FlowParams(window_mm=2.0, window_px=17))
+    assert f.window_px == 17 and f.grid_step_px == 4
+    for bad in (5, 16):  # at least 7, and odd (centred on its node)
+        with pytest.raises(Exception, match="window_px"):
+            FlowParams(window_px=bad)
+
+
+def test_star_pair_is_the_exact_warp_and_scores_its_own_truth():
+    lay = StarLayout(width=700, height=160, flat_px=128, ramp_px=64, tail_px=32, max_period_px=120.0,
+                     noise_sigma=0.0)
+    pair = render_star_pair(lay, seed=1)
+    again = render_star_pair(lay, seed=1)
+    assert np.array_equal(pair.image_b, again.image_b)
+    # Image b is image a moved by v: pull a at (x, y - v(x, Y)) with Y solved by fixed point.
+    h, w = pair.image_a.shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    f = lay.frequency()[None, :]
+    rows = y.astype(np.float64)
+    for _ in range(40):
+        rows = y - lay.amplitude_px * np.cos(2 * np.pi * (rows - lay.center_row) * f)
+    pulled = cv2.remap(pair.image_a.astype(np.float32), x, rows.astype(np.float32), cv2.INTER_CUBIC)
+    inner = (slice(8, -8), slice(8, 400))  # periods >= 30 px: cubic interpolation of the speckle is accurate
+    err = np.abs(pulled[inner] - pair.image_b[inner])
+    assert np.sqrt(np.mean(err**2)) < 1.5 and np.abs(pair.image_a[inner] - pair.image_b[inner].astype(float)).mean() > 5
+    s = score_star(pair.v_true, pair)
+    assert s.noise_px == 0.0 and s.resolution_px == pytest.approx(lay.min_period_px, rel=0.01) and s.missing_fraction == 0.0
+
+
+def test_the_window_knob_trades_resolution_for_noise():
+    lay = StarLayout(width=1000, height=192, flat_px=192, ramp_px=96, tail_px=48, max_period_px=160.0)
+    pair = render_star_pair(lay, seed=0)
+    cal = Calibration(px_per_mm=62.0)
+    scores = []
+    for w in (13, 21, 35):
+        field = DenseFlow(calibration=cal, params=FlowParams(window_px=w, texture_gate=False)).compute(
+            pair.image_a, pair.image_b)
+        scores.append(score_star(field.dense(pair.image_a.shape)[1], pair))
+    res = [s.resolution_px for s in scores]
+    noise = [s.noise_px for s in scores]
+    assert res[0] <= res[1] <= res[2] and res[0] < res[2]
+    assert noise[0] > noise[1] > noise[2]
