@@ -8,6 +8,9 @@ ever calls ``submit`` on what it is given. Three kinds:
   process), started on first use. Each worker dies with the analysis, whatever kills it: the parent-death signal
   (``prctl(PR_SET_PDEATHSIG)`` on Linux; its parent is the single-threaded forkserver, which exits when this
   process does), and a thread that watches this process and exits within half a second of its end everywhere else.
+  The forkserver imports nothing: every worker imports what it needs itself, while this process carries on. (A
+  server that preloads the analysis is one more process holding the libraries, ~150 MB of the tree's resident
+  memory, for the second or so each worker saves at its start.)
 * ``threads`` of this process (OpenCV and the compiled kernels release the GIL);
 * ``serial``: every task runs in the caller, at once (:class:`InlineExecutor`; the standard library has none).
 
@@ -67,16 +70,16 @@ class WorkerProcesses(Executor):
             if self._pool is None:
                 if "forkserver" in mp.get_all_start_methods():
                     ctx = mp.get_context("forkserver")
-                    ctx.set_forkserver_preload(["skinstretch.experiments.analysis.measure"])
+                    ctx.set_forkserver_preload([])  # the server imports nothing (module docstring)
                 else:  # pragma: no cover - platforms without forkserver (Windows)
                     ctx = mp.get_context("spawn")
                 pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_worker_init,
                                            initargs=(os.getpid(),))
-                # Every worker is started now, while the caller's main script is hidden (see _main_script_hidden).
+                # Every worker is started now, while the caller's main script is hidden (see _main_script_hidden);
+                # they import and warm up while the caller carries on.
                 with _main_script_hidden():
-                    started = [pool.submit(os.getpid) for _ in range(self.workers)]
-                    for f in started:
-                        f.result()
+                    for _ in range(self.workers):
+                        pool.submit(os.getpid)
                 self._pool = pool
             return self._pool
 
