@@ -76,6 +76,20 @@ class TactileMovie:
     stretch_change: np.ndarray
     motion_axis: int = 0
 
+    @classmethod
+    def of_frames(cls, frames: Sequence["TactileMovieFrame"], *, motion_axis: int) -> "TactileMovie":
+        """The movie of consecutive frames (from :class:`TactileMovieBuilder`), stacked along a frame axis."""
+        if not frames:
+            raise InvalidInputError("a tactile movie needs at least one frame")
+        return cls(
+            positions_um=np.stack([f.positions_um for f in frames]),
+            reset=np.stack([f.reset for f in frames]),
+            clipped=np.stack([f.clipped for f in frames]),
+            ideal_um=np.stack([f.ideal_um for f in frames]),
+            stretch_change=np.stack([f.stretch_change for f in frames]),
+            motion_axis=int(motion_axis),
+        )
+
 
 def tactile_movie(
     samples: Sequence[MotionSample],
@@ -111,15 +125,7 @@ def tactile_movie(
     n = fingertip.n_frames
     if len(samples) != n - 1:
         raise InvalidInputError(f"expected {n - 1} consecutive-pair samples, got {len(samples)}")
-    frames = [builder.first_frame()] + [builder.add(s) for s in samples]
-    return TactileMovie(
-        positions_um=np.stack([f.positions_um for f in frames]),
-        reset=np.stack([f.reset for f in frames]),
-        clipped=np.stack([f.clipped for f in frames]),
-        ideal_um=np.stack([f.ideal_um for f in frames]),
-        stretch_change=np.stack([f.stretch_change for f in frames]),
-        motion_axis=int(motion_axis),
-    )
+    return TactileMovie.of_frames([builder.first_frame()] + [builder.add(s) for s in samples], motion_axis=motion_axis)
 
 
 @dataclass(frozen=True)

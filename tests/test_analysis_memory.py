@@ -1,5 +1,6 @@
 """A session of any length in bounded memory: trajectories stored as the tracker hands frames out, percentiles of
-more values than are held (skinstretch.experiments.analysis.trajectories, .percentiles), to the bit."""
+more values than are held, the tactile movie a block of frames at a time (skinstretch.experiments.analysis
+.trajectories, .percentiles, .derive), to the bit."""
 
 import numpy as np
 import pytest
@@ -7,12 +8,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from skinstretch.experiments.analysis import analysis_params, analyze_frames
+from skinstretch.experiments.analysis import derive as derive_module
+from skinstretch.experiments.analysis import trajectories as trajectories_module
+from skinstretch.experiments.analysis.derive import Derived, tactile_movie_blocks
 from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
 from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.display_mapping import DisplayMappingParams, tactile_movie
+from skinstretch.processing.fingertip import fingertip_motion, visibility_window
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.tracking import FeatureTracker, TrackingParams
+from skinstretch.processing.tracking import FeatureTracker, MotionSample, TrackingParams
 from tests.helpers import sliding_feature_grid
+
+scene = pytest.importorskip("skinstretch.simulators.scene")
 
 
 @pytest.mark.parametrize("smoothing", [0, 1, 2])
@@ -86,3 +95,65 @@ def test_streamed_percentiles_of_many_values_narrow_the_bin_in_passes():
         assert sp.percentiles([5, 50, 95]) == np.percentile(v, [5, 50, 95]).tolist()
     with StreamedPercentiles() as empty, pytest.raises(InsufficientDataError):
         empty.percentiles([5])
+
+
+@pytest.mark.parametrize("axis, horizontal", [(0, "projection"), (1, "rotation")])
+def test_the_movie_in_blocks_is_the_whole_movie(axis, horizontal):
+    rng = np.random.default_rng(1)
+    cal, shape, n = Calibration(px_per_mm=20.0), (400, 400), 30
+    samples = [MotionSample(k, k + 1, rng.uniform(0, 400, (300, 2)), rng.normal(0, 0.5, (300, 2)) + [0.3, 0.1],
+                            np.arange(300)) for k in range(n - 1)]
+    ft = fingertip_motion(samples, n_frames=n)
+    win = visibility_window(ft, image_shape=shape)
+    params = DisplayMappingParams(horizontal=horizontal, range_um=20.0)
+    whole = tactile_movie(samples, fingertip=ft, window=win, calibration=cal, image_shape=shape, params=params,
+                          motion_axis=axis)
+    derived = Derived(ft, win, "ok", "xy"[axis], profile=None)
+    blocks = list(tactile_movie_blocks(samples, derived, calibration=cal, image_shape=shape, display_params=params,
+                                       block_frames=7))
+    assert [b.positions_um.shape[0] for b in blocks] == [7, 7, 7, 7, 2]
+    assert whole.clipped.any() and whole.reset.any()
+    for name in ("positions_um", "reset", "clipped", "ideal_um", "stretch_change"):
+        np.testing.assert_array_equal(np.concatenate([getattr(b, name) for b in blocks]), getattr(whole, name))
+    assert list(tactile_movie_blocks(samples, Derived(ft, None, "no window", "x", profile=None), calibration=cal,
+                                     image_shape=shape, display_params=params)) == []
+
+
+class _SkinMapping:
+    """A geometric mapping image px -> skin mm (a slight anisotropic scale and shift): enough to tell rectified
+    positions from image ones."""
+
+    def __init__(self, px_per_mm: float) -> None:
+        self.px_per_mm = px_per_mm
+
+    def image_to_surface(self, xy):
+        return (np.asarray(xy, dtype=np.float64) * [1.02, 0.97] + [3.0, -2.0]) / self.px_per_mm
+
+
+def test_small_blocks_give_the_same_rectified_results(monkeypatch):
+    """Trajectories, motion of every span and movie built a few frames at a time (rows carried across blocks for the
+    longer span) are those built in one block; the motion follows from the rectified trajectories."""
+    s = scene.render_session("ridgeL", n_frames=40, seed=1)
+    mapping = _SkinMapping(s.calibration.px_per_mm)
+    params = analysis_params({"tracking": {"min_length_frames": 5}, "strain": {"spans": [1, 3]},
+                              "execution": {"kind": "serial"}})
+    kw = dict(calibration=s.calibration, surface="ridge", method="features", params=params, mapping=mapping)
+    whole = analyze_frames(s.frames, **kw)
+    monkeypatch.setattr(trajectories_module, "BLOCK_FRAMES", 4)
+    monkeypatch.setattr(derive_module, "MOVIE_BLOCK_FRAMES", 6)
+    blocks = analyze_frames(s.frames, **kw)
+    rows = blocks.trajectories.rows
+    for name in rows.dtype.names:
+        np.testing.assert_array_equal(rows[name], whole.trajectories.rows[name], err_msg=name)
+    np.testing.assert_array_equal(blocks.motion, whole.motion)
+    for span in (1, 3):
+        np.testing.assert_array_equal(blocks.strain[span].edges, whole.strain[span].edges)
+    np.testing.assert_array_equal(blocks.tactile_positions_um, whole.tactile_positions_um)
+    assert blocks.summary["strain_span_3"] == whole.summary["strain_span_3"]
+    # rectified: the raw positions are the extracted features' mapped to the skin
+    feats = blocks.features[rows["feature_index"]]
+    xy = mapping.image_to_surface(np.column_stack([feats["x"], feats["y"]])) * s.calibration.px_per_mm
+    np.testing.assert_allclose(np.column_stack([rows["raw_x"], rows["raw_y"]]), xy, atol=1e-9)
+    pair = blocks.motion[blocks.motion["pair"] == 5]
+    at5 = rows[rows["frame"] == 5]
+    np.testing.assert_array_equal(pair["x"], at5["x"][np.searchsorted(at5["track"], pair["id"])])

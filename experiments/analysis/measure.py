@@ -10,7 +10,9 @@ as the previous chunk's at the join, and when the two agree on them bit for bit
 (:meth:`skinstretch.processing.tracking.FeatureTracker.continue_with`) the later frames are exactly those one
 sequential tracker would have produced. When they do not agree (rare: a relinked feature whose history starts
 before the overlap), this process tracks that chunk's frames itself from the features the chunk extracted: the
-result is the sequential one either way, whatever the executor (the tests check it).
+result is the sequential one either way, whatever the executor (the tests check it). The joined tracker hands its
+frames on as soon as matching is done with them (:meth:`~skinstretch.processing.tracking.FeatureTracker.take_frames`)
+for the caller to store: it never holds more than a few chunks' records.
 
 Flow: each chunk computes the fields of its consecutive pairs (:meth:`DenseFlow.compute_sequence`), the same as
 pair by pair.
@@ -161,10 +163,8 @@ def track_chunk(reader: FrameReader, first: int, last: int, calibration: Calibra
 
 @dataclass
 class FeatureMeasurement:
-    """The tracker after every frame (its :meth:`finish` gives the trajectories), seconds per stage, and how the
-    measurement ran."""
+    """Seconds per stage, and how the measurement ran."""
 
-    tracker: Any
     timing: dict[str, float]
     parallel: str
 
@@ -177,10 +177,13 @@ def measure_features(
     params,
     executor: Executor,
     on_frames: Callable[[int, list, list], None],
+    on_tracked: Callable[[list], None],
     progress: bool = False,
 ) -> FeatureMeasurement:
     """Track every frame in chunks on ``executor``; ``on_frames(first, tables, flags)`` receives each run of
-    frames' feature tables and flags in frame order, once (the caller writes them out)."""
+    frames' feature tables and flags in frame order, once (the caller writes them out), and ``on_tracked(frames)``
+    the tracked frames (:class:`~skinstretch.processing.tracking.TrackedFrame`) in frame order, each once, as soon
+    as the tracker is done with them (the caller stores them: the trajectories are built at the end)."""
     overlap = int(params.tracking.max_gap_frames) + 2  # the least FeatureTracker.continue_with accepts
     width = executor_width(executor)
     plan = chunk_plan(n_frames, width=width, overlap=overlap)
@@ -206,14 +209,15 @@ def measure_features(
                     for k, feats in enumerate(r.tables[own], start=r.first + overlap + 1):
                         tracker.add_frame(feats, prepared=tracker.prepare_image(reader(k)))
                 timing["tracking_s"] += time.perf_counter() - t0
-            tables, flags = r.tables[own], r.flags[own]
-            on_frames(r.first + (own.start or 0), tables, flags)
-            bar.update(len(tables))
+            on_frames(r.first + (own.start or 0), r.tables[own], r.flags[own])
+            bar.update(len(r.tables[own]))
+            del r  # the chunk's tracker and tables: the joined tracker took what it needs
+            on_tracked(tracker.take_frames(last=j == len(plan) - 1))
     finally:
         bar.close()
     how = "serial" if here else describe_executor(executor)
     parallel = f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}, {retracked} re-tracked at their join"
-    return FeatureMeasurement(tracker, timing, parallel)
+    return FeatureMeasurement(timing, parallel)
 
 
 # -- flow --------------------------------------------------------------------------------------------------------

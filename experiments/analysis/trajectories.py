@@ -168,8 +168,10 @@ class TrajectoryStore:
         return {"kind": tr.kind[:n][keep], "n_frames": tr.length[:n][keep], "first_frame": tr.first[:n][keep],
                 "last_frame": tr.last[:n][keep]}
 
-    def blocks(self, block_frames: int = BLOCK_FRAMES) -> Iterator[TrajectoryBlock]:
-        """The final trajectory rows, a block of frames at a time, in frame order (every frame stored first)."""
+    def blocks(self, block_frames: int | None = None) -> Iterator[TrajectoryBlock]:
+        """The final trajectory rows, ``block_frames`` frames at a time (None: :data:`BLOCK_FRAMES`), in frame order
+        (every frame stored first)."""
+        block_frames = BLOCK_FRAMES if block_frames is None else int(block_frames)
         n = self.n_frames
         if self._next_frame != n:
             raise InsufficientDataError(f"{self._next_frame} of {n} frames were stored: the trajectories are not done")
@@ -180,8 +182,8 @@ class TrajectoryStore:
         off_x = gr.sum_x[: gr.size] / gr.rows[: gr.size]
         off_y = gr.sum_y[: gr.size] / gr.rows[: gr.size]
         radius = self.smoothing_radius if n >= 2 else 0
-        for b0 in range(0, n, int(block_frames)):
-            b1 = min(n, b0 + int(block_frames))
+        for b0 in range(0, n, block_frames):
+            b1 = min(n, b0 + block_frames)
             lo, hi = max(0, b0 - radius), min(n, b1 + radius)
             s = self._read(lo, hi)
             s = s[keep[s["track"]]]
