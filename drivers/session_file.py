@@ -34,6 +34,7 @@ import json
 import math
 import os
 import tempfile
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -757,17 +758,51 @@ def _calibration_from_attrs(path: Path, px_per_mm: float, mapping_json: str) -> 
 # --------------------------------------------------------------------------------------------------- reading
 
 
-class Session:
-    """A session file opened for reading (use :func:`open_session`). Closes on ``close()`` or ``with``."""
+class _SharedHandle:
+    """The one HDF5 handle of a session file in this process, and the one handle of each of its frame datasets,
+    shared by every :class:`Session` of that file (:func:`open_session`) and closed with the last of them.
 
-    def __init__(self, path: Path, f: h5py.File) -> None:
+    Why one: as soon as a dataset opened more than once in a process is refreshed (``H5Drefresh``, which a reader
+    of a growing file must call), every handle of it reads the fill value, zeros, in place of the frames (measured
+    with HDF5 2.0.0, h5py 3.16, SWMR or not: a second ``open_session`` of a file silently read black frames through
+    both); and HDF5 refuses to open a file SWMR and non-SWMR at the same time.
+    """
+
+    def __init__(self, key: tuple[int, int], f: h5py.File) -> None:
+        self.key, self.file, self.users = key, f, 0
+        self.frames = f["frames"]
+        self.timestamps = f["timestamps"]
+        self.device_timestamps = f["device_timestamps"]
+        self.frame_ids = f["frame_ids"]
+        self.status = f["status"]
+
+
+_SHARED: dict[tuple[int, int], _SharedHandle] = {}  # by (device, inode): one handle whatever path names the file
+_SHARED_LOCK = threading.Lock()
+
+
+def _release(shared: _SharedHandle) -> None:
+    with _SHARED_LOCK:
+        shared.users -= 1
+        if shared.users <= 0:
+            _SHARED.pop(shared.key, None)
+            shared.file.close()
+
+
+class Session:
+    """A session file opened for reading (use :func:`open_session`). Closes on ``close()`` or ``with``.
+
+    Every Session of one file in a process reads through one shared HDF5 handle (:class:`_SharedHandle`); the file
+    is read again from the disk only once all of them are closed.
+    """
+
+    def __init__(self, path: Path, shared: _SharedHandle) -> None:
         self.path = path
-        self._f = f
+        self._shared: _SharedHandle | None = shared
+        f = self._f = shared.file
+        self._frames, self._ts = shared.frames, shared.timestamps
+        self._dts, self._ids = shared.device_timestamps, shared.frame_ids
         try:
-            self._frames = f["frames"]
-            self._ts = f["timestamps"]
-            self._dts = f["device_timestamps"]
-            self._ids = f["frame_ids"]
             cam = f["camera"].attrs
             self.camera_mode = CameraMode(
                 str(cam["mode"]), int(cam["width"]), int(cam["height"]), float(cam["fps"])
@@ -776,7 +811,7 @@ class Session:
             self.mapping_json: str = str(cal.get("mapping_json", ""))
             self.calibration = _calibration_from_attrs(path, float(cal["px_per_mm"]), self.mapping_json)
             self.metadata: dict[str, Any] = json.loads(str(f.attrs.get("metadata_json", "{}")))
-            self._status = int(f["status"][()])
+            self._status = int(shared.status[()])
             raw_reason = f["status_reason"][()]
             self.status_reason = bytes(raw_reason).rstrip(b" \x00").decode("utf-8", "replace")
         except (KeyError, ValueError, TypeError, OSError) as exc:
@@ -807,6 +842,20 @@ class Session:
     def complete(self) -> bool:
         return self._status == STATUS_COMPLETE
 
+    def refresh_status(self) -> str:
+        """:attr:`status` read again from the file (a recorder sets it when it closes the file) and returned."""
+        try:
+            self._shared_handle().status.refresh()
+        except (AttributeError, RuntimeError, OSError, ValueError):
+            pass
+        self._status = int(self._read(lambda: self._shared_handle().status[()]))
+        return self.status
+
+    def _shared_handle(self) -> _SharedHandle:
+        if self._shared is None:
+            raise SessionFileError(f"{self.path}: session is closed")
+        return self._shared
+
     # -- data
     def frame(self, index: int) -> np.ndarray:
         n = self.n_frames
@@ -827,6 +876,10 @@ class Session:
     @property
     def timestamps(self) -> np.ndarray:
         return self._read(lambda: self._ts[: self.n_frames])
+
+    def timestamp(self, index: int) -> float:
+        """The host time stamp of frame ``index`` (s), without reading the others."""
+        return float(self._read(lambda: self._ts[index]))
 
     @property
     def device_timestamps(self) -> np.ndarray:
@@ -922,7 +975,9 @@ class Session:
             raise SessionFileError(f"{self.path}: cannot read data, file truncated or corrupt ({exc})") from None
 
     def close(self) -> None:
-        self._f.close()
+        shared, self._shared = self._shared, None
+        if shared is not None:
+            _release(shared)
 
     def __enter__(self) -> "Session":
         return self
@@ -941,7 +996,8 @@ def _text(value: Any) -> str:
 def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
     """Open a session file for reading, or raise SessionFileError saying why it cannot be read.
 
-    ``swmr=True`` reads a file a recorder is still writing.
+    ``swmr=True`` reads a file a recorder is still writing. A file already open in this process (by any path) is
+    served from the same HDF5 handle (see :class:`Session`), whatever ``swmr`` says.
     """
     path = Path(path)
     if not path.exists():
@@ -950,8 +1006,23 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
         raise SessionFileError(f"{path}: is a directory, not a session file")
     with open(path, "rb") as fh:
         head = fh.read(8)
+        st = os.fstat(fh.fileno())
     if head != b"\x89HDF\r\n\x1a\n":
         raise SessionFileError(f"{path}: not an HDF5 file, so not a skinstretch session")
+    key = (st.st_dev, st.st_ino)
+    with _SHARED_LOCK:
+        shared = _SHARED.get(key)
+        if shared is None:
+            shared = _SHARED[key] = _open_shared(path, key, swmr=swmr)
+        shared.users += 1
+    try:
+        return Session(path, shared)
+    except BaseException:
+        _release(shared)
+        raise
+
+
+def _open_shared(path: Path, key: tuple[int, int], *, swmr: bool) -> _SharedHandle:
     try:
         f = h5py.File(path, "r", swmr=True, libver="latest") if swmr else h5py.File(path, "r")
     except OSError as exc:
@@ -974,7 +1045,10 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
             raise SessionFileError(
                 f"{path}: session format version {version} is not supported (this skinstretch reads {FORMAT_VERSION})"
             )
-        return Session(path, f)
+        try:
+            return _SharedHandle(key, f)
+        except (KeyError, ValueError, TypeError, OSError) as exc:
+            raise SessionFileError(f"{path}: session file is missing or has a damaged part ({exc})") from None
     except BaseException:
         f.close()
         raise

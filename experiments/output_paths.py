@@ -2,7 +2,7 @@
 is wrong with it (read-only file system, no permission, a file where a directory is expected, an output that
 exists already, no space left).
 
-Every command that writes uses these two checks first (``record``, ``play``; any other command may):
+Every command that writes uses these two checks first (``record``, ``play``, ``simulate``; any other command may):
 
 * :func:`check_output_dir` for a directory that will receive files (created later by the caller);
 * :func:`check_output_file` for a new file (recordings are never overwritten).
@@ -104,9 +104,13 @@ def check_output_dir(path: str | os.PathLike, *, must_be_empty: bool = False, re
     return path
 
 
-def check_output_file(path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+def check_output_file(path: str | os.PathLike, *, overwrite: bool = False, remedy: Remedy | None = None) -> Path:
     """Check that a new file ``path`` can be written: not a directory, not an existing file (unless
-    ``overwrite``), in a directory that exists or can be created and is writable. Returns ``path`` as a Path."""
+    ``overwrite``), in a directory that exists or can be created and is writable. Returns ``path`` as a Path.
+
+    ``remedy``: the argument that allows replacing an existing file, named as the caller spells it (e.g.
+    ``--overwrite`` on the command line); without one, an existing file is never overwritten.
+    """
     path = Path(path)
     try:
         exists = path.exists()
@@ -115,6 +119,8 @@ def check_output_file(path: str | os.PathLike, *, overwrite: bool = False) -> Pa
     if exists and path.is_dir():
         raise OutputPathError(f"{path}: is a directory, not a file")
     if exists and not overwrite:
+        if remedy is not None:
+            raise OutputPathError(f"{path}: exists already", remedy=remedy)
         raise OutputPathError(f"{path}: exists already; choose another name (nothing is overwritten)")
     base = _nearest_existing(path.parent)
     if base == path.parent and not base.is_dir():

@@ -28,11 +28,13 @@ import numpy as np
 
 from skinstretch.drivers.camera_modes import CAMERA_MODES
 from skinstretch.drivers.display.base import TactileDisplay
+from skinstretch.drivers.display.stress_protocol import rate_to_mhz
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.session_file import SessionWriter, open_session
 from skinstretch.drivers.errors import DeviceError, SafetyStop, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.experiments.output_paths import check_output_dir, check_output_file
+from skinstretch.experiments.protocol import MAX_FORCE_CEILING_N
 
 __all__ = [
     "ContactorCorrector",
@@ -253,7 +255,7 @@ def play_movie(
     force : optional
         A force source with ``latest() -> (6,) or None`` (Fx Fy Fz Tx Ty Tz, N and N m).
     force_ceiling_n : float
-        Normal force above which the movie stops and the contactors return to rest (safety).
+        Normal force above which the movie stops and the contactors return to rest (safety), in (0, 50] N.
     path : path-like, optional
         Session file recording target, command, measured positions and force (streams ``display_target``,
         ``display_command``, ``display_measured``, ``force``), written after the movie so the deadline path
@@ -274,10 +276,9 @@ def play_movie(
         raise InvalidInputError(f"movie_um must have shape (T, 10, 10) with T >= 1, got {movie.shape}")
     if not np.all(np.isfinite(movie)):
         raise InvalidInputError("movie_um holds NaN or inf; fill or reset those contactors first (seed 5.4)")
-    if not (np.isfinite(rate_hz) and 1 <= rate_hz <= 700):
-        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
-    if not (0 < force_ceiling_n <= 100):
-        raise InvalidInputError(f"force_ceiling_n must be in (0, 100] N, got {force_ceiling_n!r}")
+    rate_to_mhz(rate_hz)  # 1..700 Hz, the STReSS refresh rate
+    if not (0 < force_ceiling_n <= MAX_FORCE_CEILING_N):
+        raise InvalidInputError(f"force_ceiling_n must be in (0, {MAX_FORCE_CEILING_N:g}] N, got {force_ceiling_n!r}")
     if path is not None:
         check_output_file(path)  # before the first frame: what is played must be recordable
     n = movie.shape[0]

@@ -1,19 +1,23 @@
 """Child processes that never outlive the program that started them, whatever ends it (SIGKILL included).
 
-A ``record`` killed with SIGKILL used to leave its two scene-render workers and multiprocessing's resource
-tracker running, idle, ~300 MB each, until someone killed them: a pool worker blocks reading its call queue, and
-every worker holds a copy of that queue's write end, so none of them ever sees end-of-file. Two layers:
+The one mechanism every process pool of skinstretch uses (the recorder's analysis and scene-render workers, the
+analysis executor's workers): :func:`worker_pool`. Two layers:
 
-* :func:`die_with_parent`, the initializer of every worker pool the recorder starts (:func:`worker_pool`): the
-  kernel sends the worker SIGKILL when its parent dies (``prctl(PR_SET_PDEATHSIG)``, Linux); a worker whose
-  parent is already gone when it starts exits at once, and elsewhere a thread polls the parent twice a second.
-* :func:`guard_process_tree`, around a whole command: a small watcher process remembers every descendant of the
-  command (libraries' processes included: multiprocessing's forkserver and resource tracker, an analysis pool's
-  workers) and, once the command has ended, kills those still alive. The resource tracker is left a moment to
-  exit by itself first, since it unlinks the shared-memory blocks the dead processes leaked.
+* **Each process dies with its parent.** The pool's workers are forked from multiprocessing's forkserver (a clean,
+  single-threaded process: never forked from this possibly multi-threaded one), which imports the pool's
+  ``preload`` modules once so that workers start in milliseconds and share those modules' memory. The forkserver
+  and every worker ask the kernel for SIGKILL when their parent dies (``prctl(PR_SET_PDEATHSIG)``, Linux), so a
+  SIGKILL of this process takes the forkserver at once and the workers with it. Without that signal the
+  forkserver lingered: it exits by itself only once every worker has closed its end of a pipe, and then spends
+  a few seconds under load tearing down the numerical libraries it preloaded. A worker also watches this process
+  from a thread (:func:`die_with_parent`) where the signal cannot be armed or the forkserver was not bound.
+* **Whatever else the command started** (libraries' processes: multiprocessing's resource tracker, Dask's
+  nannies, the live viewer) is killed by :func:`guard_process_tree`, a small watcher process that remembers every
+  descendant of the command and, once the command has ended, kills those still alive. The resource tracker is
+  left a moment to exit by itself first, since it unlinks the shared-memory blocks the dead processes leaked.
 
-Hand-written: the standard library has no parent-death hook; ``prctl`` is reached through ctypes and the process
-tree through psutil.
+Hand-written: the standard library has no parent-death hook and no way to run code in its forkserver other than
+its preload list; ``prctl`` is reached through ctypes and the process tree through psutil.
 """
 
 from __future__ import annotations
@@ -22,22 +26,25 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import ctypes
-import ctypes.util
 import logging
 import multiprocessing
 import os
+import queue
 import select
 import signal
 import subprocess
 import sys
 import threading
 import time
+from typing import Any, Callable, Sequence
 
 log = logging.getLogger(__name__)
 
-__all__ = ["die_with_parent", "worker_pool", "guard_process_tree"]
+__all__ = ["worker_pool", "die_with_parent", "guard_process_tree"]
 
 _PR_SET_PDEATHSIG = 1
+#: How often a worker that cannot count on the parent-death signal checks that its owner is alive (s).
+PARENT_CHECK_S = 0.25
 #: How often the tree watcher looks for new descendants (s): a process started and orphaned within this window
 #: is covered by die_with_parent instead.
 SCAN_INTERVAL_S = 0.5
@@ -45,35 +52,123 @@ SCAN_INTERVAL_S = 0.5
 TRACKER_GRACE_S = 1.0
 
 
-def die_with_parent(parent_pid: int) -> None:
-    """Make this process die with ``parent_pid`` (run first in a worker, e.g. as a pool initializer).
+# -- each process dies with its parent ---------------------------------------------------------------------------
 
-    On Linux the kernel delivers SIGKILL when the parent exits (PR_SET_PDEATHSIG: when the *thread* that
-    started the worker exits, so start pools from a thread that lives as long as they do). If the parent is
-    already gone, exit now. Without prctl, a daemon thread checks the parent every 0.5 s.
+
+def worker_pool(workers: int, *, preload: Sequence[str] = (), initializer: Callable[..., Any] | None = None,
+                initargs: tuple = ()) -> cf.ProcessPoolExecutor:
+    """A pool of ``workers`` processes that die with this process, whatever kills it (module docstring).
+
+    Workers are forked from multiprocessing's forkserver (``spawn`` where there is none), never from this
+    process, which may run threads (the recorder's writer, a force reader) that a fork would copy mid-state.
+    ``preload``: modules the forkserver imports once for all its workers; the forkserver is started by the first
+    pool of this process, and a later pool's workers import what it lacks after the fork. ``initializer(*initargs)``
+    runs in each worker once it is bound to this process.
     """
-    libc_name = ctypes.util.find_library("c")
-    armed = False
-    if sys.platform.startswith("linux") and libc_name:
-        libc = ctypes.CDLL(libc_name, use_errno=True)
-        armed = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
-    if os.getppid() != parent_pid:  # the parent died before the request took effect
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context("forkserver")
+        _FORKSERVER_PRELOAD.extend(m for m in preload if m not in _FORKSERVER_PRELOAD)
+        context.set_forkserver_preload(list(_FORKSERVER_PRELOAD))
+        from multiprocessing import forkserver  # noqa: PLC0415 - POSIX only
+
+        _run_on_lasting_thread(forkserver.ensure_running)
+    else:  # pragma: no cover - Windows
+        context = multiprocessing.get_context("spawn")
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
+                                  initargs=(os.getpid(), initializer, initargs))
+
+
+#: What every forkserver of this process imports; this module first, so that the forkserver is bound to this
+#: process (the end of this file) before it spends a second or two importing the others.
+_FORKSERVER_PRELOAD: list[str] = [__name__]
+
+
+def _start_worker(owner_pid: int, initializer: Callable[..., Any] | None, initargs: tuple) -> None:
+    die_with_parent(owner_pid)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def die_with_parent(owner_pid: int) -> None:
+    """Make this worker die with ``owner_pid``, the process that started its pool (run first in the worker;
+    :func:`worker_pool` does).
+
+    The kernel kills the worker when its parent ends: the owner itself, or the owner's forkserver, which dies
+    with the owner the same way. A worker whose owner is already gone exits at once. Where the signal cannot be
+    armed (not Linux), or the parent is the forkserver, a daemon thread also checks the owner every
+    ``PARENT_CHECK_S`` and exits once it is gone.
+    """
+    armed = _arm_parent_death_signal()
+    if not _descends_from(owner_pid):  # the owner died before the signal was armed
         os._exit(1)
-    if not armed:
-        threading.Thread(target=_poll_parent, args=(parent_pid,), name="parent-watch", daemon=True).start()
+    if not armed or os.getppid() != owner_pid:
+        threading.Thread(target=_exit_once_orphaned, args=(owner_pid,), name="watch-owner", daemon=True).start()
 
 
-def _poll_parent(parent_pid: int) -> None:
-    while os.getppid() == parent_pid:
-        time.sleep(0.5)
+def _arm_parent_death_signal() -> bool:
+    """Ask the kernel to SIGKILL this process when its parent ends (more exactly: the parent's *thread* that
+    started it); False where that cannot be asked."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _descends_from(owner_pid: int) -> bool:
+    """True while ``owner_pid`` is this process' parent, or its parent's parent (a worker forked by the owner's
+    forkserver). A dead owner's children are re-parented at once, zombie or not, so this never mistakes a dead
+    owner, or a new process that reuses its id, for a living one."""
+    parent = os.getppid()
+    if parent == owner_pid:
+        return True
+    import psutil  # noqa: PLC0415 - only the workers need it
+
+    try:
+        return psutil.Process(parent).ppid() == owner_pid
+    except psutil.Error:
+        return False
+
+
+def _exit_once_orphaned(owner_pid: int) -> None:
+    while _descends_from(owner_pid):
+        time.sleep(PARENT_CHECK_S)
     os._exit(1)
 
 
-def worker_pool(workers: int) -> cf.ProcessPoolExecutor:
-    """A process pool (``spawn``: the recorder runs threads that fork would copy mid-state) whose workers die
-    with this process."""
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                  initializer=die_with_parent, initargs=(os.getpid(),))
+_STARTER: list = []  # [thread, its request queue]: the thread that starts forkservers, for this process' life
+_STARTER_LOCK = threading.Lock()
+
+
+def _run_on_lasting_thread(fn: Callable[[], Any]) -> Any:
+    """``fn()`` run on a daemon thread that lives as long as this process.
+
+    A started process' parent-death signal fires when the *thread* that started it ends: a forkserver started
+    from a short-lived thread would die, and take the workers of every pool with it, when that thread ends.
+    """
+    with _STARTER_LOCK:
+        if not _STARTER or not _STARTER[0].is_alive():  # none yet, or inherited through a fork (not running here)
+            requests: queue.SimpleQueue = queue.SimpleQueue()
+            thread = threading.Thread(target=_serve_requests, args=(requests,), name="process-starter", daemon=True)
+            thread.start()
+            _STARTER[:] = [thread, requests]
+        requests = _STARTER[1]
+    done: cf.Future = cf.Future()
+    requests.put((fn, done))
+    return done.result()
+
+
+def _serve_requests(requests: queue.SimpleQueue) -> None:
+    while True:
+        fn, done = requests.get()
+        try:
+            done.set_result(fn())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
+            done.set_exception(exc)
+
+
+# -- whatever else the command started ----------------------------------------------------------------------------
 
 
 _WATCHER: list[subprocess.Popen] = []  # one per process, kept referenced for the process's whole life
@@ -170,6 +265,21 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="kill the leftover descendants of a process once it has ended")
     parser.add_argument("--watch", type=int, required=True, help="process id to guard")
     return _watch(parser.parse_args(argv).watch)
+
+
+def _imported_by_the_forkserver() -> bool:
+    """True while multiprocessing's forkserver imports this module (its preload list is the only hook it has)."""
+    forkserver = sys.modules.get("multiprocessing.forkserver")
+    frame = sys._getframe(1) if forkserver is not None else None
+    while frame is not None:
+        if frame.f_code is forkserver.main.__code__:
+            return True
+        frame = frame.f_back
+    return False
+
+
+if _imported_by_the_forkserver():
+    _arm_parent_death_signal()  # the forkserver dies with the process it serves, and its workers with it
 
 
 if __name__ == "__main__":  # pragma: no cover - run as the watcher process

@@ -21,6 +21,7 @@ from typing import Any, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from skinstretch.drivers.camera_modes import CAMERA_MODES
+from skinstretch.drivers.display.stress_protocol import MAX_RATE_MHZ, MIN_RATE_MHZ
 from skinstretch.experiments.analysis.parameters import AnalysisParams
 from skinstretch.config_file import parse_yaml_model, read_config_text
 from skinstretch.processing.errors import ConfigError
@@ -126,6 +127,10 @@ class AnalysisSpec(_Strict):
     options: AnalysisParams = AnalysisParams()
 
 
+#: The highest normal-force ceiling a movie may be given, N (a fingertip on the display presses 0.5-5 N).
+MAX_FORCE_CEILING_N = 50.0
+
+
 class MovieSpec(_Strict):
     """A tactile movie to play on the display at the end of the session (seed 5.4).
 
@@ -135,9 +140,9 @@ class MovieSpec(_Strict):
 
     source: str = "last_trial"
     closed_loop: bool = True
-    rate_hz: Optional[float] = Field(default=None, gt=0, le=1000)
+    rate_hz: Optional[float] = Field(default=None, ge=MIN_RATE_MHZ / 1000, le=MAX_RATE_MHZ / 1000)  # the display's
     gain: float = Field(default=1.0, gt=0, le=100)
-    force_ceiling_n: float = Field(default=5.0, gt=0, le=50)
+    force_ceiling_n: float = Field(default=5.0, gt=0, le=MAX_FORCE_CEILING_N)
 
 
 class CalibrationSpec(_Strict):

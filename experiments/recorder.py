@@ -32,11 +32,11 @@ import numpy as np
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.disk_space import is_disk_full
 from skinstretch.drivers.errors import DiskFullError
-from skinstretch.drivers.session_file import STATUS_COMPLETE, STATUS_FAILED, SessionWriter
+from skinstretch.drivers.session_file import STATUS_COMPLETE, STATUS_FAILED, SessionWriter, open_session
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 
-__all__ = ["Recorder", "RecorderStats", "describe_os_error"]
+__all__ = ["Recorder", "RecorderStats", "describe_os_error", "RecordingCount", "record_from_camera"]
 
 log = logging.getLogger(__name__)
 _STOP = object()
@@ -357,3 +357,54 @@ class Recorder:
             wall_time_s=time.monotonic() - self._t0,
         )
         return self._finished
+
+
+@dataclass(frozen=True)
+class RecordingCount:
+    """What a timed recording from a camera wrote and lost (:func:`record_from_camera`)."""
+
+    frames: int  # in the file
+    dropped: int  # frame-id gaps in the file + frames the camera dropped + frames the recorder's queue dropped
+    seconds: float  # wall time, from the first read to the file closed
+    cpu_s: float  # CPU time of this process (every thread) over the same span
+    stats: RecorderStats
+
+    @property
+    def status(self) -> str:
+        return self.stats.status
+
+
+def record_from_camera(camera, path: str | os.PathLike, *, mode: CameraMode, calibration: Calibration,
+                       seconds: float, metadata: Mapping[str, Any] | None = None, queue_size: int = 256,
+                       on_frame: Callable[[int, Any], None] | None = None) -> RecordingCount:
+    """Record ``camera`` (opened here, set to ``mode``, started, then stopped and closed) into ``path`` through a
+    :class:`Recorder` for ``seconds``, and count what the file holds. ``on_frame(k, frame)`` sees every frame as
+    it is queued (the benches sample checksums)."""
+    camera.open()
+    camera.set_mode(mode)
+    rec = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata or {},
+                   queue_size=queue_size).start()
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    k = 0
+    try:
+        camera.start()
+        while time.perf_counter() - t0 < seconds:
+            f = camera.read(timeout_s=1.0)
+            rec.put_frame(f.image, timestamp=f.host_timestamp_s, frame_id=f.frame_id,
+                          device_timestamp=f.device_timestamp_s)
+            if on_frame is not None:
+                on_frame(k, f)
+            k += 1
+        camera_dropped = camera.stats.dropped
+    finally:
+        try:
+            camera.stop()
+        finally:
+            camera.close()
+    stats = rec.finish()
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    with open_session(path) as s:
+        ids = s.frame_ids
+        gaps = int(np.sum(np.maximum(np.diff(ids) - 1, 0))) if ids.size > 1 else 0
+        frames = s.n_frames
+    return RecordingCount(frames, gaps + camera_dropped + stats.frames_dropped, wall, cpu, stats)

@@ -16,7 +16,8 @@ as it is written, so after a crash the log says exactly which trials finished. `
 trials, closes the interrupted one in the log as aborted (its file is kept and reads as incomplete) and carries on
 with the next trial.
 
-Analysis runs in a separate process (``spawn``) so acquisition is never slowed by it (record-then-analyse).
+Analysis runs in a separate process (forked from a clean forkserver, never from this multi-threaded process) so
+acquisition is never slowed by it (record-then-analyse).
 
 Nothing is lost and nobody is surprised: the output directory is checked before any device is opened
 (:mod:`skinstretch.experiments.output_paths`); a protocol whose trials cannot fit on the disk is refused before
@@ -201,8 +202,8 @@ def analyse_trial(session_path: str, outdir: str, method: str, options: Any = No
     return TrialAnalysis(True, str(result.path), time.perf_counter() - t0)
 
 
-def _spawn_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
-    # spawn, not fork: the recording process runs threads (writer, force reader) that fork would copy mid-state;
+def _analysis_pool(workers: int = 1) -> cf.ProcessPoolExecutor:
+    # never forked from this process, which runs threads (writer, force reader) that a fork would copy mid-state;
     # the workers die with this process (a SIGKILLed recorder left them running).
     if not (isinstance(workers, int) and workers >= 1):
         raise InvalidInputError(f"analysis_workers must be a positive int, got {workers!r}")
@@ -584,7 +585,7 @@ def run_protocol(
         from skinstretch.experiments.rig import RigDevices  # noqa: PLC0415 - rig imports the device modules
 
         devices = RigDevices(rig)
-    pool = _spawn_pool(analysis_workers) if do_analysis else None
+    pool = _analysis_pool(analysis_workers) if do_analysis else None
     pending: list[tuple[TrialResult, cf.Future, str]] = []
     results: list[TrialResult] = []
     plan = protocol.planned_trials()

@@ -14,7 +14,7 @@ import subprocess
 import time
 
 from skinstretch.drivers.errors import DeviceError
-from skinstretch.simulators.child_process import stop_child_process
+from skinstretch.child_process import stop_child_process
 
 __all__ = ["FakeGigECamera", "FAKE_GV_CAMERA"]
 

@@ -27,7 +27,7 @@ from skinstretch.drivers.forcesensor.netft import RdtCommand, RdtRecord, decode_
 from skinstretch.drivers.errors import DeviceError, ProtocolError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.validated_dataclass import Probability, validated_dataclass
-from skinstretch.simulators.child_process import stop_child_process
+from skinstretch.child_process import stop_child_process
 
 __all__ = ["NetFTBoxProcess", "NetFTFaults", "NetFTSimulator", "SimulatorStats", "normal_force_wrench"]
 

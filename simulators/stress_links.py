@@ -32,6 +32,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 from skinstretch.drivers.display import stress_protocol as sp
 from skinstretch.drivers.display.transports import (STRESS_USB_EP_IN, STRESS_USB_EP_OUT, STRESS_USB_PRODUCT_ID,
                                         STRESS_USB_VENDOR_ID)
+from skinstretch.child_process import stop_child_process
 from skinstretch.drivers.errors import DeviceError
 from skinstretch.processing.errors import InvalidInputError
 
@@ -249,13 +250,8 @@ class FirmwareProcess:
         if self._slave is not None:
             os.close(self._slave)  # with the host's port closed too, the child's master read sees EIO
             self._slave = None
-        try:
-            self._process.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            self._process.terminate()
-            self._process.wait(timeout_s)
-        if self._process.stdout is not None:
-            self._process.stdout.close()
+        # it exits by itself once its pty hangs up, saving its records; asked to stop only if it does not
+        stop_child_process(self._process, grace_s=timeout_s, timeout_s=timeout_s)
 
     def records(self) -> dict[str, np.ndarray]:
         if not self.record_path.exists():

@@ -2,7 +2,8 @@
 
 Every subcommand takes ``-v/--verbose`` (more log lines; twice for debugging) and ``-q/--quiet`` (warnings and errors
 only, no progress bars). Library code logs through :mod:`logging`; this is the one place that configures it. Any
-:class:`~skinstretch.processing.errors.SkinstretchError` ends the command with its one-line message and status 2.
+:class:`~skinstretch.processing.errors.SkinstretchError` ends the command with its one-line message and status 2, and
+so does a usage error (an unknown flag, a value its type refuses), naming the argument.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import argparse
 import logging
 import os
 import sys
+from typing import NoReturn
 
 import skinstretch.experiments.commands as _commands
 from skinstretch import __version__
@@ -18,6 +20,14 @@ from skinstretch.experiments.module_discovery import public_submodules
 from skinstretch.processing.errors import SkinstretchError
 
 log = logging.getLogger("skinstretch")
+
+
+class _OneLineErrorParser(argparse.ArgumentParser):
+    """A usage error in one line naming the argument, like every other error of the command line (the usage
+    itself is in ``--help``)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _add_verbosity(parser: argparse.ArgumentParser) -> None:
@@ -28,7 +38,7 @@ def _add_verbosity(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineErrorParser(
         prog="skinstretch",
         description="Measure fingertip skin stretch from FTIR fingerprint video and play it on a STReSS display.",
     )

@@ -4,6 +4,7 @@ says so), the display rests, the run ends with a one-line error and a non-zero s
 traceback. On a real small file system (tmpfs, root only) filled by another process, and with injected faults."""
 
 import os
+import re
 import subprocess
 import sys
 from functools import partial
@@ -16,7 +17,7 @@ from skinstretch.drivers import disk_space
 from skinstretch.drivers.camera_modes import CAMERA_MODES, CameraMode
 from skinstretch.drivers.errors import DiskFullError
 from skinstretch.drivers.session_file import SessionWriter, open_session
-from skinstretch.experiments.bench.faults import DISK_FILLER, replay_rig
+from skinstretch.experiments.bench.faults import DiskFiller, replay_rig
 from skinstretch.experiments.protocol import Rig, parse_protocol
 from skinstretch.experiments.runner import read_events, run_protocol, session_dir
 from skinstretch.processing.pixel_scale import Calibration
@@ -198,7 +199,9 @@ def small_disk(tmp_path):
 
 
 def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
-    rig = replay_rig(tmp_path)
+    # Replayed at 10 Hz, the first trial below lasts 4.2 s: the disk is full long before its end, however loaded
+    # the machine (at 60 Hz it lasted 0.7 s, and a filler started only then sometimes came too late).
+    rig = replay_rig(tmp_path, rate_hz=10.0)
     proto = tmp_path / "p.yaml"
     proto.write_text(PROTOCOL % _trials(2, 1.5))  # 2 x 90 frames: 2 x 28 MB x 1.2 + 4 MB > 50 MB ...
     big = subprocess.run(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
@@ -208,23 +211,23 @@ def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
 
     proto.write_text(PROTOCOL % _trials(2, 0.7))  # 2 x 42 frames: ~35 MB, fits
     # progress lines and the final error go to stderr (logging), the per-trial summary to stdout: read both
-    child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    filler = None
-    out_lines = []
-    try:
-        for line in child.stdout:  # bounded by pytest-timeout
-            out_lines.append(line)
-            if filler is None and ": " in line and "/42 frames" in line:  # the first trial is writing
-                filler = subprocess.Popen([sys.executable, "-c", DISK_FILLER, str(small_disk / "filler.bin")],
-                                          stdout=subprocess.DEVNULL)
-        rc = child.wait(60)
-    finally:
-        child.stdout.close()
-        if filler is not None:
-            filler.wait(30)
+    with DiskFiller(small_disk / "filler.bin") as filler:
+        child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(small_disk / "d")],
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        filled = False
+        out_lines = []
+        try:
+            for line in child.stdout:  # bounded by pytest-timeout
+                out_lines.append(line)
+                written = re.search(r": (\d+)/42 frames", line)
+                if not filled and written and int(written[1]) >= 5:  # the first trial is writing
+                    filler.fill()
+                    filled = True
+            rc = child.wait(60)
+        finally:
+            child.stdout.close()
     out = "".join(out_lines)
-    assert filler is not None, out
+    assert filled, out
     assert rc == 1, (rc, out)  # an exit status, not a signal (a segfault is -11)
     for bad in ("Traceback", "Exception ignored", "Segmentation", "HDF5-DIAG"):
         assert bad not in out, out

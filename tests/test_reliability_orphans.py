@@ -1,19 +1,21 @@
-"""No process `record` starts outlives it: SIGKILL it mid-session, with analysis on and scene-render workers busy,
-and every process of its session is gone within 2 s (render workers, the analysis worker and its pool, the
-multiprocessing resource tracker, the tree watcher itself)."""
+"""No process a command starts outlives it: SIGKILL `record`, `demo` or `analyze` while their worker processes are
+busy, and every process of its session is gone within 2 s (render and analysis workers, their forkserver, the
+multiprocessing resource tracker, the tree watcher itself); and the mechanism underneath
+(skinstretch.experiments.process_lifetime) on its own."""
 
 import os
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
 import psutil
-
-from skinstretch.experiments.process_lifetime import die_with_parent, worker_pool
+import pytest
 
 CLI = [sys.executable, "-m", "skinstretch.cli"]
+ROOT = Path(__file__).resolve().parents[1]
 
 PROTOCOL = """\
 name: orphans
@@ -26,6 +28,8 @@ trials:
 record: {force: true}
 analysis: {enabled: true, method: features}
 """
+
+FORKSERVER = "multiprocessing.forkserver"  # in the command line of the forkserver and of every worker it forks
 
 
 def _alive(proc: psutil.Process) -> bool:
@@ -55,28 +59,27 @@ def _session_processes(sid: int) -> list[psutil.Process]:
     return out
 
 
-def test_sigkill_of_record_leaves_no_process_of_its_session(tmp_path):
-    proto = tmp_path / "p.yaml"
-    proto.write_text(PROTOCOL)
-    # its own session: every process it starts (not re-parented elsewhere by setsid) is found by session id
-    child = subprocess.Popen(CLI + ["record", str(proto), "-o", str(tmp_path / "d"), "--no-movie"],
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+def _sigkill_when_busy(cmd: list[str], *, started_line: str | None, workers: int) -> tuple[list[psutil.Process], float]:
+    """Run ``cmd`` in a session of its own; once it printed ``started_line`` (if given) and its forkserver has forked
+    ``workers`` workers (and the resource tracker runs), SIGKILL it. Returns the processes of its session still
+    alive, and when the last one went (s after the SIGKILL; 10 s at most)."""
+    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     sid = child.pid
     seen: dict[int, str] = {}
     try:
-        for line in child.stdout:  # bounded by pytest-timeout
-            if line.startswith("trial 2/3"):
-                break  # the second trial starts: trial 1 goes to the analysis worker, trial 3 is being rendered
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:  # until the analysis worker has started
+        for line in child.stdout if started_line else ():  # bounded by pytest-timeout
+            if started_line in line:
+                break
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
             procs = {p.pid: " ".join(p.cmdline()) for p in psutil.Process(sid).children(recursive=True)}
             seen.update(procs)
-            workers = [c for c in procs.values() if "multiprocessing-fork" in c]
-            if len(workers) >= 3 and any("resource_tracker" in c for c in procs.values()):
-                break  # 2 render workers and the analysis worker, and the resource tracker
-            time.sleep(0.1)
-        assert sum("multiprocessing-fork" in c for c in seen.values()) >= 3, seen
-        time.sleep(SETTLE_S)  # let the watcher see the newest ones
+            if (sum(FORKSERVER in c for c in procs.values()) >= workers + 1
+                    and any("resource_tracker" in c for c in procs.values())):
+                break
+            time.sleep(0.05)
+        assert sum(FORKSERVER in c for c in seen.values()) >= workers + 1, seen
+        time.sleep(SETTLE_S)  # let the tree watcher see the newest ones
         os.kill(child.pid, signal.SIGKILL)
         killed_at = time.monotonic()
         child.wait(10)
@@ -84,7 +87,7 @@ def test_sigkill_of_record_leaves_no_process_of_its_session(tmp_path):
         while left and time.monotonic() - killed_at < 10:
             time.sleep(0.05)
             left = [p for p in left if _alive(p)]
-        gone_after = time.monotonic() - killed_at
+        return left, time.monotonic() - killed_at
     finally:
         child.stdout.close()
         for proc in _session_processes(sid):  # whatever the test started and is still there
@@ -92,57 +95,102 @@ def test_sigkill_of_record_leaves_no_process_of_its_session(tmp_path):
                 proc.kill()
             except psutil.Error:
                 pass
+
+
+SETTLE_S = 0.6  # > the watcher's scan interval (0.5 s)
+
+
+def test_sigkill_of_record_with_analysis_leaves_no_process_of_its_session(tmp_path):
+    proto = tmp_path / "p.yaml"
+    proto.write_text(PROTOCOL)
+    # the second trial starts: trial 1 goes to the analysis worker while trial 3 is being rendered
+    left, gone_after = _sigkill_when_busy(CLI + ["record", str(proto), "-o", str(tmp_path / "d"), "--no-movie"],
+                                          started_line="trial 2/3", workers=3)
     assert not left, [_describe(p) for p in left]
     assert gone_after <= 2.0, f"the last process of the session went {gone_after:.2f} s after the SIGKILL"
 
 
-SETTLE_S = 0.6  # > the watcher's scan interval (0.5 s)
+def test_sigkill_of_demo_leaves_no_process_of_its_session(tmp_path):
+    left, gone_after = _sigkill_when_busy(CLI + ["demo", "-o", str(tmp_path / "demo")], started_line="trial 2/3",
+                                          workers=3)
+    assert not left, [_describe(p) for p in left]
+    assert gone_after <= 2.0, f"the last process of the session went {gone_after:.2f} s after the SIGKILL"
+
+
+def test_sigkill_of_analyze_leaves_no_process_of_its_session(tmp_path):
+    from skinstretch.simulators.scene import simulate_to_file
+
+    session = simulate_to_file("flatL", tmp_path / "s.h5", n_frames=60, seed=0)
+    left, gone_after = _sigkill_when_busy(
+        CLI + ["analyze", str(session), "-o", str(tmp_path / "out"), "--workers", "2", "--parallel", "processes"],
+        started_line=None, workers=2)
+    assert not left, [_describe(p) for p in left]
+    assert gone_after <= 2.0, f"the last process of the session went {gone_after:.2f} s after the SIGKILL"
+
+
+# -- the mechanism on its own ------------------------------------------------------------------------------------
 
 
 def _sleep_forever():
     time.sleep(3600)
 
 
-def test_pool_workers_die_with_their_parent_at_once(tmp_path):
-    """The first layer alone: a pool's workers get SIGKILL from the kernel when their parent dies."""
-    code = (f"import sys, time; sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})\n"
-            "from tests.test_reliability_orphans import _sleep_forever\n"
-            "from skinstretch.experiments.process_lifetime import worker_pool\n"
-            "if __name__ == '__main__':\n"
-            "    pool = worker_pool(2)\n"
-            "    futures = [pool.submit(_sleep_forever) for _ in range(2)]\n"
-            "    print('ready', flush=True)\n"
-            "    time.sleep(3600)\n")
-    script = tmp_path / "parent.py"
-    script.write_text(code)
-    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
-                              start_new_session=True)
+@pytest.mark.parametrize("starter", ["main thread", "short-lived thread"])
+def test_a_pools_workers_and_forkserver_die_with_their_owner_at_once(tmp_path, starter):
+    """Without the tree watcher: the kernel's parent-death signal alone takes the forkserver, however slowly it
+    would shut down (its preloaded module sleeps 5 s at exit here), and the workers with it; the resource tracker
+    then exits by itself. Also when the pool was started from a thread that has ended since."""
+    (tmp_path / "slow_teardown.py").write_text("import atexit, time\natexit.register(time.sleep, 5)\n")
+    start = ("pool = worker_pool(2, preload=['slow_teardown'])\n"
+             "futures = [pool.submit(_sleep_forever) for _ in range(2)]\n")
+    if starter == "short-lived thread":
+        start = ("import threading\n"
+                 "box = {}\n"
+                 "def start():\n"
+                 "    box['pool'] = worker_pool(2, preload=['slow_teardown'])\n"
+                 "    box['futures'] = [box['pool'].submit(_sleep_forever) for _ in range(2)]\n"
+                 "t = threading.Thread(target=start)\n"
+                 "t.start()\n"
+                 "t.join()\n")
+    script = tmp_path / "owner.py"
+    script.write_text(f"import sys, time\nsys.path.insert(0, {str(ROOT)!r})\n"
+                      "from tests.test_reliability_orphans import _sleep_forever\n"
+                      "from skinstretch.experiments.process_lifetime import worker_pool\n"
+                      "if __name__ == '__main__':\n"
+                      + textwrap.indent(start + "print('ready', flush=True)\ntime.sleep(3600)\n", "    "))
+    owner = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=tmp_path,
+                             start_new_session=True)
     try:
-        assert parent.stdout.readline().strip() == "ready"
-        deadline = time.monotonic() + 30
-        workers = []
-        while time.monotonic() < deadline and len(workers) < 2:
-            workers = [p for p in psutil.Process(parent.pid).children() if "resource_tracker" not in _describe(p)]
-            time.sleep(0.1)
-        assert len(workers) == 2
-        parent.kill()
-        parent.wait(10)
-        deadline = time.monotonic() + 2.0
-        while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        assert owner.stdout.readline().strip() == "ready"
+        deadline = time.monotonic() + 60
+        tree: list[psutil.Process] = []
+        while time.monotonic() < deadline and sum(FORKSERVER in _describe(p) for p in tree) < 3:
             time.sleep(0.05)
-        assert not [_describe(w) for w in workers if _alive(w)]
+            tree = [p for p in psutil.Process(owner.pid).children(recursive=True) if _alive(p)]
+        assert sum(FORKSERVER in _describe(p) for p in tree) == 3, (
+            "expected the forkserver and 2 workers alive while their owner lives", [_describe(p) for p in tree])
+        owner.kill()
+        owner.wait(10)
+        deadline = time.monotonic() + 2.0
+        while any(_alive(p) for p in tree) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [_describe(p) for p in tree if _alive(p)]
     finally:
-        parent.stdout.close()
-        for proc in _session_processes(parent.pid):
+        owner.stdout.close()
+        for proc in _session_processes(owner.pid):
             try:
                 proc.kill()
             except psutil.Error:
                 pass
 
 
-def test_a_worker_whose_parent_is_already_gone_exits(monkeypatch):
-    exits = []
-    monkeypatch.setattr(os, "_exit", lambda code: exits.append(code))
-    die_with_parent(os.getppid() + 1 if os.getppid() != 1 else 2)  # "my parent" is someone else: already gone
-    assert exits == [1]
-    assert worker_pool  # the pool factory is the public entry point
+def test_a_worker_whose_owner_is_already_gone_exits():
+    """The owner died before the worker armed its parent-death signal: the worker exits at once."""
+    not_an_ancestor = subprocess.Popen([sys.executable, "-c", "pass"])
+    not_an_ancestor.wait()
+    code = ("import sys; from skinstretch.experiments.process_lifetime import die_with_parent\n"
+            f"die_with_parent({not_an_ancestor.pid}); sys.exit(0)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 1
+    code = ("import os, sys; from skinstretch.experiments.process_lifetime import die_with_parent\n"
+            "die_with_parent(os.getppid()); sys.exit(0)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0

@@ -158,3 +158,51 @@ def test_fault_drills_from_the_command_line_and_finite_numbers_only(tmp_path):
     proto.write_text("name: x\nsubject: {id: s}\ntrials:\n  - {name: a, duration_s: .nan}\n")
     _one_line(_cli("record", str(proto), "-o", str(tmp_path / "d")), "nan.yaml:4: trials[0].duration_s",
               "finite number")
+
+
+@pytest.mark.parametrize("flag, value, says", [
+    ("--rate", "0", "greater than or equal to 1"), ("--rate", "701", "less than or equal to 700"),
+    ("--movie-rate", "0", "greater than 0"), ("--gain", "-1", "greater than 0"), ("--gain", "0", "greater than 0"),
+    ("--peak-um", "-3", "greater than 0"), ("--force-ceiling", "0", "greater than 0"),
+    ("--force-ceiling", "1000", "less than or equal to 50"), ("--gain", "inf", "not a finite number"),
+])
+def test_play_refuses_a_nonsensical_option_in_one_line_naming_it(tmp_path, capsys, flag, value, says):
+    from skinstretch.cli import main
+
+    movie = tmp_path / "m.npy"
+    np.save(movie, np.zeros((50, 10, 10)))
+    with pytest.raises(SystemExit) as info:
+        main(["play", str(movie), flag, value])
+    assert info.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and f"argument {flag}: " in lines[0] and says in lines[0] and value in lines[0], lines
+
+
+def test_a_protocol_movie_has_the_play_commands_limits():
+    from skinstretch.experiments.protocol import parse_protocol
+    from skinstretch.processing.errors import ConfigError
+
+    base = "name: x\nsubject: {id: s}\ntrials:\n  - {name: a, duration_s: 1}\nmovie: {%s}\n"
+    for bad in ("rate_hz: 800", "force_ceiling_n: 60", "gain: -1"):
+        with pytest.raises(ConfigError, match=bad.split(":")[0]):
+            parse_protocol(base % bad)
+    assert parse_protocol(base % "rate_hz: 700").movie.rate_hz == 700
+
+
+def test_simulate_checks_its_output_before_rendering(tmp_path, capsys, monkeypatch, unwritable):
+    from skinstretch.cli import main
+    from skinstretch.simulators import scene
+
+    def never(*args, **kwargs):
+        raise AssertionError("rendered although the output cannot be written")
+
+    monkeypatch.setattr(scene, "simulate_to_file", never)
+    existing = tmp_path / "s.h5"
+    existing.write_bytes(b"a session")
+    for target, says in ((existing, f"{existing}: exists already; pass --overwrite to replace it"),
+                         (unwritable / "s.h5", f"{unwritable / 's.h5'}: no permission to write there"),
+                         (existing / "s.h5", f"{existing}: is a file, not a directory")):
+        assert main(["simulate", "flatL", "-o", str(target), "--frames", "2"]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and says in lines[0], lines
+    assert existing.read_bytes() == b"a session" and list(unwritable.iterdir()) == []

@@ -193,3 +193,74 @@ def test_sigkill_while_recording_loses_at_most_last_flush(tmp_path):
         frames = s.read_frames()
         np.testing.assert_array_equal(frames[:, 0, 0], np.arange(n) % 256)
         np.testing.assert_array_equal(s.frame_ids, np.arange(n))
+
+
+def test_a_session_opened_twice_in_one_process_reads_the_right_frames(tmp_path):
+    """Once one of two handles of a dataset in a process was refreshed, HDF5 read zeros through both (a second
+    open_session of a file read black frames), and it refused a plain and a SWMR open of one file at once: every
+    Session of a file in the process now reads through one shared handle, closed with the last Session."""
+    path = write_session(tmp_path / "s.h5", _frames(12), timestamps=np.arange(12) / MODE.fps, camera_mode=MODE,
+                         calibration=CAL)
+    link = tmp_path / "link.h5"
+    link.symlink_to(path)
+    sessions = [open_session(path), open_session(link)]
+    for s in sessions * 2:  # n_frames refreshes the frame datasets
+        assert s.n_frames == 12
+        np.testing.assert_array_equal(s.read_frames(), _frames(12))
+    sessions.append(open_session(path, swmr=True))
+    np.testing.assert_array_equal(sessions[2].read_frames(), _frames(12))
+    sessions[0].close()
+    sessions[0].close()  # closing twice releases once
+    np.testing.assert_array_equal(sessions[1].frame(11), _frames(12)[11])
+    for s in sessions[1:]:
+        s.close()
+    with h5py.File(path, "r+"):  # no handle of it is left open in this process (HDF5 would refuse write access)
+        pass
+
+
+def test_two_sessions_follow_a_growing_file_and_see_it_close(tmp_path):
+    """Two SWMR readers in one process (the viewer's, a live analysis') follow a file another process writes."""
+    path = tmp_path / "growing.h5"
+    script = textwrap.dedent(
+        f"""
+        import sys
+        import numpy as np
+        from skinstretch.drivers.camera_modes import CAMERA_MODES
+        from skinstretch.drivers.session_file import SessionWriter
+        from skinstretch.processing.pixel_scale import Calibration
+        mode = CAMERA_MODES["strip"]
+        w = SessionWriter({str(path)!r}, camera_mode=mode, calibration=Calibration(62.0), flush_interval_s=0.0)
+        for i in range(40):
+            w.append_frame(np.full((mode.height, mode.width), i, np.uint8), timestamp=i / 220, frame_id=i)
+            if i in (9, 29):
+                w.flush()
+                print(i + 1, flush=True)
+                sys.stdin.readline()
+        w.close()
+        print("closed", flush=True)
+        """
+    )
+    writer = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert writer.stdout.readline().strip() == "10"
+        a = open_session(path, swmr=True)
+        b = open_session(path, swmr=True)
+        assert a.n_frames == b.n_frames == 10 and a.refresh_status() == "recording"
+        writer.stdin.write("go\n")
+        writer.stdin.flush()
+        assert writer.stdout.readline().strip() == "30"
+        for s in (a, b):
+            assert s.n_frames >= 30
+            np.testing.assert_array_equal(s.read_frames(0, 30)[:, 0, 0], np.arange(30))
+            assert s.timestamp(29) == pytest.approx(29 / 220)
+        writer.stdin.write("go\n")
+        writer.stdin.flush()
+        assert writer.stdout.readline().strip() == "closed"
+        assert b.refresh_status() == "complete" and a.n_frames == 40
+        np.testing.assert_array_equal(a.read_frames()[:, 0, 0], np.arange(40))
+        a.close()
+        b.close()
+    finally:
+        writer.stdin.close()
+        writer.wait(timeout=30)
+        writer.stdout.close()

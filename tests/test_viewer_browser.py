@@ -124,7 +124,8 @@ def test_a_page_without_the_token_gets_nothing(page, served):
 def test_follows_a_live_recording(browser, tmp_path, sim_session, record_property):
     """``record --live``'s viewer process follows a trial while it is recorded at 60 fps and shows live strain."""
     from skinstretch.drivers.camera_modes import CAMERA_MODES
-    from skinstretch.experiments.viewer.live_check import latency_percentiles, record_from_camera
+    from skinstretch.experiments.recorder import record_from_camera
+    from skinstretch.experiments.viewer.live_check import latency_percentiles
     from skinstretch.experiments.viewer.live_launch import live_view
     from skinstretch.simulators.simulated_camera import SimulatedCamera
 

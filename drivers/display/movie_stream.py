@@ -183,6 +183,26 @@ class PlaybackReport:
         return e.mean(axis=0)
 
 
+def _checked_movie(movie_um, *, rate_hz: float, settle_frames: int) -> np.ndarray:
+    """The movie as a float array, and the options both streaming modes share, checked before the display is
+    armed: finite real targets (NaN, inf, complex are refused), 1..700 Hz, settle_frames an int >= 0."""
+    movie = check_movie(movie_um)
+    rate_to_mhz(rate_hz)
+    if not (isinstance(settle_frames, int) and settle_frames >= 0):
+        raise InvalidInputError(f"settle_frames must be an int >= 0, got {settle_frames!r}")
+    return movie
+
+
+def _frame_arrays(n: int) -> tuple[np.ndarray, ...]:
+    """Per-frame arrays of an ``n``-frame movie: commands, measured positions (NaN), acked, skipped, phase times
+    (NaN) and thread CPU stamps (NaN). Every page is written here: np.zeros maps untouched pages, and a first
+    touch inside the loop would be a page fault on the deadline path."""
+    commands = np.empty((n, ROWS, COLS))
+    commands.fill(0.0)
+    return (commands, np.full((n, ROWS, COLS), np.nan), np.full(n, False), np.full(n, False),
+            np.full((n, len(PHASES)), np.nan), np.full(n, np.nan))
+
+
 def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
                  callback: FrameCallback | None = None, spin_s: float = 0.0004, max_outstanding: int = 32,
                  miss_tolerance_s: float | None = None, final_ack_timeout_s: float = 0.05, settle_frames: int = 5,
@@ -212,9 +232,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     clock : callable, keyword-only
         Must be the clock the display driver uses (``time.perf_counter``).
     """
-    movie = check_movie(movie_um)  # NaN, inf, complex: refused before the display is armed
-    if not (np.isfinite(rate_hz) and 1.0 <= rate_hz <= 700.0):
-        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
+    movie = _checked_movie(movie_um, rate_hz=rate_hz, settle_frames=settle_frames)
     period = 1.0 / rate_hz
     if not (np.isfinite(spin_s) and 0 <= spin_s < period):
         raise InvalidInputError(f"spin_s must be in [0, period), got {spin_s!r}")
@@ -223,21 +241,11 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
     tolerance = period / 4 if miss_tolerance_s is None else float(miss_tolerance_s)
     if not (np.isfinite(tolerance) and tolerance >= 0):
         raise InvalidInputError(f"miss_tolerance_s must be >= 0, got {miss_tolerance_s!r}")
-    if not (isinstance(settle_frames, int) and settle_frames >= 0):
-        raise InvalidInputError(f"settle_frames must be an int >= 0, got {settle_frames!r}")
 
     n = movie.shape[0]
-    # every per-frame array is written once here: np.zeros maps untouched pages, and a first touch inside the
-    # loop would be a page fault on the deadline path
-    commands = np.empty((n, ROWS, COLS))
-    commands.fill(0.0)
-    measured = np.full((n, ROWS, COLS), np.nan)
-    acked = np.full(n, False)
+    commands, measured, acked, skipped, phases, cpu = _frame_arrays(n)
     deadlines = np.arange(n) * period
     send_times = np.full(n, 0.0)
-    skipped = np.full(n, False)
-    phases = np.full((n, len(PHASES)), np.nan)
-    cpu = np.full(n, np.nan)
     thread_time = time.thread_time
     frame_of_seq: dict[int, int] = {}
     latest: list[FrameAck | None] = [None]
@@ -251,12 +259,9 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
                 acked[k] = True
             latest[0] = ack
 
-    outcome, error, sent = "completed", "", 0
+    sent = 0
     t0 = float("nan")
-    # a full garbage collection over thousands of acks takes milliseconds: none during the movie
-    gc_was_enabled = gc.isenabled()
-    gc.disable()
-    try:
+    with _MovieLoop(display) as loop:
         if not display.armed:
             display.arm()
         t0 = clock() + 2 * period  # a little lead so frame 0 is not late by construction
@@ -307,20 +312,7 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         end = clock() + final_ack_timeout_s
         while display.outstanding and clock() < end:
             file_acks(display.collect_acks(timeout_s=max(end - clock(), 0.0)))
-    except SafetyStop as exc:
-        outcome, error = "safety_stop", str(exc)
-    except DeviceError as exc:
-        outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
-    except BaseException:
-        # a bug in a callback, a bad corrected command, Ctrl-C: still leave the skin at rest, then re-raise
-        try:
-            display.rest()
-        except DeviceError:
-            pass  # the firmware watchdog does it
-        raise
-    finally:
-        if gc_was_enabled:
-            gc.enable()
+    outcome, error = loop.outcome, loop.error
     rested, error = _rest_unless(display, outcome == "completed" and not rest_at_end, error)
     lateness = (send_times[:sent] - deadlines[:sent])[~skipped[:sent]]
     return PlaybackReport(
@@ -330,6 +322,43 @@ def stream_movie(display: TactileDisplay, movie_um, *, rate_hz: float = 700.0,
         missed_deadlines=int(np.sum(lateness > tolerance) + skipped[:sent].sum()), miss_tolerance_s=tolerance,
         lost_acks=getattr(display, "lost_acks", 0) - lost_before, settle_frames=settle_frames, clock_origin_s=t0,
         phase_times_s=phases[:sent], thread_cpu_s=cpu[:sent] - cpu[0] if sent else cpu[:0])
+
+
+class _MovieLoop:
+    """Around a streaming loop: how it ended, and no garbage collection while it runs (a full collection over
+    thousands of acks takes milliseconds).
+
+    A :class:`SafetyStop` raised in it ends the movie as ``"safety_stop"``, a :class:`DeviceError` as
+    ``"link_failure"`` (:attr:`outcome`, :attr:`error`; the caller reports them with what was acquired).
+    Anything else (a bug in a callback, a bad corrected command, Ctrl-C) still leaves the skin at rest, then
+    propagates; if even the rest fails, the firmware's watchdog rests the contactors.
+    """
+
+    def __init__(self, display: TactileDisplay) -> None:
+        self.display = display
+        self.outcome, self.error = "completed", ""
+
+    def __enter__(self) -> "_MovieLoop":
+        self._gc_was_enabled = gc.isenabled()
+        gc.disable()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if self._gc_was_enabled:
+            gc.enable()
+        if exc is None:
+            return False
+        if isinstance(exc, SafetyStop):
+            self.outcome, self.error = "safety_stop", str(exc)
+            return True
+        if isinstance(exc, DeviceError):
+            self.outcome, self.error = "link_failure", f"{type(exc).__name__}: {exc}"
+            return True
+        try:
+            self.display.rest()
+        except DeviceError:
+            pass
+        return False
 
 
 def _rest_unless(display: TactileDisplay, skip: bool, error: str | None) -> tuple[bool, str | None]:
@@ -510,9 +539,7 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
         the display-clock playout periods. On a link failure the movie stops (``outcome="link_failure"``); the
         display plays what it holds, at most ``lead_s``, then its watchdog rests the contactors.
     """
-    movie = check_movie(movie_um)  # NaN, inf, complex: refused before the display is armed
-    if not (np.isfinite(rate_hz) and 1.0 <= rate_hz <= 700.0):
-        raise InvalidInputError(f"rate_hz must be in 1..700 Hz, got {rate_hz!r}")
+    movie = _checked_movie(movie_um, rate_hz=rate_hz, settle_frames=settle_frames)
     rate_mhz = rate_to_mhz(rate_hz)
     period = 1000.0 / rate_mhz
     if not (np.isfinite(lead_s) and 2 * period <= lead_s <= min((FIFO_DEPTH - 8) * period, 1.0)):
@@ -523,30 +550,21 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
         raise InvalidInputError(f"low_water_s must be in (0, lead_s], got {low_water_s!r}")
     if not (isinstance(window, int) and 1 <= window <= 200):
         raise InvalidInputError(f"window must be an int in 1..200, got {window!r}")
-    if not (isinstance(settle_frames, int) and settle_frames >= 0):
-        raise InvalidInputError(f"settle_frames must be an int >= 0, got {settle_frames!r}")
     if not (np.isfinite(end_timeout_s) and 0 <= end_timeout_s <= 10):
         raise InvalidInputError(f"end_timeout_s must be in 0..10 s, got {end_timeout_s!r}")
     if not display.supports_timed_playback:
         raise InvalidInputError(f"display ({type(display).__name__}) has no timed playback; use stream_movie")
 
     n = movie.shape[0]
-    # every per-frame array is written once here (no first-touch page fault inside the loop)
-    commands = np.empty((n, ROWS, COLS))
-    commands.fill(0.0)
-    measured = np.full((n, ROWS, COLS), np.nan)
-    acked = np.full(n, False)
+    commands, measured, acked, skipped, phases, cpu = _frame_arrays(n)
     # the firmware's tick times (tick_time_us), exact integers: floor(k * 1e9 / rate_mhz) us
     play_offsets = (np.arange(n, dtype=np.int64) * 1_000_000_000 // rate_mhz) * 1e-6
     send_times = np.full(n, np.nan)
-    skipped = np.full(n, False)
     fates = np.full(n, FATE_UNKNOWN, dtype=np.int8)
     fill = np.full(n, np.nan)
     margin = np.full(n, np.nan)
     tick_times = np.full(n, np.nan)
     tick_applied = np.full(n, False)
-    phases = np.full((n, len(PHASES)), np.nan)
-    cpu = np.full(n, np.nan)
     thread_time = time.thread_time
     latest: list[FrameAck | None] = [None]
     lost_before = getattr(display, "lost_acks", 0)
@@ -574,12 +592,10 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
         file_acks(display.collect_acks(timeout_s=max(timeout_s, 0.0)))
         file_receipts(display.take_receipts())
 
-    outcome, error, k = "completed", "", 0
+    k = 0
     final: MovieStatus | None = None
     t_stop = float("nan")
-    gc_was_enabled = gc.isenabled()
-    gc.disable()
-    try:
+    with _MovieLoop(display) as loop:  # on an unexpected error the firmware plays out what it holds, then rests
         if not display.armed:
             display.arm()  # after the allocations above: the watchdog runs from here until a frame plays
         status = display.start_movie(rate_hz=rate_hz, n_frames=n, start_delay_s=float(lead_s))
@@ -634,20 +650,7 @@ def stream_movie_buffered(display: TactileDisplay, movie_um, *, rate_hz: float =
             if not backlog:
                 pump(min(period, give_up - clock()))
         t_stop = clock()
-    except SafetyStop as exc:
-        outcome, error = "safety_stop", str(exc)
-    except DeviceError as exc:
-        outcome, error = "link_failure", f"{type(exc).__name__}: {exc}"
-    except BaseException:
-        # a bug in a callback, a bad corrected command, Ctrl-C: still leave the skin at rest, then re-raise
-        try:
-            display.rest()
-        except DeviceError:
-            pass  # the firmware plays out what it holds (at most lead_s), then its watchdog rests it
-        raise
-    finally:
-        if gc_was_enabled:
-            gc.enable()
+    outcome, error = loop.outcome, loop.error
     if np.isnan(t_stop):
         t_stop = clock()
     if outcome == "completed" and not rest_at_end:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import binascii
 import enum
+import numbers
 import struct
 from dataclasses import dataclass, field
 
@@ -420,7 +421,7 @@ def tick_time_us(tick: int, *, rate_mhz: int) -> int:
 
 def rate_to_mhz(rate_hz: float) -> int:
     """A frame rate in Hz as the wire's millihertz, checked against 1..700 Hz."""
-    if not (isinstance(rate_hz, (int, float)) and np.isfinite(rate_hz)):
+    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, numbers.Real) and np.isfinite(rate_hz)):
         raise InvalidInputError(f"rate_hz must be a finite number, got {rate_hz!r}")
     mhz = int(round(rate_hz * 1000))
     if not MIN_RATE_MHZ <= mhz <= MAX_RATE_MHZ:

@@ -4,13 +4,9 @@
 at the edge (the command line, the recorder's analysis process, a Dask task, a user's script) and the analysis only
 ever calls ``submit`` on what it is given. Three kinds:
 
-* ``processes``: worker processes (forkserver: forked from a clean server, never from this possibly multi-threaded
-  process), started on first use. Each worker dies with the analysis, whatever kills it: the parent-death signal
-  (``prctl(PR_SET_PDEATHSIG)`` on Linux; its parent is the single-threaded forkserver, which exits when this
-  process does), and a thread that watches this process and exits within half a second of its end everywhere else.
-  The forkserver imports nothing: every worker imports what it needs itself, while this process carries on. (A
-  server that preloads the analysis is one more process holding the libraries, ~150 MB of the tree's resident
-  memory, for the second or so each worker saves at its start.)
+* ``processes``: worker processes started on first use, from the pool every skinstretch process pool comes from
+  (:func:`skinstretch.experiments.process_lifetime.worker_pool`: forked from a clean forkserver that has imported
+  the measurement once; each worker, and the forkserver, dies with the analysis whatever kills it).
 * ``threads`` of this process (OpenCV and the compiled kernels release the GIL);
 * ``serial``: every task runs in the caller, at once (:class:`InlineExecutor`; the standard library has none).
 
@@ -20,24 +16,20 @@ No nesting: in a worker process (the recorder's analysis process, a Dask worker)
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import multiprocessing as mp
 import os
-import signal
 import sys
 import threading
-import time
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any, Callable
 
+from skinstretch.experiments.process_lifetime import worker_pool
+
 __all__ = ["make_executor", "InlineExecutor", "WorkerProcesses", "in_worker_process", "describe_executor"]
 
 log = logging.getLogger(__name__)
-
-#: How often a worker checks that the analysis that started it is still alive (seconds).
-PARENT_CHECK_S = 0.25
 
 
 def in_worker_process() -> bool:
@@ -68,18 +60,13 @@ class WorkerProcesses(Executor):
     def _get(self) -> ProcessPoolExecutor:
         with self._lock:
             if self._pool is None:
-                if "forkserver" in mp.get_all_start_methods():
-                    ctx = mp.get_context("forkserver")
-                    ctx.set_forkserver_preload([])  # the server imports nothing (module docstring)
-                else:  # pragma: no cover - platforms without forkserver (Windows)
-                    ctx = mp.get_context("spawn")
-                pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_worker_init,
-                                           initargs=(os.getpid(),))
-                # Every worker is started now, while the caller's main script is hidden (see _main_script_hidden);
-                # they import and warm up while the caller carries on.
+                pool = worker_pool(self.workers, preload=["skinstretch.experiments.analysis.measure"],
+                                   initializer=_warm_up)
+                # Every worker is started now, while the caller's main script is hidden (see _main_script_hidden).
                 with _main_script_hidden():
-                    for _ in range(self.workers):
-                        pool.submit(os.getpid)
+                    started = [pool.submit(os.getpid) for _ in range(self.workers)]
+                    for f in started:
+                        f.result()
                 self._pool = pool
             return self._pool
 
@@ -135,10 +122,9 @@ def executor_width(executor: Executor) -> int:
 # -- in each worker process --------------------------------------------------------------------------------------
 
 
-def _worker_init(parent_pid: int) -> None:
-    """Bind the worker's life to the analysis (``parent_pid``), use one OpenCV thread (the parallelism is the
-    processes), and load the compiled kernels now rather than inside the first timed chunk."""
-    _die_with_parent(parent_pid)
+def _warm_up() -> None:
+    """Use one OpenCV thread (the parallelism is the processes), and load the compiled kernels now rather than
+    inside the first timed chunk."""
     import cv2  # noqa: PLC0415
 
     cv2.setNumThreads(1)
@@ -148,33 +134,6 @@ def _worker_init(parent_pid: int) -> None:
         exercise_pipeline()
     except Exception:  # noqa: BLE001 - a warm-up failure only costs the loading time later
         log.debug("worker warm-up failed", exc_info=True)
-
-
-def _die_with_parent(parent_pid: int) -> None:
-    if sys.platform.startswith("linux"):
-        try:  # PR_SET_PDEATHSIG = 1: SIGKILL this process when its parent (the forkserver) dies
-            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
-        except (OSError, AttributeError):
-            pass
-    threading.Thread(target=_watch_parent, args=(parent_pid,), name="watch-parent", daemon=True).start()
-
-
-def _watch_parent(parent_pid: int) -> None:
-    """Exit as soon as the analysis process ``parent_pid`` is gone (also where prctl does not exist)."""
-    import psutil  # noqa: PLC0415
-
-    try:
-        created = psutil.Process(parent_pid).create_time()
-    except psutil.Error:
-        os._exit(1)
-    while True:
-        time.sleep(PARENT_CHECK_S)
-        try:
-            alive = psutil.Process(parent_pid).create_time() == created  # not a new process with the same pid
-        except psutil.Error:
-            alive = False
-        if not alive:
-            os._exit(1)
 
 
 @contextmanager

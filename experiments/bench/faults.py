@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import select
 import signal
 import subprocess
 import sys
@@ -158,28 +159,71 @@ def _sigkill(work: Path) -> _Row:
                 left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 0)
 
 
-def replay_rig(work: Path) -> Path:
-    """A rig file replaying 90 textured 640x484 frames at 60 Hz (from ``work``), the display twin, no force."""
+def replay_rig(work: Path, *, rate_hz: float | None = None) -> Path:
+    """A rig file replaying 90 textured 640x484 frames (from ``work``) at ``rate_hz`` (None: their recorded 60 Hz),
+    the display twin, no force."""
     frames = np.random.default_rng(0).integers(0, 256, (90, 484, 640), dtype=np.uint8)
     source = write_session(work / "replay-source.h5", frames, timestamps=np.arange(90) / 60.0,
                            camera_mode=CAMERA_MODES["full"], calibration=CAL, overwrite=True)
+    options = "" if rate_hz is None else f", options: {{rate_hz: {float(rate_hz)!r}}}"
     rig = work / "replay-rig.yaml"
-    rig.write_text(f"name: replay\ncamera: {{kind: replay, device: {str(source)!r}}}\nforce: {{kind: none}}\n"
+    rig.write_text(f"name: replay\ncamera: {{kind: replay, device: {str(source)!r}{options}}}\nforce: {{kind: none}}\n"
                    "display: {kind: sim}\n")
     return rig
 
 
-#: A program that fills the disk holding the file it is given, printing the time it hit ENOSPC.
-DISK_FILLER = """
+class DiskFiller:
+    """Another process that fills the disk holding ``path`` when told to (:meth:`fill`).
+
+    Started ahead and waiting, so that its interpreter's start-up (a second or more on a loaded machine) is not part
+    of the race with the trial it fills the disk under. Use as a context manager.
+    """
+
+    PROGRAM = """
 import sys, time
-with open(sys.argv[1], "wb") as fh:
+print("ready", flush=True)
+sys.stdin.readline()
+with open(sys.argv[1], "wb", buffering=0) as fh:
     try:
         while True:
             fh.write(bytes(1 << 20))
-            fh.flush()
     except OSError:
         print(time.time(), flush=True)
 """
+
+    def __init__(self, path: Path, *, timeout_s: float = 60.0) -> None:
+        self._timeout_s = timeout_s
+        self._proc = subprocess.Popen([sys.executable, "-c", self.PROGRAM, str(path)], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, text=True)
+        if self._line() != "ready":
+            self.close()
+            raise RuntimeError("the disk filler did not start")
+
+    def _line(self) -> str:
+        ready, _, _ = select.select([self._proc.stdout], [], [], self._timeout_s)
+        return self._proc.stdout.readline().strip() if ready else ""
+
+    def fill(self) -> float:
+        """Fill the disk now; returns when it is full, with the time it was (``time.time()``)."""
+        self._proc.stdin.write("fill\n")
+        self._proc.stdin.flush()
+        line = self._line()
+        if not line:
+            raise RuntimeError("the disk filler did not report a full disk")
+        return float(line)
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.kill()
+        self._proc.wait()
+        self._proc.stdin.close()
+        self._proc.stdout.close()
+
+    def __enter__(self) -> "DiskFiller":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _disk_full(work: Path) -> _Row:
@@ -195,14 +239,13 @@ def _disk_full(work: Path) -> _Row:
         proto.write_text("name: fill\nsubject: {id: s01}\ncamera_mode: full\ntrials:\n"
                          "  - {name: a, duration_s: 0.7}\n  - {name: b, duration_s: 0.7}\n"
                          "record: {force: false}\nanalysis: {enabled: false}\n")
-        child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(mnt / "d")],
-                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        lines = _Lines(child)
-        if lines.wait_for(lambda line: "/42 frames" in line) is None:
-            raise RuntimeError("record never started writing frames")
-        filler = subprocess.run([sys.executable, "-c", DISK_FILLER, str(mnt / "filler.bin")], capture_output=True,
-                                text=True, timeout=60)
-        full_at = float(filler.stdout.strip())
+        with DiskFiller(mnt / "filler.bin") as filler:
+            child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(mnt / "d")],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            lines = _Lines(child)
+            if lines.wait_for(lambda line: "/42 frames" in line) is None:
+                raise RuntimeError("record never started writing frames")
+            full_at = filler.fill()
         stopped = lines.wait_for(lambda line: "failed (" in line and "disk full" in line)
         rc = child.wait(60)
         lines.wait_for(lambda line: False, timeout_s=10)  # to the end of the output

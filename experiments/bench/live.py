@@ -25,7 +25,8 @@ from skinstretch.drivers.camera_modes import CAMERA_MODES
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.bench import BenchOptions, BenchTable
 from skinstretch.experiments.viewer.browser import browser_unavailable_reason, launch_chromium
-from skinstretch.experiments.viewer.live_check import latency_percentiles, live_accuracy, record_from_camera
+from skinstretch.experiments.recorder import record_from_camera
+from skinstretch.experiments.viewer.live_check import latency_percentiles, live_accuracy
 from skinstretch.experiments.viewer.live_launch import start_live_viewer
 
 SECTION = "live"

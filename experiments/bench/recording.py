@@ -18,7 +18,7 @@ import numpy as np
 from skinstretch.drivers.camera_modes import CAMERA_MODES
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.bench import BenchOptions, BenchTable
-from skinstretch.experiments.recorder import Recorder
+from skinstretch.experiments.recorder import record_from_camera
 from skinstretch.processing.pixel_scale import Calibration
 
 SECTION = "recording"
@@ -51,45 +51,20 @@ def _cameras(mode):
 
 
 def _record(make_camera, mode, seconds: float, path: Path) -> list:
-    import psutil  # noqa: PLC0415 - installed with dask.distributed
+    sampled: dict[int, int] = {}  # frame number -> checksum, every 97th frame
 
-    cam = make_camera()
-    cam.open()
-    cam.set_mode(mode)
-    rec = Recorder(path, camera_mode=mode, calibration=Calibration(px_per_mm=mode.width / 10.3),
-                   metadata={"bench": "recording"}, queue_size=512).start()
-    proc = psutil.Process()
-    cpu0 = proc.cpu_times()
-    t0 = time.perf_counter()
-    sampled: dict[int, int] = {}
-    n = 0
-    try:
-        cam.start()
-        while time.perf_counter() - t0 < seconds:
-            f = cam.read(timeout_s=1.0)
-            rec.put_frame(f.image, timestamp=f.host_timestamp_s, frame_id=f.frame_id,
-                          device_timestamp=f.device_timestamp_s)
-            if n % 97 == 0:
-                sampled[n] = int(np.asarray(f.image, np.int64).sum())
-            n += 1
-        cam_dropped = cam.stats.dropped
-    finally:
-        try:
-            cam.stop()
-        finally:
-            cam.close()
-    stats = rec.finish()
-    wall = time.perf_counter() - t0
-    cpu1 = proc.cpu_times()
-    cpu = (cpu1.user - cpu0.user + cpu1.system - cpu0.system) / wall * 100
+    def sample(k: int, frame) -> None:
+        if k % 97 == 0:
+            sampled[k] = int(np.asarray(frame.image, np.int64).sum())
+
+    count = record_from_camera(make_camera(), path, mode=mode, calibration=Calibration(px_per_mm=mode.width / 10.3),
+                               seconds=seconds, metadata={"bench": "recording"}, queue_size=512, on_frame=sample)
     with open_session(path) as s:
-        ids = s.frame_ids
-        gaps = int(np.sum(np.maximum(np.diff(ids) - 1, 0))) if ids.size > 1 else 0
         bad = sum(1 for k, v in sampled.items() if k >= s.n_frames or int(s.frame(k).astype(np.int64).sum()) != v)
-        written = s.n_frames
-    dropped = gaps + cam_dropped + stats.frames_dropped
-    return [f"{mode.width}x{mode.height}@{mode.fps:g}", written, written / wall, dropped, bad, cpu,
-            stats.bytes_written / 1e6, stats.bytes_written / 1e6 / wall, stats.max_queue_depth, stats.status]
+    stats, wall = count.stats, count.seconds
+    return [f"{mode.width}x{mode.height}@{mode.fps:g}", count.frames, count.frames / wall, count.dropped, bad,
+            count.cpu_s / wall * 100, stats.bytes_written / 1e6, stats.bytes_written / 1e6 / wall,
+            stats.max_queue_depth, stats.status]
 
 
 def run(options: BenchOptions) -> list[BenchTable]:

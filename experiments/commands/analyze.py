@@ -73,7 +73,9 @@ def options_from_args(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from skinstretch.experiments.analysis import analysis_params, analyze_session  # noqa: PLC0415 - keeps --help fast
+    from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
 
+    guard_process_tree()  # whatever ends this process, no worker (or Dask process) it started outlives it
     params = analysis_params(options_from_args(args))
     if len(args.session) > 1 or args.session[0].is_dir():
         from skinstretch.experiments.batch import analyze_many  # noqa: PLC0415

@@ -180,6 +180,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
+
+    guard_process_tree()  # whatever ends this process, nothing it started outlives it
     result = run_demo(args.output, analysis_workers=max(1, args.analysis_workers))
     ok = [t for t in result.run.trials if t.status == "complete"]
     log.info("[demo] %d/%d trials recorded, %d analysed", len(ok), len(result.run.trials),

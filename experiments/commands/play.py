@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import Callable
 
 
 def _finite(text: str) -> float:
@@ -25,6 +26,35 @@ def _finite(text: str) -> float:
     return value
 
 
+def _positive(text: str) -> float:
+    """An argparse type: a finite number above 0."""
+    value = _finite(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be greater than 0, got {text}")
+    return value
+
+
+def _movie_setting(field: str) -> Callable[[str], float]:
+    """An argparse type: a number a protocol's movie accepts as ``field``: the same limits as
+    :class:`~skinstretch.experiments.protocol.MovieSpec` (the display's rate range, a positive gain, a force
+    ceiling up to its maximum)."""
+
+    def parse(text: str) -> float:
+        from pydantic import ValidationError  # noqa: PLC0415
+
+        from skinstretch.experiments.protocol import MovieSpec  # noqa: PLC0415 - keeps `skinstretch --help` fast
+
+        value = _finite(text)
+        try:
+            MovieSpec.model_validate({field: value})
+        except ValidationError as exc:
+            limit = exc.errors()[0]["msg"].removeprefix("Input should be ")
+            raise argparse.ArgumentTypeError(f"must be {limit}, got {text}") from None
+        return value
+
+    return parse
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("play", help="play a tactile movie on the STReSS display (closed loop with --closed-loop)",
                        description=__doc__.split("\n\n", 1)[1])
@@ -34,12 +64,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "'stresssim://lab?faults=stall_after:300' (default: a simulated display)")
     p.add_argument("--closed-loop", action="store_true", help="correct each contactor from its measured position")
     p.add_argument("--compare", action="store_true", help="play open loop then closed loop and compare")
-    p.add_argument("--rate", type=_finite, default=700.0, help="display frame rate, Hz (default 700)")
-    p.add_argument("--movie-rate", type=_finite, default=None,
+    p.add_argument("--rate", type=_movie_setting("rate_hz"), default=700.0,
+                   help="display frame rate, 1..700 Hz (default 700)")
+    p.add_argument("--movie-rate", type=_positive, default=None,
                    help="frame rate of the movie, Hz (default: the camera rate of its session, else the --rate)")
-    p.add_argument("--gain", type=_finite, default=1.0, help="scale of the contactor positions")
-    p.add_argument("--peak-um", type=_finite, default=30.0, help="scale the movie down to this peak excursion")
-    p.add_argument("--force-ceiling", type=_finite, default=5.0, help="stop above this normal force, N")
+    p.add_argument("--gain", type=_movie_setting("gain"), default=1.0,
+                   help="scale of the contactor positions, in (0, 100] (default 1)")
+    p.add_argument("--peak-um", type=_positive, default=30.0,
+                   help="scale the movie down to this peak excursion, um (default 30)")
+    p.add_argument("--force-ceiling", type=_movie_setting("force_ceiling_n"), default=5.0,
+                   help="stop above this normal force, in (0, 50] N (default 5)")
     p.add_argument("--no-force", action="store_true", help="play without the force sensor")
     p.add_argument("-o", "--output", type=Path, default=None, help="session file recording the playback (.h5)")
     p.set_defaults(func=run)
@@ -68,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     outputs = _outputs(args, loops)  # before the display moves: a recording that cannot be written is refused
     movie, rate = load_movie(args.movie)
     movie, scale = fit_movie(movie * args.gain, peak_um=args.peak_um)
-    source_rate = args.movie_rate or rate or args.rate
+    source_rate = args.movie_rate if args.movie_rate is not None else rate or args.rate
     movie = resample_movie(movie, from_hz=source_rate, to_hz=args.rate)
     display = DeviceSpec(kind="sim") if args.display is None else DeviceSpec(kind="stress", url=args.display)
     rig = Rig(name="play", display=display, force=DeviceSpec(kind="none" if args.no_force else "sim"))

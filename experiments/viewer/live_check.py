@@ -1,60 +1,15 @@
-"""Measure the live view while a recording runs: what a page received and showed, and how the live analysis'
-motion and strain compare with a simulated session's truth. Used by the ``live`` bench section and the browser
-tests; nothing here runs during a real experiment.
+"""Measure the live view while a recording runs (:func:`skinstretch.experiments.recorder.record_from_camera`):
+what a page received and showed, and how the live analysis' motion and strain compare with a simulated session's
+truth. Used by the ``live`` bench section and the browser tests; nothing here runs during a real experiment.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from skinstretch.drivers.camera_modes import CameraMode
-from skinstretch.drivers.session_file import open_session
-from skinstretch.experiments.recorder import Recorder
-from skinstretch.processing.pixel_scale import Calibration
-
-__all__ = ["RecordingCount", "LiveAccuracy", "record_from_camera", "live_accuracy", "latency_percentiles"]
-
-
-@dataclass(frozen=True)
-class RecordingCount:
-    """What a timed recording wrote and lost: frames, dropped (frame-id gaps + camera drops + recorder drops)."""
-
-    frames: int
-    dropped: int
-    seconds: float
-    status: str
-
-
-def record_from_camera(camera, path: Path, *, mode: CameraMode, calibration: Calibration, seconds: float,
-                       metadata: dict | None = None) -> RecordingCount:
-    """Record ``camera`` (opened here, then started) into ``path`` through a :class:`Recorder` for ``seconds``."""
-    camera.open()
-    camera.set_mode(mode)
-    rec = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata or {}).start()
-    t0 = time.perf_counter()
-    try:
-        camera.start()
-        while time.perf_counter() - t0 < seconds:
-            f = camera.read(timeout_s=1.0)
-            rec.put_frame(f.image, timestamp=f.host_timestamp_s, frame_id=f.frame_id,
-                          device_timestamp=f.device_timestamp_s)
-        cam_dropped = camera.stats.dropped
-    finally:
-        try:
-            camera.stop()
-        finally:
-            camera.close()
-    stats = rec.finish()
-    wall = time.perf_counter() - t0
-    with open_session(path) as s:
-        ids = s.frame_ids
-        gaps = int(np.sum(np.maximum(np.diff(ids) - 1, 0))) if ids.size > 1 else 0
-        frames = s.n_frames
-    return RecordingCount(frames, gaps + cam_dropped + stats.frames_dropped, wall, stats.status)
+__all__ = ["LiveAccuracy", "live_accuracy", "latency_percentiles"]
 
 
 def latency_percentiles(shown: list[dict]) -> tuple[float, float, float]:

@@ -18,6 +18,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from skinstretch.child_process import stop_child_process
 from skinstretch.processing.errors import InvalidInputError
 
 log = logging.getLogger(__name__)
@@ -35,16 +36,8 @@ class LiveViewerProcess:
     process: subprocess.Popen
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """End the viewer (SIGTERM, then SIGKILL after ``timeout_s``)."""
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(timeout_s)
-        if self.process.stdout is not None:
-            self.process.stdout.close()
+        """End the viewer (SIGTERM, then SIGKILL after ``timeout_s``); its output is read by a thread of ours."""
+        stop_child_process(self.process, timeout_s=timeout_s, read_output=False)
 
 
 def start_live_viewer(directory: str | os.PathLike, *, port: int = 0, host: str = "127.0.0.1",

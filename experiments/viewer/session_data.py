@@ -24,7 +24,7 @@ import h5py
 import numpy as np
 
 from skinstretch.drivers.errors import SessionFileError
-from skinstretch.drivers.session_file import STATUS_NAMES, Session, open_session
+from skinstretch.drivers.session_file import Session, open_session
 from skinstretch.experiments.results_file import read_results
 
 log = logging.getLogger(__name__)
@@ -223,13 +223,7 @@ class SessionSource:
     def status(self) -> str:
         """'recording', 'complete' or 'failed', read again from the file (a recorder changes it at the end)."""
         with self._lock:
-            ds = self._session.h5["status"]
-            try:
-                ds.refresh()
-            except (AttributeError, RuntimeError, OSError, ValueError):
-                pass
-            code = int(ds[()])
-        return STATUS_NAMES.get(code, f"unknown({code})")
+            return self._session.refresh_status()
 
     def frame(self, index: int) -> np.ndarray:
         with self._lock:
@@ -237,8 +231,7 @@ class SessionSource:
 
     def timestamp(self, index: int) -> float:
         with self._lock:
-            ds = self._session.h5["timestamps"]
-            return float(ds[index])
+            return self._session.timestamp(index)
 
     def truth(self):
         """The simulated session's truth, or None (read once: a recording gets its truth after it is closed)."""
