@@ -29,7 +29,6 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 
 from skinstretch.experiments.analysis.executor import InlineExecutor, describe_executor, executor_width
 from skinstretch.experiments.analysis.frames import FrameReader
@@ -37,7 +36,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.progress import progress_bar
 
 __all__ = ["chunk_plan", "measure_features", "measure_flow", "make_tracker", "make_extractor", "FeatureMeasurement",
-           "FlowMeasurement", "exercise_pipeline", "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
+           "FlowMeasurement", "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
 
 log = logging.getLogger(__name__)
 
@@ -284,24 +283,3 @@ def measure_flow(
     how = "serial" if here else describe_executor(executor)
     return FlowMeasurement({"flow_s": time.perf_counter() - t0, "flow_cpu_s": busy},
                            f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}")
-
-
-# -- warm-up -----------------------------------------------------------------------------------------------------
-
-
-def exercise_pipeline() -> None:
-    """Extract and track two small synthetic prints (ridges with endings, forks and pores) once, so a new worker
-    process loads the compiled kernels before its first chunk."""
-    from skinstretch.experiments.analysis.parameters import AnalysisParams  # noqa: PLC0415
-
-    cal = Calibration(px_per_mm=62.0)
-    params = AnalysisParams()
-    rng = np.random.default_rng(0)
-    yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)
-    warp = np.cumsum(rng.normal(0, 0.15, (200, 240)), axis=1) * 0.1
-    ex, tr = make_extractor(cal, params), make_tracker(cal, params)
-    for shift in (0.0, 1.5):
-        phase = 2 * np.pi * (yy + shift) / 27.0 + warp + 0.002 * (xx - 120) ** 2 / 10
-        img = np.clip(128 + 70 * np.sin(phase) + rng.normal(0, 6, phase.shape), 0, 255).astype(np.uint8)
-        res = ex.extract(img)
-        tr.add_frame(res.features if res.ok else res.features[:0], image=img)
