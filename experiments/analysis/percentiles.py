@@ -43,8 +43,8 @@ class StreamedPercentiles:
     ``in_memory`` values at most are collected at once (the rest stays in the scratch file, in ``scratch_dir``;
     None: the system's temporary directory)."""
 
-    def __init__(self, *, scratch_dir: str | os.PathLike | None = None, in_memory: int = 1 << 20,
-                 block: int = 1 << 20) -> None:
+    def __init__(self, *, scratch_dir: str | os.PathLike | None = None, in_memory: int = 1 << 18,
+                 block: int = 1 << 18) -> None:
         self._file = tempfile.TemporaryFile(dir=None if scratch_dir is None else Path(scratch_dir),
                                             prefix="skinstretch-values-")
         self._hist = np.zeros(_BINS, np.int64)
