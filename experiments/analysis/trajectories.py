@@ -11,7 +11,7 @@ in two passes, holding only a few numbers per track and per linked run:
    positions, each track its length;
 2. at the end, the scratch rows are read back a block of frames at a time: tracks shorter than the minimum length
    dropped, the kept ones numbered in order, each run anchored to the mean of its extracted positions and, if asked,
-   smoothed (:func:`~skinstretch.processing.tracking.smooth_positions` over the block and its margins).
+   smoothed (:func:`~skinstretch.processing.trajectory_smoothing.smooth_positions` over the block and its margins).
 
 The numbers are those of ``finish`` to the bit: the same operations in the same order on each track (the tests
 check it). Hand-written: no library chains per-track running sums out of core.
@@ -28,9 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
-from skinstretch.processing.tracking import (
-    DEFAULT_MIN_LENGTH_FRAMES, TRAJECTORY_DTYPE, TrackedFrame, TrackingParams, smooth_positions,
-)
+from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TRAJECTORY_DTYPE, TrackedFrame, TrackingParams
+from skinstretch.processing.trajectory_smoothing import smooth_positions
 
 __all__ = ["TrajectoryStore", "TrajectoryBlock", "BLOCK_FRAMES"]
 
