@@ -198,8 +198,9 @@ def tactile_movie_blocks(samples: Sequence[MotionSample], derived: Derived, *, c
         return
     block_frames = MOVIE_BLOCK_FRAMES if block_frames is None else int(block_frames)
     axis = AXIS_NAMES.index(derived.profile_axis)
-    if len(samples) != derived.fingertip.n_frames - 1:
-        raise InvalidInputError(f"expected {derived.fingertip.n_frames - 1} consecutive-pair samples, got {len(samples)}")
+    n = derived.fingertip.n_frames
+    if len(samples) != n - 1:
+        raise InvalidInputError(f"expected {n - 1} consecutive-pair samples, got {len(samples)}")
     builder = TactileMovieBuilder(fingertip=derived.fingertip, window=derived.window, calibration=calibration,
                                   image_shape=image_shape, params=display_params, motion_axis=axis)
     frames = [builder.first_frame()]
