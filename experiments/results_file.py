@@ -459,6 +459,16 @@ class Results:
         """(features method) every extracted feature (FEATURE_DTYPE), or None."""
         return self._read("features") if self.has_features else None
 
+    @property
+    def density(self):
+        """How dense the measurement is (:class:`skinstretch.experiments.analysis.density.MeshDensity`: features per
+        frame, trajectories kept, fraction kept, mesh edge, whether the mesh is too sparse to map strain), or None
+        for results written before it was reported."""
+        from skinstretch.experiments.analysis.density import MeshDensity  # noqa: PLC0415 - analysis imports this module
+
+        d = self.summary.get("density")
+        return MeshDensity.from_dict(d) if d else None
+
     @cached_property
     def trajectories(self) -> Trajectories | None:
         """(features method) the trajectories as a long table, or None."""

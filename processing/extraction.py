@@ -17,9 +17,14 @@ bench --only accuracy``):
   are extracted out of contact;
 - the spur and bridge rules of 4.8.3-4.8.4 judge a short branch by the direction of the ridges around it
   (:mod:`skinstretch.processing.ridge_flow`): a pore's branch crosses the ridges, a true minutia's follows them;
-- bifurcations are located at the centre of the largest disc in the valleys' crotch
-  (:func:`skinstretch.processing.feature_localization.locate_forks`) and pores that touch a valley on their ridge
-  (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`).
+- minutiae are located where the valleys' medial axis (the ideal skeleton) ends or forks, from the grey image:
+  valley endings at the centre of curvature of the valley's tip
+  (:func:`skinstretch.processing.feature_localization.tip_curvature_centres`), bifurcations at the centre of the
+  largest disc in the valleys' crotch (:func:`skinstretch.processing.feature_localization.locate_forks`); pores
+  that touch a valley on their ridge (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`);
+- near the skin's outline the editing knows where it is: a skeleton branch that runs into the background is a
+  valley leaving the contact, neither a spur nor a bridge (:mod:`skinstretch.processing.skeleton_editing`), and
+  features within 0.3 mm of the out-of-contact region are deleted by Euclidean distance (seed 4.8.6).
 
 Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
 :class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a
@@ -42,12 +47,13 @@ import numpy as np
 from pydantic import field_validator, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.feature_filters import border_mask, feature_density_mask, outside_border
+from skinstretch.processing.feature_filters import clear_of_background, feature_density_mask
 from skinstretch.processing.feature_localization import (
     locate_forks,
     locate_minutiae_tips,
     locate_pores_on_ridges,
     refine_pores,
+    tip_curvature_centres,
 )
 from skinstretch.processing.feature_table import KIND_NAMES, FeatureKind, empty_features, make_features
 from skinstretch.processing.illumination import apply_illumination_gain, illumination_gain, illumination_map
@@ -126,7 +132,8 @@ class ExtractionParams:
     filter_feature_density: bool = True
     density_radius_mm: float = 0.25
     density_max_count: int = 3
-    # 4.8.6
+    # 4.8.6: features within border_dilation_mm of the background dilated by background_dilation_mm, i.e. within
+    # their sum of where the skin is out of contact (or of the image edge), Euclidean distance.
     remove_border_features: bool = True
     border_dilation_mm: float = 0.2
     # Beyond the seed (7.2.2): sub-pixel positions of pores (subpixel) and of minutiae (subpixel_minutiae, which
@@ -256,9 +263,12 @@ class _Plan:
     bridge_min: float
     bridge_max: float
     density_radius: float
-    border_dilation: int
+    contact_clearance: float
+    open_reach: float
+    edge_clearance: float
     minutia_reach: float
     tip_axis: int
+    tip_sigma: float
     fork_radius: float
     minutia_sigma: float  # 0 = no extra smoothing
     pore_along: float
@@ -289,13 +299,22 @@ class _Plan:
             bridge_min=cal.px(p.bridge_min_mm),
             bridge_max=cal.px(p.bridge_max_mm),
             density_radius=cal.px(p.density_radius_mm),
-            border_dilation=cal.px_int(p.border_dilation_mm),
+            contact_clearance=cal.px(p.background_dilation_mm + p.border_dilation_mm),
+            edge_clearance=cal.px(p.border_dilation_mm),
+            # A skeleton branch ending within 0.05 mm (3 px) of the background runs into it: thinning ends a branch
+            # cut by the mask one to three pixels inside (skeleton_editing).
+            open_reach=max(cal.px(0.05), 1.5),
             # A quarter ridge period (~0.11 mm) covers the skeleton-to-minutia offsets of thinning.
             minutia_reach=max(cal.px(0.15), 3.0),
             # Centre-line length behind a valley ending (one lateral profile per px): 0.3 mm, about two thirds
             # of a ridge period; shorter lines leave the tip's lateral position noisier (flatL ending jitter:
             # 5 px 0.19, 9 px 0.13, 15 px 0.11, 21 px 0.106 px), longer ones follow curved valleys less well.
             tip_axis=max(cal.px_int(0.3), 2),
+            # Scale of the derivatives that give a valley tip's curvature: 0.05 mm (3 px). The ending's frame-to-
+            # frame jitter on flatL (seed 0, 20 frames) is 0.11 px at 0.04 mm (the minutiae's smoothing), 0.10 px
+            # at 0.05 mm, 0.09 px at 0.056 mm but 1.4 px from the skeleton's end (0.5-1 px below); at 0.07 mm the
+            # kernel reaches the next valleys.
+            tip_sigma=max(cal.px(0.05), 1.0),
             fork_radius=max(cal.px(p.fork_radius_mm), 2.0),
             minutia_sigma=cal.px(p.minutia_smoothing_mm),
             # Half-length of the ridge profiles that locate a pore the editing found (it touches a valley):
@@ -427,6 +446,7 @@ class FeatureExtractor:
         avg = stats.mean
         background, _ = contact_map(stats, shape=frame.shape, min_contact=p.min_contact,  # 4.3
                                     min_extent_px=q.min_glass)
+        out_of_contact = background
         if q.bg_dilation > 0:
             d = 2 * q.bg_dilation + 1
             background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
@@ -463,6 +483,7 @@ class FeatureExtractor:
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
         rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
+        rules["background"], rules["open_reach_px"] = background, q.open_reach
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
             lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
             lambda g: edit_graph(g, **rules),
@@ -478,7 +499,9 @@ class FeatureExtractor:
             keep &= feature_density_mask(x, y, kind, radius_px=q.density_radius, max_count=int(p.density_max_count))
             counts["density"] = _counts(kind[keep])
         if p.remove_border_features:  # 4.8.6
-            keep &= outside_border(x, y, border_mask(background, dilation_px=q.border_dilation))
+            # Within 0.2 mm of the background dilated by 0.1 mm (0.3 mm of where the skin is out of contact) or of
+            # the image edge.
+            keep &= clear_of_background(x, y, out_of_contact, radius_px=q.contact_clearance, edge_px=q.edge_clearance)
             counts["border"] = _counts(kind[keep])
         x, y, kind, orient, size = x[keep], y[keep], kind[keep], orient[keep], size[keep]
         if p.subpixel:
@@ -533,14 +556,20 @@ class FeatureExtractor:
             # one, with the same jitter.
             k = 2 * int(math.ceil(1.6 * q.minutia_sigma)) + 1
             excess = cv2.GaussianBlur(excess, (k, k), q.minutia_sigma)
-        # Valley endings: where the bright valley's centre line falls to the local mean (locate_minutiae_tips; on
-        # flatL ~0.08 px repeatable, against ~0.26 px for the apex of the region and ~1.5 px for the skeleton end,
-        # at a constant offset of ~2-3 px beyond the true minutia, which tracking does not see).
+        # Valley endings: the tip, where the bright valley's centre line falls to the local mean
+        # (locate_minutiae_tips), is a smooth function of the image but lies ~3 px beyond the skeleton's ending
+        # (6-7 px where the valley is blunt, at the edge of contact, beyond a match radius of 0.1 mm); the skeleton
+        # ends at the tip's centre of curvature (tip_curvature_centres, on the excess before the minutiae's
+        # smoothing: it smooths at its own scale), as smooth a function of the image (flatL seeds 1000-1009: 1.0 px
+        # from the simulator's minutia instead of 3.1 px, frame-to-frame jitter 0.09 px instead of 0.06). Where no
+        # tip or no curvature is found, the skeleton's ending stays.
         if ends.any():
             tip = dict(direction_deg=orient[ends], is_ending=np.ones(int(ends.sum()), dtype=bool),
                        reach_px=q.minutia_reach, n_centres=q.tip_axis)
-            rx, ry, _ = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
-            x[ends], y[ends] = rx, ry
+            tx, ty, at_tip = locate_minutiae_tips(excess, x=x[ends], y=y[ends], **tip)
+            cx, cy, _, ok = tip_curvature_centres(forks, x=tx, y=ty, sigma_px=q.tip_sigma, max_radius_px=q.minutia_reach)
+            ok &= at_tip
+            x[ends], y[ends] = np.where(ok, cx, x[ends]), np.where(ok, cy, y[ends])
         # Valley bifurcations: the centre of the largest disc in the valleys near the skeleton's fork (locate_forks).
         if bifs.any():
             rx, ry, _, _ = locate_forks(forks, x=x[bifs], y=y[bifs], reach_px=q.fork_reach,

@@ -5,9 +5,11 @@ binarization threshold* in a small window, iterated so the window re-centres on 
 removes the bias the seed's eq. 4.3 has when the blob sits on a brightness gradient (the plain grey-level centre of
 a blob is pulled toward the brighter side of the window).
 
-Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds where the
-valley (or the ridge between a fork's arms) actually ends in the grey image. See :func:`locate_minutiae_tips`
-(valley endings) and :func:`locate_forks` (valley bifurcations).
+Minutiae: the skeleton's ending or fork depends on binarization and thinning; the refinement finds the same
+landmark from the grey image, where it moves smoothly with the print. A minutia is where the valleys' medial axis
+(the ideal skeleton, seed 4.6) ends or forks: a valley ending at the centre of curvature of the valley's tip
+(:func:`locate_minutiae_tips` finds the tip, :func:`tip_curvature_centres` its centre), a valley bifurcation at
+the centre of the largest disc in the valleys' crotch (:func:`locate_forks`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
 from skinstretch.processing.ridge_flow import RidgeFlow, flow_normal_at
 
-__all__ = ["refine_pores", "locate_pores_on_ridges", "locate_forks", "locate_minutiae_tips"]
+__all__ = ["refine_pores", "locate_pores_on_ridges", "locate_forks", "locate_minutiae_tips", "tip_curvature_centres"]
 
 
 @njit(nogil=True)
@@ -560,9 +562,8 @@ def locate_minutiae_tips(
     2. along that line, the excess averaged across 1 px (weights 1/4, 1/2, 1/4) is sampled every 1/4 px toward
        the tip, and the tip is its zero crossing (linear interpolation).
 
-    The result sits a constant distance beyond the phase singularity of the ridge pattern (the valley's bright
-    centre outlasts the singularity by about a quarter ridge period); tracking needs a stable landmark, not that
-    offset, and the evaluation reports it separately (``loc_bias_px``).
+    The tip lies on the valley's outline, beyond where its skeleton ends (~3 px on the simulated prints, up to 7 px
+    where the valley is blunt); :func:`tip_curvature_centres` moves a valley ending from its tip to that end.
 
     Parameters
     ----------
@@ -647,3 +648,132 @@ def locate_minutiae_tips(
     rx = np.where(ok, rx, x)
     ry = np.where(ok, ry, y)
     return rx, ry, ok
+
+
+@njit(nogil=True)
+def _curvature_centres(img, xs, ys, sigma, max_radius):  # pragma: no cover - compiled
+    """See :func:`tip_curvature_centres`."""
+    h, w = img.shape
+    n = xs.size
+    ox = xs.copy()
+    oy = ys.copy()
+    radius = np.full(n, np.nan)
+    ok = np.zeros(n, np.bool_)
+    half = int(np.ceil(3.0 * sigma))
+    s2 = sigma * sigma
+    wx = np.empty(2 * half + 1)
+    wy = np.empty(2 * half + 1)
+    for k in range(n):
+        x = xs[k]
+        y = ys[k]
+        ic = int(np.rint(x))
+        ir = int(np.rint(y))
+        if ic - half < 0 or ir - half < 0 or ic + half > w - 1 or ir + half > h - 1:
+            continue
+        # Derivatives at the sub-pixel point from a quadratic fitted to the pixels within 3 sigma, weighted by a
+        # Gaussian of ``sigma`` centred there (exact for a quadratic, whatever the point's sub-pixel phase).
+        ata = np.zeros((6, 6))
+        atv = np.zeros(6)
+        basis = np.empty(6)
+        for i in range(2 * half + 1):  # the Gaussian is separable: one exp per row and per column
+            wy[i] = np.exp(-((ir - half + i - y) ** 2) / (2.0 * s2))
+            wx[i] = np.exp(-((ic - half + i - x) ** 2) / (2.0 * s2))
+        for r in range(ir - half, ir + half + 1):
+            dy = r - y
+            gr = wy[r - ir + half]
+            for c in range(ic - half, ic + half + 1):
+                dx = c - x
+                g = gr * wx[c - ic + half]
+                basis[0] = 1.0
+                basis[1] = dx
+                basis[2] = dy
+                basis[3] = 0.5 * dx * dx
+                basis[4] = dx * dy
+                basis[5] = 0.5 * dy * dy
+                v = img[r, c]
+                for i in range(6):
+                    gb = g * basis[i]
+                    atv[i] += gb * v
+                    for j in range(i, 6):
+                        ata[i, j] += gb * basis[j]
+        for i in range(6):
+            for j in range(i):
+                ata[i, j] = ata[j, i]
+        coef = np.linalg.solve(ata, atv)
+        gx = coef[1]
+        gy = coef[2]
+        gxx = coef[3]
+        gxy = coef[4]
+        gyy = coef[5]
+        g2 = gx * gx + gy * gy
+        if not g2 > 0:
+            continue
+        gn = np.sqrt(g2)
+        # Curvature of the isophote through (x, y), positive where the bright side is convex (a valley's tip).
+        kappa = -(gxx * gy * gy - 2.0 * gxy * gx * gy + gyy * gx * gx) / (g2 * gn)
+        if not kappa * max_radius > 1.0:
+            continue
+        rad = 1.0 / kappa
+        ox[k] = x + rad * gx / gn
+        oy[k] = y + rad * gy / gn
+        radius[k] = rad
+        ok[k] = True
+    return ox, oy, radius, ok
+
+
+def tip_curvature_centres(
+    excess: np.ndarray,
+    *,
+    x: np.ndarray,
+    y: np.ndarray,
+    sigma_px: float,
+    max_radius_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Valley endings at the centre of curvature of the valley's outline at its tip.
+
+    The medial axis of a region (its ideal skeleton, seed 4.6) ends at the centre of the circle that osculates the
+    outline where it is most curved, i.e. at the tip of a valley: a round tip of radius r ends the skeleton r
+    behind the tip, a pointed one at the tip itself. The tip (:func:`locate_minutiae_tips`, where the valley's
+    centre line falls to the local mean) lies on the outline, the isophote ``excess = const`` through it; its
+    curvature ``kappa = -(e_xx e_y^2 - 2 e_xy e_x e_y + e_yy e_x^2) / |grad e|^3`` comes from the derivatives of
+    a quadratic fitted to the excess around the sub-pixel point itself, its pixels weighted by a Gaussian of
+    ``sigma_px`` centred there, and the centre is ``1 / kappa`` from the tip along the
+    gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending (6-7 px where
+    the valley is blunt, at the edge of contact), its centre of curvature ~1 px from it.
+
+    Parameters
+    ----------
+    excess : (H, W) float32
+        The frame minus the binarization threshold (valleys > 0).
+    x, y : (M,) float
+        Tips of valleys (on the outline, or near it).
+    sigma_px : float
+        Scale of the derivatives: larger averages more noise out, and the valley's sides into the tip's curvature.
+    max_radius_px : float
+        Largest radius of curvature of a tip: a flatter (or concave) outline is no tip and the point is left as is;
+        so is a point within ``3 sigma_px`` of the image edge.
+
+    Returns
+    -------
+    x, y : (M,) float64
+        The centres (unchanged where none was found).
+    radius : (M,) float64
+        Radii of curvature (NaN where none was found).
+    found : (M,) bool
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> yy, xx = np.mgrid[0:60, 0:60].astype(np.float32)
+    >>> dome = np.exp(-((xx - 30.0) ** 2 + (yy - 28.5) ** 2) / 32.0).astype(np.float32) - 0.5  # circular isophotes
+    >>> cx, cy, r, ok = tip_curvature_centres(dome, x=np.array([34.71]), y=np.array([28.5]), sigma_px=1.5,
+    ...                                       max_radius_px=10.0)
+    >>> round(float(cx[0]), 1), round(float(cy[0]), 1), round(float(r[0]), 1), bool(ok[0])
+    (30.0, 28.5, 4.7, True)
+    """
+    img, _, x, y = _check(excess, excess, x, y, max_radius_px)
+    if not np.isfinite(max_radius_px):
+        raise InvalidInputError(f"max_radius_px must be a positive number, got {max_radius_px!r}")
+    if not (np.isfinite(sigma_px) and sigma_px >= 0.5):
+        raise InvalidInputError(f"sigma_px must be at least 0.5 px, got {sigma_px!r}")
+    return _curvature_centres(img, x, y, float(sigma_px), float(max_radius_px))

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from skinstretch.processing.errors import InvalidInputError
 
@@ -125,6 +126,33 @@ def local_predictions(
         return np.tile(fb, (points.shape[0], 1))
     k = min(neighbours, m)
     return _knn_median(points, matched_points, matched_displacements, k)
+
+
+def local_gradients(points: np.ndarray, displacements: np.ndarray, *, neighbours: int = 10) -> np.ndarray:
+    """The displacement gradient at each of ``points`` from an affine least-squares fit of its ``neighbours``
+    nearest points' ``displacements`` (itself included): ``out[i, j, l] = d u_j / d x_l``, (n, 2, 2). Zero where
+    the fit is degenerate (fewer than 3 points, collinear neighbours)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    displacements = np.asarray(displacements, dtype=np.float64).reshape(-1, 2)
+    if points.shape != displacements.shape:
+        raise InvalidInputError(f"points {points.shape} and displacements {displacements.shape} differ")
+    n = points.shape[0]
+    out = np.zeros((n, 2, 2))
+    if n < 3:
+        return out
+    k = min(int(neighbours), n)
+    _, idx = cKDTree(points).query(points, k=k)
+    rel = points[idx] - points[:, None, :]  # (n, k, 2)
+    a = np.concatenate([np.ones((n, k, 1)), rel], axis=2)  # (n, k, 3): u = u0 + G rel
+    ata = np.einsum("nki,nkj->nij", a, a)
+    atb = np.einsum("nki,nkj->nij", a, displacements[idx])  # (n, 3, 2)
+    det = np.linalg.det(ata)
+    scale = np.einsum("nkj,nkj->n", rel, rel) / k
+    ok = det > 1e-9 * np.maximum(scale, 1e-12) ** 2
+    if ok.any():
+        coef = np.linalg.solve(ata[ok], atb[ok])  # (m, 3, 2): rows u0, d/dx, d/dy; columns u_x, u_y
+        out[ok] = np.transpose(coef[:, 1:, :], (0, 2, 1))
+    return out
 
 
 @numba.njit(cache=True, nogil=True)

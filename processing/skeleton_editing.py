@@ -18,6 +18,13 @@ true valley ending near a fork, or the stretch of valley between two facing ridg
 and stays (flatL bifurcation recall 0.91 -> 0.98 on 20 seeds of 12 frames); a stub of one or two pixels goes
 whatever its direction, and the spur rule repeats until nothing changes.
 
+Also beyond the seed, given the background (where the skin is out of contact, seed 4.3): a branch that ends at it
+is a valley that leaves the contact, its length cut by the contact's edge, not a spur; it stays, and so does its
+fork (a ridge that ends at the fork and fades out of contact before the edge leaves the fork's third valley only
+a few pixels long in the image). Its own ending, at the edge, goes with the border rule (4.8.6). Likewise a valley
+between two forks that runs along the background joins valleys round a ridge that has left the contact, not
+across a pore: it is no bridge.
+
 All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 The results depend on the order of the loops, which is part of the rules: edges and nodes in id order, a pass
 visiting the edges alive when it starts (an edge a merge creates waits for the next pass), sums in the order written.
@@ -367,19 +374,25 @@ def _bridge_end(G, node, edge, n_px, max_dev):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
-def _across_flow(G, a, b, fc2, fs2, fcell):  # pragma: no cover - compiled
-    """Whether the chord from node ``a`` to node ``b`` crosses the ridge flow more than it follows it (within 45
-    degrees of the ridges' normal, taken at the chord's middle), as the branch a pore makes does."""
+def _across_amount(G, a, b, fc2, fs2, fcell):  # pragma: no cover - compiled
+    """cos 2 (alpha - phi) of the chord from node ``a`` to node ``b`` (angle alpha) and the ridges' normal (phi, at
+    the chord's middle): 1 straight across the ridges, -1 along them; NaN for no chord or no flow there."""
     dx = G.node_xy[b, 0] - G.node_xy[a, 0]
     dy = G.node_xy[b, 1] - G.node_xy[a, 1]
     d2 = dx * dx + dy * dy
     if d2 == 0:
-        return False
+        return np.nan
     c2, s2 = flow_normal_at(fc2, fs2, fcell, G.node_xy[a, 0] + dx / 2, G.node_xy[a, 1] + dy / 2)
     if c2 == 0 and s2 == 0:
-        return False
-    # cos 2 (alpha - phi) of the chord's angle alpha and the normal's phi: > 0 within 45 degrees of the normal.
-    return (dx * dx - dy * dy) * c2 + 2.0 * dx * dy * s2 > 0
+        return np.nan
+    return ((dx * dx - dy * dy) * c2 + 2.0 * dx * dy * s2) / d2
+
+
+@njit(nogil=True)
+def _across_flow(G, a, b, fc2, fs2, fcell):  # pragma: no cover - compiled
+    """Whether the chord from node ``a`` to node ``b`` crosses the ridge flow more than it follows it (within 45
+    degrees of the ridges' normal, taken at the chord's middle), as the branch a pore makes does."""
+    return _across_amount(G, a, b, fc2, fs2, fcell) > 0
 
 
 @njit(nogil=True)
@@ -408,9 +421,41 @@ def _branch_end(G, node, edge, n_px, max_dev, flow):  # pragma: no cover - compi
 
 
 @njit(nogil=True)
-def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - compiled
+def _near_background(background, reach, x, y):  # pragma: no cover - compiled
+    """Whether a pixel of ``background`` lies within ``reach`` of (x, y) (never, for an empty mask)."""
+    h, w = background.shape
+    if h == 0:
+        return False
+    r = int(np.ceil(reach))
+    ic = int(np.rint(x))
+    ir = int(np.rint(y))
+    for rr in range(max(ir - r, 0), min(ir + r, h - 1) + 1):
+        for cc in range(max(ic - r, 0), min(ic + r, w - 1) + 1):
+            if background[rr, cc] and (cc - x) ** 2 + (rr - y) ** 2 <= reach * reach:
+                return True
+    return False
+
+
+@njit(nogil=True)
+def _path_near_background(G, e, background, reach):  # pragma: no cover - compiled
+    """Whether a pixel of edge ``e`` (its end nodes included) lies within ``reach`` of ``background``."""
+    if background.shape[0] == 0:
+        return False
+    for node in (G.edge_ab[e, 0], G.edge_ab[e, 1]):
+        if _near_background(background, reach, G.node_xy[node, 0], G.node_xy[node, 1]):
+            return True
+    s = G.edge_span[e, 0]
+    for k in range(s, s + G.edge_span[e, 1]):
+        if _near_background(background, reach, G.path[k, 0], G.path[k, 1]):
+            return True
+    return False
+
+
+@njit(nogil=True)
+def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
     """4.8.3 in one pass over the edges (the seed's), or with the flow in passes until nothing changes: deleting a
-    stub can merge what is left of a pore's spur into a new edge, which only the next pass sees."""
+    stub can merge what is left of a pore's spur into a new edge, which only the next pass sees. A branch that ends
+    within ``open_reach`` of the background is a valley leaving the contact, whatever its length: it stays."""
     flow = fc2.size > 0
     changed = True
     while changed:
@@ -432,6 +477,8 @@ def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover
                 continue
             if not _branch_end(G, bif, e, n_px, max_dev, flow):
                 continue
+            if _near_background(background, open_reach, G.node_xy[end, 0], G.node_xy[end, 1]):
+                continue
             # With the flow, a stub of one or two pixels (thinning leaves them on round blobs) has no direction to
             # judge: it goes.
             if flow and G.edge_length[e] >= 3.0 and not _across_flow(G, bif, end, fc2, fs2, fcell):
@@ -447,23 +494,44 @@ def _short_spurs(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover
 
 
 @njit(nogil=True)
-def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell):  # pragma: no cover - compiled
+def _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
+    """Whether the alive edge ``e`` is a bridge of 4.8.4 (see :func:`remove_bridges`); one that comes within
+    ``open_reach`` of the background joins two valleys where the ridge between them has left the contact, which
+    is no pore."""
+    a = G.edge_ab[e, 0]
+    b = G.edge_ab[e, 1]
+    length = G.edge_length[e]
+    if a == b or not (lo <= length <= hi):
+        return False
+    if not (_branch_end(G, a, e, n_px, max_dev, flow) and _branch_end(G, b, e, n_px, max_dev, flow)):
+        return False
+    if flow and not _across_flow(G, a, b, fc2, fs2, fcell):
+        return False
+    return not _path_near_background(G, e, background, open_reach)
+
+
+@njit(nogil=True)
+def _bridges(G, lo, hi, max_dev, n_px, fc2, fs2, fcell, background, open_reach):  # pragma: no cover - compiled
     flow = fc2.size > 0
     changed = True
     while changed:
         changed = False
-        for e in _alive_edges(G):
-            if not G.edge_alive[e]:
+        edges = _alive_edges(G)
+        if flow:
+            # The bridges of a pass most squarely across the ridges first: where a pore's bridge and a short stretch
+            # of a true valley (between a fork and the pore's junction) share a node, removing one settles the node
+            # and the other is no longer a bridge; the pore's crosses the ridges, the valley's follows them.
+            keys = np.zeros(edges.size)
+            for i in range(edges.size):
+                e = edges[i]
+                if _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):
+                    keys[i] = -_across_amount(G, G.edge_ab[e, 0], G.edge_ab[e, 1], fc2, fs2, fcell)
+            edges = edges[_stable_argsort(keys)]
+        for e in edges:
+            if not G.edge_alive[e] or not _is_bridge(G, e, lo, hi, max_dev, n_px, flow, fc2, fs2, fcell, background, open_reach):
                 continue
             a = G.edge_ab[e, 0]
             b = G.edge_ab[e, 1]
-            length = G.edge_length[e]
-            if a == b or not (lo <= length <= hi):
-                continue
-            if not (_branch_end(G, a, e, n_px, max_dev, flow) and _branch_end(G, b, e, n_px, max_dev, flow)):
-                continue
-            if flow and not _across_flow(G, a, b, fc2, fs2, fcell):
-                continue
             s = G.edge_span[e, 0]
             m = G.edge_span[e, 1]
             if m:
@@ -500,17 +568,17 @@ def _edit_to_healing(G, short_valley_px, heal_px, n_px):  # pragma: no cover - c
 @njit(nogil=True)
 def _edit_from_healing(
     G, counts, ends, iu, ju, dist, acos, heal_px, heal_deg, spur_lo, spur_hi, spur_dev, bridge_lo, bridge_hi,
-    bridge_dev, n_px, fc2, fs2, fcell,
+    bridge_dev, n_px, fc2, fs2, fcell, background, open_reach,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Extraction's editing, second part: 4.8.2, 4.8.3, 4.8.4, each when its upper length is > 0, with counts."""
     if heal_px > 0:
         _heal_apply(G, ends, iu, ju, dist, acos, heal_px, heal_deg)
         _counts(G, counts[2])
     if spur_hi > 0:
-        _short_spurs(G, spur_lo, spur_hi, spur_dev, n_px, fc2, fs2, fcell)
+        _short_spurs(G, spur_lo, spur_hi, spur_dev, n_px, fc2, fs2, fcell, background, open_reach)
         _counts(G, counts[3])
     if bridge_hi > 0:
-        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px, fc2, fs2, fcell)
+        _bridges(G, bridge_lo, bridge_hi, bridge_dev, n_px, fc2, fs2, fcell, background, open_reach)
         _counts(G, counts[4])
 
 
@@ -539,6 +607,7 @@ def line_pixels(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
 
 
 _NO_FLOW = (np.zeros((0, 0)), np.zeros((0, 0)), 1)
+_NO_BACKGROUND = (np.zeros((0, 0), np.bool_), 0.0)
 
 
 def _flow_arrays(flow: RidgeFlow | None):
@@ -549,13 +618,23 @@ def _flow_arrays(flow: RidgeFlow | None):
     return flow.cos2, flow.sin2, flow.cell_px
 
 
+def _background_arrays(background, reach_px):
+    if background is None:
+        return _NO_BACKGROUND
+    background = np.asarray(background)
+    if background.ndim != 2 or background.dtype != np.bool_:
+        raise InvalidInputError(f"background must be a 2-D bool mask, got {background.dtype} of shape {background.shape}")
+    return np.ascontiguousarray(background), positive_number(reach_px, "open_reach_px")
+
+
 def _run_rules(arrays, n_px, sv=0.0, heal=(0.0, 0.0), spurs=(0.0, 0.0, 0.0), bridges=(0.0, 0.0, 0.0),
-               flow=None) -> np.ndarray:
+               flow=None, background=None, open_reach_px=0.0) -> np.ndarray:
     """Run the rules whose first length is > 0, in the order of seed 4.8, on ``arrays`` (in place); (5, 3) counts."""
     counts, ends, iu, ju, dist, cos = _edit_to_healing(arrays, sv, heal[0], n_px)
     # numpy's arccos (vectorised: it can differ from the C library's acos in the last bit), as the rule always had.
     acos = np.arccos(cos)
-    _edit_from_healing(arrays, counts, ends, iu, ju, dist, acos, *heal, *spurs, *bridges, n_px, *_flow_arrays(flow))
+    _edit_from_healing(arrays, counts, ends, iu, ju, dist, acos, *heal, *spurs, *bridges, n_px, *_flow_arrays(flow),
+                       *_background_arrays(background, open_reach_px))
     return counts
 
 
@@ -612,6 +691,8 @@ def remove_short_spurs(
     max_deviation_deg: float,
     orientation_px: int,
     flow: RidgeFlow | None = None,
+    background: np.ndarray | None = None,
+    open_reach_px: float = 3.0,
 ) -> SkeletonGraph:
     """Delete short spurs roughly perpendicular to their valley (seed 4.8.3, Figures 40-41).
 
@@ -623,9 +704,12 @@ def remove_short_spurs(
     Beyond the seed: the spur may also leave a crossing of four valleys where a bridge (4.8.4) continues it
     straight on, the last pore of a row of pores across the ridges (see :func:`remove_bridges`). With ``flow``
     (a :class:`skinstretch.processing.ridge_flow.RidgeFlow`) the angle test is against the ridges (module doc).
+    With ``background`` (the out-of-contact mask, bool), a branch ending within ``open_reach_px`` of it is a valley
+    leaving the contact, cut short by the contact's edge rather than short: it stays (module doc).
     """
     spurs = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
-    return _edited(graph, _n_px(orientation_px), spurs=spurs, flow=flow)
+    return _edited(graph, _n_px(orientation_px), spurs=spurs, flow=flow, background=background,
+                   open_reach_px=open_reach_px)
 
 
 def remove_bridges(
@@ -636,14 +720,17 @@ def remove_bridges(
     max_deviation_deg: float,
     orientation_px: int,
     flow: RidgeFlow | None = None,
+    background: np.ndarray | None = None,
+    open_reach_px: float = 3.0,
 ) -> SkeletonGraph:
     """Replace bridges between adjacent valleys by pores (seed 4.8.4, Figures 43-44).
 
     A bridge is a valley between two distinct bifurcations of three valleys each, with a length in
     [``min_length_px``, ``max_length_px``] and all four angles with the neighbouring valleys within
     ``max_deviation_deg`` of 90 degrees. It is deleted, a pore is added at its centre of mass and both
-    bifurcations are re-evaluated. Returns an edited copy. With ``flow`` the angle test is against the ridges
-    (module doc).
+    bifurcations are re-evaluated. Returns an edited copy. With ``flow`` the angle test is against the ridges,
+    the bridges most squarely across them first; with ``background`` (bool mask) a valley that comes within
+    ``open_reach_px`` of it is no bridge (module doc).
 
     Beyond the seed: a row of pores across several ridges, each wide enough to join its two valleys in the binary
     image, makes a chain of bridges that cross each valley at one point, i.e. nodes of four valleys. A bridge may
@@ -652,7 +739,8 @@ def remove_bridges(
     next bridge of the chain is taken on the next pass. Passes repeat until nothing changes.
     """
     bridges = (*_length_range(min_length_px, max_length_px), _angle_limit(max_deviation_deg, "max_deviation_deg"))
-    return _edited(graph, _n_px(orientation_px), bridges=bridges, flow=flow)
+    return _edited(graph, _n_px(orientation_px), bridges=bridges, flow=flow, background=background,
+                   open_reach_px=open_reach_px)
 
 
 def edit_graph(
@@ -664,12 +752,15 @@ def edit_graph(
     spurs: tuple[float, float, float] | None = None,
     bridges: tuple[float, float, float] | None = None,
     flow: RidgeFlow | None = None,
+    background: np.ndarray | None = None,
+    open_reach_px: float = 3.0,
 ) -> np.ndarray:
     """The skeleton rules of seed 4.8.1-4.8.4 in order, on graph arrays edited in place (the extraction's chain).
 
     Each rule runs when its parameters are given: ``short_valley_px`` (:func:`remove_short_valleys`), ``heal`` =
     (max distance px, max angle deg), ``spurs`` and ``bridges`` = (min length px, max length px, max deviation deg);
-    ``flow`` makes the spur and bridge rules judge by the ridge flow (module doc).
+    ``flow`` makes the spur and bridge rules judge by the ridge flow, ``background`` keeps the spurs that end
+    within ``open_reach_px`` of it and the bridges that come that close (module doc).
     The same result as the public functions in turn, in two compiled calls.
 
     Returns (5, 3) int64 counts of valley endings, valley bifurcations and pores, initially and after each rule (0
@@ -685,5 +776,6 @@ def edit_graph(
         rules["spurs"] = (*_length_range(*spurs[:2]), _angle_limit(spurs[2], "max_deviation_deg"))
     if bridges is not None:
         rules["bridges"] = (*_length_range(*bridges[:2]), _angle_limit(bridges[2], "max_deviation_deg"))
-    return _run_rules(arrays, _n_px(orientation_px), flow=flow, **rules)
+    return _run_rules(arrays, _n_px(orientation_px), flow=flow, background=background, open_reach_px=open_reach_px,
+                      **rules)
 

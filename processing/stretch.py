@@ -99,6 +99,52 @@ def _distinct_finite(pa, d):  # pragma: no cover - compiled
 
 
 @njit(nogil=True)
+def _spaced(pa, rows, ids, min_spacing):  # pragma: no cover - compiled
+    """The ``rows`` of ``pa`` kept when points are taken in increasing ``ids`` (the oldest tracks first) and a point
+    closer than ``min_spacing`` to one already taken is left out; in increasing row order. A grid of cells
+    at least ``min_spacing`` wide holds the points taken (each point looks at its 3 x 3 cells)."""
+    m = rows.size
+    if min_spacing <= 0 or m < 2:
+        return rows
+    x0 = np.inf
+    y0 = np.inf
+    x1 = -np.inf
+    y1 = -np.inf
+    for k in range(m):
+        x0 = min(x0, pa[rows[k], 0])
+        y0 = min(y0, pa[rows[k], 1])
+        x1 = max(x1, pa[rows[k], 0])
+        y1 = max(y1, pa[rows[k], 1])
+    # Cells at least min_spacing wide (so a close point is in the 3 x 3 around), at most ~512 per side.
+    cell = max(min_spacing, (x1 - x0) / 512.0, (y1 - y0) / 512.0)
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    head = np.full(nx * ny, -1, np.int64)
+    nxt = np.full(m, -1, np.int64)
+    keep = np.zeros(m, np.bool_)
+    s2 = min_spacing * min_spacing
+    for k in np.argsort(ids[rows], kind="mergesort"):
+        x, y = pa[rows[k], 0], pa[rows[k], 1]
+        cx = int((x - x0) / cell)
+        cy = int((y - y0) / cell)
+        free = True
+        for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
+            for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
+                j = head[gy * nx + gx]
+                while j >= 0 and free:
+                    dx = pa[rows[j], 0] - x
+                    dy = pa[rows[j], 1] - y
+                    if dx * dx + dy * dy < s2:
+                        free = False
+                    j = nxt[j]
+        if free:
+            keep[k] = True
+            nxt[k] = head[cy * nx + cx]
+            head[cy * nx + cx] = k
+    return rows[keep]
+
+
+@njit(nogil=True)
 def _triangle_changes(pa, pb, tri, max_edge, min_area, min_quality):
     """After the Delaunay triangulation (in place on ``tri``): orient each triangle counter-clockwise on the image,
     leave out degenerate, long and sliver triangles, and measure the areas (frames a and b, signed in b) and the
@@ -158,7 +204,7 @@ STRAIN_OK, TOO_FEW_POINTS, COLLINEAR, NO_USABLE_TRIANGLE = 0, 1, 2, 3
 
 
 @njit(nogil=True)
-def _strain_batch(points, disp, offsets, max_edge, min_area, min_quality):  # pragma: no cover - compiled
+def _strain_batch(points, disp, ids, offsets, max_edge, min_area, min_quality, min_spacing):  # pragma: no cover
     """The triangulation strain of every pair (rows ``offsets[i]:offsets[i + 1]`` of ``points`` and ``disp``) in
     one call without the GIL. Output rows (``kept`` points, triangle corners, edge ends) index ``points``."""
     n_pairs = offsets.size - 1
@@ -186,7 +232,7 @@ def _strain_batch(points, disp, offsets, max_edge, min_area, min_quality):  # pr
         for k in range(o1 - o0):
             if np.isfinite(pa_in[k, 0]) and np.isfinite(pa_in[k, 1]) and np.isfinite(d_in[k, 0]) and np.isfinite(d_in[k, 1]):
                 n_in += 1
-        first = _distinct_finite(pa_in, d_in)
+        first = _spaced(pa_in, _distinct_finite(pa_in, d_in), ids[o0:o1], min_spacing)
         m = first.size
         n_distinct[i] = m
         for k in range(m):
@@ -284,10 +330,13 @@ def triangulation_strains(
     max_edge_px: float | None = None,
     min_area_px2: float = 1.0,
     min_quality: float = 0.1,
+    min_spacing_px: float = 0.0,
 ) -> StrainBatch:
     """:func:`triangulation_strain` of every sample in one compiled call (no GIL held: a caller can run several
     batches on threads). A pair that has no strain carries the reason (:meth:`StrainBatch.failure`) instead of
     raising."""
+    if not (np.isfinite(min_spacing_px) and min_spacing_px >= 0):
+        raise InvalidInputError(f"min_spacing_px must be a non-negative number, got {min_spacing_px!r}")
     pts, disp, ids = [], [], []
     for s in samples:
         p = np.asarray(s.points, dtype=np.float64).reshape(-1, 2)
@@ -304,10 +353,11 @@ def triangulation_strains(
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     points = np.concatenate(pts) if pts else np.zeros((0, 2))
     displacement = np.concatenate(disp) if disp else np.zeros((0, 2))
+    all_ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
     (status, n_distinct, n_dropped, kept, kept_off, tri, area_a, area_b, tri_off, edges, la, lb,
      edge_off) = _strain_batch(
-        points, displacement, offsets, np.inf if max_edge_px is None else float(max_edge_px), float(min_area_px2),
-        float(min_quality),
+        points, displacement, all_ids, offsets, np.inf if max_edge_px is None else float(max_edge_px),
+        float(min_area_px2), float(min_quality), float(min_spacing_px),
     )
     return StrainBatch(
         frame_a=np.array([int(s.frame_a) for s in samples], dtype=np.int64),
@@ -318,7 +368,7 @@ def triangulation_strains(
         n_dropped=n_dropped,
         points=points,
         displacement=displacement,
-        ids=np.concatenate(ids) if ids else np.zeros(0, np.int64),
+        ids=all_ids,
         kept=kept,
         kept_offsets=kept_off,
         triangles=tri,
@@ -339,6 +389,7 @@ def triangulation_strain(
     max_edge_px: float | None = None,
     min_area_px2: float = 1.0,
     min_quality: float = 0.1,
+    min_spacing_px: float = 0.0,
 ) -> TriangulationStrain:
     """Relative edge-length and triangle-area change of the Delaunay triangulation of ``sample.points``.
 
@@ -354,6 +405,11 @@ def triangulation_strain(
     min_quality : float
         Slivers are left out: shape quality ``4 sqrt(3) A / (a^2 + b^2 + c^2)`` (1 equilateral, 0 flat) below
         this. A sliver's relative area change divides by a near-zero area: a pixel of noise becomes tens of %.
+    min_spacing_px : float
+        Points are taken in increasing ``ids`` (the oldest tracks first) and one closer than this to a point
+        already taken is left out (0: every point). An edge's strain error is the two ends' displacement error
+        over its length: two tracks a few pixels apart (two landmarks of one ridge, a landmark and a pore) would
+        give edges whose strain is mostly noise.
 
     Raises
     ------
@@ -369,7 +425,8 @@ def triangulation_strain(
     >>> np.allclose(r.edge_change, 0.02), np.allclose(r.area_change, 1.02**2 - 1)
     (True, True)
     """
-    b = triangulation_strains([sample], max_edge_px=max_edge_px, min_area_px2=min_area_px2, min_quality=min_quality)
+    b = triangulation_strains([sample], max_edge_px=max_edge_px, min_area_px2=min_area_px2, min_quality=min_quality,
+                              min_spacing_px=min_spacing_px)
     reason = b.failure(0)
     if reason is not None:
         raise InsufficientDataError(reason)

@@ -1,6 +1,7 @@
-"""Feature matching between consecutive frames and feature trajectories (seed 5.1).
+"""Feature tracking over a sequence and feature trajectories (seed 5.1).
 
-Matching (seed 5.1.1): each feature of frame k-1 is looked for near its expected position in frame k. The
+Matching (seed 5.1.1, :mod:`skinstretch.processing.feature_matching`): each feature of frame k-1 is looked for near
+its expected position in frame k. The
 expected displacement is the feature's previous displacement when it has one, otherwise the average of the
 predictions (or, with a :class:`skinstretch.processing.global_motion.GlobalMotionEstimator`, the measured global motion).
 Candidates are the features of the same kind inside a circular search window (0.3 mm); each candidate pair is
@@ -17,7 +18,7 @@ extraction's accuracy divided by the square root of the track length.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import numba
@@ -28,7 +29,11 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.parameters import parameters
-from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
+from skinstretch.processing.feature_matching import (  # noqa: F401 - match_features: the public matching
+    FeatureColumns, LostFeatures, Matches, crowded_points, duplicate_starts, feature_columns, match_columns,
+    match_features, merge_bridged,
+)
+from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 # smooth_positions stays importable from here, where it was defined before it moved
 from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
@@ -56,6 +61,17 @@ class TrackingParams:
         With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
         refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
         the ~0.5 mm between neighbours moves them apart by far less).
+    max_bridge_frames : int or None
+        With sub-pixel refinement: a tracked point whose feature is not found again is followed by registration
+        alone (bridged) for at most this many frames (None: as long as its registration holds, i.e. while it stays
+        in view and in contact and moves like its neighbours); found again within ``merge_radius_mm``, the feature
+        continues it. 0: no bridging.
+    merge_radius_mm : float
+        With sub-pixel refinement: a feature this close to where the registration measured a tracked point to be
+        is that point's landmark: it confirms the point's match, or continues it when the point's own feature was
+        missed; another feature this close starts no track of its own (one skin point detected twice). 0.1 mm =
+        6 px at 62 px/mm, a quarter of a ridge period: the jitter of a detection is smaller, and distinct landmarks
+        are rarely closer.
     """
 
     search_radius_mm: float = Field(0.3, gt=0)
@@ -64,6 +80,18 @@ class TrackingParams:
     smoothing_sigma_frames: float = Field(1.0, gt=0)
     max_gap_frames: int = Field(0, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
+    max_bridge_frames: int | None = Field(0, ge=0)
+    merge_radius_mm: float = Field(0.1, gt=0)
+
+
+def join_overlap_frames(params: TrackingParams) -> int:
+    """Frames two trackers of one sequence must share for :meth:`FeatureTracker.continue_with` to join them: past
+    them a tracker remembers nothing the other did not see (a point waiting to be re-linked expires after
+    ``max_gap_frames``, one followed by registration alone after a finite ``max_bridge_frames``). A point followed
+    for as long as its registration holds may outlive any overlap: a join whose frames disagree is then refused and
+    the caller tracks those frames itself."""
+    bridge = params.max_bridge_frames
+    return max(int(params.max_gap_frames), int(bridge or 0)) + 2
 
 
 #: Seed 5.1.2: trajectories shorter than 30 frames are rejected.
@@ -75,18 +103,6 @@ def min_length_for_clip(n_frames: int) -> int:
     (at least 2), which would otherwise keep no trajectory at all."""
     n = int(n_frames)
     return DEFAULT_MIN_LENGTH_FRAMES if n >= DEFAULT_MIN_LENGTH_FRAMES else max(2, n // 2)
-
-
-@dataclass(frozen=True)
-class Matches:
-    """Matched pairs between two feature tables: row indices into each, and the eq. 5.1 confidence."""
-
-    prev_index: np.ndarray  # (m,) int64
-    curr_index: np.ndarray  # (m,) int64
-    confidence: np.ndarray  # (m,) float64
-
-    def __len__(self) -> int:
-        return int(self.prev_index.size)
 
 
 @dataclass(frozen=True)
@@ -104,183 +120,6 @@ class MotionSample:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
-
-
-def match_features(
-    prev: np.ndarray,
-    curr: np.ndarray,
-    *,
-    calibration: Calibration,
-    predicted_displacement: np.ndarray | None = None,
-    search_radius_mm: float = 0.3,
-) -> Matches:
-    """Match the features of two consecutive frames (seed 5.1.1).
-
-    Parameters
-    ----------
-    prev, curr : FEATURE_DTYPE arrays
-        Features of frame k-1 and frame k.
-    calibration : Calibration
-        Converts the search radius to pixels.
-    predicted_displacement : array of shape (2,) or (len(prev), 2), optional
-        Expected displacement (dx, dy) px of every feature of ``prev`` (default: none).
-    search_radius_mm : float
-        Radius of the circular search window around each expected position.
-
-    Returns
-    -------
-    Matches
-        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
-
-    Examples
-    --------
-    >>> from skinstretch.processing.feature_table import make_features
-    >>> a = make_features([10.0, 50.0], [10.0, 10.0], [2, 2])
-    >>> b = make_features([52.0, 12.0], [10.0, 11.0], [2, 2])
-    >>> m = match_features(a, b, calibration=Calibration(px_per_mm=62.0))
-    >>> m.prev_index.tolist(), m.curr_index.tolist()
-    ([0, 1], [1, 0])
-    """
-    validate_features(prev)
-    validate_features(curr)
-    if not (np.isfinite(search_radius_mm) and search_radius_mm > 0):
-        raise InvalidInputError(f"search_radius_mm must be positive, got {search_radius_mm!r}")
-    radius = calibration.px(search_radius_mm)
-    pred = _broadcast_prediction(predicted_displacement, prev.shape[0])
-    return _match(_columns(prev), _columns(curr), pred, radius)
-
-
-def _broadcast_prediction(pred, n: int) -> np.ndarray:
-    if pred is None:
-        return np.zeros((n, 2))
-    pred = np.asarray(pred, dtype=np.float64)
-    if pred.shape == (2,):
-        return np.tile(pred, (n, 1))
-    if pred.shape != (n, 2):
-        raise InvalidInputError(f"predicted_displacement must have shape (2,) or ({n}, 2), got {pred.shape}")
-    if not np.all(np.isfinite(pred)):
-        raise InvalidInputError("predicted_displacement holds non-finite values")
-    return pred
-
-
-@dataclass(frozen=True)
-class _Cols:
-    xy: np.ndarray
-    kind: np.ndarray
-    orientation: np.ndarray
-    known: np.ndarray
-
-
-def _columns(table: np.ndarray) -> _Cols:
-    return _Cols(
-        np.column_stack([table["x"], table["y"]]).astype(np.float64),
-        table["kind"].astype(np.int8),
-        table["orientation"].astype(np.float64),
-        table["orientation_known"].astype(bool),
-    )
-
-
-def _match(prev: _Cols, curr: _Cols, pred: np.ndarray, radius: float) -> Matches:
-    if prev.xy.shape[0] == 0 or curr.xy.shape[0] == 0:
-        return Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-    expected = np.ascontiguousarray(prev.xy + pred, dtype=np.float64)
-    order = np.argsort(curr.xy[:, 0], kind="stable")
-    i, j, conf = _match_kernel(
-        expected,
-        prev.kind,
-        prev.orientation,
-        prev.known,
-        np.ascontiguousarray(curr.xy[order], dtype=np.float64),
-        order.astype(np.int64),
-        curr.kind,
-        curr.orientation,
-        curr.known,
-        float(radius),
-    )
-    return Matches(i, j, conf)
-
-
-@numba.njit(cache=True, nogil=True)
-def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, corient, cknown, radius):
-    """Candidates (same kind, distance <= radius from the expected position; ``cxy_sorted`` is the current
-    frame's positions sorted by x, ``corder`` their rows), rated by eq. 5.1, then finalised greedily in decreasing
-    confidence (ties: shorter distance first), each feature used once. Returns the pairs sorted by prev row."""
-    n = expected.shape[0]
-    m = cxy_sorted.shape[0]
-    r2 = radius * radius
-    cap = 16
-    ci = np.empty(cap, np.int64)
-    cj = np.empty(cap, np.int64)
-    cd = np.empty(cap, np.float64)
-    cc = np.empty(cap, np.float64)
-    k = 0
-    for a in range(n):
-        ex = expected[a, 0]
-        ey = expected[a, 1]
-        lo = np.searchsorted(cxy_sorted[:, 0], ex - radius, side="left")
-        for t in range(lo, m):
-            dx = cxy_sorted[t, 0] - ex
-            if dx > radius:
-                break
-            dy = cxy_sorted[t, 1] - ey
-            d2 = dx * dx + dy * dy
-            if d2 > r2:
-                continue
-            b = corder[t]
-            if pkind[a] != ckind[b]:
-                continue
-            d = np.sqrt(d2)
-            # Eq. 5.1; the orientation term is null for pores and minutiae of unknown orientation.
-            orient = 0.0
-            if pknown[a] and cknown[b]:
-                dtheta = abs((porient[a] - corient[b] + 180.0) % 360.0 - 180.0)
-                orient = (180.0 - dtheta) / 180.0
-            if k == cap:
-                cap *= 2
-                ci2 = np.empty(cap, np.int64)
-                cj2 = np.empty(cap, np.int64)
-                cd2 = np.empty(cap, np.float64)
-                cc2 = np.empty(cap, np.float64)
-                ci2[:k] = ci
-                cj2[:k] = cj
-                cd2[:k] = cd
-                cc2[:k] = cc
-                ci, cj, cd, cc = ci2, cj2, cd2, cc2
-            ci[k] = a
-            cj[k] = b
-            cd[k] = d
-            cc[k] = orient + (radius - d) / radius
-            k += 1
-    ci, cj, cd, cc = ci[:k], cj[:k], cd[:k], cc[:k]
-    by_d = np.argsort(cd, kind="mergesort")
-    order = by_d[np.argsort(-cc[by_d], kind="mergesort")]
-    used_p = np.zeros(n, np.bool_)
-    used_c = np.zeros(ckind.shape[0], np.bool_)
-    owner = np.full(n, -1, np.int64)
-    for t in order:
-        a = ci[t]
-        b = cj[t]
-        if used_p[a] or used_c[b]:
-            continue
-        used_p[a] = True
-        used_c[b] = True
-        owner[a] = t
-    count = 0
-    for a in range(n):
-        if owner[a] >= 0:
-            count += 1
-    pi = np.empty(count, np.int64)
-    pj = np.empty(count, np.int64)
-    pc = np.empty(count, np.float64)
-    q = 0
-    for a in range(n):
-        t = owner[a]
-        if t >= 0:
-            pi[q] = a
-            pj[q] = cj[t]
-            pc[q] = cc[t]
-            q += 1
-    return pi, pj, pc
 
 
 @dataclass
@@ -448,17 +287,22 @@ class FeatureTracker:
         self.motion_estimator = motion_estimator
         self._radius = calibration.px(self.params.search_radius_mm)
         self._max_deviation = calibration.px(self.params.max_local_deviation_mm)
+        self._merge_radius = calibration.px(self.params.merge_radius_mm)
         self._n_frames = 0
         self._n_tracks = 0
         self._n_features = 0
-        self._prev: _Cols | None = None
+        self._prev: FeatureColumns | None = None
         self._prev_frame: FrameImages | None = None
         self._prev_tracks = np.zeros(0, np.int64)
         self._prev_disp = np.zeros((0, 2))
-        # per frame: (track ids, xy, feature offset, disp from previous frame (NaN = not linked), refined)
+        self._prev_age = np.zeros(0, np.int64)  # frames since each point of the previous frame was last detected
+        self._prev_feature_row = np.zeros(0, np.int64)  # row of each point in its frame's features (-1: bridged)
+        # per frame: (track ids, extracted xy (NaN for a point bridged by registration), offset of the frame's
+        # features in the sequence's, disp from previous frame (NaN = not linked), refined); the frame's features
+        # come first, in their table's order, then its bridged points
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
-        self._lost = _LostTracks()
+        self._lost = LostFeatures()
         self._released = False
         self._n_taken = 0  # frames handed out by take_frames
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
@@ -481,7 +325,8 @@ class FeatureTracker:
     def add_frame(
         self, features: np.ndarray, *, image: np.ndarray | None = None, prepared: "FrameImages | None" = None
     ) -> Matches:
-        """Match ``features`` (this frame) to the previous frame's; returns the matches (empty for the first).
+        """Match ``features`` (this frame) to the previous frame's; returns the matches between the two frames'
+        features (rows of the two tables; empty for the first frame).
 
         ``image`` is needed with a refiner or a motion estimator, unless ``prepared`` (from :meth:`prepare_image`
         of the same image) is given instead.
@@ -494,12 +339,14 @@ class FeatureTracker:
             if image is None:
                 raise InvalidInputError("image is required when the tracker has a refiner or a motion estimator")
             prepared = self.prepare_image(image)
-        cols = _columns(features)
+        cols = feature_columns(features)
         n = cols.xy.shape[0]
         disp = np.full((n, 2), np.nan)
         refined = np.zeros(n, bool)
         tracks = np.full(n, -1, np.int64)
         matches = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        bridged = np.zeros(0, np.int64)  # points of the previous frame continued into this one by registration
+        bridged_disp = np.zeros((0, 2))
         if self._prev is not None:
             prev = self._prev
             known = np.all(np.isfinite(self._prev_disp), axis=1)
@@ -509,31 +356,39 @@ class FeatureTracker:
                 # A previous displacement disagreeing with the measured global motion is stale (direction change).
                 stale = np.hypot(*(pred - shift).T) > self._radius / 2
                 pred[stale] = shift
-            matches = _match(prev, cols, pred, self._radius)
+            matches = match_columns(prev, cols, pred, self._radius)
             if self.motion_estimator is not None and len(matches) >= 3:
                 # Second pass: predict from matched neighbours (local structure, sticking and slipping regions).
                 d1 = cols.xy[matches.curr_index] - prev.xy[matches.prev_index]
-                pred2 = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
-                matches = _match(prev, cols, pred2, self._radius)
+                pred = local_predictions(prev.xy, prev.xy[matches.prev_index], d1, fallback=shift)
+                matches = match_columns(prev, cols, pred, self._radius)
             pi, ci = matches.prev_index, matches.curr_index
             d = cols.xy[ci] - prev.xy[pi]
-            if self.refiner is not None and self._prev_frame is not None and pi.size:
-                r = self.refiner.refine(self._prev_frame.refine, prepared.refine, prev.xy[pi], d)
-                d = r.displacement
-                ok = r.refined.copy()
-                if ok.sum() >= 7:
-                    # Local consistency: skin moves smoothly, so a refined displacement far from the median of
-                    # its nearest refined neighbours is a registration failure (contact edge, lost texture).
-                    med = local_predictions(prev.xy[pi], prev.xy[pi][ok], d[ok], neighbours=7)
-                    ok &= np.hypot(*(d - med).T) <= self._max_deviation
-                refined[ci] = ok
+            matched_prev = np.zeros(prev.xy.shape[0], bool)
+            matched_prev[pi] = True
+            if self.refiner is not None and self._prev_frame is not None:
+                # Points left unmatched, seen at most max_bridge_frames ago, are looked for by registration alone.
+                limit = self.params.max_bridge_frames
+                young = self._prev_age < limit if limit is not None else np.ones(prev.xy.shape[0], bool)
+                candidates = np.flatnonzero(~matched_prev & young)
+                if pi.size or candidates.size:
+                    rf = self._refine(prev, pi, ci, cols, d, candidates, pred[candidates], prepared)
+                    bridged, bridged_disp = rf.bridged, rf.bridged_disp
+                    keep = ~rf.detached  # a detached match: the registration followed the point away from its feature
+                    matches = Matches(pi[keep], ci[keep], matches.confidence[keep])
+                    pi, ci = matches.prev_index, matches.curr_index
+                    d = rf.disp[keep]
+                    refined[ci] = rf.ok[keep]
             disp[ci] = d
             tracks[ci] = self._prev_tracks[pi]
             self.global_shifts.append(shift)
             self.pair_status.append("ok" if len(matches) >= 3 else "fewer than 3 matches")
-            # Features of frame k-1 left unmatched may be re-linked within max_gap_frames (beyond the seed).
-            matched_prev = np.zeros(prev.xy.shape[0], bool)
-            matched_prev[pi] = True
+            if bridged.size and n:
+                bridged, bridged_disp = merge_bridged(prev.xy, self._prev_tracks, bridged, bridged_disp, cols.xy,
+                                                      tracks, disp, refined, matched_prev, radius=self._merge_radius)
+            # Points of frame k-1 neither matched nor bridged may be re-linked within max_gap_frames of their last
+            # detection (beyond the seed), with a new run: their motion across the gap is not measured.
+            matched_prev[bridged] = True
             unmatched_prev = np.flatnonzero(~matched_prev)
             step = np.median(d, axis=0) if pi.size else shift
             self._lost.advance(step)
@@ -549,18 +404,123 @@ class FeatureTracker:
                     self._prev_tracks[unmatched_prev],
                 )
             self._lost.expire(self.params.max_gap_frames)
-        new = tracks < 0
+            rows = self._prev_feature_row[matches.prev_index]
+            matches = Matches(rows, matches.curr_index, matches.confidence)
+        bridged_xy = self._prev.xy[bridged] + bridged_disp if bridged.size else np.zeros((0, 2))
+        untrack = np.zeros(n, bool)
+        if self.refiner is not None and bridged.size + n >= 2:
+            untrack, drop = crowded_points(cols.xy, tracks, bridged_xy, self._prev_tracks[bridged],
+                                           radius=self._merge_radius / 2)
+            if drop.any():
+                bridged, bridged_disp, bridged_xy = bridged[~drop], bridged_disp[~drop], bridged_xy[~drop]
+            tracks[untrack] = -1
+            disp[untrack] = np.nan
+            refined[untrack] = False
+        new = (tracks < 0) & ~untrack
+        if self.refiner is not None:  # without registration the seed's matching is left as it is
+            new &= ~duplicate_starts(cols.xy, tracks, bridged_xy, radius=self._merge_radius)
         tracks[new] = np.arange(self._n_tracks, self._n_tracks + int(new.sum()))
         self._n_tracks += int(new.sum())
         self._track_kind.append(cols.kind[new])
-        self._frames.append((tracks, cols.xy, self._n_features, disp, refined))
+        # The record of this frame: its features (a duplicate of a tracked point has track -1), then the points
+        # bridged into it (a measured position, no feature: the extracted position is NaN there).
+        tracked = np.flatnonzero(tracks >= 0)
+        nb = bridged.size
+        raw = cols.xy
+        rec_tracks, rec_disp, rec_refined = tracks, disp, refined
+        if nb:
+            raw = np.concatenate([cols.xy, np.full((nb, 2), np.nan)])
+            rec_tracks = np.concatenate([tracks, self._prev_tracks[bridged]])
+            rec_disp = np.concatenate([disp, bridged_disp])
+            rec_refined = np.concatenate([refined, np.ones(nb, bool)])
+        self._frames.append((rec_tracks, raw, self._n_features, rec_disp, rec_refined))
+        # The points the next frame is matched to: the tracked features, then the bridged points.
+        p = self._prev
+        self._prev = FeatureColumns(
+            np.concatenate([cols.xy[tracked], bridged_xy]),
+            np.concatenate([cols.kind[tracked], p.kind[bridged] if nb else np.zeros(0, np.int8)]),
+            np.concatenate([cols.orientation[tracked], p.orientation[bridged] if nb else np.zeros(0)]),
+            np.concatenate([cols.known[tracked], p.known[bridged] if nb else np.zeros(0, bool)]),
+        )
+        self._prev_feature_row = np.concatenate([tracked, np.full(nb, -1, np.int64)])
+        self._prev_tracks = np.concatenate([tracks[tracked], rec_tracks[n:]])
+        self._prev_disp = np.concatenate([disp[tracked], bridged_disp])
+        self._prev_age = np.concatenate([np.zeros(tracked.size, np.int64),
+                                         self._prev_age[bridged] + 1 if nb else np.zeros(0, np.int64)])
+        self._prev_frame = prepared if needs_image else None
         self._n_features += n
         self._n_frames += 1
-        self._prev = cols
-        self._prev_tracks = tracks
-        self._prev_disp = disp
-        self._prev_frame = prepared if needs_image else None
         return matches
+
+    def _refine(self, prev: FeatureColumns, pi, ci, cols: FeatureColumns, d, candidates, candidate_pred, prepared) -> "_Refinement":
+        """Refine the displacements ``d`` of the matched points ``pi`` of ``prev`` (to features ``ci`` of ``cols``)
+        and look for the unmatched ``candidates`` by registration alone.
+
+        Matched displacements are registered from the matched features first (the seed of a sub-pixel step). Those
+        that fail, and the candidates, are then registered from the motion of their refined neighbours (the median
+        of the 6 nearest), which does not depend on where a jittery or wrong detection put the feature: a match
+        whose registration ends further than ``merge_radius_mm`` from its feature is detached from it (the skin
+        point is followed, the feature is free), one that ends near it is refined. A point found by registration
+        alone has no feature to confirm it, so it must pass the local consistency test against at least 3 refined
+        neighbours (a match carries the test when there are 7)."""
+        m = pi.size
+        a, b = self._prev_frame.refine, prepared.refine
+        if m:
+            r1 = self.refiner.refine(a, b, prev.xy[pi], d)
+            dd, ok = r1.displacement.copy(), r1.refined.copy()
+        else:
+            dd, ok = np.zeros((0, 2)), np.zeros(0, bool)
+        good = int(ok.sum())
+        retry = np.flatnonzero(~ok) if good >= 3 else np.zeros(0, np.int64)
+        rows = np.concatenate([pi[retry], candidates])
+        init = np.concatenate([d[retry], candidate_pred])
+        if rows.size and good >= 3:
+            init = local_predictions(prev.xy[rows], prev.xy[pi][ok], dd[ok], fallback=np.median(dd[ok], axis=0))
+        elif candidates.size and m >= 3:
+            init = local_predictions(prev.xy[rows], prev.xy[pi], d, fallback=np.median(d, axis=0))
+        detached = np.zeros(m, bool)
+        found = np.zeros(candidates.size, bool)
+        cand_disp = np.zeros((candidates.size, 2))
+        if rows.size:
+            r2 = self.refiner.refine(a, b, prev.xy[rows], init)
+            nr = retry.size
+            again, again_d = r2.refined[:nr], r2.displacement[:nr]
+            near = np.hypot(*(prev.xy[pi[retry]] + again_d - cols.xy[ci[retry]]).T) <= self._merge_radius
+            dd[retry[again]] = again_d[again]
+            ok[retry[again & near]] = True
+            detached[retry[again & ~near]] = True
+            found, cand_disp = r2.refined[nr:].copy(), r2.displacement[nr:]
+        # Local consistency: skin moves smoothly, so a refined displacement far from the median of its nearest
+        # refined neighbours is a registration failure (contact edge, lost texture, a neighbouring ridge).
+        points = np.concatenate([prev.xy[pi], prev.xy[candidates]])
+        disp = np.concatenate([dd, cand_disp])
+        valid = np.concatenate([ok | detached, found])
+        n_ok = int(valid.sum())
+        if n_ok >= 3:
+            med = local_predictions(points, points[valid], disp[valid], neighbours=7)
+            close = np.hypot(*(disp - med).T) <= self._max_deviation
+            if n_ok >= 7:
+                ok &= close[:m]
+            detached &= close[:m]
+            found &= close[m:]
+        else:
+            detached[:] = False
+            found[:] = False
+        ok &= ~detached
+        # The skin deforming inside the registration window biases each step the same way (see
+        # SubpixelRefiner.deformation_bias): removed with the gradient of the refined neighbours' motion.
+        good = np.concatenate([ok | detached, found])
+        if int(good.sum()) >= 3:
+            sel = np.flatnonzero(good)
+            bias = self.refiner.deformation_bias(a, points[sel], local_gradients(points[sel], disp[sel]))
+            # A correction as large as the consistency bound comes from a window with texture in one direction
+            # only (parallel ridges, no landmark), where it is ill-determined: left alone.
+            bias[np.hypot(*bias.T) > self._max_deviation] = 0.0
+            disp[sel] -= bias
+            dd, cand_disp = disp[:m], disp[m:]
+        bridged = np.concatenate([candidates[found], pi[detached]])
+        bridged_disp = np.concatenate([cand_disp[found], dd[detached]])
+        return _Refinement(dd, ok, detached, bridged, bridged_disp)
 
     def continue_with(self, other: "FeatureTracker", *, overlap: int) -> bool:
         """Append the frames that ``other`` tracked after an overlap with this tracker, if they are exactly the
@@ -568,18 +528,20 @@ class FeatureTracker:
 
         ``other`` has the same parameters and was fed this tracker's last ``overlap + 1`` frames (the same
         features and images), then the frames that follow. A tracker's state before a frame depends only on
-        the last ``max_gap_frames + 2`` frames it saw (previous displacements, features waiting to be re-linked).
+        the last :func:`join_overlap_frames` frames it saw (previous displacements, features waiting to be
+        re-linked, points followed by registration), or on what those frames hold (a point followed for longer is
+        in them).
         When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
         numbering, the same displacements, refinement flags and, after the first, global shifts), its later frames are those this
         tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
         ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
-        result of one sequential pass (:mod:`skinstretch.experiments.analysis_pool`).
+        result of one sequential pass (:mod:`skinstretch.experiments.analysis.measure`).
         """
-        window = int(self.params.max_gap_frames) + 2
+        window = join_overlap_frames(self.params)
         if int(overlap) < window or other._n_frames <= overlap or self._n_frames < overlap + 1:
             raise InvalidInputError(
-                f"overlap must be at least {window} frames (max_gap_frames + 2) and shorter than both trackers' "
+                f"overlap must be at least {window} frames (join_overlap_frames) and shorter than both trackers' "
                 f"frames, got overlap {overlap} for {self._n_frames} and {other._n_frames} frames"
             )
         if other.params != self.params or (other.refiner is None) != (self.refiner is None):
@@ -589,15 +551,16 @@ class FeatureTracker:
         for i in range(overlap - window + 1, overlap + 1):
             ta, xa, _, da, ra = self._frames[offset + i]
             tb, xb, _, db, rb = other._frames[i]
-            if not (np.array_equal(xa, xb) and np.array_equal(da, db, equal_nan=True) and np.array_equal(ra, rb)):
+            if not (np.array_equal(xa, xb, equal_nan=True) and np.array_equal(da, db, equal_nan=True)
+                    and np.array_equal(ra, rb) and np.array_equal(ta < 0, tb < 0)):
                 return False
             # The shift of the first compared pair only steered its matching (compared above); later ones also
             # move the features waiting to be re-linked when a pair has no match.
             first = i == overlap - window + 1
             if not first and not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
                 return False
-            mine.append(ta)
-            theirs.append(tb)
+            mine.append(ta[ta >= 0])
+            theirs.append(tb[tb >= 0])
         pairs = np.unique(np.stack([np.concatenate(theirs), np.concatenate(mine)], axis=1), axis=0)
         if np.unique(pairs[:, 0]).size != pairs.shape[0] or np.unique(pairs[:, 1]).size != pairs.shape[0]:
             return False  # the two trackers split or joined the same features into different tracks
@@ -606,12 +569,12 @@ class FeatureTracker:
         lut[pairs[:, 0]] = pairs[:, 1]
         lut[n_before:] = self._n_tracks + np.arange(other._n_tracks - n_before)
         later = [other._frames[i][0] for i in range(overlap + 1, other._n_frames)]
-        if any(np.any(lut[t] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
+        if any(np.any(lut[t[t >= 0]] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
             return False  # a track from before the compared frames reappears: cannot be numbered here
         for i in range(overlap + 1, other._n_frames):
             t, xy, _, d, r = other._frames[i]
-            self._frames.append((lut[t], xy, self._n_features, d, r))
-            self._n_features += xy.shape[0]
+            self._frames.append((np.where(t >= 0, lut[t], -1), xy, self._n_features, d, r))
+            self._n_features += int(np.isfinite(xy[:, 0]).sum())
         self._track_kind.extend(other._track_kind[overlap + 1 :])
         self._n_tracks += other._n_tracks - n_before
         self._n_frames += other._n_frames - overlap - 1
@@ -620,9 +583,11 @@ class FeatureTracker:
         self._prev = other._prev
         self._prev_tracks = lut[other._prev_tracks]
         self._prev_disp = other._prev_disp
+        self._prev_age = other._prev_age
+        self._prev_feature_row = other._prev_feature_row
         self._prev_frame = other._prev_frame
         lost = other._lost
-        self._lost = _LostTracks(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
+        self._lost = LostFeatures(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
         return True
 
     def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:
@@ -649,13 +614,17 @@ class FeatureTracker:
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
-        all_tracks = np.concatenate([rec[0] for rec in self._frames]).astype(np.int64)
+        # Features with track -1 (a skin point detected twice) belong to no trajectory; a point bridged by
+        # registration (no feature) belongs to its track.
+        in_track = [rec[0] >= 0 for rec in self._frames]
+        all_tracks = np.concatenate([rec[0][m] for rec, m in zip(self._frames, in_track)]).astype(np.int64)
         keep_track = np.bincount(all_tracks, minlength=t) >= min_length
         del all_tracks
         new_id = np.cumsum(keep_track) - 1
         kind = np.concatenate(self._track_kind) if self._track_kind else np.zeros(0, np.int8)
         # The table is filled frame by frame with only the kept tracks' rows (memory: the rows, once).
-        kept_rows = [np.flatnonzero(keep_track[rec[0]]) for rec in self._frames]
+        kept_rows = [np.flatnonzero(keep_track[rec[0]] & m) for rec, m in zip(self._frames, in_track)]
+        del in_track
         rows = np.zeros(sum(k.size for k in kept_rows), dtype=TRAJECTORY_DTYPE)
         dx = np.empty(rows.size)
         dy = np.empty(rows.size)
@@ -670,7 +639,7 @@ class FeatureTracker:
             r = rows[i : i + sel.size]
             r["frame"], r["track"] = k, ids
             r["raw_x"], r["raw_y"] = xy[sel, 0], xy[sel, 1]
-            r["feature_index"] = offset + sel
+            r["feature_index"] = np.where(np.isfinite(xy[sel, 0]), offset + sel, -1)
             d = disp[sel]
             linked = np.all(np.isfinite(d), axis=1)
             if self.refiner is not None:
@@ -697,23 +666,25 @@ class FeatureTracker:
 
     def take_frames(self, *, last: bool = False) -> list["TrackedFrame"]:
         """Hand out the frames that matching will not read again, oldest first, and forget them: every frame but
-        the last ``max_gap_frames + 2`` (what :meth:`continue_with` compares), or every frame when the sequence is
+        the last :func:`join_overlap_frames` (what :meth:`continue_with` compares), or every frame when the sequence is
         over (``last``; the tracker then takes no more frames). A long analysis stores them as they come and builds
         the trajectories itself, so the tracker's memory does not grow; :meth:`finish` cannot be used afterwards.
         """
         if self._released:
             raise InvalidInputError("this tracker's records were released by finish(release=True) or take_frames")
-        end = self._n_frames if last else max(0, self._n_frames - int(self.params.max_gap_frames) - 2)
+        end = self._n_frames if last else max(0, self._n_frames - join_overlap_frames(self.params))
         out = []
         for k in range(self._n_taken, end):
             tracks, xy, offset, disp, refined = self._frames[k]
             new_kinds = self._track_kind[k]
             self._frames[k] = self._track_kind[k] = None
-            order = np.argsort(tracks, kind="stable")
+            rows = np.flatnonzero(tracks >= 0)  # as in finish: a skin point detected twice belongs to no track
+            order = rows[np.argsort(tracks[rows], kind="stable")]
             linked = np.all(np.isfinite(disp), axis=1)
             if self.refiner is not None:
                 linked &= refined  # as in finish: a rejected refinement restarts the positions
-            out.append(TrackedFrame(k, tracks[order], xy[order], offset + order, disp[order], linked[order],
+            feature_index = np.where(np.isfinite(xy[:, 0]), offset + np.arange(tracks.size), -1)  # -1: bridged
+            out.append(TrackedFrame(k, tracks[order], xy[order], feature_index[order], disp[order], linked[order],
                                     (refined & linked)[order], new_kinds))
         self._n_taken = max(self._n_taken, end)
         self._released = last
@@ -731,8 +702,8 @@ class TrackedFrame:
 
     frame: int
     track: np.ndarray  # (n,) int64, increasing
-    xy: np.ndarray  # (n, 2) extracted positions px
-    feature_index: np.ndarray  # (n,) row in the sequence's concatenated feature table
+    xy: np.ndarray  # (n, 2) extracted positions px, NaN for a point bridged by registration
+    feature_index: np.ndarray  # (n,) row in the sequence's concatenated feature table, -1 for a bridged point
     displacement: np.ndarray  # (n, 2) px from the previous frame, NaN where not matched
     linked: np.ndarray  # (n,) bool
     refined: np.ndarray  # (n,) bool
@@ -748,55 +719,24 @@ class FrameImages:
     motion: np.ndarray | None
 
 
-@dataclass
-class _LostTracks:
-    """Features lost by matching, kept with a predicted position for re-linking (beyond the seed)."""
+@dataclass(frozen=True)
+class _Refinement:
+    """What :meth:`FeatureTracker._refine` found: per match its displacement, whether it was refined (and passed the
+    consistency test) and whether it was detached from its feature; the previous frame's points found by
+    registration alone (bridged) and their displacements."""
 
-    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
-    orientation: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    known: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    track: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    age: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    def __len__(self) -> int:
-        return int(self.track.size)
-
-    def add(self, xy, cols: _Cols, rows, tracks) -> None:
-        self.xy = np.concatenate([self.xy, xy])
-        self.kind = np.concatenate([self.kind, cols.kind[rows]])
-        self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
-        self.known = np.concatenate([self.known, cols.known[rows]])
-        self.track = np.concatenate([self.track, tracks])
-        self.age = np.concatenate([self.age, np.zeros(len(rows), np.int64)])
-
-    def advance(self, step: np.ndarray) -> None:
-        self.xy = self.xy + step
-        self.age = self.age + 1
-
-    def expire(self, max_age: int) -> None:
-        self._select(self.age < max_age)
-
-    def _select(self, keep) -> None:
-        for name in ("xy", "kind", "orientation", "known", "track", "age"):
-            setattr(self, name, getattr(self, name)[keep])
-
-    def relink(self, cols: _Cols, free: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        lost = _Cols(self.xy, self.kind, self.orientation, self.known)
-        sub = _Cols(cols.xy[free], cols.kind[free], cols.orientation[free], cols.known[free])
-        m = _match(lost, sub, np.zeros_like(self.xy), radius)
-        got_idx = free[m.curr_index]
-        got_track = self.track[m.prev_index]
-        keep = np.ones(len(self), bool)
-        keep[m.prev_index] = False
-        self._select(keep)
-        return got_idx, got_track
+    disp: np.ndarray
+    ok: np.ndarray
+    detached: np.ndarray
+    bridged: np.ndarray
+    bridged_disp: np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
 def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
-    the run's extracted positions (equal to the extracted positions when displacements are raw differences).
+    the run's extracted positions (equal to the extracted positions when displacements are raw differences); rows
+    without one (NaN: bridged by registration) do not anchor, and every run starts at an extracted position.
 
     Rows in frame order (any order within a frame). Each track keeps its running sum from its first row (a start
     adds nothing), and a run's offset is the sum of its residuals in frame order over its size: the same
@@ -837,9 +777,10 @@ def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
         pos[i, 1] = ly
         run[i] = runs[t]
         group[i] = g
-        sums[g, 0] += raw_x[i] - lx
-        sums[g, 1] += raw_y[i] - ly
-        counts[g] += 1
+        if raw_x[i] == raw_x[i]:  # a bridged point (no extracted position, NaN) does not anchor its run
+            sums[g, 0] += raw_x[i] - lx
+            sums[g, 1] += raw_y[i] - ly
+            counts[g] += 1
     for i in range(m):
         g = group[i]
         pos[i, 0] += sums[g, 0] / counts[g]

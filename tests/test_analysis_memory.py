@@ -150,10 +150,48 @@ def test_small_blocks_give_the_same_rectified_results(monkeypatch):
         np.testing.assert_array_equal(blocks.strain[span].edges, whole.strain[span].edges)
     np.testing.assert_array_equal(blocks.tactile_positions_um, whole.tactile_positions_um)
     assert blocks.summary["strain_span_3"] == whole.summary["strain_span_3"]
-    # rectified: the raw positions are the extracted features' mapped to the skin
-    feats = blocks.features[rows["feature_index"]]
+    # rectified: the raw positions are the extracted features' mapped to the skin (none for a point bridged by
+    # registration)
+    seen = rows["feature_index"] >= 0
+    assert np.all(np.isnan(rows["raw_x"][~seen]))
+    feats = blocks.features[rows["feature_index"][seen]]
     xy = mapping.image_to_surface(np.column_stack([feats["x"], feats["y"]])) * s.calibration.px_per_mm
-    np.testing.assert_allclose(np.column_stack([rows["raw_x"], rows["raw_y"]]), xy, atol=1e-9)
+    np.testing.assert_allclose(np.column_stack([rows["raw_x"][seen], rows["raw_y"][seen]]), xy, atol=1e-9)
     pair = blocks.motion[blocks.motion["pair"] == 5]
     at5 = rows[rows["frame"] == 5]
     np.testing.assert_array_equal(pair["x"], at5["x"][np.searchsorted(at5["track"], pair["id"])])
+
+
+@pytest.mark.parametrize("take_every", [1, 4])
+def test_stored_trajectories_with_bridged_points_are_those_of_finish_to_the_bit(take_every):
+    """Points followed by registration alone (no feature: NaN raw position, feature_index -1) and skin points
+    detected twice (no track) are stored as finish() builds them."""
+    from skinstretch.processing.displacement_refinement import SubpixelRefiner
+    from skinstretch.processing.feature_table import make_features
+    from tests.test_track_bridging import _sequence
+
+    n = 12
+    frames, truth = _sequence(n)
+    missed = np.random.default_rng(3).random((n, truth[0].shape[0])) < 0.2
+    missed[0] = False
+    cal = Calibration(px_per_mm=62.0)
+    params = TrackingParams(min_length_frames=4, smoothing_radius_frames=1, max_gap_frames=2, max_bridge_frames=None)
+    trackers = [FeatureTracker(calibration=cal, refiner=SubpixelRefiner(calibration=cal), params=params)
+                for _ in range(2)]
+    with TrajectoryStore(n_frames=n, params=params) as store:
+        for k in range(n):
+            keep = ~missed[k]
+            xy = truth[k][keep]
+            x, y = np.append(xy[:, 0], xy[0, 0] + 1.0), np.append(xy[:, 1], xy[0, 1])  # one point found twice
+            feats = make_features(x, y, np.full(x.size, 2), frame=k)
+            for tracker in trackers:
+                tracker.add_frame(feats, image=frames[k])
+            if k % take_every == 0:
+                store.add(trackers[1].take_frames())
+        store.add(trackers[1].take_frames(last=True))
+        ref = trackers[0].finish()
+        rows = np.concatenate([b.rows for b in store.blocks(block_frames=5)])
+    assert np.any(ref.rows["feature_index"] < 0), "the sequence should bridge some points"
+    for name in ref.rows.dtype.names:
+        np.testing.assert_array_equal(rows[name], ref.rows[name], err_msg=name)
+    np.testing.assert_array_equal(store.kinds, ref.kind)

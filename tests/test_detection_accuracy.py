@@ -16,12 +16,17 @@ import pytest
 from skinstretch.experiments.bench.accuracy import AccuracyScene, run_clip, scene_rows
 from skinstretch.experiments.evaluation.features import contact_edge_distance, score_features
 from skinstretch.processing.extraction import FeatureExtractor
-from skinstretch.processing.feature_localization import locate_pores_on_ridges
+from skinstretch.processing.feature_filters import clear_of_background
+from skinstretch.processing.feature_localization import (
+    locate_minutiae_tips,
+    locate_pores_on_ridges,
+    tip_curvature_centres,
+)
 from skinstretch.processing.feature_table import FeatureKind
 from skinstretch.processing.pores import fill_specks
 from skinstretch.processing.preprocess import contact_map, flatten_light, ridge_statistics
 from skinstretch.processing.ridge_flow import ridge_flow, uniform_ridge_flow
-from skinstretch.processing.skeleton_editing import remove_bridges, remove_short_spurs
+from skinstretch.processing.skeleton_editing import line_pixels, remove_bridges, remove_short_spurs
 from skinstretch.processing.skeleton_graph_lists import trace_skeleton
 from skinstretch.simulators.scene import load_scene, render_session
 
@@ -51,6 +56,7 @@ def test_the_accuracy_section_rows_summarize_the_clips(clips):
     for row, kind in zip(rows, ("valley_ending", "valley_bifurcation", "pore")):
         recalls = [c.scores.kinds[kind].recall for c in clips["valleyL"]]
         assert row[2] == len(SEEDS) and row[5] == pytest.approx(np.mean(recalls)) and row[6] == min(recalls)
+        assert row[13] == sum(c.scores.n_out_of_contact for c in clips["valleyL"])
         assert row[-1] in (True, False)
 
 
@@ -202,3 +208,94 @@ def test_a_pore_touching_a_valley_is_located_on_its_ridge():
                                       flow=flow, half_period_px=13.5, along_px=6.0)
     assert ok[0] and abs(x[0] - 100.3) < 0.15 and abs(y[0] - 40.0) < 0.15  # across: the ridge's centre line
     assert FeatureKind.PORE == 2  # the kind the extractor gives them
+
+
+def test_a_valley_ending_is_located_where_its_skeleton_ends():
+    # A bright valley along x whose round tip is centred at (90.3, 40.6): its grey level falls with the distance
+    # to the segment y = 40.6, x <= 90.3, so every isophote is a half-width's offset of it and the medial axis ends
+    # at the segment's end, whatever the threshold. The grey tip (locate_minutiae_tips) lies a half-width beyond it
+    # (7 px here); its centre of curvature is the medial axis' end.
+    h, w = 80, 160
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    end_x, end_y = 90.3, 40.6
+    d = np.hypot(np.maximum(xx - end_x, 0.0), yy - end_y)  # distance to the segment
+    excess = np.tanh((7.0 - d) / 3.0).astype(np.float32)
+    tx, ty, ok = locate_minutiae_tips(excess, x=np.array([90.0]), y=np.array([40.0]), direction_deg=np.array([180.0]),
+                                      is_ending=np.array([True]), reach_px=9.3, n_centres=18)
+    assert ok[0] and abs(tx[0] - (end_x + 7.0)) < 0.3 and abs(ty[0] - end_y) < 0.1
+    cx, cy, r, found = tip_curvature_centres(excess, x=tx, y=ty, sigma_px=3.0, max_radius_px=9.3)
+    assert found[0] and abs(cx[0] - end_x) < 0.3 and abs(cy[0] - end_y) < 0.1 and abs(r[0] - 7.0) < 0.3
+    # A flat outline (no tip) has no centre within the radius: the point is left as is.
+    flat = np.tanh((xx - 80.0) / 3.0).astype(np.float32)
+    fx, fy, _, none = tip_curvature_centres(flat, x=np.array([80.0]), y=np.array([40.0]), sigma_px=3.0,
+                                            max_radius_px=9.3)
+    assert not none[0] and (fx[0], fy[0]) == (80.0, 40.0)
+
+
+def test_features_near_the_background_go_by_euclidean_distance():
+    # A corner of background at x >= 100, y >= 100: a feature 15 px from it along the diagonal (10.6 px on each
+    # axis) is clear of a 12 px radius although a square dilation by 12 would cover it.
+    bg = np.zeros((200, 200), bool)
+    bg[100:, 100:] = True
+    x = np.array([89.4, 95.0, 120.0, 5.0])
+    y = np.array([89.4, 120.0, 90.0, 50.0])
+    keep = clear_of_background(x, y, bg, radius_px=12.0, edge_px=8.0)
+    assert keep.tolist() == [True, False, False, False]  # x = 5: within 8 px of the image edge
+
+
+def _valleys_and_branch(branch):
+    """Horizontal valleys at y = 20 and 47 and a branch of (x, y) corner points from the first."""
+    sk = np.zeros((70, 200), np.uint8)
+    sk[20, 5:195] = 1
+    sk[47, 5:195] = 1
+    for (x0, y0), (x1, y1) in zip(branch[:-1], branch[1:]):
+        for x, y in line_pixels(x0, y0, x1, y1):
+            sk[y, x] = 1
+    return sk
+
+
+def test_a_spur_into_the_background_is_a_valley_leaving_the_contact():
+    # A 12 px branch across the ridges from the valley at y = 20 would be a pore's spur; ending at the background
+    # (the skin out of contact below y = 34) it is a valley cut by the contact's edge, and stays with its fork.
+    sk = _valleys_and_branch([(60, 21), (60, 32)])
+    sk[47] = 0
+    flow = uniform_ridge_flow(sk.shape, ridge_angle_deg=0.0)
+    bg = np.zeros(sk.shape, bool)
+    bg[34:] = True
+    g = trace_skeleton(sk)
+    rule = dict(min_length_px=6.2, max_length_px=18.6, max_deviation_deg=60.0, orientation_px=10, flow=flow)
+    assert not remove_short_spurs(g, **rule).skeleton[26, 60]
+    kept = remove_short_spurs(g, **rule, background=bg, open_reach_px=3.0)
+    forks = [i for i, alive in enumerate(kept.node_alive) if alive and len(kept.node_edges[i]) == 3]
+    assert kept.skeleton[26, 60] and len(forks) == 1 and abs(kept.node_x[forks[0]] - 60) <= 1
+
+
+def test_a_valley_along_the_background_is_no_bridge():
+    # The same bridge across the ridge between two valleys goes, unless it runs along the background.
+    sk = _valleys_and_branch([(120, 21), (120, 46)])
+    flow = uniform_ridge_flow(sk.shape, ridge_angle_deg=0.0)
+    rule = dict(min_length_px=6.2, max_length_px=62.0, max_deviation_deg=60.0, orientation_px=10, flow=flow)
+    g = trace_skeleton(sk)
+    assert not remove_bridges(g, **rule).skeleton[33, 120]
+    bg = np.zeros(sk.shape, bool)
+    bg[25:40, 122:] = True
+    assert remove_bridges(g, **rule, background=bg, open_reach_px=3.0).skeleton[33, 120]
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_of_two_bridges_at_one_fork_the_one_across_the_ridges_goes(mirror):
+    # The valley at y = 47 ends at a fork at x = 100 with two branches up to the valley at y = 20: one straight
+    # across the ridges (a pore's bridge), one slanting 36 degrees (the valley's own continuation). Removing either
+    # settles the fork, so the other is no longer a bridge: the straight one goes whichever the tracer sees first.
+    sk = _valleys_and_branch([(100, 46), (100, 21)])
+    sk[47, 101:] = 0
+    for x, y in line_pixels(101, 46, 120, 21):
+        sk[y, x] = 1
+    if mirror:
+        sk = sk[:, ::-1].copy()
+    flow = uniform_ridge_flow(sk.shape, ridge_angle_deg=0.0)
+    out = remove_bridges(trace_skeleton(sk), min_length_px=6.2, max_length_px=62.0, max_deviation_deg=60.0,
+                         orientation_px=10, flow=flow).skeleton
+    col = lambda x: 199 - x if mirror else x  # noqa: E731
+    slanted_x = int(line_pixels(101, 46, 120, 21)[13, 0])  # its pixel on row 33
+    assert not out[33, col(100)] and out[33, col(slanted_x)]

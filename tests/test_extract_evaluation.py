@@ -72,6 +72,8 @@ def test_border_band_along_the_image_and_contact_edges_is_dont_care():
     assert ev["border_px"] == pytest.approx(18.6) and ev["match_radius_px"] == pytest.approx(6.2)
     # Only the central pore must be found; the out-of-contact detection is false, the one in the band ignored.
     assert ev["pore"]["n_truth"] == 1 and ev["pore"]["n_matched"] == 0 and ev["pore"]["n_detected"] == 1
+    # Out of contact at any distance: the false one and none other (x = 145 is in contact, 5 px from the edge).
+    assert ev["n_out_of_contact"] == 1
     ev = evaluate_features(feats, truth, px_per_mm=62.0, image_shape=(200, 200), border_mm=0)
     assert ev["pore"]["n_truth"] == 3 and ev["pore"]["n_detected"] == 2
     with pytest.raises(InvalidInputError, match="px_per_mm"):

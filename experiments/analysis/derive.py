@@ -45,18 +45,20 @@ class PixelScales:
     max_edge_px: float
     profile_strip_px: float
     profile_step_px: float
+    min_spacing_px: float = 0.0
 
     @classmethod
     def of(cls, calibration: Calibration, strain_params) -> "PixelScales":
         return cls(calibration.px(strain_params.max_edge_mm), calibration.px(strain_params.profile_strip_mm),
-                   calibration.px(strain_params.profile_step_mm))
+                   calibration.px(strain_params.profile_step_mm), calibration.px(strain_params.min_spacing_mm))
 
 
-def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: float, first_pair: int = 0) -> SpanStrain:
+def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: float, first_pair: int = 0,
+                min_spacing_px: float = 0.0) -> SpanStrain:
     """Triangulation strain of a run of pairs of one span (one compiled call for all of them, see
     :func:`~skinstretch.processing.stretch.triangulation_strains`); pair ``i`` of the run is pair ``first_pair + i``
     of the span. Pairs that cannot give one carry the status and the reason."""
-    b = triangulation_strains(samples, max_edge_px=max_edge_px)
+    b = triangulation_strains(samples, max_edge_px=max_edge_px, min_spacing_px=min_spacing_px)
     n = len(samples)
     reasons = [b.failure(i) or "" for i in range(n)]
     status = [_STATUS_OF_STRAIN.get(int(c), PairStatus.NO_USABLE_TRIANGLE) for c in b.status]

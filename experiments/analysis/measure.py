@@ -183,7 +183,9 @@ def measure_features(
     frames' feature tables and flags in frame order, once (the caller writes them out), and ``on_tracked(frames)``
     the tracked frames (:class:`~skinstretch.processing.tracking.TrackedFrame`) in frame order, each once, as soon
     as the tracker is done with them (the caller stores them: the trajectories are built at the end)."""
-    overlap = int(params.tracking.max_gap_frames) + 2  # the least FeatureTracker.continue_with accepts
+    from skinstretch.processing.tracking import join_overlap_frames  # noqa: PLC0415
+
+    overlap = join_overlap_frames(params.tracking)  # the least FeatureTracker.continue_with accepts
     width = executor_width(executor)
     plan = chunk_plan(n_frames, width=width, overlap=overlap)
     here = len(plan) == 1

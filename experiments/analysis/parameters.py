@@ -39,13 +39,17 @@ class StrainParams(_Stage):
     """Strain and profile (seed 5.3).
 
     ``spans`` are the frame spans of the triangulation strain (seed 6.3.2: 1 and 11). ``max_edge_mm`` drops long
-    hull slivers; ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of
-    profile positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the feature
+    hull slivers; ``min_spacing_mm`` leaves out of the triangulation a tracked point this close to an older track's
+    (an edge's strain error is its ends' displacement error over its length: tracks a few pixels apart, two
+    landmarks of one ridge, would give edges whose strain is mostly noise; the trajectories keep every point);
+    ``profile_strip_mm`` is the strip width w of Figure 62 and ``profile_step_mm`` the spacing of profile
+    positions. ``flow_stride`` subsamples the flow grid for triangulation (edges ~0.8 mm, like the feature
     triangulation's ~48 px, seed 6.3.3).
     """
 
     spans: tuple[int, ...] = (1, 11)
     max_edge_mm: float = Field(2.0, gt=0)
+    min_spacing_mm: float = Field(0.35, ge=0)
     profile_strip_mm: float = Field(1.0, gt=0)
     profile_step_mm: float = Field(0.25, gt=0)
     flow_stride: int = Field(4, ge=1)
@@ -90,7 +94,7 @@ class AnalysisParams(_Stage):
     ``subpixel`` None leaves displacements at the extraction's accuracy."""
 
     extraction: ExtractionParams = ExtractionParams()
-    tracking: TrackingParams = TrackingParams(smoothing_radius_frames=0, max_gap_frames=3)
+    tracking: TrackingParams = TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, max_bridge_frames=None)
     subpixel: SubpixelParams | None = SubpixelParams()
     robust_matching: bool = True
     flow: FlowParams = FlowParams()

@@ -37,6 +37,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
 )
+from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
@@ -67,8 +68,9 @@ class _StrainTables:
     span's edge changes also go to a :class:`StreamedPercentiles` (the summary's percentiles)."""
 
     def __init__(self, writer: ResultsWriter, executor: Executor, spans: Sequence[int], max_edge_px: float,
-                 stack: ExitStack) -> None:
+                 stack: ExitStack, min_spacing_px: float = 0.0) -> None:
         self.writer, self.executor, self.max_edge_px = writer, executor, max_edge_px
+        self.min_spacing_px = min_spacing_px
         self.buffers: dict[int, list[MotionSample]] = {int(s): [] for s in spans}
         self.done: dict[int, int] = {int(s): 0 for s in spans}  # pairs submitted per span
         self.pending: deque[tuple[int, Future, list, dict]] = deque()
@@ -87,7 +89,8 @@ class _StrainTables:
         if not buf:
             return
         self.buffers[span] = []
-        kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span])
+        kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span],
+                      min_spacing_px=self.min_spacing_px)
         fut = self.executor.submit(span_strain, buf, **kwargs)
         self.done[span] += len(buf)
         self.pending.append((span, fut, buf, kwargs))
@@ -226,7 +229,7 @@ def analyze(
         t_shading = time.perf_counter() - t_start
         writer = stack.enter_context(ResultsWriter(results_path))
         flags = [""] * n
-        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack)
+        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
         motion = _MotionTable(writer)
 
         if method == "features":
@@ -365,6 +368,9 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
         lengths = f["tracks"].fields("n_frames")[()]
         out["n_trajectories"] = int(lengths.size)
         out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
+    out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
+                                  spans=list(strain.buffers), max_edge_px=strain.max_edge_px,
+                                  window=out["min_track_frames"]).to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
         changes = strain.edge_change[span]

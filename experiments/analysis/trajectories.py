@@ -8,7 +8,7 @@ in two passes, holding only a few numbers per track and per linked run:
 1. as the tracker hands out its frames (:meth:`~skinstretch.processing.tracking.FeatureTracker.take_frames`), each
    row's position relative to the start of its linked run (the running sum of its measured displacements) is
    computed and the row written to a scratch file; each run keeps the sum of its rows' offsets from their extracted
-   positions, each track its length;
+   positions (rows bridged by registration, without one, do not count), each track its length;
 2. at the end, the scratch rows are read back a block of frames at a time: tracks shorter than the minimum length
    dropped, the kept ones numbered in order, each run anchored to the mean of its extracted positions and, if asked,
    smoothed (:func:`~skinstretch.processing.trajectory_smoothing.smooth_positions` over the block and its margins).
@@ -136,9 +136,10 @@ class TrajectoryStore:
         tr.sx[ts], tr.sy[ts] = tr.cx[ts], tr.cy[ts]
         lx, ly = tr.cx[t] - tr.sx[t], tr.cy[t] - tr.sy[t]
         g = tr.group[t]
-        gr.sum_x[g] += fr.xy[:, 0] - lx
-        gr.sum_y[g] += fr.xy[:, 1] - ly
-        gr.rows[g] += 1
+        seen = np.isfinite(fr.xy[:, 0])  # a point bridged by registration (no extracted position) does not anchor
+        np.add.at(gr.sum_x, g[seen], fr.xy[seen, 0] - lx[seen])
+        np.add.at(gr.sum_y, g[seen], fr.xy[seen, 1] - ly[seen])
+        np.add.at(gr.rows, g[seen], 1)
         tr.length[t] += 1
         tr.last[t] = k
         rows = np.empty(t.size, _SCRATCH_DTYPE)

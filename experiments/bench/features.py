@@ -88,8 +88,8 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "fps: extraction + editing + sub-pixel per frame, after a warm-up frame; cpu ms/frame: process CPU time "
             f"of the single-thread run (less sensitive than fps to other loads on the machine); all three the best of "
             f"{_PASSES} passes.",
-            "rmse: raw distance to the simulator's minutia (valley endings sit ~3 px beyond it, at the valley's "
-            "grey-level tip); rep: RMS frame-to-frame change of a matched feature's localisation error (jitter "
+            "rmse: raw distance to the simulator's minutia (the skeleton's ending or fork of the print); rep: RMS "
+            "frame-to-frame change of a matched feature's localisation error (jitter "
             "against the true motion); min rep: endings and bifurcations together.",
             "targets: " + "; ".join(TARGETS),
         ],

@@ -87,4 +87,7 @@ def run(args: argparse.Namespace) -> int:
     t = r.timing
     log.info("%s: %d frames in %.1f s (%.1f frames/s) -> %s", args.method, r.n_frames, t["total_s"],
              t["frames_per_s"], r.path)
+    density = r.density
+    if density is not None:  # a mesh too sparse to map strain was already warned about by the analysis
+        log.info("density: %s%s", density.describe(), "; TOO SPARSE to map strain" if density.too_sparse else "")
     return 0

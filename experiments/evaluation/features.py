@@ -25,7 +25,9 @@ Matching rules (documented here because every number depends on them)
 - Truth features that are not eligible are "don't care": a detection within the radius of one of them is neither
   a true nor a false positive; so is a detection in the border band. Every other unmatched detection is a false
   positive (precision): in particular **any feature found where the skin is out of contact** (beyond the band).
-  Every unmatched eligible truth feature is a miss (recall).
+  Every unmatched eligible truth feature is a miss (recall). ``n_out_of_contact`` counts the detections (all kinds)
+  where the skin is out of contact at any distance from the edge, the band included (a point takes the status of
+  the nearest contact sample of the truth; within half the grid spacing of the edge it may take the wrong one).
 - ``loc_rmse_px``: RMS distance of matched pairs. ``repeatability_px``: RMS over consecutive frames of the change
   of a truth feature's localisation error, ``|e_{k+1} - e_k|`` with ``e = detected - true``, i.e. the
   frame-to-frame jitter of a matched feature relative to its true motion (a constant offset does not count).
@@ -88,10 +90,14 @@ class FeatureScores:
     border_px: float
     n_frames: int
     kinds: dict[str, KindScore]
+    #: Detections (all kinds) where the truth says the skin is out of contact, band included (module doc).
+    n_out_of_contact: int = 0
 
     def to_dict(self) -> dict:
-        """``{"match_radius_px", "border_px", "n_frames", group: {...KindScore fields}}`` (the JSON form)."""
-        out: dict = {"match_radius_px": self.match_radius_px, "border_px": self.border_px, "n_frames": self.n_frames}
+        """``{"match_radius_px", "border_px", "n_frames", "n_out_of_contact", group: {...KindScore fields}}`` (the
+        JSON form)."""
+        out: dict = {"match_radius_px": self.match_radius_px, "border_px": self.border_px, "n_frames": self.n_frames,
+                     "n_out_of_contact": self.n_out_of_contact}
         out.update({name: asdict(score) for name, score in self.kinds.items()})
         return out
 
@@ -206,6 +212,7 @@ def score_features(
         raise InvalidInputError(f"frames {bad[:5]} are outside the truth's {n_frames} frames")
     # Per frame: which truth features are eligible, which detections fall in the border band.
     per_frame = {}
+    n_out = 0
     for k in frames:
         tx, ty = truth.feature_x[k], truth.feature_y[k]
         finite = np.isfinite(tx) & np.isfinite(ty)
@@ -217,14 +224,19 @@ def score_features(
             t_edge, _ = contact_edge_distance(truth, k, tx[vis], ty[vis], image_shape=image_shape)
             t_ok[vis] = (t_edge >= border_px) & (_edge_distance(tx[vis], ty[vis], image_shape) >= border_px)
             if det.size:
-                d_edge, _ = contact_edge_distance(truth, k, det["x"], det["y"], image_shape=image_shape)
+                d_edge, in_contact = contact_edge_distance(truth, k, det["x"], det["y"], image_shape=image_shape)
                 d_band = (d_edge < border_px) | (_edge_distance(det["x"], det["y"], image_shape) < border_px)
+                n_out += int(np.count_nonzero(~in_contact))
         else:
             h, w = image_shape
             t_ok = vis & (tx >= 0) & (tx <= w - 1) & (ty >= 0) & (ty <= h - 1)
+            if det.size:
+                n_out += int(np.count_nonzero(~contact_edge_distance(truth, k, det["x"], det["y"],
+                                                                     image_shape=image_shape)[1]))
         per_frame[k] = (det, t_ok, d_band, finite)
     kinds = {group: _score_group(kinds, truth, per_frame, frames, match_radius_px) for group, kinds in GROUPS.items()}
-    return FeatureScores(match_radius_px=float(match_radius_px), border_px=border_px, n_frames=len(frames), kinds=kinds)
+    return FeatureScores(match_radius_px=float(match_radius_px), border_px=border_px, n_frames=len(frames), kinds=kinds,
+                         n_out_of_contact=n_out)
 
 
 def _score_group(kinds, truth, per_frame, frames, radius) -> KindScore:

@@ -143,9 +143,10 @@ def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tup
         v = np.nonzero(vis[k])[0]
         if hi == lo or v.size == 0:
             continue
-        dist, j = cKDTree(np.column_stack([fx[k, v], fy[k, v]])).query(
-            np.column_stack([rows["raw_x"][lo:hi], rows["raw_y"][lo:hi]]))
-        truth_id[lo:hi] = np.where(dist <= assoc_px, v[j], -1)
+        raw = np.column_stack([rows["raw_x"][lo:hi], rows["raw_y"][lo:hi]])
+        found = np.all(np.isfinite(raw), axis=1)  # a point bridged by registration has no extracted feature
+        dist, j = cKDTree(np.column_stack([fx[k, v], fy[k, v]])).query(np.where(found[:, None], raw, 0.0))
+        truth_id[lo:hi] = np.where(found & (dist <= assoc_px), v[j], -1)
     # A linked row follows the same track's row of the previous frame: judge the pair of truth ids.
     order = np.lexsort((rows["frame"], rows["track"]))
     tr, fr, tid, linked = rows["track"][order], rows["frame"][order], truth_id[order], rows["linked"][order]

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from skinstretch.drivers.session_file import SessionTruth
+from skinstretch.experiments.analysis.density import FractionKept, fraction_kept
+from skinstretch.experiments.evaluation.features import BORDER_MM, contact_edge_distance
 from skinstretch.experiments.evaluation.tracking import TruthField
 from skinstretch.experiments.results_file import Results
 
@@ -31,6 +33,53 @@ def feature_truth_known(truth: SessionTruth) -> tuple[bool, str]:
     return True, ""
 
 
+class TruthMotion:
+    """The simulator's exact motion as a :class:`skinstretch.experiments.analysis.density.SkinPointMotion`: skin
+    points move by the truth field, and are in view where feature recall is scored (in contact, at least
+    ``border_mm`` from the image edge and the true contact edge: :mod:`skinstretch.experiments.evaluation.features`).
+    """
+
+    def __init__(self, truth: SessionTruth, *, image_shape: tuple[int, int], px_per_mm: float,
+                 border_mm: float = BORDER_MM, field: TruthField | None = None) -> None:
+        self.truth = truth
+        self.field = field if field is not None else TruthField(truth)
+        self.image_shape = tuple(int(v) for v in image_shape)
+        self.border_px = float(border_mm) * float(px_per_mm)
+
+    def move(self, points, frame_from, frame_to):
+        d, ok = self.field.between(points, int(frame_from), int(frame_to))
+        return points + np.nan_to_num(d), ok
+
+    def in_view(self, points, frame):
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        h, w = self.image_shape
+        x, y = pts[:, 0], pts[:, 1]
+        ok = np.all(np.isfinite(pts), axis=1)
+        ok &= np.minimum(np.minimum(x, w - 1 - x), np.minimum(y, h - 1 - y)) >= self.border_px
+        if ok.any():
+            dist, inside = contact_edge_distance(self.truth, int(frame), x[ok], y[ok], image_shape=self.image_shape)
+            ok[ok] = inside & (dist >= self.border_px)
+        return ok
+
+
+def truth_fraction_kept(r: Results, truth: SessionTruth, *, field: TruthField | None = None) -> FractionKept | None:
+    """:func:`skinstretch.experiments.analysis.density.fraction_kept` of the results' features, their skin points
+    followed through the exact field (None without features and trajectories, e.g. the flow method)."""
+    if r.features is None or r.trajectories is None or r.coordinates != "image":
+        return None
+    feats = r.features
+    frame = np.asarray(feats["frame"], dtype=np.int64)
+    offsets = np.searchsorted(frame, np.arange(r.n_frames + 1), side="left")
+    kept = np.zeros(feats.shape[0], bool)
+    fi = np.asarray(r.trajectories.rows["feature_index"], dtype=np.int64)
+    kept[fi[(fi >= 0) & (fi < kept.size)]] = True
+    xy = np.column_stack([feats["x"], feats["y"]]).astype(np.float64)
+    window = int(r.params.get("tracking", {}).get("min_length_frames") or r.n_frames)
+    motion = TruthMotion(truth, image_shape=r.image_shape, px_per_mm=r.px_per_mm, field=field)
+    return fraction_kept(r.n_frames, window, lambda k: (xy[offsets[k]:offsets[k + 1]], kept[offsets[k]:offsets[k + 1]]),
+                         motion)
+
+
 def evaluate_trajectories(r: Results, truth: SessionTruth) -> dict[str, Any] | None:
     """The ``"trajectories"`` part of ``skinstretch evaluate`` (None without trajectories, e.g. the flow method).
 
@@ -38,7 +87,10 @@ def evaluate_trajectories(r: Results, truth: SessionTruth) -> dict[str, Any] | N
     against the true motion from the trajectory's start; ``drift_rmse_px_at_end``: the same at each trajectory's
     last frame only; ``jumped_fraction``: trajectories that are more than 1 px off at some frame (a wrong link
     to a neighbouring landmark); ``points_per_frame``: tracked points in a frame (mean); ``features_per_frame``:
-    features extracted per frame (mean); ``n_trajectories``, ``median_frames``.
+    features extracted per frame (mean); ``n_trajectories``, ``median_frames``; ``fraction_kept``: of the features
+    whose skin point stays in view for the minimum trajectory length (``window_frames``), the fraction in a kept
+    trajectory (:func:`truth_fraction_kept`: the analysis' own definition, its skin points followed through the
+    exact field), ``features_in_view``: how many stay in view.
     """
     tr = r.trajectories
     if tr is None or r.coordinates != "image":
@@ -77,7 +129,11 @@ def evaluate_trajectories(r: Results, truth: SessionTruth) -> dict[str, Any] | N
     per_frame = math.nan
     if r.features is not None and len(r.features):
         per_frame = float(np.bincount(np.asarray(r.features["frame"], dtype=np.int64), minlength=r.n_frames).mean())
+    fk = truth_fraction_kept(r, truth, field=tf)
     return {
+        "fraction_kept": fk.fraction if fk is not None else math.nan,
+        "features_in_view": fk.n_in_view if fk is not None else 0,
+        "window_frames": fk.window_frames if fk is not None else 0,
         "n_trajectories": n_tracks,
         "median_frames": float(np.median(lengths)) if n_tracks else math.nan,
         "points_per_frame": float(np.bincount(frame, minlength=r.n_frames).mean()) if r.n_frames else math.nan,

@@ -1,0 +1,419 @@
+"""How dense the measured motion is, for the summary of an analysis: features per frame, trajectories kept, the
+fraction of the features that stay in view kept as trajectories, and the size of the strain mesh.
+
+Fraction kept (one definition, :func:`fraction_kept`, for the analysis' report and for ``skinstretch evaluate`` /
+the accuracy bench):
+
+    of the features found in a frame whose skin point stays in view for the window (at least the minimum
+    trajectory length, in consecutive frames around that frame), the fraction that belongs to a kept trajectory.
+
+A feature whose skin point leaves the view (the image, the contact) before the window is full could not make a kept
+trajectory and does not count; one that stays and is not kept (a short track, a second detection of one skin
+point) counts against. Where the skin point goes is what differs between the two users:
+
+* the analysis (:func:`mesh_density`, no truth) follows it through the motion it measured (the median displacement
+  of the nearest measured points, pair after pair) and calls it in view where the frame's features are: inside
+  their Delaunay triangulation (triangles with an edge longer than the strain's ``max_edge_mm`` left out). A
+  feature of a kept trajectory was itself measured for the window: it stays in view and only the others are
+  followed.
+* ``skinstretch evaluate`` (:func:`skinstretch.experiments.evaluation.trajectories.evaluate_trajectories`) follows
+  it through the simulator's exact field and calls it in view where feature recall is scored: in contact and at
+  least 0.3 mm from the image edge and the true contact edge.
+
+A mesh too sparse to map strain is said, in the summary (``too_sparse`` and ``warning``) and in the log, never left
+to be discovered in an empty strain map. It is too sparse when fewer than half of the consecutive frame pairs give
+a strain triangulation, when fewer than :data:`MIN_POINTS_PER_PAIR` points are measured in a typical pair, or when
+the mean edge of the consecutive pairs' triangulations is longer than :data:`MAX_MEAN_EDGE_MM` (the STReSS
+display's contactors are 1 mm apart: a mesh much coarser than that maps nothing under most of them). A fraction
+kept under :data:`MIN_FRACTION_KEPT` is warned about too.
+
+Everything is read from the results file as it is being written, a frame or a block of rows at a time.
+Hand-written: following points through a measured motion and testing them against a triangulated region is
+specific to this analysis' tables (scipy's Delaunay and k-d tree do the geometry).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import h5py
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from skinstretch.experiments.results_file import PairStatus
+from skinstretch.processing.global_motion import local_predictions
+
+__all__ = ["MeshDensity", "FractionKept", "SkinPointMotion", "mesh_density", "fraction_kept", "MeasuredMotion",
+           "MIN_POINTS_PER_PAIR", "MAX_MEAN_EDGE_MM", "MIN_OK_PAIR_FRACTION", "MIN_FRACTION_KEPT"]
+
+log = logging.getLogger(__name__)
+
+#: Fewer measured points than this in the median consecutive pair: too sparse to map strain.
+MIN_POINTS_PER_PAIR = 10
+#: A mean strain-mesh edge longer than this (mm): too coarse to map strain under a 1 mm display.
+MAX_MEAN_EDGE_MM = 1.5
+#: Fewer consecutive pairs with a strain triangulation than this fraction: too sparse.
+MIN_OK_PAIR_FRACTION = 0.5
+#: A fraction kept below this is warned about (issue 16: at least 80 % of the features that stay in view).
+MIN_FRACTION_KEPT = 0.8
+
+_BLOCK = 1 << 20  # rows read at a time
+_REACH_MM = 1.0  # a point further than this from every measured point of a pair is not followed through it
+
+
+@dataclass(frozen=True)
+class FractionKept:
+    """What :func:`fraction_kept` found.
+
+    Attributes
+    ----------
+    window_frames : int
+        The window: a feature counts when its skin point stays in view this many consecutive frames around its
+        frame (the minimum trajectory length).
+    n_features : int
+        Features found (every frame).
+    n_in_view : int
+        Of those, the ones whose skin point stays in view for the window.
+    n_kept : int
+        Of those, the ones in a kept trajectory.
+    fraction : float or None
+        ``n_kept / n_in_view`` (None when no feature stays in view).
+    """
+
+    window_frames: int
+    n_features: int
+    n_in_view: int
+    n_kept: int
+    fraction: float | None
+
+
+class SkinPointMotion(Protocol):
+    """Where skin points go (:func:`fraction_kept`): the measured motion or the simulator's truth."""
+
+    def move(self, points: np.ndarray, frame_from: int, frame_to: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in ``frame_to`` (a neighbouring frame) of the skin points at ``points`` in ``frame_from``, and
+        whether each could be followed."""
+
+    def in_view(self, points: np.ndarray, frame: int) -> np.ndarray:
+        """Whether each of ``points`` (positions in ``frame``) is in view there."""
+
+
+def fraction_kept(n_frames: int, window: int, features_of: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                  motion: SkinPointMotion, *, kept_stay_in_view: bool = False) -> FractionKept:
+    """The fraction kept (module doc) of a sequence of ``n_frames``.
+
+    ``features_of(k)`` gives frame k's features: positions (n, 2) and whether each belongs to a kept trajectory.
+    Each feature's skin point is followed forward and backward through ``motion`` until it leaves the view or the
+    window is reached (points of all frames at once, one step at a time). ``kept_stay_in_view``: a feature of a kept
+    trajectory is taken to stay in view without being followed (the analysis: it was measured for the window).
+    """
+    window = max(int(window), 1)
+    counts = [0, 0, 0]  # features, in view, kept
+    need = window - 1
+    # Per frame: rows followed, and frames in view after (forward) and before (backward) the feature's own frame.
+    followed: dict[int, np.ndarray] = {}
+    ahead: dict[int, np.ndarray] = {}
+    behind: dict[int, np.ndarray] = {}
+    own_view: dict[int, np.ndarray] = {}
+    kept_of: dict[int, np.ndarray] = {}
+    for direction, out in ((1, ahead), (-1, behind)):
+        frames = range(n_frames) if direction > 0 else range(n_frames - 1, -1, -1)
+        live_xy = np.zeros((0, 2))
+        live_frame = np.zeros(0, np.int64)
+        live_row = np.zeros(0, np.int64)
+        live_age = np.zeros(0, np.int64)
+        for k in frames:
+            if live_xy.shape[0]:
+                xy, ok = motion.move(live_xy, k - direction, k)
+                ok &= motion.in_view(np.where(ok[:, None], xy, 0.0), k)
+                live_age = live_age + ok
+                done = ~ok | (live_age >= need)
+                for f in np.unique(live_frame[done]):
+                    sel = done & (live_frame == f)
+                    out[int(f)][live_row[sel]] = live_age[sel]
+                keep = ~done
+                live_xy, live_frame, live_row, live_age = xy[keep], live_frame[keep], live_row[keep], live_age[keep]
+            if direction > 0:
+                xy, kept = features_of(k)
+                xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+                kept = np.asarray(kept, dtype=bool).reshape(-1)
+                rows = np.flatnonzero(~kept) if kept_stay_in_view else np.arange(kept.size)
+                counts[0] += kept.size
+                kept_of[k] = kept
+                followed[k] = rows
+                own_view[k] = motion.in_view(xy[rows], k) if rows.size else np.zeros(0, bool)
+                rows_xy = xy[rows]
+            else:
+                rows = followed[k]
+                xy, _ = features_of(k)
+                rows_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)[rows]
+            out[k] = np.zeros(kept_of[k].size, np.int64)
+            start = own_view[k] if need > 0 else np.zeros(rows.size, bool)
+            live_xy = np.concatenate([live_xy, rows_xy[start]])
+            live_frame = np.concatenate([live_frame, np.full(int(start.sum()), k, np.int64)])
+            live_row = np.concatenate([live_row, rows[start]])
+            live_age = np.concatenate([live_age, np.zeros(int(start.sum()), np.int64)])
+        for f in np.unique(live_frame):
+            sel = live_frame == f
+            out[int(f)][live_row[sel]] = live_age[sel]
+    for k in range(n_frames):
+        kept, rows = kept_of[k], followed[k]
+        stays = np.zeros(kept.size, bool)
+        if kept_stay_in_view:
+            stays[kept] = True
+        run = ahead[k][rows] + behind[k][rows] + 1
+        stays[rows] = own_view[k] & (run >= window)
+        counts[1] += int(stays.sum())
+        counts[2] += int((stays & kept).sum())
+    n_features, n_in_view, n_kept = counts
+    return FractionKept(window, n_features, n_in_view, n_kept, n_kept / n_in_view if n_in_view else None)
+
+
+class _FrameRows:
+    """Rows of a table grouped by frame (``offsets``: first row of each frame), read from the file a block of
+    frames at a time and kept until another block is asked for (the passes go through the frames in order)."""
+
+    def __init__(self, dataset: h5py.Dataset, offsets: np.ndarray, *, block_frames: int = 64) -> None:
+        self._d, self._off, self._n = dataset, offsets, int(block_frames)
+        self._block = (-1, None)
+
+    def __call__(self, k: int) -> np.ndarray:
+        b = int(k) // self._n
+        if self._block[0] != b:
+            lo = b * self._n
+            hi = min(lo + self._n, self._off.size - 1)
+            self._block = (b, self._d[self._off[lo] : self._off[hi]])
+        base = self._off[b * self._n]
+        return self._block[1][self._off[k] - base : self._off[k + 1] - base]
+
+
+class MeasuredMotion:
+    """The analysis' own :class:`SkinPointMotion`, from a results file being written: a skin point moves by the
+    median displacement of the 6 nearest points measured between the two frames (none within 1 mm: it is not
+    followed), and is in view inside the Delaunay triangulation of the frame's features (triangles with an edge
+    longer than ``max_edge_px`` left out)."""
+
+    def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
+        self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
+        n = f["motion_pairs"].fields("n_points")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
+        self._pairs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        self._motion = _FrameRows(f["motion"], self._pairs) if "motion" in f else None
+        frame_a = f["motion_pairs"].fields("frame_a")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
+        self._pair_of = {int(a): i for i, a in enumerate(frame_a)}
+        self._reach = _REACH_MM * float(px_per_mm)
+        self._max_edge = float(max_edge_px)
+        self._region: tuple[int, Any] = (-1, None)
+
+    def move(self, points, frame_from, frame_to):
+        first = min(frame_from, frame_to)
+        i = self._pair_of.get(int(first))
+        ok = np.zeros(points.shape[0], bool)
+        if i is None or self._pairs[i + 1] - self._pairs[i] < 3:
+            return points, ok
+        rows = self._motion(i)
+        src = np.column_stack([rows["x"], rows["y"]])
+        d = np.column_stack([rows["dx"], rows["dy"]])
+        if frame_to < frame_from:
+            src, d = src + d, -d
+        ok = cKDTree(src).query(points, distance_upper_bound=self._reach)[0] <= self._reach
+        return points + local_predictions(points, src, d), ok
+
+    def in_view(self, points, frame):
+        if self._region[0] != frame:
+            rows = self._features(frame)
+            self._region = (frame, _region(np.column_stack([rows["x"], rows["y"]]), self._max_edge))
+        region = self._region[1]
+        if region is None or points.shape[0] == 0:
+            return np.zeros(points.shape[0], bool)
+        mask, origin = region
+        c = np.round((points[:, 0] - origin[0]) / _REGION_PX).astype(np.int64)
+        r = np.round((points[:, 1] - origin[1]) / _REGION_PX).astype(np.int64)
+        inside = (c >= 0) & (r >= 0) & (c < mask.shape[1]) & (r < mask.shape[0])
+        out = np.zeros(points.shape[0], bool)
+        out[inside] = mask[r[inside], c[inside]] > 0
+        return out
+
+
+_REGION_PX = 2.0  # the in-view region is drawn at this resolution
+
+
+def _region(xy: np.ndarray, max_edge: float):
+    """The triangles of the Delaunay triangulation of ``xy`` without an edge longer than ``max_edge``, drawn as a
+    mask (one cell every :data:`_REGION_PX` pixels) and the mask's origin; None without a triangle."""
+    xy = np.unique(xy[np.all(np.isfinite(xy), axis=1)], axis=0)
+    if xy.shape[0] < 3:
+        return None
+    try:
+        tri = Delaunay(xy)
+    except QhullError:  # collinear
+        return None
+    p = xy[tri.simplices]
+    longest = np.max(np.hypot(*(p - np.roll(p, 1, axis=1)).transpose(2, 0, 1)), axis=1)
+    p = p[longest <= max_edge]
+    if p.shape[0] == 0:
+        return None
+    origin = xy.min(axis=0)
+    size = np.ceil((xy.max(axis=0) - origin) / _REGION_PX).astype(int) + 2
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    corners = np.round((p - origin) / _REGION_PX).astype(np.int32)
+    cv2.fillPoly(mask, list(corners), 1)
+    return mask, origin
+
+
+@dataclass(frozen=True)
+class MeshDensity:
+    """Density of an analysis' measurement (``summary["density"]``; :attr:`Results.density` in Python).
+
+    Attributes
+    ----------
+    method : str
+    features_per_frame : float or None
+        Features found per frame (mean; None for the flow method).
+    trajectories_kept : int or None
+        Trajectories at least the minimum length (None for the flow method).
+    fraction_kept : float or None
+        Of the features that stay in view for the window, the fraction in a kept trajectory (module doc; None for
+        the flow method or when no feature stays in view).
+    features_in_view : int or None
+        Features that stay in view for the window (the denominator of ``fraction_kept``).
+    window_frames : int or None
+        The window: the minimum trajectory length.
+    points_per_pair : float
+        Points measured between consecutive frames (median over pairs).
+    mesh_edge_mm : float or None
+        Mean edge length of the consecutive pairs' strain triangulations (None: no triangulation).
+    strain_pairs, strain_pairs_ok : dict
+        Frame pairs and pairs with a strain triangulation, per span.
+    too_sparse : bool
+        The mesh is too sparse to map strain (``warning`` says why).
+    warning : str or None
+        Why the mesh is too sparse, or the fraction kept too low, when it is.
+    """
+
+    method: str
+    features_per_frame: float | None
+    trajectories_kept: int | None
+    fraction_kept: float | None
+    features_in_view: int | None
+    window_frames: int | None
+    points_per_pair: float
+    mesh_edge_mm: float | None
+    strain_pairs: dict[int, int] = field(default_factory=dict)
+    strain_pairs_ok: dict[int, int] = field(default_factory=dict)
+    too_sparse: bool = False
+    warning: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["strain_pairs"] = {str(k): v for k, v in self.strain_pairs.items()}
+        d["strain_pairs_ok"] = {str(k): v for k, v in self.strain_pairs_ok.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "MeshDensity":
+        """The inverse of :meth:`to_dict` (a results file's summary)."""
+        d = dict(d)
+        for name in ("strain_pairs", "strain_pairs_ok"):
+            d[name] = {int(k): int(v) for k, v in (d.get(name) or {}).items()}
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def describe(self) -> str:
+        """One line for people: features, trajectories, fraction kept, mesh edge."""
+        parts = []
+        if self.features_per_frame is not None:
+            frac = "n/a" if self.fraction_kept is None else f"{100 * self.fraction_kept:.0f} %"
+            parts.append(f"{self.features_per_frame:.1f} features/frame, {self.trajectories_kept} trajectories kept, "
+                         f"{frac} of the features in view for {self.window_frames} frames kept")
+        parts.append(f"{self.points_per_pair:g} points per frame pair")
+        parts.append("no strain mesh" if self.mesh_edge_mm is None else f"mesh edge {self.mesh_edge_mm:.2f} mm")
+        return ", ".join(parts)
+
+
+def _frame_offsets(features: h5py.Dataset, n_frames: int) -> np.ndarray:
+    """(n_frames + 1,) first row of each frame in a feature table written in frame order."""
+    counts = np.zeros(n_frames, np.int64)
+    for a in range(0, features.shape[0], _BLOCK):
+        fr = np.asarray(features.fields("frame")[a : a + _BLOCK], dtype=np.int64)
+        counts += np.bincount(fr[(fr >= 0) & (fr < n_frames)], minlength=n_frames)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+
+
+def kept_features(f: h5py.File, n_features: int) -> np.ndarray:
+    """Whether each row of the results' feature table belongs to a kept trajectory."""
+    kept = np.zeros(n_features, bool)
+    if "trajectories" in f:
+        t = f["trajectories"]
+        for a in range(0, t.shape[0], _BLOCK):
+            fi = np.asarray(t.fields("feature_index")[a : a + _BLOCK], dtype=np.int64)
+            kept[fi[(fi >= 0) & (fi < n_features)]] = True
+    return kept
+
+
+def _mean_in_blocks(dset: h5py.Dataset, name: str) -> float | None:
+    n = dset.shape[0]
+    if n == 0:
+        return None
+    total = 0.0
+    for a in range(0, n, _BLOCK):
+        total += float(np.sum(np.asarray(dset.fields(name)[a : a + _BLOCK], dtype=np.float64)))
+    return total / n
+
+
+def mesh_density(f: h5py.File, *, method: str, n_frames: int, px_per_mm: float, spans, max_edge_px: float,
+                 window: int | None) -> MeshDensity:
+    """The :class:`MeshDensity` of the results file ``f`` (open, complete up to its derived parts); ``window`` is the
+    minimum trajectory length of the features method. Logs the warning when there is one."""
+    features_per_frame = trajectories_kept = fraction = in_view = None
+    if method == "features" and "features" in f:
+        n_features = int(f["features"].shape[0])
+        features_per_frame = n_features / max(int(n_frames), 1)
+        trajectories_kept = int(f["tracks"].shape[0]) if "tracks" in f else 0
+        offsets = _frame_offsets(f["features"], n_frames)
+        kept = kept_features(f, n_features)
+        motion = MeasuredMotion(f, feature_offsets=offsets, px_per_mm=px_per_mm, max_edge_px=max_edge_px)
+        rows_of = _FrameRows(f["features"], offsets)
+
+        def features_of(k: int):
+            rows = rows_of(k)
+            return np.column_stack([rows["x"], rows["y"]]), kept[offsets[k] : offsets[k + 1]]
+
+        fk = fraction_kept(n_frames, int(window or 1), features_of, motion, kept_stay_in_view=True)
+        fraction, in_view = fk.fraction, fk.n_in_view
+    points = np.asarray(f["motion_pairs"].fields("n_points")[()], dtype=np.float64) if "motion_pairs" in f else \
+        np.zeros(0)
+    points_per_pair = float(np.median(points)) if points.size else 0.0
+    pairs, pairs_ok = {}, {}
+    for span in spans:
+        g = f"strain/span_{int(span)}/pairs"
+        status = np.asarray(f[g].fields("status")[()]) if g in f else np.zeros(0, np.int8)
+        pairs[int(span)] = int(status.size)
+        pairs_ok[int(span)] = int(np.count_nonzero(status == PairStatus.OK))
+    edge_px = _mean_in_blocks(f["strain/span_1/edges"], "length") if "strain/span_1/edges" in f else None
+    edge_mm = edge_px / px_per_mm if edge_px is not None else None
+    reasons = []
+    n_pairs, n_ok = pairs.get(1, max(n_frames - 1, 0)), pairs_ok.get(1, 0)
+    if n_pairs and n_ok < MIN_OK_PAIR_FRACTION * n_pairs:
+        reasons.append(f"only {n_ok} of {n_pairs} consecutive frame pairs give a strain triangulation")
+    if points_per_pair < MIN_POINTS_PER_PAIR:
+        reasons.append(f"{points_per_pair:g} points measured per frame pair (median; at least {MIN_POINTS_PER_PAIR} "
+                       "needed)")
+    if edge_mm is not None and edge_mm > MAX_MEAN_EDGE_MM:
+        reasons.append(f"mean mesh edge {edge_mm:.2f} mm (coarser than {MAX_MEAN_EDGE_MM} mm)")
+    messages = []
+    if reasons:
+        messages.append("the strain mesh is too sparse to map strain: " + "; ".join(reasons))
+    if fraction is not None and fraction < MIN_FRACTION_KEPT:
+        messages.append(f"only {100 * fraction:.0f} % of the features that stay in view for {window} frames are kept "
+                        f"as trajectories (at least {100 * MIN_FRACTION_KEPT:.0f} % expected)")
+    density = MeshDensity(method, features_per_frame, trajectories_kept, fraction, in_view,
+                          int(window) if method == "features" and window else None, points_per_pair, edge_mm, pairs,
+                          pairs_ok, bool(reasons), None)
+    if messages:
+        density = MeshDensity(**{**asdict(density), "warning": "; ".join(messages) + f" ({density.describe()})"})
+        log.warning("%s", density.warning)
+    return density
