@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib
+import importlib.metadata
 import os
 import platform
 import sys
@@ -10,20 +10,39 @@ from pathlib import Path
 
 __all__ = ["machine_description", "software_versions"]
 
-_LIBRARIES = {"numpy": "numpy", "scipy": "scipy", "opencv": "cv2", "scikit-image": "skimage", "h5py": "h5py",
-              "numba": "numba", "pydantic": "pydantic", "matplotlib": "matplotlib"}
+#: Library name -> (module, its possible distributions).
+_LIBRARIES = {
+    "numpy": ("numpy", ("numpy",)),
+    "scipy": ("scipy", ("scipy",)),
+    "opencv": ("cv2", ("opencv-contrib-python-headless", "opencv-python-headless", "opencv-contrib-python",
+                       "opencv-python")),
+    "scikit-image": ("skimage", ("scikit-image",)),
+    "h5py": ("h5py", ("h5py",)),
+    "numba": ("numba", ("numba",)),
+    "pydantic": ("pydantic", ("pydantic",)),
+    "matplotlib": ("matplotlib", ("matplotlib",)),
+}
 
 
 def software_versions() -> dict[str, str]:
-    """Versions of skinstretch, Python, the platform and the scientific libraries (those importable)."""
+    """Versions of skinstretch, Python, the platform and the scientific libraries (those installed).
+
+    A library this process has imported gives its ``__version__``; one it has not, its installed distribution's
+    version: importing a library only to read its version would cost the analysis its memory (~50 MB for
+    scikit-image and matplotlib, which the analysing process never uses)."""
     from skinstretch import __version__  # noqa: PLC0415
 
     out = {"skinstretch": __version__, "python": sys.version.split()[0], "platform": platform.platform()}
-    for name, module in _LIBRARIES.items():
-        try:
-            out[name] = str(getattr(importlib.import_module(module), "__version__", "unknown"))
-        except ImportError:
+    for name, (module, distributions) in _LIBRARIES.items():
+        if module in sys.modules:
+            out[name] = str(getattr(sys.modules[module], "__version__", "unknown"))
             continue
+        for dist in distributions:
+            try:
+                out[name] = importlib.metadata.version(dist)
+                break
+            except importlib.metadata.PackageNotFoundError:
+                continue
     return out
 
 

@@ -166,9 +166,14 @@ class ResultsWriter:
     def file(self) -> h5py.File:
         return self._f
 
+    @property
+    def scratch_dir(self) -> Path | None:
+        """Where the analysis may keep scratch files: next to the results (None for results in memory)."""
+        return None if self.path is None else self.path.parent
+
     def samples(self) -> StoredSamples:
         """The motion samples written so far (``motion_pairs`` and ``motion``), read back lazily."""
-        return StoredSamples(lambda: nullcontext(self._f), self._f["motion_pairs"][()])
+        return StoredSamples(lambda: nullcontext(self._f), _pair_index(self._f["motion_pairs"]))
 
     def _table(self, name: str, dtype: np.dtype, units: Any, *, compress: bool = True) -> h5py.Dataset:
         if name not in self._tables:
@@ -191,6 +196,22 @@ class ResultsWriter:
         step = 1 << 16  # a block at a time: h5py converts a compound selection through a buffer of its size
         for i in range(0, rows.shape[0], step):
             ds[n + i : n + min(i + step, rows.shape[0])] = rows[i : i + step]
+
+    def append_array(self, name: str, block: np.ndarray, units: str, *, columns: Sequence[str] | None = None) -> None:
+        """Append ``block`` along its first axis to the array ``name`` (created on first use, like :meth:`array`):
+        per-frame arrays written a block of frames at a time."""
+        if name not in self._tables:
+            row_bytes = max(1, int(np.prod(block.shape[1:], dtype=np.int64)) * block.dtype.itemsize)
+            ds = self._f.create_dataset(name, shape=(0, *block.shape[1:]), maxshape=(None, *block.shape[1:]),
+                                        dtype=block.dtype, chunks=(max(1, (1 << 16) // row_bytes), *block.shape[1:]))
+            ds.attrs["units"] = units
+            if columns is not None:
+                ds.attrs["columns"] = list(columns)
+            self._tables[name] = ds
+        ds = self._tables[name]
+        n = ds.shape[0]
+        ds.resize(n + block.shape[0], axis=0)
+        ds[n:] = block
 
     def array(self, name: str, data: np.ndarray, units: str, *, columns: Sequence[str] | None = None,
               compress: bool = False, **attrs: Any) -> None:
@@ -258,9 +279,15 @@ class ResultsWriter:
 # ----------------------------------------------------------------------------------------------------- reading
 
 
+def _pair_index(ds: h5py.Dataset) -> np.ndarray:
+    """The columns of a ``pairs`` table that locate each pair's rows (not its reasons: 96 bytes a pair)."""
+    return ds.fields(["frame_a", "frame_b", "n_points"])[()]
+
+
 class StoredSamples(Sequence):
     """The consecutive-pair motion samples of a results file (its ``motion`` table), read a block at a time, so the
-    derived quantities can be computed from them without holding them all. ``open_file`` gives the open file."""
+    derived quantities can be computed from them without holding them all. ``open_file`` gives the open file;
+    ``pairs`` holds each pair's ``frame_a``, ``frame_b`` and ``n_points``."""
 
     def __init__(self, open_file: Callable[[], Any], pairs: np.ndarray, *, block: int = 256) -> None:
         self._open = open_file
@@ -391,7 +418,10 @@ class Results:
 
     def samples(self) -> StoredSamples:
         """The consecutive-pair motion as :class:`~skinstretch.processing.tracking.MotionSample` s, read lazily."""
-        return StoredSamples(self.open, self.motion_pairs)
+        if "motion_pairs" in self.__dict__:
+            return StoredSamples(self.open, self.motion_pairs)
+        with self.open() as f:
+            return StoredSamples(self.open, _pair_index(f["motion_pairs"]))
 
     @cached_property
     def strain(self) -> dict[int, SpanStrain]:

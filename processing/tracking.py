@@ -35,6 +35,8 @@ from skinstretch.processing.feature_matching import (  # noqa: F401 - match_feat
 )
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
+# smooth_positions stays importable from here, where it was defined before it moved
+from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
 
 
 @parameters
@@ -302,6 +304,7 @@ class FeatureTracker:
         self._track_kind: list[np.ndarray] = []
         self._lost = LostFeatures()
         self._released = False
+        self._n_taken = 0  # frames handed out by take_frames
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
         self.pair_status: list[str] = []  # per pair: "ok", or why matching was weak
 
@@ -606,8 +609,8 @@ class FeatureTracker:
         ``params.min_length_frames`` None means the seed's 30 frames (the analysis adapts it to a short clip)."""
         if self._n_frames == 0:
             raise InsufficientDataError("no frames were added to the tracker")
-        if self._released:
-            raise InvalidInputError("this tracker's records were released by finish(release=True)")
+        if self._released or self._n_taken:
+            raise InvalidInputError("this tracker's records were released by finish(release=True) or take_frames")
         n, t = self._n_frames, self._n_tracks
         min_length = self.params.min_length_frames
         min_length = DEFAULT_MIN_LENGTH_FRAMES if min_length is None else int(min_length)
@@ -657,9 +660,54 @@ class FeatureTracker:
             sigma = float(self.params.smoothing_sigma_frames)
             weights = np.array([float(np.exp(-(i * i) / (2.0 * sigma**2))) for i in range(-radius, radius + 1)])
             offsets = np.searchsorted(rows["frame"], np.arange(n + 1), side="left")
-            pos = _smooth_tracks(rows["track"], rows["frame"], run, pos, offsets, weights)
+            pos = smooth_track_rows(rows["track"], rows["frame"], run, pos, offsets, weights)
         rows["x"], rows["y"], rows["run"] = pos[:, 0], pos[:, 1], run
         return Trajectories(n_frames=n, rows=rows, kind=kind[keep_track].astype(np.int8))
+
+    def take_frames(self, *, last: bool = False) -> list["TrackedFrame"]:
+        """Hand out the frames that matching will not read again, oldest first, and forget them: every frame but
+        the last :func:`join_overlap_frames` (what :meth:`continue_with` compares), or every frame when the sequence is
+        over (``last``; the tracker then takes no more frames). A long analysis stores them as they come and builds
+        the trajectories itself, so the tracker's memory does not grow; :meth:`finish` cannot be used afterwards.
+        """
+        if self._released:
+            raise InvalidInputError("this tracker's records were released by finish(release=True) or take_frames")
+        end = self._n_frames if last else max(0, self._n_frames - join_overlap_frames(self.params))
+        out = []
+        for k in range(self._n_taken, end):
+            tracks, xy, offset, disp, refined = self._frames[k]
+            new_kinds = self._track_kind[k]
+            self._frames[k] = self._track_kind[k] = None
+            rows = np.flatnonzero(tracks >= 0)  # as in finish: a skin point detected twice belongs to no track
+            order = rows[np.argsort(tracks[rows], kind="stable")]
+            linked = np.all(np.isfinite(disp), axis=1)
+            if self.refiner is not None:
+                linked &= refined  # as in finish: a rejected refinement restarts the positions
+            feature_index = np.where(np.isfinite(xy[:, 0]), offset + np.arange(tracks.size), -1)  # -1: bridged
+            out.append(TrackedFrame(k, tracks[order], xy[order], feature_index[order], disp[order], linked[order],
+                                    (refined & linked)[order], new_kinds))
+        self._n_taken = max(self._n_taken, end)
+        self._released = last
+        return out
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """One frame's tracked features as :meth:`FeatureTracker.take_frames` hands them out, sorted by track.
+
+    ``linked``: the displacement from the previous frame chains this row to the track's previous position (a
+    consecutive match whose refinement, when there is one, was kept); ``new_track_kinds``: the kinds of the tracks
+    that start in this frame, whose numbers follow those of every earlier frame's.
+    """
+
+    frame: int
+    track: np.ndarray  # (n,) int64, increasing
+    xy: np.ndarray  # (n, 2) extracted positions px, NaN for a point bridged by registration
+    feature_index: np.ndarray  # (n,) row in the sequence's concatenated feature table, -1 for a bridged point
+    displacement: np.ndarray  # (n, 2) px from the previous frame, NaN where not matched
+    linked: np.ndarray  # (n,) bool
+    refined: np.ndarray  # (n,) bool
+    new_track_kinds: np.ndarray  # (m,) int8
 
 
 @dataclass(frozen=True)
@@ -738,87 +786,6 @@ def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
         pos[i, 0] += sums[g, 0] / counts[g]
         pos[i, 1] += sums[g, 1] / counts[g]
     return pos, run
-
-
-@numba.njit(cache=True, nogil=True)
-def _smooth_tracks(track, frame, run, pos, offsets, weights):
-    """Gaussian smoothing along time within each linked run (see :func:`smooth_positions`) of rows sorted by
-    frame then track (``offsets``: first row of each frame); ``weights`` are the kernel's 2R + 1 values. Each sum
-    runs over the kernel in the order of :func:`smooth_positions`, so the numbers are the same."""
-    m = track.shape[0]
-    n = offsets.shape[0] - 1
-    radius = (weights.shape[0] - 1) // 2
-    out = np.empty((m, 2))
-    for i in range(m):
-        ox = 0.0
-        oy = 0.0
-        w = 0.0
-        for j in range(-radius, radius + 1):
-            f = frame[i] + j
-            if f < 0 or f >= n:
-                continue
-            lo, hi = offsets[f], offsets[f + 1]
-            q = lo + np.searchsorted(track[lo:hi], track[i])
-            if q >= hi or track[q] != track[i] or run[q] != run[i]:
-                continue
-            k = weights[j + radius]
-            ox += pos[q, 0] * k
-            oy += pos[q, 1] * k
-            w += k
-        out[i, 0] = ox / w
-        out[i, 1] = oy / w
-    return out
-
-
-def smooth_positions(
-    positions: np.ndarray,
-    present: np.ndarray,
-    linked: np.ndarray,
-    *,
-    radius_frames: int = 1,
-    sigma_frames: float = 1.0,
-) -> np.ndarray:
-    """Gaussian smoothing of trajectories along time (seed eq. 5.2, 5.3), within each linked run.
-
-    The kernel ``K(i) = exp(-i^2 / (2 sigma^2))``, ``|i| <= R`` is normalised over the samples that exist, so
-    the ends of a run are not pulled toward zero (eq. 5.3 as printed is unnormalised).
-
-    Parameters
-    ----------
-    positions : (N, T, 2) array
-    present, linked : (N, T) bool arrays
-        Where a position exists, and where it is linked to the previous frame's (runs are not smoothed across).
-    radius_frames, sigma_frames
-        R and sigma of eq. 5.2-5.3; ``radius_frames=0`` returns the positions unchanged.
-    """
-    positions = np.asarray(positions, dtype=np.float64)
-    if positions.ndim != 3 or positions.shape[2] != 2 or positions.shape[:2] != present.shape:
-        raise InvalidInputError(f"positions must have shape (N, T, 2) matching present, got {positions.shape}")
-    if radius_frames < 0:
-        raise InvalidInputError(f"radius_frames must be >= 0, got {radius_frames!r}")
-    if radius_frames == 0 or positions.shape[0] < 2:
-        return positions.copy()
-    if not sigma_frames > 0:
-        raise InvalidInputError(f"sigma_frames must be positive, got {sigma_frames!r}")
-    n = positions.shape[0]
-    # Run label per sample: a new run begins wherever a present sample is not linked to the previous frame.
-    start = present & ~linked
-    run_id = np.cumsum(start, axis=0)
-    out = np.zeros_like(positions)
-    weight = np.zeros(present.shape)
-    filled = np.where(present[..., None], positions, 0.0)
-    for i in range(-radius_frames, radius_frames + 1):
-        k = float(np.exp(-(i * i) / (2.0 * sigma_frames**2)))
-        lo, hi = max(0, -i), min(n, n - i)  # target frames t with t + i in range
-        src = slice(lo + i, hi + i)
-        tgt = slice(lo, hi)
-        ok = present[src] & present[tgt] & (run_id[src] == run_id[tgt])
-        out[tgt] += np.where(ok[..., None], filled[src] * k, 0.0)
-        weight[tgt] += np.where(ok, k, 0.0)
-    result = np.full_like(positions, np.nan)
-    has = present & (weight > 0)
-    result[has] = out[has] / weight[has][:, None]
-    return result
 
 
 def concatenate_features(tables: list[np.ndarray]) -> np.ndarray:

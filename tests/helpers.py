@@ -4,6 +4,8 @@ import time
 
 import numpy as np
 
+from skinstretch.processing.feature_table import make_features
+
 
 def wait_until(predicate, timeout_s: float = 5.0, poll_s: float = 0.005) -> None:
     """Poll ``predicate`` until it holds: a bounded wait on another thread; AssertionError after ``timeout_s``."""
@@ -24,3 +26,15 @@ def y_shaped_skeleton() -> np.ndarray:
         sk[30 - i, 29 + i] = 1
         sk[30 + i, 29 + i] = 1
     return sk
+
+
+def sliding_feature_grid(k: int, rng_seed: int = 0) -> np.ndarray:
+    """A grid of features sliding 1.5 px per frame; a few vanish for 2 frames (re-linked) or for good."""
+    rng = np.random.default_rng(rng_seed)
+    gx, gy = np.meshgrid(np.arange(20.0, 300.0, 23.0), np.arange(20.0, 200.0, 21.0))
+    x, y = gx.ravel() + 1.5 * k, gy.ravel() + 0.4 * k
+    kind = rng.integers(0, 3, x.size)
+    keep = np.ones(x.size, bool)
+    keep[(np.arange(x.size) % 7 == k % 7)] = False  # each feature missing one frame in 7
+    keep[5:9] = k < 25  # some end for good
+    return make_features(x[keep], y[keep], kind[keep], frame=k)

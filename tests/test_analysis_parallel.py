@@ -20,9 +20,9 @@ from skinstretch.experiments.analysis import executor as executor_module
 from skinstretch.experiments.analysis.executor import InlineExecutor, WorkerProcesses
 from skinstretch.experiments.analysis.measure import MAX_CHUNK_FRAMES, MIN_FRAMES, chunk_plan
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.feature_table import make_features
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.tracking import FeatureTracker, TrackingParams
+from tests.helpers import sliding_feature_grid
 
 scene = pytest.importorskip("skinstretch.simulators.scene")
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,18 +48,6 @@ def test_chunk_plan_keeps_short_sequences_whole():
     assert len(chunk_plan(500, width=1, overlap=5)) == 3  # bounded chunks even on one worker
 
 
-def _moving_features(k, rng_seed=0):
-    """A grid of features sliding 1.5 px per frame; a few vanish for 2 frames (re-linked) or for good."""
-    rng = np.random.default_rng(rng_seed)
-    gx, gy = np.meshgrid(np.arange(20.0, 300.0, 23.0), np.arange(20.0, 200.0, 21.0))
-    x, y = gx.ravel() + 1.5 * k, gy.ravel() + 0.4 * k
-    kind = rng.integers(0, 3, x.size)
-    keep = np.ones(x.size, bool)
-    keep[(np.arange(x.size) % 7 == k % 7)] = False  # each feature missing one frame in 7
-    keep[5:9] = k < 25  # some end for good
-    return make_features(x[keep], y[keep], kind[keep], frame=k)
-
-
 def _tracker(smoothing=0):
     return FeatureTracker(calibration=Calibration(px_per_mm=62.0),
                           params=TrackingParams(min_length_frames=3, max_gap_frames=3, smoothing_radius_frames=smoothing))
@@ -69,27 +57,27 @@ def test_continue_with_gives_the_sequential_trajectories():
     n, b, overlap = 40, 22, 5
     seq = _tracker()
     for k in range(n):
-        seq.add_frame(_moving_features(k))
+        seq.add_frame(sliding_feature_grid(k))
     a, c = _tracker(), _tracker()
     for k in range(b + 1):
-        a.add_frame(_moving_features(k))
+        a.add_frame(sliding_feature_grid(k))
     for k in range(b - overlap, n):
-        c.add_frame(_moving_features(k))
+        c.add_frame(sliding_feature_grid(k))
     assert a.continue_with(c, overlap=overlap)
     ta, ts = a.finish(), seq.finish(release=True)
     for name in ts.rows.dtype.names:
         np.testing.assert_array_equal(ta.rows[name], ts.rows[name], err_msg=name)
     with pytest.raises(InvalidInputError, match="released"):
-        seq.add_frame(_moving_features(n))
+        seq.add_frame(sliding_feature_grid(n))
 
 
 def test_continue_with_refuses_disagreeing_trackers_and_changes_nothing():
     b, overlap = 22, 5
     a, c = _tracker(), _tracker()
     for k in range(b + 1):
-        a.add_frame(_moving_features(k))
+        a.add_frame(sliding_feature_grid(k))
     for k in range(b - overlap, 40):
-        feats = _moving_features(k)
+        feats = sliding_feature_grid(k)
         c.add_frame(feats[1:] if k == b - 1 else feats)  # one feature missing in an overlapped frame
     before = (a.n_frames, len(a._frames), a._n_tracks)
     assert not a.continue_with(c, overlap=overlap)
@@ -104,8 +92,8 @@ def test_the_long_trajectory_table_has_the_dense_smoothing_to_the_bit():
 
     t0, t1 = _tracker(smoothing=0), _tracker(smoothing=2)
     for k in range(40):
-        t0.add_frame(_moving_features(k))
-        t1.add_frame(_moving_features(k))
+        t0.add_frame(sliding_feature_grid(k))
+        t1.add_frame(sliding_feature_grid(k))
     d0, d1 = t0.finish().dense(), t1.finish().dense()
     pos = np.stack([d0.x, d0.y], axis=-1)
     dense = smooth_positions(pos, d0.present, d0.linked, radius_frames=2, sigma_frames=1.0)

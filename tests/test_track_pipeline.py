@@ -43,6 +43,9 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
     assert r.tactile_positions_um.shape == (N_FRAMES, 10, 10)
     assert np.all(np.abs(r.tactile_positions_um) <= 50)
     assert np.all(np.isfinite(r.motion["dx"]))
+    for span, strain in r.strain.items():  # streamed while the analysis ran: numpy's on the stored edges
+        assert summary[f"strain_span_{span}"]["edge_change_p5_p95"] == np.percentile(strain.edges["change"],
+                                                                                     [5, 95]).tolist()
     _every_dataset_has_units_and_codes(out / "results.h5")
     capsys.readouterr()
     assert main(["evaluate", str(out), "--json"]) == 0

@@ -4,12 +4,13 @@ window, stretch profile and tactile movie.
 Every function takes per-pair :class:`~skinstretch.processing.tracking.MotionSample` s in pixels (rectified to the
 skin when the session has a geometric mapping: that is done once, where the motion leaves the measurement) and
 lengths already converted to pixels by :class:`PixelScales`. Samples may be a lazy sequence read back from the
-results file, so nothing here holds the whole session's motion.
+results file, and what is derived per pair is consumed as it is computed (the stretch profile's running mean, the
+tactile movie a block of frames at a time), so nothing here holds the whole session's motion.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 from skinstretch.experiments.results_file import (
     AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
 )
-from skinstretch.processing.display_mapping import TactileMovie, tactile_movie
+from skinstretch.processing.display_mapping import TactileMovie, TactileMovieBuilder
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow, fingertip_motion, visibility_window
 from skinstretch.processing.pixel_scale import Calibration
@@ -28,7 +29,10 @@ from skinstretch.processing.stretch import (
 from skinstretch.processing.tracking import MotionSample
 
 __all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "stretch_profile", "sliding_axis",
-           "chain_flows", "rectified_sample"]
+           "chain_flows", "rectified_sample", "tactile_movie_blocks", "MOVIE_BLOCK_FRAMES"]
+
+#: Frames of the tactile movie built and handed on at a time.
+MOVIE_BLOCK_FRAMES = 256
 
 _STATUS_OF_STRAIN = {STRAIN_OK: PairStatus.OK, TOO_FEW_POINTS: PairStatus.TOO_FEW_POINTS,
                      COLLINEAR: PairStatus.COLLINEAR}
@@ -122,42 +126,57 @@ def sliding_axis(fingertip_position: np.ndarray) -> int:
     return int(np.argmax(travel))
 
 
-def stretch_profile(samples: Iterable[MotionSample], fingertip_displacement: np.ndarray, *, axis: int,
+class _PairProfiles(Sequence):
+    """Each consecutive pair's stretch profile, computed when it is read: :func:`mean_profile` reads them once, in
+    order, so a session's profiles are never all held."""
+
+    def __init__(self, samples: Sequence[MotionSample], fingertip_displacement: np.ndarray, *, axis: int,
+                 positions: np.ndarray, strip_px: float) -> None:
+        self._samples, self._ft = samples, fingertip_displacement
+        self._axis, self._positions, self._strip_px = axis, positions, strip_px
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def __getitem__(self, k: int) -> StretchProfile:
+        s, ft = self._samples[k], self._ft[k]
+        if self._axis == 1:
+            s = MotionSample(s.frame_a, s.frame_b, s.points[:, ::-1], s.displacement[:, ::-1], s.ids)
+            ft = ft[::-1]
+        return horizontal_stretch_profile(s, fingertip_displacement=ft, x_positions=self._positions,
+                                          strip_width_px=self._strip_px)
+
+    def __iter__(self) -> Iterator[StretchProfile]:
+        return (self[k] for k in range(len(self)))
+
+
+def stretch_profile(samples: Sequence[MotionSample], fingertip_displacement: np.ndarray, *, axis: int,
                     positions: np.ndarray, strip_px: float) -> StretchProfile:
     """Seed Figure 94: the change in stretch along ``axis`` averaged over every consecutive pair.
 
     A position is kept when at least a quarter of the pairs measured it, so a few pairs cannot make the average
     where the skin is seldom seen (the edge of the contact area, a dark band without features).
     """
-    profiles = []
-    for k, s in enumerate(samples):
-        if axis == 1:
-            s = MotionSample(s.frame_a, s.frame_b, s.points[:, ::-1], s.displacement[:, ::-1], s.ids)
-            ft = fingertip_displacement[k][::-1]
-        else:
-            ft = fingertip_displacement[k]
-        profiles.append(
-            horizontal_stretch_profile(s, fingertip_displacement=ft, x_positions=positions, strip_width_px=strip_px)
-        )
+    profiles = _PairProfiles(samples, fingertip_displacement, axis=axis, positions=positions, strip_px=strip_px)
     return mean_profile(profiles, min_pairs=max(1, len(profiles) // 4))
 
 
 @dataclass(frozen=True)
 class Derived:
-    """Everything computed from the consecutive pairs' motion (seed 5.2-5.4)."""
+    """What is computed from the consecutive pairs' motion and kept whole (seed 5.2, 5.3.2); the tactile movie
+    (5.4) follows from it a block of frames at a time (:func:`tactile_movie_blocks`)."""
 
     fingertip: FingertipMotion
     window: VisibilityWindow | None
     window_status: str  # "ok" or why there is no visibility window (and so no movie)
     profile_axis: str  # "x" or "y"
     profile: StretchProfile
-    movie: TactileMovie | None
 
 
-def derive(samples: Sequence[MotionSample], *, n_frames: int, image_shape: tuple[int, int], calibration: Calibration,
-           scales: PixelScales, display_params, profile_axis: int | None = None) -> Derived:
-    """Fingertip motion and visibility window (seed 5.2), stretch profile (5.3.2, Figure 94) and tactile movie
-    (5.4) from the consecutive pairs' samples (iterated once for each)."""
+def derive(samples: Sequence[MotionSample], *, n_frames: int, image_shape: tuple[int, int], scales: PixelScales,
+           profile_axis: int | None = None) -> Derived:
+    """Fingertip motion and visibility window (seed 5.2) and stretch profile (5.3.2, Figure 94) from the
+    consecutive pairs' samples (iterated once for each)."""
     ft = fingertip_motion(samples, n_frames=n_frames)
     try:
         win, status = visibility_window(ft, image_shape=image_shape), "ok"
@@ -168,8 +187,28 @@ def derive(samples: Sequence[MotionSample], *, n_frames: int, image_shape: tuple
     step = scales.profile_step_px
     positions = np.arange(step, length - step / 2, step)
     profile = stretch_profile(samples, ft.displacement, axis=axis, positions=positions, strip_px=scales.profile_strip_px)
-    movie = None
-    if win is not None:
-        movie = tactile_movie(samples, fingertip=ft, window=win, calibration=calibration, image_shape=image_shape,
-                              params=display_params, motion_axis=axis)
-    return Derived(ft, win, status, AXIS_NAMES[axis], profile, movie)
+    return Derived(ft, win, status, AXIS_NAMES[axis], profile)
+
+
+def tactile_movie_blocks(samples: Sequence[MotionSample], derived: Derived, *, calibration: Calibration,
+                         image_shape: tuple[int, int], display_params, block_frames: int | None = None
+                         ) -> Iterator[TactileMovie]:
+    """The tactile movie (seed 5.4) of every frame, ``block_frames`` consecutive frames at a time (None:
+    :data:`MOVIE_BLOCK_FRAMES`; the frames of :func:`~skinstretch.processing.display_mapping.tactile_movie`); none
+    without a visibility window."""
+    if derived.window is None:
+        return
+    block_frames = MOVIE_BLOCK_FRAMES if block_frames is None else int(block_frames)
+    axis = AXIS_NAMES.index(derived.profile_axis)
+    n = derived.fingertip.n_frames
+    if len(samples) != n - 1:
+        raise InvalidInputError(f"expected {n - 1} consecutive-pair samples, got {len(samples)}")
+    builder = TactileMovieBuilder(fingertip=derived.fingertip, window=derived.window, calibration=calibration,
+                                  image_shape=image_shape, params=display_params, motion_axis=axis)
+    frames = [builder.first_frame()]
+    for s in samples:
+        if len(frames) == block_frames:
+            yield TactileMovie.of_frames(frames, motion_axis=axis)
+            frames = []
+        frames.append(builder.add(s))
+    yield TactileMovie.of_frames(frames, motion_axis=axis)

@@ -61,7 +61,7 @@ class WorkerProcesses(Executor):
         with self._lock:
             if self._pool is None:
                 pool = worker_pool(self.workers, preload=["skinstretch.experiments.analysis.measure"],
-                                   initializer=_warm_up)
+                                   initializer=_one_opencv_thread)
                 # Every worker is started now, while the caller's main script is hidden (see _main_script_hidden).
                 with _main_script_hidden():
                     started = [pool.submit(os.getpid) for _ in range(self.workers)]
@@ -122,18 +122,12 @@ def executor_width(executor: Executor) -> int:
 # -- in each worker process --------------------------------------------------------------------------------------
 
 
-def _warm_up() -> None:
-    """Use one OpenCV thread (the parallelism is the processes), and load the compiled kernels now rather than
-    inside the first timed chunk."""
+def _one_opencv_thread() -> None:
+    """Each worker uses one OpenCV thread (the parallelism is the processes). Compiled kernels are not loaded ahead:
+    a worker loads those its tasks call (a flow run's workers never hold the feature method's, ~65 MB each)."""
     import cv2  # noqa: PLC0415
 
     cv2.setNumThreads(1)
-    try:
-        from skinstretch.experiments.analysis.measure import exercise_pipeline  # noqa: PLC0415
-
-        exercise_pipeline()
-    except Exception:  # noqa: BLE001 - a warm-up failure only costs the loading time later
-        log.debug("worker warm-up failed", exc_info=True)
 
 
 @contextmanager

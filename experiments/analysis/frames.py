@@ -76,12 +76,14 @@ class SessionFrames(FrameSource):
 
 
 class ArrayFrames(FrameSource):
-    """Frames in memory (an (N, H, W) array or a list of 2-D arrays); :meth:`part` copies only the chunk."""
+    """Frames in memory (an (N, H, W) array or a list of 2-D arrays); a :meth:`part` sent to another process carries
+    only its chunk's frames (read in this process, it copies nothing)."""
 
     def __init__(self, frames: Sequence[np.ndarray] | np.ndarray, *, first: int = 0, n_frames: int | None = None) -> None:
         self._frames = frames
         self._first = int(first)
         self._n = int(n_frames) if n_frames is not None else len(frames)
+        self._part: tuple[int, int] | None = None  # (first, last) frame a part may read
         if len(frames) == 0:
             raise InsufficientDataError("no frames to analyse")
         f0 = np.asarray(frames[0])
@@ -99,8 +101,16 @@ class ArrayFrames(FrameSource):
         return np.asarray(self._frames[i])
 
     def part(self, first: int, last: int) -> "ArrayFrames":
-        lo, hi = first - self._first, last + 1 - self._first
-        return ArrayFrames([np.asarray(self._frames[i]) for i in range(lo, hi)], first=first, n_frames=self._n)
+        out = ArrayFrames(self._frames, first=self._first, n_frames=self._n)
+        out._part = (int(first), int(last))
+        return out
+
+    def __getstate__(self) -> dict:
+        if self._part is None:
+            return dict(self.__dict__)
+        first, last = self._part
+        frames = [np.asarray(self._frames[k - self._first]) for k in range(first, last + 1)]
+        return {**self.__dict__, "_frames": frames, "_first": first, "_part": None}
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,9 @@ as the previous chunk's at the join, and when the two agree on them bit for bit
 (:meth:`skinstretch.processing.tracking.FeatureTracker.continue_with`) the later frames are exactly those one
 sequential tracker would have produced. When they do not agree (rare: a relinked feature whose history starts
 before the overlap), this process tracks that chunk's frames itself from the features the chunk extracted: the
-result is the sequential one either way, whatever the executor (the tests check it).
+result is the sequential one either way, whatever the executor (the tests check it). The joined tracker hands its
+frames on as soon as matching is done with them (:meth:`~skinstretch.processing.tracking.FeatureTracker.take_frames`)
+for the caller to store: it never holds more than a few chunks' records.
 
 Flow: each chunk computes the fields of its consecutive pairs (:meth:`DenseFlow.compute_sequence`), the same as
 pair by pair.
@@ -27,7 +29,6 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 
 from skinstretch.experiments.analysis.executor import InlineExecutor, describe_executor, executor_width
 from skinstretch.experiments.analysis.frames import FrameReader
@@ -35,7 +36,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.progress import progress_bar
 
 __all__ = ["chunk_plan", "measure_features", "measure_flow", "make_tracker", "make_extractor", "FeatureMeasurement",
-           "FlowMeasurement", "exercise_pipeline", "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
+           "FlowMeasurement", "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
 
 log = logging.getLogger(__name__)
 
@@ -161,10 +162,8 @@ def track_chunk(reader: FrameReader, first: int, last: int, calibration: Calibra
 
 @dataclass
 class FeatureMeasurement:
-    """The tracker after every frame (its :meth:`finish` gives the trajectories), seconds per stage, and how the
-    measurement ran."""
+    """Seconds per stage, and how the measurement ran."""
 
-    tracker: Any
     timing: dict[str, float]
     parallel: str
 
@@ -177,10 +176,13 @@ def measure_features(
     params,
     executor: Executor,
     on_frames: Callable[[int, list, list], None],
+    on_tracked: Callable[[list], None],
     progress: bool = False,
 ) -> FeatureMeasurement:
     """Track every frame in chunks on ``executor``; ``on_frames(first, tables, flags)`` receives each run of
-    frames' feature tables and flags in frame order, once (the caller writes them out)."""
+    frames' feature tables and flags in frame order, once (the caller writes them out), and ``on_tracked(frames)``
+    the tracked frames (:class:`~skinstretch.processing.tracking.TrackedFrame`) in frame order, each once, as soon
+    as the tracker is done with them (the caller stores them: the trajectories are built at the end)."""
     from skinstretch.processing.tracking import join_overlap_frames  # noqa: PLC0415
 
     overlap = join_overlap_frames(params.tracking)  # the least FeatureTracker.continue_with accepts
@@ -208,14 +210,15 @@ def measure_features(
                     for k, feats in enumerate(r.tables[own], start=r.first + overlap + 1):
                         tracker.add_frame(feats, prepared=tracker.prepare_image(reader(k)))
                 timing["tracking_s"] += time.perf_counter() - t0
-            tables, flags = r.tables[own], r.flags[own]
-            on_frames(r.first + (own.start or 0), tables, flags)
-            bar.update(len(tables))
+            on_frames(r.first + (own.start or 0), r.tables[own], r.flags[own])
+            bar.update(len(r.tables[own]))
+            del r  # the chunk's tracker and tables: the joined tracker took what it needs
+            on_tracked(tracker.take_frames(last=j == len(plan) - 1))
     finally:
         bar.close()
     how = "serial" if here else describe_executor(executor)
     parallel = f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}, {retracked} re-tracked at their join"
-    return FeatureMeasurement(tracker, timing, parallel)
+    return FeatureMeasurement(timing, parallel)
 
 
 # -- flow --------------------------------------------------------------------------------------------------------
@@ -282,24 +285,3 @@ def measure_flow(
     how = "serial" if here else describe_executor(executor)
     return FlowMeasurement({"flow_s": time.perf_counter() - t0, "flow_cpu_s": busy},
                            f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}")
-
-
-# -- warm-up -----------------------------------------------------------------------------------------------------
-
-
-def exercise_pipeline() -> None:
-    """Extract and track two small synthetic prints (ridges with endings, forks and pores) once, so a new worker
-    process loads the compiled kernels before its first chunk."""
-    from skinstretch.experiments.analysis.parameters import AnalysisParams  # noqa: PLC0415
-
-    cal = Calibration(px_per_mm=62.0)
-    params = AnalysisParams()
-    rng = np.random.default_rng(0)
-    yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)
-    warp = np.cumsum(rng.normal(0, 0.15, (200, 240)), axis=1) * 0.1
-    ex, tr = make_extractor(cal, params), make_tracker(cal, params)
-    for shift in (0.0, 1.5):
-        phase = 2 * np.pi * (yy + shift) / 27.0 + warp + 0.002 * (xx - 120) ** 2 / 10
-        img = np.clip(128 + 70 * np.sin(phase) + rng.normal(0, 6, phase.shape), 0, 255).astype(np.uint8)
-        res = ex.extract(img)
-        tr.add_frame(res.features if res.ok else res.features[:0], image=img)

@@ -6,12 +6,16 @@
 2. motion between consecutive frames is measured in chunks on the run's executor (:mod:`.measure`): tracked
    features refined to sub-pixel, or the dense flow grid;
 3. the motion is rectified to the skin once (when the session has a geometric mapping), written to the results
-   file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive;
-4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion
-   (:mod:`.derive`), and the file is closed as ``results.h5`` (``docs/results-format.md``).
+   file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive; the
+   feature method's trajectories are stored as the tracker is done with each frame and built at the end, a block
+   of frames at a time (:mod:`.trajectories`), and the motion follows from them;
+4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
+   back (:mod:`.derive`), the movie written a block of frames at a time, and the file is closed as ``results.h5``
+   (``docs/results-format.md``).
 
-Memory does not grow with the session beyond a few numbers per frame (flags, fingertip, movie) and, for the feature
-method, the compact per-feature records of the trajectories.
+Memory does not grow with the session beyond a few numbers per frame (flags, fingertip, window) and per track:
+everything else is written as soon as it is final and read back when a later step needs it (the bench section
+``scale`` measures it).
 """
 
 from __future__ import annotations
@@ -31,20 +35,25 @@ import numpy as np
 
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
-    PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain,
+    Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
 )
 from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
 from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params, for_clip
+from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
+from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
-from skinstretch.experiments.results_file import AXIS_NAMES, TRACK_DTYPE, UNITS, PairStatus, Results, ResultsWriter
+from skinstretch.experiments.results_file import (
+    AXIS_NAMES, EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, UNITS, PairStatus, Results, ResultsWriter,
+)
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.tracking import MotionSample, Trajectories
+from skinstretch.processing.display_mapping import TactileMovie
+from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
 
@@ -55,16 +64,19 @@ STRAIN_BATCH_PAIRS = 128
 
 
 class _StrainTables:
-    """The strain of every span, computed in batches on the executor as pairs arrive and written in pair order."""
+    """The strain of every span, computed in batches on the executor as pairs arrive and written in pair order; each
+    span's edge changes also go to a :class:`StreamedPercentiles` (the summary's percentiles)."""
 
     def __init__(self, writer: ResultsWriter, executor: Executor, spans: Sequence[int], max_edge_px: float,
-                 min_spacing_px: float = 0.0) -> None:
+                 stack: ExitStack, min_spacing_px: float = 0.0) -> None:
         self.writer, self.executor, self.max_edge_px = writer, executor, max_edge_px
         self.min_spacing_px = min_spacing_px
         self.buffers: dict[int, list[MotionSample]] = {int(s): [] for s in spans}
         self.done: dict[int, int] = {int(s): 0 for s in spans}  # pairs submitted per span
         self.pending: deque[tuple[int, Future, list, dict]] = deque()
         self.ok: dict[int, int] = {int(s): 0 for s in spans}
+        self.edge_change = {int(s): stack.enter_context(StreamedPercentiles(scratch_dir=writer.scratch_dir))
+                            for s in spans}
 
     def add(self, span: int, sample: MotionSample) -> None:
         buf = self.buffers[span]
@@ -99,6 +111,7 @@ class _StrainTables:
         self.writer.append(f"{g}/triangles", s.triangles, UNITS["triangles"])
         self.writer.file[g].attrs["span"] = span
         self.ok[span] += int(np.sum(s.pairs["status"] == PairStatus.OK))
+        self.edge_change[span].add(s.edges["change"])
 
     def finish(self) -> None:
         for span in self.buffers:
@@ -108,23 +121,73 @@ class _StrainTables:
         for span in self.buffers:  # a span longer than the session: an empty table says so
             g = f"strain/span_{span}"
             if g not in self.writer.file:
-                for name in ("pairs", "edges", "triangles"):
-                    self.writer.append(f"{g}/{name}", np.zeros(0, _dtype_of(name)), UNITS[name])
+                for name, dtype in (("pairs", PAIR_DTYPE), ("edges", EDGE_DTYPE), ("triangles", TRIANGLE_DTYPE)):
+                    self.writer.append(f"{g}/{name}", np.zeros(0, dtype), UNITS[name])
                 self.writer.file[g].attrs["span"] = span
 
 
-def _dtype_of(name: str):
-    from skinstretch.experiments.results_file import EDGE_DTYPE, PAIR_DTYPE, TRIANGLE_DTYPE  # noqa: PLC0415
+class _MotionTable:
+    """The consecutive pairs' motion, written a batch of pairs at a time."""
 
-    return {"pairs": PAIR_DTYPE, "edges": EDGE_DTYPE, "triangles": TRIANGLE_DTYPE}[name]
+    def __init__(self, writer: ResultsWriter) -> None:
+        self.writer = writer
+        self.block: list[MotionSample] = []
+        self.written = 0
+
+    def add(self, sample: MotionSample) -> None:
+        self.block.append(sample)
+        if len(self.block) == STRAIN_BATCH_PAIRS:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.block:
+            pairs, rows = motion_rows(self.block, first_pair=self.written)
+            self.writer.append("motion_pairs", pairs, UNITS["pairs"])
+            self.writer.append("motion", rows, UNITS["motion"])
+            self.written += len(self.block)
+            self.block = []
 
 
-def _rectify_trajectories(tr: Trajectories, mapping, px_per_mm: float) -> None:
-    """Image px -> skin px for every position of the trajectories, all in one call (seed 3.4)."""
+def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
+    """Image px -> skin px for every position of trajectory rows (seed 3.4)."""
     for a, b in (("x", "y"), ("raw_x", "raw_y")):
-        xy = np.column_stack([tr.rows[a], tr.rows[b]])
+        xy = np.column_stack([rows[a], rows[b]])
         out = np.asarray(mapping.image_to_surface(xy), dtype=np.float64) * px_per_mm
-        tr.rows[a], tr.rows[b] = out[:, 0], out[:, 1]
+        rows[a], rows[b] = out[:, 0], out[:, 1]
+
+
+def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
+                             motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float) -> None:
+    """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
+    them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built."""
+    longest = max(spans)
+    kinds = store.kinds
+    carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need
+    first = 0  # the next pair (first, first + 1)
+    for block in store.blocks():
+        rows = block.rows
+        if mapping is not None:
+            _rectify_rows(rows, mapping, px_per_mm)
+        writer.append("trajectories", rows, UNITS["trajectories"])
+        tr = Trajectories(n_frames=block.stop, rows=np.concatenate([carry, rows]), kind=kinds)
+        last = n - 2 if block.stop == n else block.stop - 1 - longest  # the last pair whose frames are all built
+        for k in range(first, last + 1):
+            s = tr.motion(k, k + 1)
+            motion.add(s)
+            for span in spans:
+                if span == 1:
+                    strain.add(1, s)
+                elif k + span < n:
+                    strain.add(span, tr.motion(k, k + span))
+        first = max(first, last + 1)
+        carry = tr.rows[tr.rows["frame"] >= first]
+    motion.flush()
+    table = store.track_table()
+    tracks = np.zeros(table["kind"].size, dtype=TRACK_DTYPE)
+    tracks["track"] = np.arange(tracks.size)
+    for name, column in table.items():
+        tracks[name] = column
+    writer.append("tracks", tracks, UNITS["tracks"])
 
 
 def analyze(
@@ -166,52 +229,35 @@ def analyze(
         t_shading = time.perf_counter() - t_start
         writer = stack.enter_context(ResultsWriter(results_path))
         flags = [""] * n
-        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, scales.min_spacing_px)
-        n_features = [0]
-
-        def write_motion(samples: list[MotionSample], first_pair: int) -> None:
-            pairs, rows = motion_rows(samples, first_pair=first_pair)
-            writer.append("motion_pairs", pairs, UNITS["pairs"])
-            writer.append("motion", rows, UNITS["motion"])
+        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
+        motion = _MotionTable(writer)
 
         if method == "features":
+            n_features = 0
+            store = stack.enter_context(TrajectoryStore(n_frames=n, params=params.tracking,
+                                                        scratch_dir=writer.scratch_dir))
+
             def on_frames(first: int, tables: list, chunk_flags: list) -> None:
+                nonlocal n_features
                 sizes = [t.shape[0] for t in tables]
                 feats = validate_features(np.concatenate(tables)) if tables else np.zeros(0, FEATURE_DTYPE)
                 feats["frame"] = np.repeat(np.arange(first, first + len(tables), dtype=np.int32), sizes)
-                feats["id"] = np.arange(n_features[0], n_features[0] + feats.shape[0])
-                n_features[0] += feats.shape[0]
+                feats["id"] = np.arange(n_features, n_features + feats.shape[0])
+                n_features += feats.shape[0]
                 writer.append("features", feats, UNITS["features"])
                 flags[first : first + len(chunk_flags)] = chunk_flags
 
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
-                                 on_frames=on_frames, progress=progress)
+                                 on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
-            tr = m.tracker.finish(release=True)  # records freed as the table fills
-            m.tracker = None
-            if mapping is not None:
-                _rectify_trajectories(tr, mapping, calibration.px_per_mm)
-            writer.append("trajectories", tr.rows, UNITS["trajectories"])
-            writer.append("tracks", _track_table(tr), UNITS["tracks"])
-            block = []
-            for k in range(n - 1):
-                s = tr.motion(k, k + 1)
-                block.append(s)
-                for span in spans:
-                    if span == 1:
-                        strain.add(1, s)
-                    elif k + span < n:
-                        strain.add(span, tr.motion(k, k + span))
-                if len(block) == STRAIN_BATCH_PAIRS or k == n - 2:
-                    write_motion(block, k + 1 - len(block))
-                    block = []
+            _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
+                                     px_per_mm=calibration.px_per_mm)
+            store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
             timing, parallel = dict(m.timing), m.parallel
         else:
             recent: deque = deque(maxlen=max(spans))
-            block: list[MotionSample] = []
             stride = params.strain.flow_stride
-            done = [0]
             # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
             # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front). Not over a
             # ridge or valley: the refinement would follow the glass-fixed patterns the skin moves through.
@@ -222,7 +268,7 @@ def analyze(
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=params.flow), reader)
 
             def on_field(f) -> None:
-                if not recent and done[0] == 0:
+                if not recent:  # the first field
                     writer.start_flow(f.grid_x, f.grid_y)
                 writer.append_flow(f.displacement, f.valid)
                 if f.status != "ok" and not any(f.frame_flags):
@@ -230,27 +276,29 @@ def analyze(
                 for k, refused in zip((f.frame_a, f.frame_b), f.frame_flags):  # the texture gate names each frame's
                     flags[k] = refused or flags[k]                              # reason
                 recent.append(f)
-                block.append(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
+                motion.add(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
                 for span in spans:
                     if len(recent) >= span:
                         steps = list(recent)[len(recent) - span:]
                         chained = (refiner.refine(steps).motion(stride=stride) if refiner is not None and span > 1
                                    else chain_flows(steps, stride=stride))
                         strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
-                done[0] += 1
-                if len(block) == STRAIN_BATCH_PAIRS or done[0] == n - 1:
-                    write_motion(block, done[0] - len(block))
-                    block.clear()
 
             m = measure_flow(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                              on_field=on_field, progress=progress)
+            motion.flush()
             timing, parallel = dict(m.timing), m.parallel
         t0 = time.perf_counter()
         strain.finish()
-        d = derive(writer.samples(), n_frames=n, image_shape=image_shape, calibration=calibration, scales=scales,
-                   display_params=params.display)
-        timing["derive_s"] = time.perf_counter() - t0
+        samples = writer.samples()
+        d = derive(samples, n_frames=n, image_shape=image_shape, scales=scales)
         _write_derived(writer, d, flags)
+        for movie in tactile_movie_blocks(samples, d, calibration=calibration, image_shape=image_shape,
+                                          display_params=params.display):
+            _append_movie(writer, movie)
+        if d.window is not None:
+            writer.file["tactile_movie"].attrs["motion_axis"] = d.profile_axis
+        timing["derive_s"] = time.perf_counter() - t0
         total = time.perf_counter() - t_start
         timing.update({"glass_shading_s": t_shading, "total_s": total, "frames_per_s": n / total if total > 0 else 0.0})
         attrs = {
@@ -274,21 +322,7 @@ def analyze(
         return writer.finish(attrs)
 
 
-def _track_table(tr: Trajectories) -> np.ndarray:
-    t = np.zeros(tr.n_tracks, dtype=TRACK_DTYPE)
-    t["track"] = np.arange(tr.n_tracks)
-    t["kind"] = tr.kind
-    t["n_frames"] = tr.lengths
-    fr, tk = tr.rows["frame"], tr.rows["track"]
-    first = np.full(tr.n_tracks, np.iinfo(np.int32).max, np.int64)
-    last = np.full(tr.n_tracks, -1, np.int64)
-    np.minimum.at(first, tk, fr)
-    np.maximum.at(last, tk, fr)
-    t["first_frame"], t["last_frame"] = first, last
-    return t
-
-
-def _write_derived(w: ResultsWriter, d, flags: list[str]) -> None:
+def _write_derived(w: ResultsWriter, d: Derived, flags: list[str]) -> None:
     w.array("frame_flags", np.array([s.encode() for s in flags], dtype="S128"), "")
     ft = d.fingertip
     w.array("fingertip/displacement", ft.displacement, "px", columns=AXIS_NAMES)
@@ -301,17 +335,18 @@ def _write_derived(w: ResultsWriter, d, flags: list[str]) -> None:
     w.array("profile/change", d.profile.change, "fraction")
     w.array("profile/valid", d.profile.valid, "")
     w.file["profile"].attrs["axis"] = d.profile_axis
-    if d.movie is not None:
-        mv = d.movie
-        w.array("tactile_movie/positions_um", mv.positions_um, "um")
-        w.array("tactile_movie/reset", mv.reset, "")
-        w.array("tactile_movie/clipped", mv.clipped, "")
-        w.array("tactile_movie/stretch_change", mv.stretch_change, "fraction")
-        w.file["tactile_movie"].attrs["motion_axis"] = d.profile_axis
 
 
-def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int, results_path, session_path: str,
-              method: str, timing: dict, shading_status: str, flags: list[str]) -> dict[str, Any]:
+def _append_movie(w: ResultsWriter, movie: TactileMovie) -> None:
+    """The next block of frames of the tactile movie."""
+    w.append_array("tactile_movie/positions_um", movie.positions_um, "um")
+    w.append_array("tactile_movie/reset", movie.reset, "")
+    w.append_array("tactile_movie/clipped", movie.clipped, "")
+    w.append_array("tactile_movie/stretch_change", movie.stretch_change, "fraction")
+
+
+def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
+              session_path: str, method: str, timing: dict, shading_status: str, flags: list[str]) -> dict[str, Any]:
     """The small JSON summary written next to the results (and into them)."""
     f = writer.file
     out: dict[str, Any] = {
@@ -330,7 +365,7 @@ def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int,
         if method == "features" else None,
     }
     if "tracks" in f:
-        lengths = f["tracks"]["n_frames"]
+        lengths = f["tracks"].fields("n_frames")[()]
         out["n_trajectories"] = int(lengths.size)
         out["median_trajectory_frames"] = float(np.median(lengths)) if lengths.size else 0.0
     out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
@@ -338,12 +373,12 @@ def summarize(writer: ResultsWriter, d, strain: _StrainTables, *, n_frames: int,
                                   window=out["min_track_frames"]).to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
-        e = g["edges"]["change"]
+        changes = strain.edge_change[span]
         out[f"strain_span_{span}"] = {
             "pairs": int(g["pairs"].shape[0]),
             "pairs_ok": strain.ok[span],
-            "edges": int(e.size),
-            "edge_change_p5_p95": np.percentile(e, [5, 95]).tolist() if e.size else None,
+            "edges": int(g["edges"].shape[0]),
+            "edge_change_p5_p95": changes.percentiles([5, 95]) if changes.count else None,
         }
     return out
 
