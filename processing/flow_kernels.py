@@ -133,3 +133,63 @@ def sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
                 u[i, j, 0] += omega * (ux - u[i, j, 0])
                 u[i, j, 1] += omega * (uy - u[i, j, 1])
     return u
+
+
+@numba.njit(cache=True, nogil=True)
+def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, sweeps, omega):
+    """:func:`sor_varying` with an anisotropic membrane: per node, the weights of its edges along x (``wx``), along
+    y (``wy``) and along the diagonals (``wd1``: to (i + 1, j + 1) and (i - 1, j - 1); ``wd2``: to (i + 1, j - 1)
+    and (i - 1, j + 1)); an edge weighs the mean of its two nodes' weights (the energy stays symmetric). A membrane
+    ``grad(u)^T D grad(u)`` with a 2x2 tensor ``D`` per node is ``wx = Dxx - |Dxy|``, ``wy = Dyy - |Dxy|``,
+    ``wd1 = max(Dxy, 0)``, ``wd2 = max(-Dxy, 0)`` (see :func:`membrane_edge_weights`)."""
+    gy_n, gx_n = contact.shape
+    u = u0.copy()
+    di = (0, 0, -1, 1, 1, -1, 1, -1)
+    dj = (-1, 1, 0, 0, 1, -1, -1, 1)
+    for _ in range(sweeps):
+        for i in range(gy_n):
+            for j in range(gx_n):
+                if not contact[i, j]:
+                    continue
+                sx = 0.0
+                sy = 0.0
+                total = 0.0
+                for k in range(8):
+                    ii = i + di[k]
+                    jj = j + dj[k]
+                    if ii < 0 or ii >= gy_n or jj < 0 or jj >= gx_n or not contact[ii, jj]:
+                        continue
+                    if k < 2:
+                        we = 0.5 * (wx[i, j] + wx[ii, jj])
+                    elif k < 4:
+                        we = 0.5 * (wy[i, j] + wy[ii, jj])
+                    elif k < 6:
+                        we = 0.5 * (wd1[i, j] + wd1[ii, jj])
+                    else:
+                        we = 0.5 * (wd2[i, j] + wd2[ii, jj])
+                    if we <= 0.0:
+                        continue
+                    sx += we * (u[ii, jj, 0] - prior[ii, jj, 0] + prior[i, j, 0])
+                    sy += we * (u[ii, jj, 1] - prior[ii, jj, 1] + prior[i, j, 1])
+                    total += we
+                ax = gxx[i, j] + total
+                ay = gyy[i, j] + total
+                c = gxy[i, j]
+                px = rx[i, j] + sx
+                py = ry[i, j] + sy
+                det = ax * ay - c * c
+                if abs(det) < 1e-12:
+                    det = 1e-12
+                ux = (ay * px - c * py) / det
+                uy = (ax * py - c * px) / det
+                u[i, j, 0] += omega * (ux - u[i, j, 0])
+                u[i, j, 1] += omega * (uy - u[i, j, 1])
+    return u
+
+
+def membrane_edge_weights(dxx, dxy, dyy):
+    """Edge weights (``wx, wy, wd1, wd2`` of :func:`sor_tensor`) of the membrane ``grad(u)^T D grad(u)`` on a
+    square grid with diagonals, for a tensor ``D`` per node (arrays). Exact when ``|Dxy| <= min(Dxx, Dyy)``;
+    beyond, the axis weights are clipped at zero (the nearest non-negative stencil)."""
+    a = np.abs(dxy)
+    return (np.maximum(dxx - a, 0.0), np.maximum(dyy - a, 0.0), np.maximum(dxy, 0.0), np.maximum(-dxy, 0.0))
