@@ -93,23 +93,46 @@ def test_compute_spans_registers_the_span_directly():
         flow.compute_spans(frames, fields[:-1], span=2)
 
 
-def test_sor_tensor_with_an_isotropic_tensor_is_the_membrane_and_edge_weights_give_the_tensor_energy():
-    from skinstretch.processing.flow_kernels import membrane_edge_weights, sor, sor_tensor
+def test_sor_tensor_reaches_the_minimum_of_the_anisotropic_energy_and_edge_weights_give_the_tensor_energy():
+    from skinstretch.processing.flow_kernels import membrane_edge_weights, sor_tensor
 
     rng = np.random.default_rng(4)
-    gy_n, gx_n = 9, 11
+    gy_n, gx_n = 6, 7
     g = rng.uniform(1.0, 3.0, (3, gy_n, gx_n))
     gxx, gyy, gxy = g[0], g[1], 0.3 * (g[2] - 2.0)
     rx, ry = rng.normal(size=(2, gy_n, gx_n))
-    u0 = rng.normal(size=(gy_n, gx_n, 2))
     prior = 0.1 * rng.normal(size=(gy_n, gx_n, 2))
     contact = np.ones((gy_n, gx_n), bool)
-    contact[0, 0] = False
-    lam = 1.7
-    edges = membrane_edge_weights(np.full((gy_n, gx_n), lam), np.zeros((gy_n, gx_n)), np.full((gy_n, gx_n), lam))
-    a = sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, 20, 1.5)
-    b = sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, *edges, 20, 1.5)
-    np.testing.assert_allclose(a, b, atol=1e-12)
+    contact[0, 0] = contact[3, 4] = False
+    weights = [rng.uniform(0.0, 2.0, (gy_n, gx_n)) for _ in range(4)]  # wx, wy, wd1, wd2
+    u0 = np.zeros((gy_n, gx_n, 2))
+    u = sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, *weights, 3000, 1.5)
+    # The minimum of sum_nodes (u^T G u - 2 r^T u) + sum_edges w (deviation_i - deviation_j)^2 (deviation = u -
+    # prior), assembled and solved directly over the contact nodes.
+    idx = -np.ones((gy_n, gx_n), int)
+    idx[contact] = np.arange(contact.sum())
+    n = int(contact.sum())
+    a = np.zeros((2 * n, 2 * n))
+    rhs = np.zeros(2 * n)
+    for i, j in zip(*np.nonzero(contact)):
+        p = idx[i, j]
+        a[2 * p : 2 * p + 2, 2 * p : 2 * p + 2] += [[gxx[i, j], gxy[i, j]], [gxy[i, j], gyy[i, j]]]
+        rhs[2 * p : 2 * p + 2] += [rx[i, j], ry[i, j]]
+        for (di, dj), w in zip(((0, 1), (1, 0), (1, 1), (1, -1)), weights):
+            ii, jj = i + di, j + dj
+            if 0 <= ii < gy_n and 0 <= jj < gx_n and contact[ii, jj]:
+                q, we = idx[ii, jj], 0.5 * (w[i, j] + w[ii, jj])
+                for c in range(2):
+                    a[2 * p + c, 2 * p + c] += we
+                    a[2 * q + c, 2 * q + c] += we
+                    a[2 * p + c, 2 * q + c] -= we
+                    a[2 * q + c, 2 * p + c] -= we
+                    d = prior[i, j, c] - prior[ii, jj, c]
+                    rhs[2 * p + c] += we * d
+                    rhs[2 * q + c] -= we * d
+    exact = np.linalg.solve(a, rhs).reshape(n, 2)
+    np.testing.assert_allclose(u[contact], exact, atol=1e-9)
+    np.testing.assert_array_equal(u[~contact], u0[~contact])
     # The stencil's energy of a linear field is grad^T D grad, for any tensor with |Dxy| <= min(Dxx, Dyy).
     dxx, dxy, dyy = 2.0, -0.7, 1.1
     wx, wy, wd1, wd2 = (float(w) for w in membrane_edge_weights(np.array(dxx), np.array(dxy), np.array(dyy)))
