@@ -88,21 +88,43 @@ def window_moments(s, d, rows, cols, half):
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _relax_node(u, i, j, ax, ay, c, px, py, omega):
+    """One node's over-relaxed update: solve ``[[ax, c], [c, ay]] x = (px, py)`` and move ``u[i, j]`` by
+    ``omega`` towards it."""
+    det = ax * ay - c * c
+    if abs(det) < 1e-12:
+        det = 1e-12
+    ux = (ay * px - c * py) / det
+    uy = (ax * py - c * px) / det
+    u[i, j, 0] += omega * (ux - u[i, j, 0])
+    u[i, j, 1] += omega * (uy - u[i, j, 1])
+
+
 def sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
     """Block successive over-relaxation of the coupled system at contact nodes: per node, the 2x2 data term
     ``G`` plus ``lam`` times the number of contact neighbours, right-hand side ``r + lam * (sum of the
     neighbours' deviation from the prior + n * own prior)``, solved with the neighbours' latest values and
     over-relaxed by ``omega``. Nodes out of contact keep ``u0``. (Plain Jacobi needs hundreds of sweeps to carry
     the along-ridge component across the grid; SOR reaches the same solution in a few dozen.)"""
-    return sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, np.full(contact.shape, float(lam)), sweeps, omega)
+    lam_map = np.full(contact.shape, float(lam))
+    none = np.zeros(contact.shape)
+    return sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam_map, lam_map, none, none, sweeps, omega)
 
 
 @numba.njit(cache=True, nogil=True)
-def sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
-    """:func:`sor` with a membrane weight per node, ``lam[i, j]``; the edge between two nodes weighs the mean of
-    theirs (the energy stays symmetric)."""
+def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, sweeps, omega):
+    """:func:`sor` with a membrane weight per node and edge direction, for an anisotropic membrane: the weights of
+    a node's edges along x (``wx``), along y (``wy``) and along the diagonals (``wd1``: to (i + 1, j + 1) and
+    (i - 1, j - 1); ``wd2``: to (i + 1, j - 1) and (i - 1, j + 1)); an edge weighs the mean of its two nodes'
+    weights (the energy stays symmetric). Without diagonal weights only the four axis neighbours are visited. A
+    membrane ``grad(u)^T D grad(u)`` with a 2x2 tensor ``D`` per node is ``wx = Dxx - |Dxy|``,
+    ``wy = Dyy - |Dxy|``, ``wd1 = max(Dxy, 0)``, ``wd2 = max(-Dxy, 0)`` (see :func:`membrane_edge_weights`)."""
     gy_n, gx_n = contact.shape
     u = u0.copy()
+    di = (-1, 1, 0, 0, 1, -1, 1, -1)  # up, down, left, right, then the diagonals
+    dj = (0, 0, -1, 1, 1, -1, -1, 1)
+    n_dirs = 8 if (np.any(wd1 != 0.0) or np.any(wd2 != 0.0)) else 4
     for _ in range(sweeps):
         for i in range(gy_n):
             for j in range(gx_n):
@@ -111,25 +133,32 @@ def sor_varying(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
                 sx = 0.0
                 sy = 0.0
                 total = 0.0
-                for k in range(4):
-                    ii = i + (k == 1) - (k == 0)
-                    jj = j + (k == 3) - (k == 2)
+                for k in range(n_dirs):
+                    ii = i + di[k]
+                    jj = j + dj[k]
                     if ii < 0 or ii >= gy_n or jj < 0 or jj >= gx_n or not contact[ii, jj]:
                         continue
-                    we = 0.5 * (lam[i, j] + lam[ii, jj])
+                    if k < 2:
+                        we = 0.5 * (wy[i, j] + wy[ii, jj])
+                    elif k < 4:
+                        we = 0.5 * (wx[i, j] + wx[ii, jj])
+                    elif k < 6:
+                        we = 0.5 * (wd1[i, j] + wd1[ii, jj])
+                    else:
+                        we = 0.5 * (wd2[i, j] + wd2[ii, jj])
+                    if we <= 0.0:
+                        continue
                     sx += we * (u[ii, jj, 0] - prior[ii, jj, 0] + prior[i, j, 0])
                     sy += we * (u[ii, jj, 1] - prior[ii, jj, 1] + prior[i, j, 1])
                     total += we
-                ax = gxx[i, j] + total
-                ay = gyy[i, j] + total
-                c = gxy[i, j]
-                px = rx[i, j] + sx
-                py = ry[i, j] + sy
-                det = ax * ay - c * c
-                if abs(det) < 1e-12:
-                    det = 1e-12
-                ux = (ay * px - c * py) / det
-                uy = (ax * py - c * px) / det
-                u[i, j, 0] += omega * (ux - u[i, j, 0])
-                u[i, j, 1] += omega * (uy - u[i, j, 1])
+                _relax_node(u, i, j, gxx[i, j] + total, gyy[i, j] + total, gxy[i, j], rx[i, j] + sx, ry[i, j] + sy,
+                            omega)
     return u
+
+
+def membrane_edge_weights(dxx, dxy, dyy):
+    """Edge weights (``wx, wy, wd1, wd2`` of :func:`sor_tensor`) of the membrane ``grad(u)^T D grad(u)`` on a
+    square grid with diagonals, for a tensor ``D`` per node (arrays). Exact when ``|Dxy| <= min(Dxx, Dyy)``;
+    beyond, the axis weights are clipped at zero (the nearest non-negative stencil)."""
+    a = np.abs(dxy)
+    return (np.maximum(dxx - a, 0.0), np.maximum(dyy - a, 0.0), np.maximum(dxy, 0.0), np.maximum(-dxy, 0.0))

@@ -1,20 +1,20 @@
 """A DIC-Challenge-like "star" image pair: a speckle pattern and the same pattern under a sinusoidal vertical
-displacement whose period shrinks along x, with its exact displacement (after the DIC Challenge 2.0 Star images,
-Reu et al. 2022; our own speckle and layout, not the Challenge's files).
-
-Displacement: ``v(x, y) = A cos(2 pi (y - y_c) f(x))``, ``u = 0``. ``f`` is 0 in a *flat* part on the left (a
-uniform shift by A, where the noise is measured), rises linearly to ``1 / max_period`` over a ramp, then the period
-``1 / f`` falls geometrically from ``max_period`` to ``min_period`` and stays there over a last ``tail`` of columns.
-Lines of constant phase fan out from the centre row like a star; on the centre row ``v = A`` everywhere, so the
-measured amplitude there, against the true one, gives the bias at each period (the DIC community's spatial
-resolution: the period at which the bias reaches 10 %).
+displacement whose period grows along x, with its exact displacement. The layout is the DIC Challenge 2.0 Star
+images' (Reu et al. 2022; checked against a pair of them): 4000 x 501 px, ``v(x, y) = A cos(2 pi (y - y_c) / p(x))``
+with ``A`` = 0.5 px, ``y_c`` the centre row (250) and the period growing linearly from 10 px at the left edge to
+300 px at the right (``p(x) = 10 + 290 x / 4000``), ``u = 0``. Lines of constant phase fan out from the centre row
+like a star; on the centre row ``v = A`` everywhere, so the measured amplitude there, against the true one, gives
+the bias at each period (the DIC community's spatial resolution: the period at which the bias reaches 10 %), and
+its scatter along the long-period end gives the noise. The speckle is our own, matched to the Challenge images'
+statistics (grey levels about 50-190 around 115, std 38; intensity autocorrelation falling to half at 2.3 px;
+gradient energy; noise 2 grey levels): we do not ship the Challenge's files.
 
 Speckle: random Gaussian dots (sigma ``dot_sigma_px``, ``dot_density`` per px^2, random strengths) composed as
 ``I = dark + (bright - dark) (1 - exp(-S))`` with ``S`` the sum of the dots; both images are that function sampled
 at pixel centres, the second at the skin point now there (the displacement inverted by fixed-point iteration, a
 contraction since ``|dv/dy| <= 2 pi A / min_period < 1``), so the pair is exact up to the added Gaussian noise and
-8-bit quantisation. The dots are band-limited (their spectrum at the Nyquist frequency is below 1e-5 for sigma
-1.6 px), so point sampling needs no pixel integration.
+8-bit quantisation. The dots are nearly band-limited (sigma 1.3 px: their spectrum at the Nyquist frequency is
+2e-4 of its peak), so point sampling needs no pixel integration.
 
 Hand-written: no library renders a speckle pair under a given displacement field exactly.
 """
@@ -31,25 +31,24 @@ from skinstretch.processing.errors import InvalidInputError
 
 @dataclass(frozen=True)
 class StarLayout:
-    """Size and displacement of a star pair (px, grey levels)."""
+    """Size and displacement of a star pair (px, grey levels); the defaults are the DIC Challenge 2.0 Star
+    images' layout (a narrower ``width`` keeps the period range: the period then grows faster along x and the
+    fringes slant more, for tests)."""
 
-    width: int = 2048
-    height: int = 384
+    width: int = 4000
+    height: int = 501
     amplitude_px: float = 0.5
-    max_period_px: float = 300.0
     min_period_px: float = 10.0
-    flat_px: int = 256
-    ramp_px: int = 150
-    tail_px: int = 64
-    dot_sigma_px: float = 1.6
-    dot_density: float = 0.04
-    dark: float = 30.0
-    bright: float = 220.0
+    max_period_px: float = 300.0
+    dot_sigma_px: float = 1.3
+    dot_density: float = 0.08
+    dark: float = 50.0
+    bright: float = 205.0
     noise_sigma: float = 2.0
 
     def __post_init__(self) -> None:
-        if self.width < self.flat_px + self.ramp_px + self.tail_px + 64 or self.height < 32:
-            raise InvalidInputError(f"a star of {self.width} x {self.height} px has no room for its parts")
+        if self.width < 256 or self.height < 64:
+            raise InvalidInputError(f"a star of {self.width} x {self.height} px is too small (>= 256 x 64 px)")
         if not 0 < self.min_period_px < self.max_period_px:
             raise InvalidInputError("need 0 < min_period_px < max_period_px")
         if not 0 < 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
@@ -61,24 +60,14 @@ class StarLayout:
     def center_row(self) -> float:
         return (self.height - 1) / 2.0
 
-    def frequency(self) -> np.ndarray:
-        """f(x) in cycles per px, for every column."""
-        x = np.arange(self.width, dtype=np.float64)
-        f = np.zeros(self.width)
-        f0 = 1.0 / self.max_period_px
-        x_ramp, x_star, x_tail = self.flat_px, self.flat_px + self.ramp_px, self.width - self.tail_px
-        ramp = (x >= x_ramp) & (x < x_star)
-        f[ramp] = f0 * (x[ramp] - x_ramp) / self.ramp_px
-        star = (x >= x_star) & (x < x_tail)
-        t = (x[star] - x_star) / (x_tail - x_star)
-        f[star] = 1.0 / (self.max_period_px * (self.min_period_px / self.max_period_px) ** t)
-        f[x >= x_tail] = 1.0 / self.min_period_px
-        return f
-
     def period(self) -> np.ndarray:
-        """Period 1 / f(x) in px for every column (inf in the flat part)."""
-        with np.errstate(divide="ignore"):
-            return 1.0 / self.frequency()
+        """Period p(x) in px for every column (linear from ``min_period_px`` at x = 0)."""
+        x = np.arange(self.width, dtype=np.float64)
+        return self.min_period_px + (self.max_period_px - self.min_period_px) * x / self.width
+
+    def frequency(self) -> np.ndarray:
+        """1 / p(x) in cycles per px, for every column."""
+        return 1.0 / self.period()
 
     def displacement(self) -> np.ndarray:
         """True v (H, W) px of the skin point at each pixel of the *first* image (u is 0)."""
@@ -86,14 +75,20 @@ class StarLayout:
         return self.amplitude_px * np.cos(2.0 * np.pi * y * self.frequency()[None, :])
 
     @property
-    def flat_columns(self) -> slice:
-        """Columns of the flat part used for the noise (away from the image border and the ramp)."""
-        return slice(self.flat_px // 4, 3 * self.flat_px // 4)
+    def border_px(self) -> int:
+        """Columns left out at each end (64 px: what a DIC code's subsets need; windows up to 127 px fit)."""
+        return 64
 
     @property
     def star_columns(self) -> slice:
-        """Columns from the start of the star to the start of the tail."""
-        return slice(self.flat_px + self.ramp_px, self.width - self.tail_px)
+        """Columns over which the resolution is scanned (all but the borders)."""
+        return slice(self.border_px, self.width - self.border_px)
+
+    @property
+    def noise_columns(self) -> slice:
+        """The long-period end (periods from about 190 px on the Challenge's layout, up to the border), where the
+        noise is measured."""
+        return slice(int(round(0.625 * self.width)), self.width - self.border_px)
 
 
 @dataclass(frozen=True)
@@ -117,13 +112,13 @@ def render_star_pair(layout: StarLayout | None = None, *, seed: int = 0) -> Star
     dots_x = rng.uniform(-pad, w - 1 + pad, n)
     dots_y = rng.uniform(-pad, h - 1 + pad, n)
     strength = rng.uniform(0.3, 1.2, n)
-    f = lay.frequency()
-    yy = np.arange(h, dtype=np.float64)[:, None] - lay.center_row
-    # Image b at pixel (x, y) shows the point (x, Y) with Y + v(x, Y) = y: fixed point (a contraction).
+    f = lay.frequency()[None, :]
+    # Image b at pixel (x, y) shows the point (x, Y) with Y + v(x, Y) = y: fixed point (a contraction by
+    # 2 pi A / min_period at most, ~0.31: 40 steps reach 1e-20).
     rows_a = np.broadcast_to(np.arange(h, dtype=np.float64)[:, None], (h, w)).copy()
     rows_b = rows_a.copy()
-    for _ in range(60):
-        rows_b = rows_a - lay.amplitude_px * np.cos(2.0 * np.pi * (rows_b - lay.center_row) * f[None, :])
+    for _ in range(40):
+        rows_b = rows_a - lay.amplitude_px * np.cos(2.0 * np.pi * (rows_b - lay.center_row) * f)
     sums = []
     for rows in (rows_a, rows_b):
         s = np.zeros((h, w))
@@ -134,8 +129,7 @@ def render_star_pair(layout: StarLayout | None = None, *, seed: int = 0) -> Star
         img = lay.dark + (lay.bright - lay.dark) * (1.0 - np.exp(-s))
         img = img + rng.normal(0.0, lay.noise_sigma, img.shape) if lay.noise_sigma > 0 else img
         images.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
-    v = lay.amplitude_px * np.cos(2.0 * np.pi * yy * f[None, :])
-    return StarPair(lay, images[0], images[1], v)
+    return StarPair(lay, images[0], images[1], lay.displacement())
 
 
 @numba.njit(cache=True)

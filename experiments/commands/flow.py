@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def read_grey(path: Path) -> np.ndarray:
-    """An image file as an 8-bit grey image (colour to luminance; 16-bit scaled by 1/257)."""
+    """An image file as a grey image, 8 or 16 bit as stored (colour to luminance)."""
     import cv2  # noqa: PLC0415
 
     if not path.is_file():
@@ -60,11 +60,23 @@ def read_grey(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise InvalidInputError(f"{path}: not an image OpenCV can read")
-    if img.dtype == np.uint16:
-        img = np.round(img / 257.0).astype(np.uint8)
-    elif img.dtype != np.uint8:
+    if img.dtype not in (np.uint8, np.uint16):
         raise InvalidInputError(f"{path}: {img.dtype} images are not supported (8 or 16 bit integers)")
     return img
+
+
+def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two grey images as 8 bit for the flow. Two 8-bit images pass as they are; otherwise (16 bit, often 10 or 12
+    bit of data; an 8-bit image beside a 16-bit one counts as its top byte) both are mapped by the same linear
+    scale from their common grey-level range to 0-255, so a 12-bit camera's images keep their contrast (a fixed
+    1/257 would leave 16 grey levels) and brightness constancy holds between them."""
+    if a.dtype == np.uint8 and b.dtype == np.uint8:
+        return a, b
+    a, b = (img.astype(np.float64) * (257.0 if img.dtype == np.uint8 else 1.0) for img in (a, b))
+    lo = min(float(a.min()), float(b.min()))
+    hi = max(float(a.max()), float(b.max()))
+    scale = 255.0 / max(hi - lo, 1.0)
+    return tuple(np.round((img - lo) * scale).astype(np.uint8) for img in (a, b))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"{args.output} exists (give --overwrite to replace it)")
     if a.shape != b.shape:
         raise InvalidInputError(f"the images differ in size: {a.shape[1]} x {a.shape[0]} and {b.shape[1]} x {b.shape[0]}")
+    a, b = to_8bit_pair(a, b)
     options: dict = {"adaptive": not args.no_adaptive, "texture_gate": args.fingerprint_gate}
     if args.window_mm is not None:
         options["window_mm"] = args.window_mm

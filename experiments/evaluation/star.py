@@ -1,16 +1,20 @@
 """Resolution and noise of a displacement field measured on a star pair
-(:mod:`skinstretch.simulators.star_pattern`), the DIC community's two numbers:
+(:mod:`skinstretch.simulators.star_pattern`, the DIC Challenge 2.0 Star layout), the DIC community's two numbers:
 
 - **resolution**: the period at which the bias on the amplitude reaches 10 %. On the centre rows (within 2 px of
-  the centre, where ``v = A`` at every period) the measured and the true ``v`` are averaged over the same rows and
-  over 15 columns; ``bias = |1 - measured / true|``. Scanning the star from its longest period to its shortest, the
-  resolution is the period at the first column where the bias reaches 10 % (a column where the method gives no
-  value counts as unresolved).
-- **noise**: the standard deviation of the error of ``v`` over the flat part (a uniform shift), 32 rows from the top
-  and bottom left out.
-- **error in the star** (ours, not the DIC Challenge's): the RMS error (bias and noise) on the centre rows where
-  the period is 150-300 px. A method whose smoothing adapts to the field (ours) may be quieter on the flat part
-  than where the field varies: this says how much.
+  the centre, where ``v`` is close to ``A`` at every period) the measured and the true ``v`` are averaged over the
+  same rows and over 15 columns; ``bias = |1 - measured / true|``.
+  Scanning the star from its longest period to its shortest, the resolution is the period at the first column
+  where the bias reaches 10 % (a column where the method gives no value counts as unresolved).
+- **noise**: the standard deviation of ``v`` along the centre row over the long-period end
+  (:attr:`StarLayout.noise_columns`), less a quadratic trend in x (the slowly varying bias there belongs to the
+  resolution, not to the noise). The true ``v`` is constant along that row.
+- **error at long periods** (ours, not the DIC Challenge's): the RMS error (bias and noise) of ``v`` over every
+  row of the long-period end, 32 rows from the top and bottom left out: what a method does off the centre row,
+  where the displacement takes every sub-pixel value.
+
+``score_star`` takes the layout alone, so the same code scores a field measured on the Challenge's own images (its
+layout is :class:`StarLayout`'s default).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.simulators.star_pattern import StarPair
+from skinstretch.simulators.star_pattern import StarLayout, StarPair
 
 BIAS_LIMIT = 0.10
 _CENTRE_ROWS_PX = 2.0
@@ -32,13 +36,14 @@ _BORDER_ROWS = 32
 
 @dataclass(frozen=True)
 class StarScore:
-    """``resolution_px``: period at 10 % bias (``min_period`` when never reached, inf when reached at once);
-    ``noise_px`` (flat part), ``error_in_star_px`` (RMS, centre rows, periods 150-300 px); ``periods`` and ``bias`` along the star (centre rows, smoothed); ``missing_fraction``: star
-    columns without a value."""
+    """``resolution_px``: period at 10 % bias (the shortest period scanned when never reached, inf when reached at
+    once); ``noise_px`` (centre row, long-period end), ``error_long_px`` (RMS over the long-period end's rows);
+    ``periods`` and ``bias`` along the centre rows (long period first, smoothed); ``missing_fraction``: columns
+    of the centre rows without a value."""
 
     resolution_px: float
     noise_px: float
-    error_in_star_px: float
+    error_long_px: float
     periods: np.ndarray
     bias: np.ndarray
     missing_fraction: float
@@ -53,22 +58,24 @@ class StarScore:
         return f"{self.resolution_px:.0f}"
 
 
-def score_star(v_measured: np.ndarray, pair: StarPair) -> StarScore:
-    """Score a measured vertical displacement (H, W) px (NaN where the method gives none) on ``pair``."""
+def score_star(v_measured: np.ndarray, star: StarLayout | StarPair) -> StarScore:
+    """Score a measured vertical displacement (H, W) px (NaN where the method gives none) on a star layout (or
+    pair: its layout)."""
+    lay = star.layout if isinstance(star, StarPair) else star
     v = np.asarray(v_measured, dtype=np.float64)
-    lay = pair.layout
-    if v.shape != pair.v_true.shape:
-        raise InvalidInputError(f"v_measured has shape {v.shape}, the star pair {pair.v_true.shape}")
+    v_true = lay.displacement()
+    if v.shape != v_true.shape:
+        raise InvalidInputError(f"v_measured has shape {v.shape}, the star {v_true.shape}")
     rows = np.abs(np.arange(lay.height) - lay.center_row) <= _CENTRE_ROWS_PX
     cols = lay.star_columns
-    meas = v[rows, cols]
-    true = pair.v_true[rows, cols]
+    meas = v[rows, cols][:, ::-1]  # long period first
+    true = v_true[rows, cols][:, ::-1]
     have = np.all(np.isfinite(meas), axis=0)
     m = uniform_filter1d(np.where(have, meas.mean(axis=0), 0.0), _SMOOTH_COLUMNS, mode="nearest")
     t = uniform_filter1d(true.mean(axis=0), _SMOOTH_COLUMNS, mode="nearest")
     ok = uniform_filter1d(have.astype(np.float64), _SMOOTH_COLUMNS, mode="nearest") > 0.999
     bias = np.where(ok, np.abs(1.0 - m / t), 1.0)
-    periods = lay.period()[cols]
+    periods = lay.period()[cols][::-1]
     over = np.nonzero(bias >= BIAS_LIMIT)[0]
     if over.size == 0:
         resolution = float(periods[-1])
@@ -76,12 +83,16 @@ def score_star(v_measured: np.ndarray, pair: StarPair) -> StarScore:
         resolution = math.inf
     else:
         resolution = float(periods[over[0]])
-    flat = v[_BORDER_ROWS : lay.height - _BORDER_ROWS, lay.flat_columns]
-    err = flat - pair.v_true[_BORDER_ROWS : lay.height - _BORDER_ROWS, lay.flat_columns]
+    # The centre row (the mean of the two middle rows when the height is even).
+    line = v[np.abs(np.arange(lay.height) - lay.center_row) <= 0.5, lay.noise_columns].mean(axis=0)
+    good = np.isfinite(line)
+    if good.sum() > 50:
+        x = np.arange(line.size, dtype=np.float64)[good]
+        trend = np.polyval(np.polyfit(x, line[good], 2), x)
+        noise = float(np.std(line[good] - trend))
+    else:
+        noise = math.nan
+    err = (v - v_true)[_BORDER_ROWS : lay.height - _BORDER_ROWS, lay.noise_columns]
     err = err[np.isfinite(err)]
-    noise = float(np.std(err)) if err.size > 100 else math.nan
-    long = (periods >= 150) & (periods <= 300)
-    e_star = (meas - true)[:, long]
-    e_star = e_star[np.isfinite(e_star)]
-    error_star = float(np.sqrt(np.mean(e_star**2))) if e_star.size > 20 else math.nan
-    return StarScore(resolution, noise, error_star, periods, bias, float(1.0 - have.mean()))
+    error_long = float(np.sqrt(np.mean(err**2))) if err.size > 100 else math.nan
+    return StarScore(resolution, noise, error_long, periods, bias, float(1.0 - have.mean()))
