@@ -76,7 +76,8 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     assert "frame 0 / 19" in page.locator("#frame-label").inner_text()
     # Legend and colour bar
     legend = page.locator("#legend-items").inner_text()
-    for label in ("valley ending", "valley bifurcation", "pore"):
+    for label in ("valley ending", "valley bifurcation", "pore", "match", "trajectory tail", "fingertip outline",
+                  "visibility window", "displacement"):
         assert label in legend
     # Step with the keyboard
     page.locator("#view").focus()
@@ -105,6 +106,31 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     assert "feature " in text and "quality" in text and "truth: " in text and " px" in text
     page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)
     assert "pinned" in page.locator("#readout").inner_text()
+    page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)  # released
+    # A pinned feature follows its track to the next frames, not whatever feature has its index there: pin one
+    # whose track is at another index in frame 10.
+    i = page.evaluate("""async () => {
+        const next = await (await fetch(`api/s/${S.sid}/overlay/10?span=${S.span}`)).json();
+        const f = S.current.ov.features;
+        for (let i = 0; i < f.x.length; i++) {
+            const j = next.features.track.indexOf(f.track[i]);
+            if (f.track[i] >= 0 && j >= 0 && j !== i) return i;
+        }
+        return -1; }""")
+    assert i >= 0
+    track, x, y = page.evaluate(f"[S.current.ov.features.track[{i}], S.current.ov.features.x[{i}], S.current.ov.features.y[{i}]]")
+    page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)
+    assert f"(track {track})" in page.locator("#readout").inner_text()
+    for k in (10, 11):
+        page.keyboard.press("ArrowRight")
+        page.wait_for_function(f"S.k === {k}")
+        text = page.locator("#readout").inner_text()
+        i = page.evaluate(f"S.current.ov.features.track.indexOf({track})")
+        if i >= 0:
+            fx = page.evaluate(f"S.current.ov.features.x[{i}]")
+            assert f"(track {track})" in text and f"x {fx:.2f} px" in text, text
+        else:
+            assert f"track {track}: not measured in this frame" in text, text
     page.screenshot(path=str(tmp_path / "viewer.png"))
     ms = [e["ms"] for e in page.evaluate("window.viewerStats.shown")]
     record_property("frame_display_ms_median", float(np.median(ms)))
