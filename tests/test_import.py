@@ -115,7 +115,7 @@ def test_a_bad_source_gets_one_line_and_leaves_nothing(tmp_path, capsys, damage)
 
 def test_bad_options_are_refused_before_anything_is_written(tmp_path):
     video = write_video(tmp_path / "v.avi", _frames())
-    with pytest.raises(InvalidInputError, match="crop 30,0,10,10 is not inside the 32x24 frames"):
+    with pytest.raises(InvalidInputError, match="crop must lie inside the 32x24 frames of .*v.avi, got 30,0,10,10"):
         import_frames(video, tmp_path / "s.h5", px_per_mm=62, crop=Crop(30, 0, 10, 10))
     with pytest.raises(InvalidInputError, match="crop must be X,Y,W,H"):
         Crop.parse("1,2,3")
