@@ -219,7 +219,8 @@ function draw() {
   if (S.on.arrows) {
     ctx.strokeStyle = "#7CFC00"; ctx.lineWidth = 1.4 * lw;
     ctx.beginPath();
-    for (const [x, y, dx, dy] of ov.arrows) arrow(x - ARROW_GAIN * dx, y - ARROW_GAIN * dy, x, y, 4 * lw);
+    // From the feature onwards, in the direction it moved (its tail lies behind it: the two do not overlap).
+    for (const [x, y, dx, dy] of ov.arrows) arrow(x, y, x + ARROW_GAIN * dx, y + ARROW_GAIN * dy, 4 * lw);
     ctx.stroke();
   }
   if (S.on.features) {
