@@ -30,7 +30,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.parameters import AnalysisParams, analysis_params
 from skinstretch.experiments.runner import TrialAnalysis, analyse_trial
 from skinstretch.processing.errors import InvalidInputError, SkinstretchError
-from skinstretch.progress import progress_bar
+from skinstretch.progress import logging_above_bars, progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -201,37 +201,38 @@ def analyze_many(
     jobs = [(s, _out_dir(outdir, s, roots)) for s in sessions]
     log.info("batch: %d sessions, method %s, scheduler %s", len(jobs), method, scheduler or "local cluster")
     outcomes: list[TrialAnalysis | None] = [None] * len(jobs)
-    bar = progress_bar(len(jobs), enabled=progress, desc="sessions")
+    bar = progress_bar(len(jobs), enabled=progress, desc="sessions", unit="session")
 
     def done(k: int, out: TrialAnalysis) -> None:
         outcomes[k] = out
         bar.update(1)
         log.info("batch: %s: %s", jobs[k][0], "ok" if out.ok else "FAILED " + out.error)
 
-    try:
-        if scheduler == "synchronous":
-            for k, (s, o) in enumerate(jobs):
-                done(k, _task(str(s), str(o), method, params))
-        else:
-            from dask.distributed import as_completed  # noqa: PLC0415
+    with logging_above_bars(progress):  # the per-session lines above the bar, not through it
+        try:
+            if scheduler == "synchronous":
+                for k, (s, o) in enumerate(jobs):
+                    done(k, _task(str(s), str(o), method, params))
+            else:
+                from dask.distributed import as_completed  # noqa: PLC0415
 
-            client, cluster = _client(scheduler)
-            try:
-                futures = {client.submit(_task, str(s), str(o), method, params, pure=False): k
-                           for k, (s, o) in enumerate(jobs)}
-                for fut in as_completed(futures):
-                    k = futures[fut]
-                    try:
-                        out = fut.result()
-                    except Exception as exc:  # a worker died: this session failed, the others go on
-                        out = TrialAnalysis(False, error=f"{type(exc).__name__}: {exc}")
-                    done(k, out)
-            finally:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
-    finally:
-        bar.close()
+                client, cluster = _client(scheduler)
+                try:
+                    futures = {client.submit(_task, str(s), str(o), method, params, pure=False): k
+                               for k, (s, o) in enumerate(jobs)}
+                    for fut in as_completed(futures):
+                        k = futures[fut]
+                        try:
+                            out = fut.result()
+                        except Exception as exc:  # a worker died: this session failed, the others go on
+                            out = TrialAnalysis(False, error=f"{type(exc).__name__}: {exc}")
+                        done(k, out)
+                finally:
+                    client.close()
+                    if cluster is not None:
+                        cluster.close()
+        finally:
+            bar.close()
     rows = []
     by_surface: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for (session, _), out in zip(jobs, outcomes):

@@ -76,7 +76,7 @@ class Crop:
         if self.width < 1 or self.height < 1 or self.x < 0 or self.y < 0 or self.x + self.width > w or \
                 self.y + self.height > h:
             raise InvalidInputError(
-                f"crop {self.x},{self.y},{self.width},{self.height} is not inside the {w}x{h} frames of {where}"
+                f"crop must lie inside the {w}x{h} frames of {where}, got {self.x},{self.y},{self.width},{self.height}"
             )
 
     def apply(self, image: np.ndarray) -> np.ndarray:

@@ -376,10 +376,11 @@ class RecordingCount:
 
 def record_from_camera(camera, path: str | os.PathLike, *, mode: CameraMode, calibration: Calibration,
                        seconds: float, metadata: Mapping[str, Any] | None = None, queue_size: int = 256,
-                       on_frame: Callable[[int, Any], None] | None = None) -> RecordingCount:
+                       on_frame: Callable[[int, Any], None] | None = None,
+                       stop: threading.Event | None = None) -> RecordingCount:
     """Record ``camera`` (opened here, set to ``mode``, started, then stopped and closed) into ``path`` through a
-    :class:`Recorder` for ``seconds``, and count what the file holds. ``on_frame(k, frame)`` sees every frame as
-    it is queued (the benches sample checksums)."""
+    :class:`Recorder` for ``seconds`` (or until ``stop`` is set), and count what the file holds.
+    ``on_frame(k, frame)`` sees every frame as it is queued (the benches sample checksums)."""
     camera.open()
     camera.set_mode(mode)
     rec = Recorder(path, camera_mode=mode, calibration=calibration, metadata=metadata or {},
@@ -388,7 +389,7 @@ def record_from_camera(camera, path: str | os.PathLike, *, mode: CameraMode, cal
     k = 0
     try:
         camera.start()
-        while time.perf_counter() - t0 < seconds:
+        while time.perf_counter() - t0 < seconds and not (stop is not None and stop.is_set()):
             f = camera.read(timeout_s=1.0)
             rec.put_frame(f.image, timestamp=f.host_timestamp_s, frame_id=f.frame_id,
                           device_timestamp=f.device_timestamp_s)

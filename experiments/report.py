@@ -362,6 +362,10 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
                 "Trajectory length distribution (as seed Figure 70)")))
         scale = 1.0 / r.px_per_mm
         info["profile"] = (r.profile_position * scale, np.where(r.profile_valid, r.profile_change, np.nan))
+        from skinstretch.experiments.evaluation.tracking import measured_profile_pattern  # noqa: PLC0415
+
+        pattern = measured_profile_pattern(r)  # the amplitude the evaluation table shows, for the figure title
+        info["profile_amplitude"] = pattern.amplitude if pattern is not None else math.nan
         if session.has_truth and truth_eval:
             parts.append(_guard("measured vs true", lambda: _truth_section(r, session, info)))
         if r.tactile_positions_um is not None:
@@ -463,9 +467,11 @@ def build_report(
     # Figure 94 across trials, measured (and true when simulated)
     profiles = {f"{i['name']} ({i.get('surface', '?')})": i["profile"] for i in infos if "profile" in i}
     trues = {f"{i['name']} ({i.get('surface', '?')})": i["true_profile"] for i in infos if "true_profile" in i}
+    amplitudes = {f"{i['name']} ({i.get('surface', '?')})": i["profile_amplitude"] for i in infos if "profile" in i}
     if profiles:
         body.insert(0, "<h2>Stretch along the sliding direction, all trials (seed Figure 94)</h2>" + _guard(
-            "stretch profiles", lambda: _img(fig6.stretch_profile_figure(profiles, true_profiles=trues),
+            "stretch profiles", lambda: _img(fig6.stretch_profile_figure(profiles, true_profiles=trues,
+                                                                         amplitudes=amplitudes),
                                              "Relative change in stretch with position, averaged over each sequence;"
                                              " dashed: true (simulated)")))
     evals = [(i["name"], i["evaluation_quantities"]) for i in infos if "evaluation_quantities" in i]

@@ -6,10 +6,12 @@ bars off with ``--quiet``. Callers always get an object with ``update(n)``, ``cl
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import sys
-from typing import Any
+from typing import Any, Iterator
 
-__all__ = ["progress_bar"]
+__all__ = ["progress_bar", "logging_above_bars"]
 
 
 class _NoBar:
@@ -35,3 +37,17 @@ def progress_bar(total: int | None, *, enabled: bool, desc: str, unit: str = "fr
     from tqdm import tqdm  # noqa: PLC0415 - only when a bar is shown
 
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False)
+
+
+@contextlib.contextmanager
+def logging_above_bars(enabled: bool) -> Iterator[None]:
+    """While a bar is shown, skinstretch's log lines go above it on a line of their own (tqdm clears the bar, writes
+    the line, draws the bar again) instead of being appended to the bar's line. Nothing changes when ``enabled``
+    is False."""
+    if not enabled:
+        yield
+        return
+    from tqdm.contrib.logging import logging_redirect_tqdm  # noqa: PLC0415
+
+    with logging_redirect_tqdm(loggers=[logging.getLogger("skinstretch")]):
+        yield

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 
+import numpy as np
 import pytest
 
 from skinstretch.cli import main
@@ -33,8 +34,17 @@ def test_a_message_opening_with_a_parameter_opens_with_its_flag():
     (["simulate", "flatL", "--frames", "2", "--workers", "0"], "--workers must be a positive integer"),
     (["simulate", "flatL", "--frames", "2", "--noise", "-1"], "--noise must be a non-negative number"),
     (["calibrate", "grid.png", "--spacing-mm", "0"], "--spacing-mm must be positive"),
+    (["analyze", "s.h5", "--workers", "0"], "--workers: Input should be greater than or equal to 1"),
+    (["analyze", "s.h5", "--method", "flow", "--flow-scale", "-1"], "--flow-scale: Input should be greater than 0"),
+    (["analyze", "s.h5", "--method", "flow", "--flow-scale-px", "8"], "--flow-scale-px: Value error, must be odd"),
+    (["import", "clip.avi", "--px-per-mm", "62", "--crop", "600,0,100,100"], "--crop must lie inside the 32x24 frames"),
 ])
 def test_commands_name_their_flags(tmp_path, capsys, args, flag):
+    if args[0] == "import":
+        from skinstretch.experiments.bench.import_video import write_video
+
+        write_video(tmp_path / "clip.avi", np.zeros((3, 24, 32), np.uint8))
+    args = [str(tmp_path / a) if a in ("s.h5", "clip.avi") else a for a in args]
     assert main([*args, "-o", str(tmp_path / "out"), "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and flag in err[0], err

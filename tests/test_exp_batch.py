@@ -135,3 +135,18 @@ def test_find_sessions_errors(tmp_path):
         find_sessions([tmp_path / "nope"])
     with pytest.raises(InvalidInputError, match="no session file"):
         find_sessions([tmp_path])
+
+
+def test_batch_progress_counts_sessions_and_its_lines_stand_apart_from_the_bar(batch_dir, tmp_path, monkeypatch,
+                                                                               capsys):
+    """The command line's bar counts sessions (it said frame/s) and each session's line is written on a line of its
+    own above it (it was appended to the bar's line)."""
+    import skinstretch.experiments.batch
+    from skinstretch.cli import main
+
+    monkeypatch.setattr(skinstretch.experiments.batch, "analyse_trial", _fake_analyse_trial)
+    assert main(["analyze", str(batch_dir), "-o", str(tmp_path / "out"), "--scheduler", "synchronous"]) == 1
+    err = capsys.readouterr().err
+    assert "sessions:" in err and ("session/s" in err or "s/session" in err)
+    outcome_lines = [line.split("\r")[-1] for line in err.split("\n") if ".h5: ok" in line or ".h5: FAILED" in line]
+    assert len(outcome_lines) == 2 and all(line.startswith("batch: ") for line in outcome_lines), err

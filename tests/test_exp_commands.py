@@ -59,3 +59,15 @@ def test_evaluate_refuses_to_score_rectified_motion_against_image_truth(tmp_path
     assert result["tracking"] is None and result["strain"] is None and result["profile"] is None
     assert "rectified" in result["not_evaluated"]
     assert result["features"]["pore"]["recall"] > 0.5  # features stay in image pixels: still scored
+
+
+def test_a_bundled_protocol_is_found_past_a_folder_of_its_name(tmp_path, monkeypatch):
+    """``skinstretch demo -o demo`` then ``skinstretch record demo``: the folder is not the protocol."""
+    from skinstretch.experiments.commands.record import protocol_path
+    from skinstretch.experiments.protocol import bundled_protocol
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "demo").mkdir()
+    assert protocol_path("demo") == bundled_protocol("demo")
+    (tmp_path / "mine.yaml").write_text("x")
+    assert protocol_path("mine.yaml") == tmp_path.joinpath("mine.yaml").relative_to(tmp_path)

@@ -67,20 +67,37 @@ def _playback(closed: bool, rng, offset_um: float) -> PlaybackResult:
                           extra={"settle": 20, "rate_hz": 700.0})
 
 
+def _rms_titles(monkeypatch, figure: str) -> list[str]:
+    """The titles with "RMS" of every figure the report draws with ``fig6.<figure>`` (filled as it draws)."""
+    titles: list[str] = []
+    original = getattr(report_module.fig6, figure)
+
+    def spy(*args, **kwargs):
+        fig = original(*args, **kwargs)
+        titles.extend(ax.get_title() for ax in fig.axes if "RMS" in ax.get_title())
+        return fig
+
+    monkeypatch.setattr(report_module.fig6, figure, spy)
+    return titles
+
+
 def test_playback_table_and_figure_titles_show_the_same_rms(rng, monkeypatch):
     """Issue 17: the table said 3.09 / 0.167 um and the figure 2.98 / 0.27 um for the same runs (the figure
     counted the start-up frames the table leaves out)."""
     runs = [_playback(False, rng, 3.0), _playback(True, rng, 0.2)]
-    titles = []
-    original = report_module.fig6.playback_figure
-
-    def spy(traces, **kwargs):
-        fig = original(traces, **kwargs)
-        titles.extend(ax.get_title() for ax in fig.axes if "RMS" in ax.get_title())
-        return fig
-
-    monkeypatch.setattr(report_module.fig6, "playback_figure", spy)
+    titles = _rms_titles(monkeypatch, "playback_figure")
     html = report_module._playback_section(runs)
     table = re.findall(r"<td>(?:open|closed) loop</td><td>120</td><td>120</td><td>20</td><td>([0-9.]+)</td>", html)
     assert [float(v) for v in table] == pytest.approx([p.rms_error_um for p in runs], rel=5e-3)
     assert [re.search(r"RMS ([0-9.]+) um", t).group(1) for t in titles] == table  # the same digits
+
+
+def test_stretch_profile_titles_show_the_amplitude_of_the_table(analysed, monkeypatch, tmp_path):
+    """The profile figure's title said RMS 0.076 % where the table's amplitude of the same ridge trial was 0.092 %
+    (the title counted the profile's end strips, which the amplitude leaves out)."""
+    session, out = analysed
+    titles = _rms_titles(monkeypatch, "stretch_profile_figure")
+    assert main(["report", str(out), "-o", str(tmp_path / "r.html"), "-q"]) == 0
+    table = re.search(r"profile: amplitude ([0-9.e+-]+) %", _text((tmp_path / "r.html").read_text()))
+    assert table and len(titles) == 1
+    assert re.search(r"RMS ([0-9.e+-]+) %", titles[0]).group(1) == table.group(1)

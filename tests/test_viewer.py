@@ -43,8 +43,8 @@ def analysed(tmp_path_factory, sim_session):
     results = analyze_session(path, trial / "analysis", params=AnalysisParams(
         execution={"kind": "threads"}, strain={"spans": (1, 5)},
         tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, min_length_frames=10))).path
-    other = write_session(root / "other.h5", s.frames[:3], timestamps=s.timestamps[:3], camera_mode=s.camera_mode,
-                          calibration=s.calibration)
+    other = write_session(root / "other.h5", 255 - s.frames[:3], timestamps=s.timestamps[:3],
+                          camera_mode=s.camera_mode, calibration=s.calibration)  # frames unlike this session's
     return root, trial, path, results, other
 
 
@@ -150,12 +150,66 @@ def test_path_traversal_and_other_files_are_refused(client, url):
     assert b"HDF" not in r.content and b"root:" not in r.content
 
 
-def test_other_sessions_cannot_be_asked_for(client, analysed):
+def test_other_sessions_cannot_be_asked_for(client, analysed, sim_session):
     _, _, _, _, other = analysed
     # No route takes a path: a path in the query is ignored and this session's data come back.
     info = client.get(f"/api/info?token={TOKEN}&path={other}&session={other}").json()
     assert info["n_frames"] == 20 and info["path_name"] == "session.h5"
-    assert client.get(f"/api/s/1/frame/0.png?token={TOKEN}&session={other}").status_code in (200, 404)
+    for query in (f"session={other}", f"path={other}", f"file={other}"):
+        r = client.get(f"/api/s/{info['sid']}/frame/0.png?token={TOKEN}&{query}")
+        assert r.status_code == 200
+        frame = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(frame, sim_session.frames[0])  # this session's frame, not the other's
+
+
+def _raw_get(port: int, target: str, host: str = "127.0.0.1") -> tuple[int, bytes]:
+    """GET ``target`` byte for byte (an HTTP client library would resolve ``..`` before sending it)."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+        sock.sendall(f"GET {target} HTTP/1.1\r\nHost: {host}:{port}\r\nConnection: close\r\n\r\n".encode())
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    return int(data.split(b" ", 2)[1]), data
+
+
+def test_a_real_server_binds_loopback_and_refuses_traversal_to_files_that_exist(analysed):
+    """Against the served app over a socket, with the ``..`` segments sent as they are: files that do exist beside
+    the page's static folder (the server's source) and beside the session are not served."""
+    from skinstretch.experiments.viewer.server import start_server
+
+    _, trial, _, _, _ = analysed
+    running = start_server(find_view_target(trial))
+    try:
+        assert running._server.servers[0].sockets[0].getsockname()[0] == "127.0.0.1"
+        token = f"token={running.token}"
+        assert _raw_get(running.port, f"/static/viewer.js?{token}")[0] == 200  # the harness reaches files
+        assert _raw_get(running.port, "/static/viewer.js")[0] == 403
+        for target in ("/static/../server.py", "/static/%2e%2e/server.py", "/static/..%2fserver.py",
+                       "/static/%2e%2e%2fserver.py", "/static/..%5cserver.py", "/static/../../viewer/server.py",
+                       "/static/../../../../../../etc/passwd", "/../session.h5", "/static/../../../session.h5",
+                       "/api/s/1/frame/..%2f..%2fsession.h5", "/api/s/1/overlay/..%2f..%2fanalysis%2fresults.h5"):
+            status, body = _raw_get(running.port, f"{target}?{token}")
+            assert status in (400, 404), (target, status)
+            assert b"import " not in body and b"root:" not in body and b"HDF" not in body, target
+    finally:
+        running.stop()
+
+
+def test_a_port_in_use_gets_one_line_naming_the_flag(analysed, capsys):
+    from skinstretch.cli import main
+    from skinstretch.experiments.viewer.server import start_server
+
+    _, trial, _, _, _ = analysed
+    running = start_server(find_view_target(trial))
+    try:
+        assert main(["view", str(trial), "--port", str(running.port), "--no-browser"]) == 2
+    finally:
+        running.stop()
+    assert capsys.readouterr().err.splitlines() == [
+        f"skinstretch view: error: port {running.port} on 127.0.0.1 is in use; pass --port to choose another "
+        "(0: any free port)"]
 
 
 def test_foreign_host_header_is_refused(client):

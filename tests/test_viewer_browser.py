@@ -76,7 +76,8 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     assert "frame 0 / 19" in page.locator("#frame-label").inner_text()
     # Legend and colour bar
     legend = page.locator("#legend-items").inner_text()
-    for label in ("valley ending", "valley bifurcation", "pore"):
+    for label in ("valley ending", "valley bifurcation", "pore", "match", "trajectory tail", "fingertip outline",
+                  "visibility window", "displacement"):
         assert label in legend
     # Step with the keyboard
     page.locator("#view").focus()
@@ -105,6 +106,31 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     assert "feature " in text and "quality" in text and "truth: " in text and " px" in text
     page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)
     assert "pinned" in page.locator("#readout").inner_text()
+    page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)  # released
+    # A pinned feature follows its track to the next frames, not whatever feature has its index there: pin one
+    # whose track is at another index in frame 10.
+    i = page.evaluate("""async () => {
+        const next = await (await fetch(`api/s/${S.sid}/overlay/10?span=${S.span}`)).json();
+        const f = S.current.ov.features;
+        for (let i = 0; i < f.x.length; i++) {
+            const j = next.features.track.indexOf(f.track[i]);
+            if (f.track[i] >= 0 && j >= 0 && j !== i) return i;
+        }
+        return -1; }""")
+    assert i >= 0
+    track, x, y = page.evaluate(f"[S.current.ov.features.track[{i}], S.current.ov.features.x[{i}], S.current.ov.features.y[{i}]]")
+    page.mouse.click(box["x"] + x * sc, box["y"] + y * sc)
+    assert f"(track {track})" in page.locator("#readout").inner_text()
+    for k in (10, 11):
+        page.keyboard.press("ArrowRight")
+        page.wait_for_function(f"S.k === {k}")
+        text = page.locator("#readout").inner_text()
+        i = page.evaluate(f"S.current.ov.features.track.indexOf({track})")
+        if i >= 0:
+            fx = page.evaluate(f"S.current.ov.features.x[{i}]")
+            assert f"(track {track})" in text and f"x {fx:.2f} px" in text, text
+        else:
+            assert f"track {track}: not measured in this frame" in text, text
     page.screenshot(path=str(tmp_path / "viewer.png"))
     ms = [e["ms"] for e in page.evaluate("window.viewerStats.shown")]
     record_property("frame_display_ms_median", float(np.median(ms)))
@@ -142,16 +168,20 @@ def test_follows_a_live_recording(browser, tmp_path, sim_session, record_propert
         camera = SimulatedCamera(s.frames.__getitem__, mode, n_frames=s.frames.shape[0], loop=True)
         (data / "trial").mkdir()
         out = {}
+        # Recorded until the page has shown 10 live frames with their strain (about 2 s on an idle machine; the
+        # live analysis only takes what the machine can spare, so a loaded one needs longer: up to 90 s).
+        stop = threading.Event()
         thread = threading.Thread(target=lambda: out.update(count=record_from_camera(
-            camera, data / "trial" / "session.h5", mode=mode, calibration=s.calibration, seconds=4.0)))
+            camera, data / "trial" / "session.h5", mode=mode, calibration=s.calibration, seconds=90.0, stop=stop)))
         thread.start()
         try:
             page.wait_for_function("document.getElementById('status').textContent.startsWith('recording')",
                                    timeout=30000)
             page.wait_for_function("window.viewerStats.live.length >= 10 && S.current && S.current.ov.mesh",
-                                   timeout=30000)
+                                   timeout=90000)
             assert "live analysis" in page.locator("#source-label").inner_text()
         finally:
+            stop.set()
             thread.join(30)
         page.wait_for_function("document.getElementById('status').textContent.startsWith('complete')",
                                timeout=30000)
@@ -164,6 +194,6 @@ def test_follows_a_live_recording(browser, tmp_path, sim_session, record_propert
     p50, p95, _ = latency_percentiles(live)
     record_property("live_updates", len(live))
     record_property("live_latency_p95_ms", p95)
-    print(f"live: {len(received)} analysed frames received, {len(live)} shown in 4 s; "
+    print(f"live: {len(received)} analysed frames received, {len(live)} shown in {out['count'].seconds:.1f} s; "
           f"exposure to screen p50 {p50:.0f} ms, p95 {p95:.0f} ms")
     assert problems == []

@@ -10,12 +10,19 @@ writers and say nothing about the sample):
 * OME-TIFF: ``Pixels/@PhysicalSizeX`` with its unit (micrometres by default), ``Pixels/@TimeIncrement`` with its
   unit (seconds by default), and each plane's ``DeltaT`` as the frame's time;
 * ImageJ: ``finterval`` (s) or ``fps``, and the X resolution tag in pixels per ImageJ ``unit``.
+
+Damage: tifffile reads what it can of a truncated or damaged file and logs the rest as errors (a page or tag
+offset past the end of the file) instead of raising; such a file is refused here, naming what tifffile found, so
+that a cut-off stack is not taken for a shorter good one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import os
+import threading
 from typing import Any, Iterator
 
 import numpy as np
@@ -39,6 +46,36 @@ _TIME_S = {"s": 1.0, "ms": 1e-3, "µs": 1e-6, "us": 1e-6, "μs": 1e-6, "ns": 1e-
 _IMAGE_AXES = set("YXS")
 
 
+class _TifffileProblems(logging.Filter):
+    """Collects the error records tifffile logs while this thread opens a file (dropped from the log: the reader
+    turns them into one FrameFileError); records of other threads, or outside :meth:`collecting`, pass."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._local = threading.local()
+
+    @contextlib.contextmanager
+    def collecting(self) -> Iterator[list[str]]:
+        found: list[str] = []
+        self._local.found = found
+        try:
+            yield found
+        finally:
+            self._local.found = None
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        found = getattr(self._local, "found", None)
+        if found is None:
+            return True
+        if record.levelno >= logging.ERROR:
+            found.append(record.getMessage())
+        return False
+
+
+_PROBLEMS = _TifffileProblems()
+logging.getLogger("tifffile").addFilter(_PROBLEMS)
+
+
 class TiffStack(FrameReader):
     """The frames of a (multi-page, OME or ImageJ) TIFF file."""
 
@@ -50,15 +87,23 @@ class TiffStack(FrameReader):
             raise FrameFileError(f"{self.path}: no such TIFF file")
         self._fh = open(self.path, "rb")  # ours to close: tifffile leaves its handle open when it refuses a file
         try:
-            try:
-                self._tif = tifffile.TiffFile(self._fh, name=self.path.name)
-                series = self._tif.series[0]
-            except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError) as exc:
-                raise FrameFileError(f"{self.path}: not a TIFF file tifffile can read ({exc})") from None
-            self._setup(series)
+            with _PROBLEMS.collecting() as problems:
+                try:
+                    self._tif = tifffile.TiffFile(self._fh, name=self.path.name)
+                    series = self._tif.series[0]
+                except (tifffile.TiffFileError, OSError, ValueError, IndexError, KeyError) as exc:
+                    raise FrameFileError(f"{self.path}: not a TIFF file tifffile can read ({exc})") from None
+                if problems:
+                    raise self._damaged(problems[0])
+                self._setup(series)
         except BaseException:
+            if hasattr(self, "_tif"):
+                self._tif.close()
             self._fh.close()
             raise
+
+    def _damaged(self, detail: str) -> FrameFileError:
+        return FrameFileError(f"{self.path}: truncated or damaged TIFF ({detail.lstrip('<').replace('> ', ': ', 1)})")
 
     def _setup(self, series) -> None:
         axes, shape = series.axes, tuple(series.shape)
@@ -78,6 +123,9 @@ class TiffStack(FrameReader):
             try:  # frames spread over pages differently (a contiguous hyperstack): map the data instead
                 self._memmap = tifffile.memmap(self.path, series=0, mode="r").reshape(self.n_frames, -1)
             except (ValueError, OSError) as exc:
+                if series.dataoffset is not None and series.dataoffset + series.nbytes > self.path.stat().st_size:
+                    raise self._damaged(f"it declares {self.n_frames} frames of {series.shape[-1]}x"
+                                        f"{series.shape[-2]} but ends before their data") from None
                 raise FrameFileError(
                     f"{self.path}: its {self.n_frames} frames are not one page each and cannot be memory-mapped ({exc})"
                 ) from None

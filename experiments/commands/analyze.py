@@ -50,6 +50,30 @@ def parse_spans(text: str) -> tuple[int, ...]:
     return spans
 
 
+#: Analysis fields this command's flags set: a bad value is reported under the flag's name.
+_FIELD_FLAGS = {
+    "analysis.flow.window_mm": "--flow-scale",
+    "analysis.flow.window_px": "--flow-scale-px",
+    "analysis.execution.workers": "--workers",
+    "analysis.execution.kind": "--parallel",
+    "analysis.tracking.min_length_frames": "--min-track",
+    "analysis.strain.spans": "--span",
+}
+
+
+def params_from_args(args: argparse.Namespace):
+    """The AnalysisParams the flags ask for; a value the parameters refuse is named by its flag."""
+    from skinstretch.experiments.analysis import analysis_params  # noqa: PLC0415 - keeps --help fast
+
+    try:
+        return analysis_params(options_from_args(args))
+    except InvalidInputError as exc:
+        text = str(exc)
+        for field, flag in _FIELD_FLAGS.items():
+            text = text.replace(f"{field}:", f"{flag}:")
+        raise InvalidInputError(text) from None
+
+
 def options_from_args(args: argparse.Namespace) -> dict:
     """The analysis options (nested by stage, as in a protocol's ``analysis.options``) the flags ask for."""
     if args.flow_scale is not None and args.flow_scale_px is not None:
@@ -72,11 +96,11 @@ def options_from_args(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from skinstretch.experiments.analysis import analysis_params, analyze_session  # noqa: PLC0415 - keeps --help fast
+    from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415 - keeps --help fast
     from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
 
     guard_process_tree()  # whatever ends this process, no worker (or Dask process) it started outlives it
-    params = analysis_params(options_from_args(args))
+    params = params_from_args(args)
     if len(args.session) > 1 or args.session[0].is_dir():
         from skinstretch.experiments.batch import analyze_many  # noqa: PLC0415
 

@@ -36,14 +36,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def protocol_path(text: str) -> Path:
+    """The protocol file ``text`` names: a file, else a bundled protocol of that name (``demo``), also when a
+    folder of that name is in the way (``skinstretch demo -o demo`` makes one)."""
+    path = Path(text)
+    if not path.is_file() and "/" not in text and not text.endswith(".yaml"):
+        return bundled_protocol(text)
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
     from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
 
     guard_process_tree()  # whatever ends this process, nothing it started outlives it
-    path = Path(args.protocol)
-    if not path.exists() and "/" not in args.protocol and not args.protocol.endswith(".yaml"):
-        path = bundled_protocol(args.protocol)
+    path = protocol_path(args.protocol)
     protocol = load_protocol(path)
     rig = load_rig(args.rig)
     from skinstretch.experiments.runner import session_dir  # noqa: PLC0415

@@ -187,6 +187,26 @@ def _sliding_direction(r: Results) -> float:
     return 1.0 if travel >= 0 else -1.0
 
 
+def profile_strip_px(r: Results) -> float:
+    """The width (px) of the analysis' profile strips: the margin :func:`profile_pattern` leaves at each end."""
+    return float(r.params["strain"]["profile_strip_mm"]) * r.px_per_mm
+
+
+def measured_profile_pattern(r: Results, *, strip_px: float | None = None):
+    """The pattern (amplitude, lobes) of the analysis' own stretch profile, None when too few positions are valid:
+    the one computation behind ``skinstretch evaluate``'s ``profile.amplitude`` and the RMS the report's stretch
+    profile figure shows (a number shown twice must be the same number)."""
+    from skinstretch.processing.errors import InsufficientDataError  # noqa: PLC0415
+    from skinstretch.processing.stretch import StretchProfile, profile_pattern  # noqa: PLC0415
+
+    margin = profile_strip_px(r) if strip_px is None else strip_px
+    try:
+        return profile_pattern(StretchProfile(r.profile_position, r.profile_change, r.profile_valid),
+                               direction=_sliding_direction(r), margin=margin)
+    except InsufficientDataError:
+        return None
+
+
 def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str, Any]:
     """The ``"profile"`` part of ``skinstretch evaluate``: correlation with the truth and the pattern (seed 6.3.2).
 
@@ -198,7 +218,7 @@ def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str
     ridge or valley session instead.
     """
     from skinstretch.processing.errors import InsufficientDataError
-    from skinstretch.processing.stretch import StretchProfile, profile_pattern
+    from skinstretch.processing.stretch import profile_pattern
 
     surface = str(tf.truth.attrs.get("surface", "unknown"))
     true = true_profile(r, tf, strip_px=strip_px)
@@ -208,10 +228,12 @@ def evaluate_profile(r: Results, tf: TruthField, *, strip_px: float) -> dict[str
     if ok.sum() >= 3 and np.std(true.change[ok]) > 0 and np.std(r.profile_change[ok]) > 0:
         corr = float(np.corrcoef(true.change[ok], r.profile_change[ok])[0, 1])
     direction = _sliding_direction(r)
-    for prefix, prof in (("", StretchProfile(r.profile_position, r.profile_change, r.profile_valid)), ("true_", true)):
-        try:
-            pat = profile_pattern(prof, direction=direction, margin=strip_px)
-        except InsufficientDataError:
+    try:
+        true_pattern = profile_pattern(true, direction=direction, margin=strip_px)
+    except InsufficientDataError:
+        true_pattern = None
+    for prefix, pat in (("", measured_profile_pattern(r, strip_px=strip_px)), ("true_", true_pattern)):
+        if pat is None:
             out[f"{prefix}amplitude"], out[f"{prefix}compression_first"] = math.nan, None
             continue
         out[f"{prefix}amplitude"] = pat.amplitude
@@ -258,8 +280,7 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
         out["strain"][f"n_edges_{span}"] = int(e_err.size)
     for key in ("edge_rmse_1", "edge_rmse_11", "area_rmse_1"):
         out["strain"].setdefault(key, math.nan)
-    strip = float(r.params["strain"]["profile_strip_mm"]) * r.px_per_mm
-    out["profile"] = evaluate_profile(r, tf, strip_px=strip)
+    out["profile"] = evaluate_profile(r, tf, strip_px=profile_strip_px(r))
     out["timing"] = {"frames_per_s": float(r.timing.get("frames_per_s", math.nan))}
     return out
 

@@ -32,6 +32,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from skinstretch.experiments.number_format import format_number
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
@@ -296,13 +297,17 @@ def trajectory_length_figure(lengths: np.ndarray, *, n_frames: int | None = None
 def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]], *, true_profiles: Mapping[str,
                            tuple[np.ndarray, np.ndarray]] | None = None,
                            xlabel: str = "position along the sliding direction (mm)", title: str = "",
-                           band: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Figure:
+                           band: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                           amplitudes: Mapping[str, float] | None = None) -> Figure:
     """Seed Figure 94: relative change in horizontal stretch with position, averaged over a sequence.
 
     ``profiles``: label -> (x, change as a fraction); ``true_profiles`` (optional, simulated sessions) are drawn
     dashed; ``band``: label -> (low, high) spread across sessions. All panels share one stretch scale and each
     title gives the RMS of its measured profile, so a flat surface's lack of pattern reads as a small amplitude
-    beside a ridge's or a valley's (seed 6.3.2), not as a shape of its own.
+    beside a ridge's or a valley's (seed 6.3.2), not as a shape of its own. ``amplitudes``: label -> that RMS
+    (a fraction) as computed elsewhere, so that a report shows one number (the amplitude of
+    :func:`skinstretch.experiments.evaluation.tracking.measured_profile_pattern`, which leaves out the profile's
+    end strips); without it, the RMS of every finite value drawn.
     """
     if not profiles:
         raise InvalidInputError("profiles must hold at least one sequence")
@@ -324,7 +329,8 @@ def stretch_profile_figure(profiles: Mapping[str, tuple[np.ndarray, np.ndarray]]
             ax.plot(np.asarray(tx, float), np.asarray(tch, float) * 100, "--", color="k", label="true")
             ax.legend(fontsize=7)
         finite = ch[np.isfinite(ch)]
-        rms = f", RMS {np.sqrt(np.mean(finite**2)) * 100:.3f} %" if finite.size else ""
+        value = amplitudes.get(label) if amplitudes else (np.sqrt(np.mean(finite**2)) if finite.size else None)
+        rms = f", RMS {format_number(value * 100)} %" if value is not None and np.isfinite(value) else ""
         ax.set_title(f"({chr(97 + k)}) {label}{rms}", fontsize=9)
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("stretch change (%)")

@@ -19,10 +19,12 @@ Routes (``sid`` numbers the session shown: it changes when a followed data direc
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
 import secrets
+import socket
 import threading
 import time
 import webbrowser
@@ -53,7 +55,7 @@ from skinstretch.experiments.viewer.session_data import (
     load_results_index,
     newest_trial_session,
 )
-from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.errors import InvalidInputError, Remedy
 from skinstretch.processing.feature_table import KIND_NAMES
 
 log = logging.getLogger(__name__)
@@ -376,11 +378,33 @@ def _url(host: str, port: int, token: str) -> str:
     return f"http://{shown}:{port}/?token={token}"
 
 
+def check_listenable(host: str, port: int) -> None:
+    """Refuse, in one line naming the option to change, an address the server could not listen on (a port in use,
+    an address of no interface here); uvicorn would log its own error and then stop."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise InvalidInputError(f"host {host!r} is not an address of this machine ({exc.strerror})",
+                                remedy=Remedy(("host",), "to choose another")) from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise InvalidInputError(f"port {port} on {host} is in use",
+                                        remedy=Remedy(("port",), "to choose another (0: any free port)")) from None
+            raise InvalidInputError(f"host {host} cannot be listened on ({exc.strerror})",
+                                    remedy=Remedy(("host",), "to choose another")) from None
+
+
 def start_server(target: ViewTarget, *, host: str = "127.0.0.1", port: int = 0, live: bool = True,
                  timeout_s: float = 30.0) -> RunningServer:
     """Serve ``target`` on a background thread and return once it listens (``port=0`` picks a free port)."""
     import uvicorn  # noqa: PLC0415
 
+    check_listenable(host, port)
     token = secrets.token_urlsafe(24)
     state = ViewerState(target, live=live)
     server = uvicorn.Server(_config(state, host, port, token))

@@ -16,6 +16,7 @@ const TACTILE_MAP = ["#2d004b", "#542788", "#8073ac", "#b2abd2", "#d8daeb", "#f7
 const TACTILE_RANGE_UM = 50;
 const ARROW_GAIN = 5;
 const HIT_RADIUS_SCREEN_PX = 10;
+const TAIL_FRAMES = 12;  // session_data.TAIL_FRAMES: the server sends each tail through its last 12 frames
 
 const S = {
   info: null, sid: 0, n: 0, k: 0, span: 1, scale: 1, playing: false, follow: false,
@@ -98,7 +99,8 @@ function buildLegend() {
     li.appendChild(span);
     ul.appendChild(li);
   }
-  const extra = [["#ff4fd8", "match: line from the previous frame"], ["#ffd400", "fingertip outline (hull of measured points)"],
+  const extra = [["#ff4fd8", "match: line from the previous frame"], ["rgba(255,140,60,0.85)", `trajectory tail (last ${TAIL_FRAMES} frames)`],
+    ["#ffd400", "fingertip outline (hull of measured points)"],
     ["#00e5ff", "visibility window (seed 5.2)"], ["#7CFC00", `displacement ×${ARROW_GAIN}`]];
   for (const [color, text] of extra) {
     const li = document.createElement("li");
@@ -143,6 +145,7 @@ async function showFrame(k, live = null) {
     if (sid !== S.sid) return;
     S.k = k;
     S.current = { img, ov };
+    reselect();
     draw();
     const ms = performance.now() - t0;
     window.viewerStats.shown.push({ frame: k, ms });
@@ -216,7 +219,8 @@ function draw() {
   if (S.on.arrows) {
     ctx.strokeStyle = "#7CFC00"; ctx.lineWidth = 1.4 * lw;
     ctx.beginPath();
-    for (const [x, y, dx, dy] of ov.arrows) arrow(x - ARROW_GAIN * dx, y - ARROW_GAIN * dy, x, y, 4 * lw);
+    // From the feature onwards, in the direction it moved (its tail lies behind it: the two do not overlap).
+    for (const [x, y, dx, dy] of ov.arrows) arrow(x, y, x + ARROW_GAIN * dx, y + ARROW_GAIN * dy, 4 * lw);
     ctx.stroke();
   }
   if (S.on.features) {
@@ -351,6 +355,39 @@ function hitTest(px, py) {
   return out;
 }
 
+// The selection on a new frame: the hovered point is looked up again under the resting cursor; a pinned feature
+// follows its track and a pinned triangle its three tracks (a feature's index, and an untracked feature's id,
+// belong to one frame only).
+function reselect() {
+  if (S.hover) S.hover = hitTest(S.hover.x, S.hover.y);
+  const p = S.pinned;
+  if (!p) return;
+  const ov = S.current.ov;
+  if (p.track !== undefined) {
+    const i = p.track >= 0 ? ov.features.track.indexOf(p.track) : -1;
+    p.feature = i >= 0 ? { i, x: ov.features.x[i], y: ov.features.y[i] } : null;
+    if (p.feature) { p.x = p.feature.x; p.y = p.feature.y; }
+  }
+  if (p.triIds !== undefined) {
+    p.tri = null;
+    const m = ov.mesh;
+    if (m && S.on.mesh) {
+      for (let i = 0; i < m.flipped.length; i++) {
+        const ids = m.ids.slice(3 * i, 3 * i + 3).sort((a, b) => a - b).join(",");
+        if (ids === p.triIds) { p.tri = { i, xy: m.xy[i] }; break; }
+      }
+    }
+  }
+}
+
+function pin(sel) {  // what a pinned selection follows from frame to frame (see reselect)
+  if (!sel || !S.current) return sel;
+  const ov = S.current.ov;
+  if (sel.feature) sel.track = ov.features.track[sel.feature.i];
+  if (sel.tri) sel.triIds = ov.mesh.ids.slice(3 * sel.tri.i, 3 * sel.tri.i + 3).sort((a, b) => a - b).join(",");
+  return sel;
+}
+
 function updateReadout() {
   const sel = S.pinned || S.hover;
   const el = $("readout");
@@ -359,6 +396,10 @@ function updateReadout() {
   if (!sel) { el.textContent = `frame ${S.k}: ${ov.features.x.length} features` + (ov.mesh ? `, ${ov.mesh.xy.length} triangles` : "") + "\nhover the image"; return; }
   const lines = [`frame ${S.k}${S.pinned ? " (pinned: click to release)" : ""}`,
     `cursor x ${sel.x.toFixed(1)} px, y ${sel.y.toFixed(1)} px (${(sel.x / mm).toFixed(3)}, ${(sel.y / mm).toFixed(3)} mm)`];
+  if (S.pinned && sel.track !== undefined && !sel.feature) {
+    lines.push(sel.track >= 0 ? `track ${sel.track}: not measured in this frame` : "the pinned feature was not tracked: it belongs to its own frame only");
+  }
+  if (S.pinned && sel.triIds !== undefined && !sel.tri) lines.push(`triangle of tracks ${sel.triIds}: not in this frame's mesh`);
   if (sel.feature) {
     const f = ov.features, i = sel.feature.i;
     const kind = KIND_STYLE[f.kind[i]] ? KIND_STYLE[f.kind[i]].label : `kind ${f.kind[i]}`;
@@ -447,7 +488,7 @@ view.addEventListener("mousemove", (ev) => {
 view.addEventListener("mouseleave", () => { S.hover = null; if (!S.pinned) { draw(); updateReadout(); } });
 view.addEventListener("click", (ev) => {
   const [x, y] = canvasPoint(ev);
-  S.pinned = S.pinned ? null : hitTest(x, y);
+  S.pinned = S.pinned ? null : pin(hitTest(x, y));
   draw(); updateReadout();
 });
 document.addEventListener("keydown", (ev) => {
