@@ -378,6 +378,20 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
 
 
 @numba.njit(cache=True, nogil=True)
+def _bilinear(image, x, y):
+    """``image`` at (x, y) by bilinear interpolation; NaN where its 2 x 2 neighbourhood leaves the image."""
+    h, w = image.shape
+    x0 = int(np.floor(x))
+    y0 = int(np.floor(y))
+    if x0 < 0 or y0 < 0 or x0 + 1 >= w or y0 + 1 >= h:
+        return np.nan
+    fx = x - x0
+    fy = y - y0
+    return ((image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx) * (1.0 - fy)
+            + (image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx) * fy)
+
+
+@numba.njit(cache=True, nogil=True)
 def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
     """Per point, trace of s^2 T^-1 over its window: T the structure tensor of ``a``, s^2 the variance of the
     residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either image or T is singular."""
@@ -391,21 +405,11 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
         rr = 0.0
         inside = True
         for y in range(r - half, r + half + 1):
-            qy = y + disp[i, 1]
-            y0 = int(np.floor(qy))
-            if y0 < 0 or y0 + 1 >= h:
-                inside = False
-                break
-            fy = qy - y0
             for x in range(c - half, c + half + 1):
-                qx = x + disp[i, 0]
-                x0 = int(np.floor(qx))
-                if x0 < 0 or x0 + 1 >= w:
+                v = _bilinear(b, x + disp[i, 0], y + disp[i, 1])
+                if np.isnan(v):
                     inside = False
                     break
-                fx = qx - x0
-                v = ((b[y0, x0] * (1.0 - fx) + b[y0, x0 + 1] * fx) * (1.0 - fy)
-                     + (b[y0 + 1, x0] * (1.0 - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
                 d = v - a[y, x]
                 ax = float(gx[y, x])
                 ay = float(gy[y, x])
@@ -447,17 +451,11 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
                 oy = y - py
                 for x in range(c - half, c + half + 1):
                     ox = x - px
-                    qx = x + disp[i, 0] + q[0] + q[2] * ox + q[3] * oy
-                    qy = y + disp[i, 1] + q[1] + q[4] * ox + q[5] * oy
-                    x0 = int(np.floor(qx))
-                    y0 = int(np.floor(qy))
-                    if x0 < 0 or y0 < 0 or x0 + 1 >= w or y0 + 1 >= h:
+                    v = _bilinear(b, x + disp[i, 0] + q[0] + q[2] * ox + q[3] * oy,
+                                  y + disp[i, 1] + q[1] + q[4] * ox + q[5] * oy)
+                    if np.isnan(v):
                         good = False
                         break
-                    fx = qx - x0
-                    fy = qy - y0
-                    v = ((b[y0, x0] * (1.0 - fx) + b[y0, x0 + 1] * fx) * (1.0 - fy)
-                         + (b[y0 + 1, x0] * (1.0 - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
                     err = a[y, x] - v
                     ax = float(gx[y, x])
                     ay = float(gy[y, x])
