@@ -47,6 +47,23 @@ class SubpixelParams:
         Local grey-level standard deviation below which a pixel counts as out of contact (no ridges).
     max_no_contact_fraction : float
         Largest fraction of a registration window that may be out of contact, in either frame.
+    wide_window_mm : float or None
+        A second, wider window for the points that the first one measures too imprecisely (see
+        ``target_precision_mm``); None: one window for every point.
+    target_precision_mm : float
+        The standard deviation of a refined displacement the first window should reach (0.0005 mm: 0.03 px at the
+        rig's 62 px/mm). It is predicted per point from its window: the registration's residual noise times the
+        inverse of the window's structure tensor (``s^2 T^-1``). A window of clean, parallel ridges (a live scan or
+        ink print without pores or blotches) determines the displacement along the ridges poorly: its noise along
+        them is 2x that across, and such points are registered again with ``wide_window_mm`` (more ridge
+        irregularities, landmarks, in view). Windows with texture in every direction (pores, a blotchy print) keep
+        the first window, which resolves localized strain best (a slip front's 0.8 mm band).
+    gradient_window_mm : float or None
+        Side of the window in which :meth:`SubpixelRefiner.window_gradients` measures the skin's displacement
+        gradient (for :meth:`SubpixelRefiner.deformation_bias`) by an affine registration; None: the gradient is
+        fitted to the neighbouring points' displacements only (which on a print with few landmarks, ~1 mm apart,
+        smooths a stick-slip or slip band narrower than that and leaves its bias along the ridges: 0.4 % of
+        11-frame edge strain on a sparse live-scan print, 0.2 % measured in the window).
     """
 
     window_mm: float = Field(0.6, gt=0)
@@ -55,6 +72,13 @@ class SubpixelParams:
     normalize_sigma_mm: float | None = Field(0.15, gt=0)
     min_contrast: float = Field(8.0, ge=0)
     max_no_contact_fraction: float = Field(0.05, ge=0, le=1)
+    wide_window_mm: float | None = Field(0.8, gt=0)
+    target_precision_mm: float = Field(0.0005, gt=0)
+    gradient_window_mm: float | None = Field(1.0, gt=0)
+
+
+#: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
+_MAX_FRAME_GRADIENT = 0.05
 
 
 def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
@@ -99,6 +123,7 @@ class RefinedDisplacements:
     displacement: np.ndarray  # (n, 2) float64, px (dx, dy)
     refined: np.ndarray  # (n,) bool: False -> the initial displacement was kept (see ``reason``)
     residual: np.ndarray  # (n,) float64, mean absolute grey-level residual of the registration (NaN if not refined)
+    window_px: np.ndarray  # (n,) int64: side of the window that registered each point (the first one if not refined)
 
 
 class SubpixelRefiner:
@@ -129,6 +154,11 @@ class SubpixelRefiner:
         self.params = params or SubpixelParams()
         self.calibration = calibration
         self._win = calibration.odd_px(self.params.window_mm, minimum=7)
+        wide = self.params.wide_window_mm
+        self._wide = calibration.odd_px(wide, minimum=7) if wide is not None else 0
+        self._target_var = calibration.px(self.params.target_precision_mm) ** 2
+        gw = self.params.gradient_window_mm
+        self._gradient_half = calibration.odd_px(gw, minimum=7) // 2 if gw is not None else 0
         self._max_corr = calibration.px(self.params.max_correction_mm)
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
 
@@ -186,15 +216,31 @@ class SubpixelRefiner:
             raise InvalidInputError(f"initial_displacement has shape {init.shape}, expected {points.shape}")
         n = points.shape[0]
         if n == 0:
-            return RefinedDisplacements(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+            return RefinedDisplacements(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64))
+        disp, ok, residual = self._register(prev_image, curr_image, points, init, init, self._win, prev_nc, curr_nc)
+        window = np.full(n, self._win, np.int64)
+        if self._wide > self._win and ok.any():
+            # Points the first window measures less precisely than the target: registered again, wider.
+            var = self._predicted_variance(prev_image, curr_image, points, disp, self._win)
+            again = np.flatnonzero(ok & ~(var <= self._target_var))
+            if again.size:
+                d2, ok2, r2 = self._register(prev_image, curr_image, points[again], disp[again], init[again],
+                                             self._wide, prev_nc, curr_nc)
+                take = again[ok2]
+                disp[take], residual[take], window[take] = d2[ok2], r2[ok2], self._wide
+        return RefinedDisplacements(disp, ok, residual, window)
+
+    def _register(self, prev_image, curr_image, points, start, init, win, prev_nc, curr_nc):
+        """One Lucas-Kanade pass with a ``win`` px window from ``start``; (displacement, ok, residual), the
+        displacement ``init`` where not ok (see :meth:`refine`)."""
         p0 = points.astype(np.float32).reshape(-1, 1, 2)
-        p1 = (points + init).astype(np.float32).reshape(-1, 1, 2)
+        p1 = (points + start).astype(np.float32).reshape(-1, 1, 2)
         out, status, err = cv2.calcOpticalFlowPyrLK(
             prev_image,
             curr_image,
             p0,
             p1.copy(),
-            winSize=(self._win, self._win),
+            winSize=(win, win),
             maxLevel=int(self.params.pyramid_levels),
             criteria=self._criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
@@ -203,7 +249,7 @@ class SubpixelRefiner:
         ok = status.reshape(-1).astype(bool) & np.all(np.isfinite(d), axis=1)
         ok &= np.hypot(*(d - init).T) <= self._max_corr
         h, w = prev_image.shape
-        half = self._win // 2
+        half = win // 2
         inside = (
             (points[:, 0] >= half)
             & (points[:, 0] <= w - 1 - half)
@@ -220,10 +266,48 @@ class SubpixelRefiner:
                 ok &= _window_fraction(integral, where, half) <= limit
         disp = np.where(ok[:, None], d, init)
         residual = np.where(ok, err.reshape(-1).astype(np.float64), np.nan)
-        return RefinedDisplacements(disp, ok, residual)
+        return disp, ok, residual
+
+    def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
+        """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
+        variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
+        a = prev_image.astype(np.float32)
+        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
+        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
+        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
+        return _predicted_variance_kernel(a, curr_image.astype(np.float32), gx, gy, np.ascontiguousarray(points),
+                                          np.ascontiguousarray(disp), win // 2)
 
 
-    def deformation_bias(self, prev_image, points: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+    def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
+                         fallback: np.ndarray) -> np.ndarray:
+        """The skin's displacement gradient at each point, measured in the images: an affine Lucas-Kanade
+        registration (Gauss-Newton, 2 steps, started from the point's displacement and no deformation) of a
+        ``gradient_window_mm`` window around it; ``gradient[i, j, l] = d u_j / d x_l`` as
+        :func:`~skinstretch.processing.global_motion.local_gradients`. ``fallback`` (n, 2, 2) is kept where the
+        window leaves an image, the fit is singular, or it finds a frame-to-frame strain above 5 % (no skin
+        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None."""
+        out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
+        if self._gradient_half == 0 or out.shape[0] == 0:
+            return out
+        if isinstance(prev_image, PreparedImage):
+            prev_image = prev_image.image
+        if isinstance(curr_image, PreparedImage):
+            curr_image = curr_image.image
+        a = _as_gray(prev_image, "prev_image").astype(np.float32)
+        b = _as_gray(curr_image, "curr_image").astype(np.float32)
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
+        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
+        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
+        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
+        g, ok = _affine_gradient_kernel(a, b, gx, gy, points, displacement, self._gradient_half)
+        ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
+        out[ok] = g[ok]
+        return out
+
+    def deformation_bias(self, prev_image, points: np.ndarray, gradient: np.ndarray,
+                         window_px: np.ndarray | None = None) -> np.ndarray:
         """The part of :meth:`refine`'s displacements at ``points`` that comes from the skin deforming inside the
         registration window, given the displacement gradient there (``gradient[i, j, l]``: d u_j / d x_l).
 
@@ -232,7 +316,8 @@ class SubpixelRefiner:
         ``T = sum g g^T`` and ``u(x) = u(p) + G (x - p)``, it converges to ``u(p) + T^-1 sum g g^T G (x - p)``.
         The second term is returned (subtract it). It is small frame to frame (a strain of 0.3 % and a texture
         centre 5 px off: 0.015 px) but the same every frame, so it adds up along a trajectory (about a tenth of a
-        pixel over 11 frames when the skin stretches, as much as all the noise).
+        pixel over 11 frames when the skin stretches, as much as all the noise). ``window_px``: the window each
+        point was registered with (:attr:`RefinedDisplacements.window_px`; default the first window).
         """
         if isinstance(prev_image, PreparedImage):
             prev_image = prev_image.image
@@ -243,19 +328,25 @@ class SubpixelRefiner:
             raise InvalidInputError(f"gradient has {gradient.shape[0]} rows for {points.shape[0]} points")
         if points.shape[0] == 0:
             return np.zeros((0, 2))
+        halves = np.full(points.shape[0], self._win // 2, np.int64)
+        if window_px is not None:
+            halves = np.asarray(window_px, dtype=np.int64).reshape(-1) // 2
+            if halves.shape[0] != points.shape[0]:
+                raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
         # The derivative operator of OpenCV's pyramidal Lucas-Kanade (Scharr); its scale cancels.
         gx = cv2.Scharr(image, cv2.CV_32F, 1, 0)
         gy = cv2.Scharr(image, cv2.CV_32F, 0, 1)
-        return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient),
-                                        self._win // 2)
+        return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient), halves)
 
 
 @numba.njit(cache=True, nogil=True)
-def _deformation_bias_kernel(gx, gy, points, gradient, half):
-    """T^-1 sum_w g g^T G (x - p) per point (zero where the window leaves the image or T is singular)."""
+def _deformation_bias_kernel(gx, gy, points, gradient, halves):
+    """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
+    or T is singular)."""
     h, w = gx.shape
     out = np.zeros((points.shape[0], 2))
     for i in range(points.shape[0]):
+        half = halves[i]
         px, py = points[i, 0], points[i, 1]
         c, r = int(np.round(px)), int(np.round(py))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
@@ -284,6 +375,111 @@ def _deformation_bias_kernel(gx, gy, points, gradient, half):
         out[i, 0] = (tyy * bx - txy * by) / det
         out[i, 1] = (txx * by - txy * bx) / det
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear(image, x, y):
+    """``image`` at (x, y) by bilinear interpolation; NaN where its 2 x 2 neighbourhood leaves the image."""
+    h, w = image.shape
+    x0 = int(np.floor(x))
+    y0 = int(np.floor(y))
+    if x0 < 0 or y0 < 0 or x0 + 1 >= w or y0 + 1 >= h:
+        return np.nan
+    fx = x - x0
+    fy = y - y0
+    return ((image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx) * (1.0 - fy)
+            + (image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx) * fy)
+
+
+@numba.njit(cache=True, nogil=True)
+def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
+    """Per point, trace of s^2 T^-1 over its window: T the structure tensor of ``a``, s^2 the variance of the
+    residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either image or T is singular."""
+    h, w = a.shape
+    out = np.full(points.shape[0], np.nan)
+    for i in range(points.shape[0]):
+        c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
+        if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
+            continue
+        txx = txy = tyy = 0.0
+        rr = 0.0
+        inside = True
+        for y in range(r - half, r + half + 1):
+            for x in range(c - half, c + half + 1):
+                v = _bilinear(b, x + disp[i, 0], y + disp[i, 1])
+                if np.isnan(v):
+                    inside = False
+                    break
+                d = v - a[y, x]
+                ax = float(gx[y, x])
+                ay = float(gy[y, x])
+                txx += ax * ax
+                txy += ax * ay
+                tyy += ay * ay
+                rr += d * d
+            if not inside:
+                break
+        det = txx * tyy - txy * txy
+        if not inside or det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
+            continue
+        s2 = rr / ((2 * half + 1) ** 2 - 2)
+        out[i] = s2 * (txx + tyy) / det
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
+    """Per point, G of the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p
+    onto ``b`` (2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0); ok False where the window
+    leaves an image or the 6 x 6 system is singular."""
+    h, w = a.shape
+    n = points.shape[0]
+    out = np.zeros((n, 2, 2))
+    ok = np.zeros(n, np.bool_)
+    for i in range(n):
+        px, py = points[i, 0], points[i, 1]
+        c, r = int(np.round(px)), int(np.round(py))
+        if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
+            continue
+        q = np.zeros(6)  # delta_x, delta_y, G00, G01, G10, G11
+        good = True
+        for _ in range(2):
+            hess = np.zeros((6, 6))
+            rhs = np.zeros(6)
+            jac = np.zeros(6)
+            for y in range(r - half, r + half + 1):
+                oy = y - py
+                for x in range(c - half, c + half + 1):
+                    ox = x - px
+                    v = _bilinear(b, x + disp[i, 0] + q[0] + q[2] * ox + q[3] * oy,
+                                  y + disp[i, 1] + q[1] + q[4] * ox + q[5] * oy)
+                    if np.isnan(v):
+                        good = False
+                        break
+                    err = a[y, x] - v
+                    ax = float(gx[y, x])
+                    ay = float(gy[y, x])
+                    jac[0], jac[1], jac[2], jac[3], jac[4], jac[5] = ax, ay, ax * ox, ax * oy, ay * ox, ay * oy
+                    for k in range(6):
+                        rhs[k] += jac[k] * err
+                        for l in range(k, 6):
+                            hess[k, l] += jac[k] * jac[l]
+                if not good:
+                    break
+            if not good:
+                break
+            for k in range(6):
+                for l in range(k):
+                    hess[k, l] = hess[l, k]
+            scale = hess[0, 0] + hess[1, 1]
+            if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
+                good = False
+                break
+            q += np.linalg.solve(hess, rhs)
+        if good and np.all(np.isfinite(q)):
+            out[i, 0, 0], out[i, 0, 1], out[i, 1, 0], out[i, 1, 1] = q[2], q[3], q[4], q[5]
+            ok[i] = True
+    return out, ok
 
 
 @dataclass(frozen=True)

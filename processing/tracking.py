@@ -467,9 +467,9 @@ class FeatureTracker:
         a, b = self._prev_frame.refine, prepared.refine
         if m:
             r1 = self.refiner.refine(a, b, prev.xy[pi], d)
-            dd, ok = r1.displacement.copy(), r1.refined.copy()
+            dd, ok, win = r1.displacement.copy(), r1.refined.copy(), r1.window_px.copy()
         else:
-            dd, ok = np.zeros((0, 2)), np.zeros(0, bool)
+            dd, ok, win = np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, np.int64)
         good = int(ok.sum())
         retry = np.flatnonzero(~ok) if good >= 3 else np.zeros(0, np.int64)
         rows = np.concatenate([pi[retry], candidates])
@@ -481,15 +481,17 @@ class FeatureTracker:
         detached = np.zeros(m, bool)
         found = np.zeros(candidates.size, bool)
         cand_disp = np.zeros((candidates.size, 2))
+        cand_win = np.full(candidates.size, self.refiner.window_px, np.int64)
         if rows.size:
             r2 = self.refiner.refine(a, b, prev.xy[rows], init)
             nr = retry.size
             again, again_d = r2.refined[:nr], r2.displacement[:nr]
             near = np.hypot(*(prev.xy[pi[retry]] + again_d - cols.xy[ci[retry]]).T) <= self._merge_radius
             dd[retry[again]] = again_d[again]
+            win[retry[again]] = r2.window_px[:nr][again]
             ok[retry[again & near]] = True
             detached[retry[again & ~near]] = True
-            found, cand_disp = r2.refined[nr:].copy(), r2.displacement[nr:]
+            found, cand_disp, cand_win = r2.refined[nr:].copy(), r2.displacement[nr:], r2.window_px[nr:]
         # Local consistency: skin moves smoothly, so a refined displacement far from the median of its nearest
         # refined neighbours is a registration failure (contact edge, lost texture, a neighbouring ridge).
         points = np.concatenate([prev.xy[pi], prev.xy[candidates]])
@@ -508,11 +510,14 @@ class FeatureTracker:
             found[:] = False
         ok &= ~detached
         # The skin deforming inside the registration window biases each step the same way (see
-        # SubpixelRefiner.deformation_bias): removed with the gradient of the refined neighbours' motion.
+        # SubpixelRefiner.deformation_bias): removed with the displacement gradient at each point.
         good = np.concatenate([ok | detached, found])
         if int(good.sum()) >= 3:
             sel = np.flatnonzero(good)
-            bias = self.refiner.deformation_bias(a, points[sel], local_gradients(points[sel], disp[sel]))
+            windows = np.concatenate([win, cand_win])[sel]
+            # The gradient measured in each point's own window; the neighbours' fit where that fails.
+            grads = self.refiner.window_gradients(a, b, points[sel], disp[sel], local_gradients(points[sel], disp[sel]))
+            bias = self.refiner.deformation_bias(a, points[sel], grads, windows)
             # A correction as large as the consistency bound comes from a window with texture in one direction
             # only (parallel ridges, no landmark), where it is ill-determined: left alone.
             bias[np.hypot(*bias.T) > self._max_deviation] = 0.0

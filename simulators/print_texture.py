@@ -11,17 +11,21 @@ How an image becomes skin texture (:func:`prepare_print`)
 1. **Grey levels.** 8- or 16-bit, grey or colour (OpenCV's BGR order; converted to luminance); an alpha channel
    marks where the print is (transparent = no print).
 2. **Where the print is.** Fingerprint segmentation by local contrast: the grey-level standard deviation over a
-   Gaussian window (sigma 0.3 mm) above 0.3 times its 95th percentile, cleaned (opening, holes filled, the largest
-   region and any region at least a tenth of it kept), eroded by the window's reach (0.4 mm) and 0.3 mm more (a
-   print's ragged border, where ridges break up, is not kept) and given a soft 0.1 mm edge. This *coverage* multiplies the contact: skin outside the
-   print renders as out of contact (bright glass, no ridges) and the truth marks it invalid there. A print smaller
-   than the contact therefore shows a bright hole or border that moves with the skin; the renderer logs how much
-   of the contact in view the print covers.
+   Gaussian window (sigma 0.3 mm, of the opaque pixels only: a transparent border is no contrast) above 0.3 times
+   the print's contrast (its 95th percentile over the pixels with some texture, above a tenth of the image's 99.5th
+   percentile, so that a small print on a large blank page is measured against itself), cleaned (opening, holes
+   filled, the largest region and any region at least a tenth of it kept), eroded by the window's reach (0.4 mm) and
+   0.3 mm more (a print's ragged border, where ridges break up, is not kept) and given a soft 0.1 mm edge. This
+   *coverage* multiplies the contact: skin outside the print renders as out of contact (bright glass, no ridges) and
+   the truth marks it invalid there. A print smaller than the contact therefore shows a bright hole or border that
+   moves with the skin; the renderer logs how much of the contact in view the print covers.
 3. **Polarity.** The scene renders FTIR polarity: ridges in contact dark, valleys bright (FACTS). Ink prints and
-   live scans have the same polarity (dark ridges on a bright background). ``auto`` compares the background around
-   the print with the print: a brighter background means dark ridges (kept), a darker one bright ridges
-   (inverted). When the print fills the image (no background to compare with), ``auto`` assumes dark ridges and
-   logs it; ``dark_ridges`` or ``bright_ridges`` says it explicitly.
+   live scans have the same polarity (dark ridges on a bright background). ``auto`` reads it from the background
+   around the print, which has the valleys' level (paper, or glass the skin does not touch): nearer the print's
+   bright end (90th percentile) than its dark end (10th) means dark ridges (kept), else bright ridges (inverted);
+   the print's median would not do (the thin, broken ridges of a faint print leave it at the background's level).
+   When the print fills the image (no background to compare with), ``auto`` assumes dark ridges and logs it;
+   ``dark_ridges`` or ``bright_ridges`` says it explicitly.
 4. **Contrast.** Uneven inking or pressure is levelled: the grey levels are standardised by their local mean and
    standard deviation (Gaussian, sigma 1 mm, within the print) and mapped to [0, 1] (0 = ridge, 1 = valley) with
    the 1st and 99th percentiles of the print at the ends.
@@ -56,6 +60,7 @@ Polarity = Literal["auto", "dark_ridges", "bright_ridges"]
 
 _SEGMENT_SIGMA_MM = 0.3
 _SEGMENT_THRESHOLD = 0.3
+_TEXTURED = 0.1  # pixels with "some texture": contrast above this fraction of the image's (99.5th percentile)
 _BORDER_EROSION_MM = 0.3
 _COVERAGE_EDGE_MM = 0.1
 _LEVEL_SIGMA_MM = 1.0
@@ -118,15 +123,25 @@ def load_print(image: str | os.PathLike, *, dpi: float | None = None, polarity: 
         name = key
     else:
         path, default_dpi, name = Path(image), None, Path(image).name
+        if path.is_dir():
+            raise InvalidInputError(f"{path}: is a folder; give a print image file (PNG, TIFF, JPEG, ...)")
         if not path.is_file():
             raise InvalidInputError(f"{path}: no such print image, and not a built-in print "
                                     f"(known: {', '.join(PRINT_NAMES)})")
     dpi = default_dpi if dpi is None else dpi
     if dpi is None:
         raise InvalidInputError(f"{path}: give the print's resolution (dpi), e.g. 500")
-    raw = path.read_bytes()
-    pixels = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
-    if pixels is None:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InvalidInputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not raw:
+        raise InvalidInputError(f"{path}: the file is empty, not an image")
+    try:
+        pixels = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        pixels = None
+    if pixels is None or pixels.size == 0:
         raise InvalidInputError(f"{path}: not an image OpenCV can read")
     return prepare_print(pixels, dpi=dpi, polarity=polarity, name=name, sha256=hashlib.sha256(raw).hexdigest())
 
@@ -149,15 +164,21 @@ def prepare_print(
     mask = _segment(grey, alpha, ppm)
     if mask.sum() < (1.0 * ppm) ** 2:
         raise InvalidInputError(f"print image {name}: no fingerprint found (no region of ridges of 1 mm^2 or more)")
-    around = ~ndi.binary_dilation(mask, iterations=max(1, int(round(0.5 * ppm)))) & (alpha > 0.5)
+    opaque = alpha > 0.5
+    around = ~ndi.binary_dilation(mask, iterations=max(1, int(round(0.5 * ppm)))) & opaque
     # The contrast window reaches ~1.3 sigma beyond the print (where the threshold is met), then the ragged border.
     erosion_mm = _BORDER_EROSION_MM + 1.3 * _SEGMENT_SIGMA_MM
     inside = ndi.binary_erosion(mask, iterations=max(1, int(round(erosion_mm * ppm))))
     if not inside.any():
         inside = mask
     if polarity == "auto":
-        if around.sum() >= 0.02 * grey.size:
-            polarity = "dark_ridges" if np.median(grey[around]) > np.median(grey[mask]) else "bright_ridges"
+        if around.sum() >= 0.02 * opaque.sum():
+            # The background is the level of the valleys (paper, or glass the skin does not touch), one end of the
+            # print's grey levels, whatever share of the print the ridges take (thin broken ridges of a faint print
+            # leave its median at the background's level).
+            background = np.median(grey[around])
+            dark_end, bright_end = np.percentile(grey[mask], [10, 90])
+            polarity = "dark_ridges" if bright_end - background < background - dark_end else "bright_ridges"
         else:
             log.info("%s: the print fills the image (no background to compare with): assuming dark ridges, the "
                      "ink and live-scan convention; give the polarity to override", name)
@@ -201,15 +222,22 @@ def _grey_and_alpha(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return grey, alpha
 
 
-def _local_std(grey: np.ndarray, sigma: float) -> np.ndarray:
-    m = ndi.gaussian_filter(grey, sigma)
-    return np.sqrt(np.maximum(ndi.gaussian_filter(grey * grey, sigma) - m * m, 0.0))
+def _local_std(grey: np.ndarray, sigma: float, weight: np.ndarray) -> np.ndarray:
+    """Grey-level standard deviation over a Gaussian window, of the pixels of ``weight`` (1 opaque, 0 transparent:
+    the edge of a transparent background is no contrast)."""
+    norm = np.maximum(ndi.gaussian_filter(weight, sigma), 1e-6)
+    m = ndi.gaussian_filter(grey * weight, sigma) / norm
+    m2 = ndi.gaussian_filter(grey * grey * weight, sigma) / norm
+    return np.sqrt(np.maximum(m2 - m * m, 0.0)) * (weight > 0.5)
 
 
 def _segment(grey: np.ndarray, alpha: np.ndarray, ppm: float) -> np.ndarray:
     """Where the print has ridges: local contrast, cleaned (module doc, 2)."""
-    spread = _local_std(grey, _SEGMENT_SIGMA_MM * ppm) * (alpha > 0.5)
-    ref = np.percentile(spread, 95)
+    spread = _local_std(grey, _SEGMENT_SIGMA_MM * ppm, (alpha > 0.5).astype(np.float64))
+    # The reference contrast is the print's, not the background's: the 95th percentile over the pixels with some
+    # texture (a small print on a large blank page leaves the image's 95th percentile in the background).
+    textured = spread > _TEXTURED * np.percentile(spread, 99.5)
+    ref = np.percentile(spread[textured], 95) if textured.any() else 0.0
     if ref <= 1e-6:
         return np.zeros(grey.shape, bool)
     mask = spread > _SEGMENT_THRESHOLD * ref

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from skinstretch.config_file import parse_yaml_model
+from skinstretch.config_file import parse_yaml_model, validation_messages
 from skinstretch.processing.errors import ConfigError
 
 Pair = tuple[float, float]
@@ -212,7 +212,11 @@ class Scene(_Model):
             spec["dpi"] = float(dpi)
         if self.texture is not None:
             spec = {**self.texture.model_dump(), **spec}
-        return self.model_copy(update={"texture": TextureSpec(**spec)})
+        try:
+            texture = TextureSpec(**spec)
+        except ValidationError as exc:  # e.g. a dpi out of range: one line naming it, no traceback
+            raise ConfigError(validation_messages(exc, source=f"print image {image}")) from None
+        return self.model_copy(update={"texture": texture})
 
 
 # ------------------------------------------------------------------------------------------------- loading

@@ -72,6 +72,50 @@ def test_wrong_dpi_is_warned_and_bad_images_refused(caplog):
         load_print("no_such_print.png")
 
 
+def test_faint_print_small_on_a_large_page_transparent_border_and_16_bit():
+    """The print is found and its polarity read whatever share of the image it takes or of itself the ridges take."""
+    grey, inside = _ridges(shape=(200, 180), margin=0)
+    # Faint and broken ridges (thin dark lines on white: the print's median is the background's level), pasted on
+    # a page 8x larger than the print, a little greyer than the print's own white.
+    faint = np.where(grey < 60, grey, 255).astype(np.uint8)
+    page = np.full((1600, 1440), 248, np.uint8)
+    page[700:900, 600:780] = faint
+    p = prepare_print(page, dpi=DPI)
+    assert p.polarity == "dark_ridges"
+    assert p.area_mm2 == pytest.approx(200 * 180 / PPM**2, rel=0.25)  # the print, not the pasted rectangle
+    assert p.coverage[:650].max() == 0.0 and p.coverage[760:840, 660:720].min() > 0.99
+    inverted = prepare_print(255 - page, dpi=DPI)
+    assert inverted.polarity == "bright_ridges"
+    np.testing.assert_allclose(inverted.brightness[760:840, 660:720], p.brightness[760:840, 660:720], atol=0.02)
+    # A transparent border (black under alpha 0) is no contrast: the print, not the alpha edge, is found.
+    bgra = np.zeros((400, 380, 4), np.uint8)
+    bgra[100:300, 100:280] = np.dstack([grey, grey, grey, np.full(grey.shape, 255, np.uint8)])
+    q = prepare_print(bgra, dpi=DPI)
+    assert q.area_mm2 == pytest.approx(prepare_print(grey, dpi=DPI).area_mm2, rel=0.05)
+    # 16 bits: the same print as 8 bits.
+    np.testing.assert_allclose(prepare_print(grey.astype(np.uint16) * 257, dpi=DPI).brightness,
+                               prepare_print(grey, dpi=DPI).brightness, atol=1e-6)
+
+
+def test_unreadable_print_files_and_bad_dpi_are_one_line(tmp_path, capsys):
+    from skinstretch.cli import main
+
+    (tmp_path / "empty.png").write_bytes(b"")
+    (tmp_path / "text.png").write_text("not an image")
+    with pytest.raises(InvalidInputError, match="empty"):
+        load_print(tmp_path / "empty.png", dpi=DPI)
+    with pytest.raises(InvalidInputError, match="not an image"):
+        load_print(tmp_path / "text.png", dpi=DPI)
+    with pytest.raises(InvalidInputError, match="folder"):
+        load_print(tmp_path, dpi=DPI)
+    for args in (["--texture", str(tmp_path / "empty.png")], ["--texture", "afis_p1_2", "--dpi", "50"],
+                 ["--texture", "afis_p1_2", "--dpi", "nan"]):
+        assert main(["simulate", "flatS", *args, "-o", str(tmp_path / "x.h5"), "--frames", "1", "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err and "simulate: error:" in err, err
+    assert not (tmp_path / "x.h5").exists()
+
+
 def test_builtin_prints_ship_with_their_licence():
     assert set(PRINT_NAMES) == {"afis_p1_2", "afis_p2_1"}
     licence = print_path("afis_p1_2").with_name("LICENSE-afis.txt").read_text()
