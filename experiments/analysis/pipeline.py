@@ -2,7 +2,8 @@
 
 ``analyze_session(path, outdir)`` and ``analyze_frames(frames, calibration=...)`` both run :func:`analyze`:
 
-1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked;
+1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked
+   for the motion measurement (features are extracted from the frames as recorded);
 2. motion between consecutive frames is measured in chunks on the run's executor (:mod:`.measure`): tracked
    features refined to sub-pixel, or the dense flow grid;
 3. the motion is rectified to the skin once (when the session has a geometric mapping), written to the results
