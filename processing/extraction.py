@@ -338,6 +338,25 @@ class _Plan:
         )
 
 
+def _open_to_background(valleys: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """The background as the skeleton rules see it (a branch near it is a valley leaving the contact): the
+    background, and every valley pixel whose largest disc inside the valleys reaches it.
+
+    The valleys that leave the contact merge along the outline into a bright band (the skin fading out of contact,
+    not yet background), and the skeleton runs down the middle of it, half the band's width from the background:
+    beyond the few pixels a thinning leaves at a cut valley's tip (``open_reach``), and a fork where a valley meets
+    that band was taken for the end of a bridge (flatL seed 9035: a fork 0.3 mm inside the outline, its third
+    valley joining the band, deleted in every frame). The medial axis of such a band lies where the valley's disc
+    touches the background, whatever the band's width.
+    """
+    if not background.any():
+        return background
+    inside = cv2.distanceTransform(valleys, cv2.DIST_L2, 3)  # to the nearest ridge or background pixel
+    to_background = cv2.distanceTransform((~background).view(np.uint8), cv2.DIST_L2, 3)
+    # The nearest non-valley pixel is a background one (within a pixel: both are distances on one grid).
+    return background | ((valleys > 0) & (to_background <= inside + 1.0))
+
+
 def _counts(kinds: np.ndarray) -> dict[str, int]:
     return {KIND_NAMES[k.value]: int(np.count_nonzero(kinds == k.value)) for k in FeatureKind}
 
@@ -491,7 +510,7 @@ class FeatureExtractor:
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
         rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
-        rules["background"], rules["open_reach_px"] = background, q.open_reach
+        rules["background"], rules["open_reach_px"] = _open_to_background(valleys, background), q.open_reach
         if p.heal_broken_valleys and q.heal_ridge > 0:
             rules["gaps"] = GapEvidence(image=s, window_px=q.gap_window, max_ridge_px=q.heal_ridge)
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited

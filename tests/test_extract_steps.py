@@ -241,6 +241,22 @@ def test_background_and_binarization():
     assert binary[100, 0] == 255 and binary[100, 13] == 0  # valley bright, ridge dark
 
 
+def test_the_skeleton_rules_see_a_band_along_the_outline_as_open_to_the_background():
+    from skinstretch.processing.extraction import _open_to_background
+
+    background = np.zeros((40, 80), bool)
+    background[:, 60:] = True  # out of contact beyond x = 60
+    valleys = np.zeros((40, 80), np.uint8)
+    valleys[:, 48:60] = 255  # a band 12 px wide along the outline: the skin fading out of contact
+    valleys[18:23, 10:40] = 255  # a valley well inside, a ridge (x 40..47) between it and the band
+    open_ = _open_to_background(valleys, background)
+    assert open_[:, 60:].all()  # the background itself
+    assert open_[20, 54] and open_[5, 56]  # the band's middle (its skeleton) and beyond: their discs reach it
+    assert not open_[20, 50]  # the band's inner side is nearer the ridge
+    assert not open_[20, 10:40].any()  # the valley inside is bounded by ridges
+    assert not _open_to_background(valleys, np.zeros_like(background)).any()
+
+
 def test_illumination_compensation_flattens_the_valleys():
     yy, xx = np.mgrid[0:120, 0:160]
     gain = 0.6 + 0.4 * xx / 159.0
