@@ -53,6 +53,11 @@ class BatchRow:
     edge_change_p5: float = math.nan
     edge_change_p95: float = math.nan
     profile_axis: str = ""
+    n_trajectories: int | None = None  # features method
+    min_track_frames: int | None = None  # features method: the minimum trajectory length used
+    #: What the analysis said about the clip (a short clip's adapted minimum length, a span with no pair, a mesh
+    #: too sparse to map strain): one sentence each, joined by " | ".
+    notes: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -280,6 +285,13 @@ def _fill(row: BatchRow, by_surface: dict[str, list]) -> None:
     r = read_results(row.results)
     row.n_frames = r.n_frames
     row.profile_axis = r.profile_axis
+    row.n_trajectories = r.summary.get("n_trajectories")
+    row.min_track_frames = r.summary.get("min_track_frames")
+    notes = list(r.summary.get("notes") or [])
+    sparse = (r.summary.get("density") or {}).get("warning")
+    if sparse:
+        notes.append(sparse)
+    row.notes = " | ".join(notes)
     p5_p95 = r.summary.get("strain_span_1", {}).get("edge_change_p5_p95")
     if p5_p95:
         row.edge_change_p5, row.edge_change_p95 = (float(v) for v in p5_p95)

@@ -62,7 +62,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores, fill_specks
 from skinstretch.processing.ridge_flow import ridge_flow
 from skinstretch.processing.preprocess import binarize, check_frame, contact_map, flatten_light, ridge_statistics, smooth
-from skinstretch.processing.skeleton_editing import edit_graph
+from skinstretch.processing.skeleton_editing import GapEvidence, edit_graph
 from skinstretch.processing.skeleton_graph import GraphArrays, edit_with_room, graph_features, trace_arrays
 from skinstretch.processing.texture_gate import TextureGateParams, texture_verdict
 from skinstretch.processing.thinning import thin
@@ -116,6 +116,10 @@ class ExtractionParams:
     heal_broken_valleys: bool = True
     heal_max_distance_mm: float = 0.6
     heal_max_angle_deg: float = 30.0
+    # Beyond the seed: a gap is healed only where the image shows no ridge across it, i.e. its line crosses at most
+    # this much skin as dark as the ridges around (skeleton_editing.GapEvidence; 0 = heal whatever the image). Two
+    # valleys that end facing each other across a ridge of the print are two true endings.
+    heal_max_ridge_mm: float = 0.1
     # 4.8.3: the seed's maximum spur length is 1 mm; 0.3 mm here, because on the simulated scenes 1 mm deleted
     # true valley endings joined to a nearby fork (flatL minutiae recall 0.79 -> 1.0 on 12 frames, precision
     # unchanged); thinning and pore spurs are shorter than ~2/3 of a ridge period (0.43 mm).
@@ -258,6 +262,8 @@ class _Plan:
     orient_n: int
     short_valley: float
     heal_dist: float
+    heal_ridge: float
+    gap_window: int
     spur_min: float
     spur_max: float
     bridge_min: float
@@ -294,6 +300,8 @@ class _Plan:
             orient_n=cal.px_int(p.orientation_distance_mm, minimum=2),
             short_valley=cal.px(p.short_valley_max_mm),
             heal_dist=cal.px(p.heal_max_distance_mm),
+            heal_ridge=cal.px(p.heal_max_ridge_mm),
+            gap_window=cal.px_int(p.ridge_period_mm, minimum=2),
             spur_min=cal.px(p.spur_min_mm),
             spur_max=cal.px(p.spur_max_mm),
             bridge_min=cal.px(p.bridge_min_mm),
@@ -328,6 +336,25 @@ class _Plan:
             # The thinning's fork lies within a quarter ridge period of the widest place of the valleys' crotch.
             fork_reach=max(cal.px(p.ridge_period_mm / 4), 2.0),
         )
+
+
+def _open_to_background(valleys: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """The background as the skeleton rules see it (a branch near it is a valley leaving the contact): the
+    background, and every valley pixel whose largest disc inside the valleys reaches it.
+
+    The valleys that leave the contact merge along the outline into a bright band (the skin fading out of contact,
+    not yet background), and the skeleton runs down the middle of it, half the band's width from the background:
+    beyond the few pixels a thinning leaves at a cut valley's tip (``open_reach``), and a fork where a valley meets
+    that band was taken for the end of a bridge (flatL seed 9035: a fork 0.3 mm inside the outline, its third
+    valley joining the band, deleted in every frame). The medial axis of such a band lies where the valley's disc
+    touches the background, whatever the band's width.
+    """
+    if not background.any():
+        return background
+    inside = cv2.distanceTransform(valleys, cv2.DIST_L2, 3)  # to the nearest ridge or background pixel
+    to_background = cv2.distanceTransform((~background).view(np.uint8), cv2.DIST_L2, 3)
+    # The nearest non-valley pixel is a background one (within a pixel: both are distances on one grid).
+    return background | ((valleys > 0) & (to_background <= inside + 1.0))
 
 
 def _counts(kinds: np.ndarray) -> dict[str, int]:
@@ -483,7 +510,9 @@ class FeatureExtractor:
             bridges=(q.bridge_min, q.bridge_max, p.bridge_max_deviation_deg) if p.remove_bridges else None,
         )
         rules["flow"] = ridge_flow(stats.cell_image, cell_px=stats.cell_px, sigma_px=q.flow_sigma)
-        rules["background"], rules["open_reach_px"] = background, q.open_reach
+        rules["background"], rules["open_reach_px"] = _open_to_background(valleys, background), q.open_reach
+        if p.heal_broken_valleys and q.heal_ridge > 0:
+            rules["gaps"] = GapEvidence(image=s, window_px=q.gap_window, max_ridge_px=q.heal_ridge)
         g, step_rows = edit_with_room(  # 4.7: the skeleton graph (the blob pores after the skeleton's own), edited
             lambda room: trace_arrays(skeleton, pore_x, pore_y, pore_d, room=room),
             lambda g: edit_graph(g, **rules),

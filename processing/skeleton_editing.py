@@ -5,7 +5,8 @@ chain of them, as the extraction does. The public functions take and return a
 :class:`skinstretch.processing.skeleton_graph_lists.SkeletonGraph` (an edited copy):
 
 - :func:`remove_short_valleys` (4.8.1): a valley bounded by two endings and shorter than ~0.2 mm is a pore.
-- :func:`heal_broken_valleys` (4.8.2): join facing endings closer than ~0.6 mm, best confidence (eq. 4.4) first.
+- :func:`heal_broken_valleys` (4.8.2): join facing endings closer than ~0.6 mm, best confidence (eq. 4.4) first;
+  given the image (:class:`GapEvidence`), never across a ridge (below).
 - :func:`remove_short_spurs` (4.8.3): a short branch roughly perpendicular to its valley is deleted (a pore is
   left at its tip when it was long enough to be one).
 - :func:`remove_bridges` (4.8.4): a short valley between two bifurcations, roughly perpendicular to both valleys,
@@ -25,6 +26,14 @@ a few pixels long in the image). Its own ending, at the edge, goes with the bord
 between two forks that runs along the background joins valleys round a ridge that has left the contact, not
 across a pore: it is no bridge.
 
+Also beyond the seed, given the image around the skeleton (:class:`GapEvidence`), healing asks the image whether
+the gap is a break of the valley or a ridge: two valleys that really end facing each other (the print's ridges
+join between them) are separated by skin as dark as the ridges around, whereas a valley broken by noise, a speck
+or a weak spot of contact is only a little darker than the threshold there. A gap whose straight line crosses more
+than ``max_ridge_px`` of skin in the darkest quarter of the local ridge-to-valley range is left open (flatL seed
+7011: two true endings 0.5 mm apart across a ridge were joined in most of 12 frames; no gap of the simulated prints
+needs healing).
+
 All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 The results depend on the order of the loops, which is part of the rules: edges and nodes in id order, a pass
 visiting the edges alive when it starts (an edge a merge creates waits for the next pass), sums in the order written.
@@ -34,6 +43,7 @@ from __future__ import annotations
 
 import math
 import operator
+from dataclasses import dataclass
 
 import numpy as np
 from skinstretch.processing.argument_checks import positive_number
@@ -69,6 +79,7 @@ __all__ = [
     "remove_bridges",
     "edit_graph",
     "line_pixels",
+    "GapEvidence",
 ]
 
 
@@ -602,6 +613,59 @@ def line_pixels(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
     return _line(operator.index(x0), operator.index(y0), operator.index(x1), operator.index(y1))
 
 
+#: A gap pixel belongs to a ridge when it is in the darkest quarter of the range between the local levels of the
+#: valleys and of the ridges (the 90th and 10th percentiles of the image around the gap).
+RIDGE_DARKNESS = 0.75
+
+
+@dataclass(frozen=True)
+class GapEvidence:
+    """What healing (4.8.2) asks the image: is the gap between two facing endings a ridge (module doc)?
+
+    Attributes
+    ----------
+    image : (H, W) float32
+        The frame as the binarization sees it (valleys bright, ridges dark).
+    window_px : int
+        Half-side of the square around the gap's middle whose 10th and 90th percentiles are the ridges' and the
+        valleys' levels there (about one ridge period, so that both are in it).
+    max_ridge_px : float
+        Longest stretch of ridge-dark skin (px along the gap's line) a healed gap may cross.
+    """
+
+    image: np.ndarray
+    window_px: int
+    max_ridge_px: float
+
+    def __post_init__(self) -> None:
+        if self.image.ndim != 2:
+            raise InvalidInputError(f"GapEvidence.image must be a 2-D array, got shape {self.image.shape}")
+        if not isinstance(self.window_px, (int, np.integer)) or self.window_px < 1:
+            raise InvalidInputError(f"GapEvidence.window_px must be a positive integer, got {self.window_px!r}")
+        positive_number(self.max_ridge_px, "max_ridge_px")
+
+    def crosses_ridge(self, x1: float, y1: float, x2: float, y2: float) -> bool:
+        """Whether the straight line between two endings crosses more than ``max_ridge_px`` of ridge-dark skin in
+        one stretch."""
+        line = _line(int(np.rint(x1)), int(np.rint(y1)), int(np.rint(x2)), int(np.rint(y2)))
+        h, w = self.image.shape
+        inner = line[1:-1]
+        inner = inner[(inner[:, 0] >= 0) & (inner[:, 0] < w) & (inner[:, 1] >= 0) & (inner[:, 1] < h)]
+        if inner.shape[0] == 0:
+            return False
+        cx, cy, r = int(np.rint((x1 + x2) / 2)), int(np.rint((y1 + y2) / 2)), int(self.window_px)
+        around = self.image[max(cy - r, 0) : cy + r + 1, max(cx - r, 0) : cx + r + 1]
+        ridge, valley = np.percentile(around, [10.0, 90.0])
+        dark = self.image[inner[:, 1], inner[:, 0]] < valley - RIDGE_DARKNESS * (valley - ridge)
+        if not dark.any():
+            return False
+        # Longest run of dark pixels, in px along the line (each step of the line is that long).
+        step = math.hypot(x2 - x1, y2 - y1) / (line.shape[0] - 1)
+        edges = np.diff(np.concatenate([[0], dark.view(np.int8), [0]]))
+        runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+        return float(runs.max()) * step > self.max_ridge_px
+
+
 # The public functions check their arguments, convert the graph and run the compiled rules above through the two
 # calls of _run_rules.
 
@@ -618,6 +682,12 @@ def _flow_arrays(flow: RidgeFlow | None):
     return flow.cos2, flow.sin2, flow.cell_px
 
 
+def _gap_evidence(gaps):
+    if gaps is not None and not isinstance(gaps, GapEvidence):
+        raise InvalidInputError(f"gaps must be a GapEvidence or None, got {type(gaps).__name__}")
+    return gaps
+
+
 def _background_arrays(background, reach_px):
     if background is None:
         return _NO_BACKGROUND
@@ -628,11 +698,19 @@ def _background_arrays(background, reach_px):
 
 
 def _run_rules(arrays, n_px, sv=0.0, heal=(0.0, 0.0), spurs=(0.0, 0.0, 0.0), bridges=(0.0, 0.0, 0.0),
-               flow=None, background=None, open_reach_px=0.0) -> np.ndarray:
+               flow=None, background=None, open_reach_px=0.0, gaps=None) -> np.ndarray:
     """Run the rules whose first length is > 0, in the order of seed 4.8, on ``arrays`` (in place); (5, 3) counts."""
     counts, ends, iu, ju, dist, cos = _edit_to_healing(arrays, sv, heal[0], n_px)
     # numpy's arccos (vectorised: it can differ from the C library's acos in the last bit), as the rule always had.
     acos = np.arccos(cos)
+    if gaps is not None and iu.size:
+        # A candidate whose gap crosses a ridge is no broken valley: its angles are set beyond any limit.
+        xy = arrays.node_xy
+        facing = np.flatnonzero(np.degrees(acos).max(axis=0) < heal[1])
+        for c in facing.tolist():
+            a, b = ends[iu[c]], ends[ju[c]]
+            if gaps.crosses_ridge(xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1]):
+                acos[:, c] = math.pi
     _edit_from_healing(arrays, counts, ends, iu, ju, dist, acos, *heal, *spurs, *bridges, n_px, *_flow_arrays(flow),
                        *_background_arrays(background, open_reach_px))
     return counts
@@ -667,6 +745,7 @@ def heal_broken_valleys(
     max_distance_px: float,
     max_angle_deg: float,
     orientation_px: int,
+    gaps: GapEvidence | None = None,
 ) -> SkeletonGraph:
     """Bridge the gaps of broken valleys (seed 4.8.2, Figures 36-38).
 
@@ -675,9 +754,11 @@ def heal_broken_valleys(
     confidence of eq. 4.4, each ending at most once, and only if the bridging line touches no skeleton pixel other
     than the two endings (so healing never crosses or joins a third valley). Pores in the 8-neighbourhood of the
     bridging line are deleted (they belong to the healed valley). Returns an edited copy.
+
+    Beyond the seed: with ``gaps`` (:class:`GapEvidence`) a gap that crosses a ridge is not healed (module doc).
     """
     heal = (positive_number(max_distance_px, "max_distance_px"), _angle_limit(max_angle_deg, "max_angle_deg"))
-    return _edited(graph, _n_px(orientation_px), heal=heal)
+    return _edited(graph, _n_px(orientation_px), heal=heal, gaps=_gap_evidence(gaps))
 
 
 # ------------------------------------------------------------------------------------------------- 4.8.3 / 4.8.4
@@ -754,14 +835,15 @@ def edit_graph(
     flow: RidgeFlow | None = None,
     background: np.ndarray | None = None,
     open_reach_px: float = 3.0,
+    gaps: GapEvidence | None = None,
 ) -> np.ndarray:
     """The skeleton rules of seed 4.8.1-4.8.4 in order, on graph arrays edited in place (the extraction's chain).
 
     Each rule runs when its parameters are given: ``short_valley_px`` (:func:`remove_short_valleys`), ``heal`` =
     (max distance px, max angle deg), ``spurs`` and ``bridges`` = (min length px, max length px, max deviation deg);
     ``flow`` makes the spur and bridge rules judge by the ridge flow, ``background`` keeps the spurs that end
-    within ``open_reach_px`` of it and the bridges that come that close (module doc).
-    The same result as the public functions in turn, in two compiled calls.
+    within ``open_reach_px`` of it and the bridges that come that close, ``gaps`` leaves open the gaps that cross a
+    ridge (module doc). The same result as the public functions in turn, in two compiled calls.
 
     Returns (5, 3) int64 counts of valley endings, valley bifurcations and pores, initially and after each rule (0
     for rules that did not run). Raises :class:`skinstretch.processing.skeleton_graph.GraphCapacityError` when the arrays run out of
@@ -777,5 +859,5 @@ def edit_graph(
     if bridges is not None:
         rules["bridges"] = (*_length_range(*bridges[:2]), _angle_limit(bridges[2], "max_deviation_deg"))
     return _run_rules(arrays, _n_px(orientation_px), flow=flow, background=background, open_reach_px=open_reach_px,
-                      **rules)
+                      gaps=_gap_evidence(gaps), **rules)
 

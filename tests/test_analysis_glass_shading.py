@@ -57,6 +57,20 @@ def test_glass_fixed_band_is_removed_on_a_ridge_or_valley_only():
     assert status.startswith("applied")
 
 
+def test_features_see_the_frames_as_recorded_and_the_motion_the_corrected_ones():
+    frames = _sliding_stripes()
+    source = ArrayFrames(frames)
+    shading, status = estimate_shading(source, calibration=CAL, params=AnalysisParams(), surface="valley")
+    assert status.startswith("applied")
+    reader = FrameReader(source, shading)
+    recorded, corrected = reader.pair(5)
+    np.testing.assert_array_equal(recorded, frames[5])  # the extraction's input: the contrast of the contact
+    np.testing.assert_array_equal(corrected, reader(5))  # the motion measurement's
+    assert not np.array_equal(recorded, corrected)
+    plain = FrameReader(source, None).pair(5)
+    assert plain[0] is plain[1]
+
+
 def test_static_skin_and_bad_frames_are_passed_on_untouched():
     still = [_sliding_stripes(n=1)[0]] * 10
     out, status = without_glass_shading(still, calibration=CAL, params=AnalysisParams(glass_shading=True),

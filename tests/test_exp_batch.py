@@ -59,7 +59,10 @@ def _fake_analyse_trial(session_path, outdir, method, params):
     wr.file["profile"].attrs["axis"] = "x"
     attrs = {"method": method, "session_path": str(session_path), "n_frames": n, "image_shape": [h, w],
              "px_per_mm": px, "coordinates": "image", "timing_json": "{}", "params_json": "{}", "versions_json": "{}",
-             "window_json": json.dumps({"status": "none"}), "summary_json": "{}"}
+             "window_json": json.dumps({"status": "none"}),
+             "summary_json": json.dumps({"n_trajectories": 12, "min_track_frames": 4,
+                                         "notes": ["a short clip", "no strain over 11 frames"],
+                                         "density": {"warning": "too sparse"}})}
     r = wr.finish(attrs)
     return TrialAnalysis(True, str(r.path), 0.01)
 
@@ -80,6 +83,10 @@ def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch,
     table = json.loads(result.table_json.read_text())
     assert len(table) == 2 and {r["status"] for r in table} == {"ok", "failed"}
     assert result.table_csv.read_text().count("\n") == 3
+    # What the analysis said about the clip reaches the table (a worker's log may not reach this console).
+    assert (good.n_trajectories, good.min_track_frames) == (12, 4)
+    assert good.notes == "a short clip | no strain over 11 frames | too sparse"
+    assert "a short clip | no strain over 11 frames | too sparse" in result.table_csv.read_text()
     x, mean, _, n = result.profiles["flat"]
     np.testing.assert_allclose(mean, 1e-4 * x * good_px_per_mm(batch_dir), rtol=1e-6)
     assert result.figure is not None and result.figure.exists()

@@ -14,6 +14,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.pores import detect_blob_pores
 from skinstretch.processing.preprocess import binarize, contact_map, ridge_statistics
 from skinstretch.processing.skeleton_editing import (
+    GapEvidence,
     heal_broken_valleys,
     line_pixels,
     remove_bridges,
@@ -132,6 +133,38 @@ def test_healing_rejects_gaps_above_distance_or_angle():
     assert len(heal_broken_valleys(g, max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10).alive_nodes()) == 4
 
 
+def _stripes_with_gap(gap_level):
+    """Valleys (bright) along x every 27 px, one on row 30 (the skeleton of _two_endings_graph), its stretch
+    x 55..74 (the gap between the two endings) of grey level ``gap_level``."""
+    y = np.arange(60, dtype=np.float32)[:, None]
+    image = np.repeat(128 + 60 * np.cos(2 * np.pi * (y - 30) / 27.0), 120, axis=1).astype(np.float32)
+    image[24:37, 55:75] = gap_level
+    return image
+
+
+def test_healing_leaves_a_gap_across_a_ridge_open():
+    heal = dict(max_distance_px=CAL.px(0.6), max_angle_deg=30, orientation_px=10)
+    g = _two_endings_graph(20)
+    # Two valleys that end facing each other across skin as dark as the ridges (68): two true endings.
+    ridge = GapEvidence(image=_stripes_with_gap(68.0), window_px=27, max_ridge_px=CAL.px(0.1))
+    assert ridge.crosses_ridge(54, 30, 75, 30)
+    assert len(heal_broken_valleys(g, **heal, gaps=ridge).alive_nodes()) == 4
+    # A valley broken by skin a little darker than the mean (118 against ridges at 68, valleys at 188): healed.
+    weak = GapEvidence(image=_stripes_with_gap(118.0), window_px=27, max_ridge_px=CAL.px(0.1))
+    assert not weak.crosses_ridge(54, 30, 75, 30)
+    assert _kinds(heal_broken_valleys(g, **heal, gaps=weak)) == [FeatureKind.VALLEY_ENDING] * 2
+    # A dark spot shorter than max_ridge_px in the gap does not stop it either.
+    spot = _stripes_with_gap(118.0)
+    spot[27:34, 63:67] = 68.0
+    assert not GapEvidence(image=spot, window_px=27, max_ridge_px=CAL.px(0.1)).crosses_ridge(54, 30, 75, 30)
+    with pytest.raises(InvalidInputError, match="gaps"):
+        heal_broken_valleys(g, **heal, gaps="dark")
+    with pytest.raises(InvalidInputError, match="window_px"):
+        GapEvidence(image=spot, window_px=0, max_ridge_px=6.0)
+    with pytest.raises(InvalidInputError, match="max_ridge_px"):
+        GapEvidence(image=spot, window_px=27, max_ridge_px=-1.0)
+
+
 def test_short_valley_becomes_pore():
     sk = np.zeros((30, 60), np.uint8)
     sk[15, 20:28] = 1  # 7 px < 0.2 mm (12.4 px)
@@ -206,6 +239,22 @@ def test_background_and_binarization():
     binary = binarize(img.astype(np.float32), local_average=stats.mean, background=bg)
     assert binary[:, 230:].max() == 0
     assert binary[100, 0] == 255 and binary[100, 13] == 0  # valley bright, ridge dark
+
+
+def test_the_skeleton_rules_see_a_band_along_the_outline_as_open_to_the_background():
+    from skinstretch.processing.extraction import _open_to_background
+
+    background = np.zeros((40, 80), bool)
+    background[:, 60:] = True  # out of contact beyond x = 60
+    valleys = np.zeros((40, 80), np.uint8)
+    valleys[:, 48:60] = 255  # a band 12 px wide along the outline: the skin fading out of contact
+    valleys[18:23, 10:40] = 255  # a valley well inside, a ridge (x 40..47) between it and the band
+    open_ = _open_to_background(valleys, background)
+    assert open_[:, 60:].all()  # the background itself
+    assert open_[20, 54] and open_[5, 56]  # the band's middle (its skeleton) and beyond: their discs reach it
+    assert not open_[20, 50]  # the band's inner side is nearer the ridge
+    assert not open_[20, 10:40].any()  # the valley inside is bounded by ridges
+    assert not _open_to_background(valleys, np.zeros_like(background)).any()
 
 
 def test_illumination_compensation_flattens_the_valleys():

@@ -144,6 +144,10 @@ def test_a_short_clip_adapts_the_minimum_trajectory_length_and_says_so(session_f
         r = analyze_session(session_file, tmp_path / "a", params={"execution": {"kind": "serial"}})
     assert "8-frame clip" in caplog.text and "at least 4 frames" in caplog.text
     assert r.params["tracking"]["min_length_frames"] == 4 and r.summary["n_trajectories"] > 10
+    # The default spans are 1 and 11 frames: an 8-frame session has no 11-frame pair, and says so (log and summary).
+    assert "no strain over 11 frames" in caplog.text and "--span up to 7" in caplog.text
+    assert len(r.summary["notes"]) == 2 and "no strain over 11 frames" in r.summary["notes"][1]
+    assert r.strain[11].pairs.shape[0] == 0
 
 
 def test_a_minimum_length_longer_than_the_clip_is_one_line(session_file, tmp_path, capsys):

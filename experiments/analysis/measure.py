@@ -144,8 +144,8 @@ def track_chunk(reader: FrameReader, first: int, last: int, calibration: Calibra
     t_extract = t_prepare = t_track = 0.0
     for k in range(first, last + 1):
         t0 = time.perf_counter()
-        image = reader(k)
-        res = extractor.extract(image, frame_index=k)
+        recorded, image = reader.pair(k)  # features from the frame as recorded, motion on the shading-free one
+        res = extractor.extract(recorded, frame_index=k)
         t1 = time.perf_counter()
         prepared = tracker.prepare_image(image)
         t2 = time.perf_counter()

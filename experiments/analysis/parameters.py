@@ -24,7 +24,7 @@ from skinstretch.processing.parameters import describe_validation_error
 from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TrackingParams, min_length_for_clip
 
 __all__ = ["AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params",
-           "for_clip"]
+           "for_clip", "clip_notes"]
 
 log = logging.getLogger(__name__)
 
@@ -133,24 +133,41 @@ def analysis_params(options: dict[str, Any] | AnalysisParams | None = None, **st
         raise InvalidInputError(describe_validation_error(exc, "analysis")) from None
 
 
+def clip_notes(params: AnalysisParams, n_frames: int, method: str) -> list[str]:
+    """What a clip of ``n_frames`` changes in the analysis asked for by ``params`` (the minimum trajectory length
+    left to its default adapts to a short clip; a strain span as long as the clip has no pair), one sentence each:
+    the analysis logs them as warnings and keeps them in its summary (``notes``), so that a short clip never gives
+    a silent empty result (the batch table repeats them)."""
+    notes = []
+    if method == "features" and params.tracking.min_length_frames is None:
+        effective = min_length_for_clip(n_frames)
+        if effective < DEFAULT_MIN_LENGTH_FRAMES:
+            notes.append(f"a {n_frames}-frame clip is shorter than the default minimum trajectory length "
+                         f"({DEFAULT_MIN_LENGTH_FRAMES} frames): trajectories of at least {effective} frames are kept "
+                         "(set --min-track to choose)")
+    too_long = [int(s) for s in params.strain.spans if int(s) >= n_frames]
+    if too_long:
+        names = ", ".join(str(s) for s in too_long)
+        notes.append(f"no strain over {names} frame{'s' if too_long != [1] else ''}: the {n_frames}-frame session "
+                     f"has no frame pair that far apart (--span up to {n_frames - 1})")
+    return notes
+
+
 def for_clip(params: AnalysisParams, n_frames: int, method: str) -> AnalysisParams:
     """The parameters as they apply to a clip of ``n_frames``: a minimum trajectory length left to its default
-    adapts to a short clip (logged; the results record the value used). One the clip cannot satisfy is refused."""
+    adapts to a short clip; what changes is logged (:func:`clip_notes`; the results record the values used). One
+    the clip cannot satisfy is refused."""
     if n_frames < 2:
         raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n_frames}")
-    if method != "features":
-        return params
     given = params.tracking.min_length_frames
-    if given is not None:
-        if given > n_frames:
-            raise InsufficientDataError(
-                f"the minimum trajectory length ({given} frames, --min-track) is longer than the {n_frames}-frame "
-                f"session: no trajectory could be kept; give at most {n_frames}"
-            )
+    if method == "features" and given is not None and given > n_frames:
+        raise InsufficientDataError(
+            f"the minimum trajectory length ({given} frames, --min-track) is longer than the {n_frames}-frame "
+            f"session: no trajectory could be kept; give at most {n_frames}"
+        )
+    for note in clip_notes(params, n_frames, method):
+        log.warning("%s", note)
+    if method != "features" or given is not None:
         return params
     effective = min_length_for_clip(n_frames)
-    if effective < DEFAULT_MIN_LENGTH_FRAMES:
-        log.warning("a %d-frame clip is shorter than the default minimum trajectory length (%d frames): "
-                    "trajectories of at least %d frames are kept (set --min-track to choose)", n_frames,
-                    DEFAULT_MIN_LENGTH_FRAMES, effective)
     return params.model_copy(update={"tracking": replace(params.tracking, min_length_frames=effective)})

@@ -2,7 +2,8 @@
 
 ``analyze_session(path, outdir)`` and ``analyze_frames(frames, calibration=...)`` both run :func:`analyze`:
 
-1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked;
+1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked
+   for the motion measurement (features are extracted from the frames as recorded);
 2. motion between consecutive frames is measured in chunks on the run's executor (:mod:`.measure`): tracked
    features refined to sub-pixel, or the dense flow grid;
 3. the motion is rectified to the skin once (when the session has a geometric mapping), written to the results
@@ -41,7 +42,13 @@ from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
-from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params, for_clip
+from skinstretch.experiments.analysis.parameters import (
+    METHODS,
+    AnalysisParams,
+    analysis_params,
+    clip_notes,
+    for_clip,
+)
 from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
 from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
@@ -216,6 +223,7 @@ def analyze(
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
     n = len(source)
+    notes = clip_notes(params, n, method)
     params = for_clip(params, n, method)
     image_shape = tuple(int(v) for v in source.shape)
     scales = PixelScales.of(calibration, params.strain)
@@ -317,7 +325,7 @@ def analyze(
         }
         writer.file.attrs.update(attrs)
         summary = summarize(writer, d, strain, n_frames=n, results_path=results_path, session_path=session_path,
-                            method=method, timing=timing, shading_status=shading_status, flags=flags)
+                            method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes)
         attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
         return writer.finish(attrs)
 
@@ -346,8 +354,10 @@ def _append_movie(w: ResultsWriter, movie: TactileMovie) -> None:
 
 
 def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
-              session_path: str, method: str, timing: dict, shading_status: str, flags: list[str]) -> dict[str, Any]:
-    """The small JSON summary written next to the results (and into them)."""
+              session_path: str, method: str, timing: dict, shading_status: str, flags: list[str],
+              notes: list[str] = ()) -> dict[str, Any]:
+    """The small JSON summary written next to the results (and into them); ``notes``: what the clip's length changed
+    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`)."""
     f = writer.file
     out: dict[str, Any] = {
         "results": str(results_path) if results_path is not None else "(in memory)",
@@ -363,6 +373,7 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
         "window": json.loads(str(f.attrs["window_json"])),
         "min_track_frames": json.loads(str(f.attrs["params_json"]))["tracking"]["min_length_frames"]
         if method == "features" else None,
+        "notes": list(notes),
     }
     if "tracks" in f:
         lengths = f["tracks"].fields("n_frames")[()]

@@ -1,9 +1,9 @@
 """Bench section ``accuracy``: feature detection per kind on every scene over many seeds, next to its speed.
 
 Each scene of :data:`SCENES` is rendered for every seed as a short clip (12 frames by default, like
-``skinstretch simulate SCENE --seed S --frames 12``), its frames are prepared exactly as ``skinstretch analyze``
-prepares them (the glass-shading step of :func:`skinstretch.experiments.analysis.frames.estimate_shading`, which a
-clip this short does not allow and leaves out, as the analysis does) and the analysis' extractor runs on them. The
+``skinstretch simulate SCENE --seed S --frames 12``), its frames are given to the analysis' extractor exactly as
+``skinstretch analyze`` gives them (as recorded: the glass-shading step of
+:func:`skinstretch.experiments.analysis.frames.estimate_shading` serves the motion measurement only). The
 features are scored with :func:`skinstretch.experiments.evaluation.features.score_features`, the code of
 ``skinstretch evaluate``, per kind: valley endings, valley bifurcations and pores separately.
 
@@ -80,8 +80,9 @@ class ClipResult:
 
 
 def analysis_frames(rendered, *, params=None):
-    """The frames of a rendered session as ``skinstretch analyze`` gives them to the extractor, and the
-    glass-shading status (:func:`skinstretch.experiments.analysis.frames.estimate_shading`)."""
+    """The frames of a rendered session as ``skinstretch analyze`` gives them to the extractor (as recorded:
+    :meth:`skinstretch.experiments.analysis.frames.FrameReader.pair`), and the glass-shading status of the analysis
+    (:func:`skinstretch.experiments.analysis.frames.estimate_shading`: removed for the motion measurement only)."""
     from skinstretch.experiments.analysis import AnalysisParams  # noqa: PLC0415
     from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading  # noqa: PLC0415
 
@@ -90,7 +91,7 @@ def analysis_frames(rendered, *, params=None):
     shading, status = estimate_shading(source, calibration=rendered.calibration, params=params,
                                        surface=rendered.metadata.get("surface"))
     reader = FrameReader(source, shading)
-    return [np.asarray(reader(k)) for k in range(len(source))], status
+    return [np.asarray(reader.pair(k)[0]) for k in range(len(source))], status
 
 
 def run_clip(scene: str, seed: int, *, frames: int = 12) -> ClipResult:
@@ -196,7 +197,8 @@ def run(options: BenchOptions) -> list[BenchTable]:
             "speed: extraction + editing + sub-pixel on one thread after a warm-up frame, median over the seeds (this "
             "2-core machine is shared: compare CPU ms in one run).",
             f"glass shading: {', '.join(sorted(shading))} (the analysis removes it over a ridge or a valley when the "
-            "skin slid far enough; 12 frames are too few).",
+            "skin slid far enough, 12 frames are too few, for the motion measurement only: features are extracted "
+            "from the frames as recorded).",
             f"targets (issue 16, item 4, the L scenes): valley endings and bifurcations each recall and precision >= "
             f"{MINUTIA_MEAN} mean and >= {MINUTIA_WORST} worst seed; pores recall >= {PORE_RECALL}, precision >= "
             f"{PORE_PRECISION}, loc <= {PORE_LOC_PX} px.",

@@ -81,10 +81,10 @@ def run(options: BenchOptions) -> list[BenchTable]:
         columns=columns,
         rows=rows,
         notes=[
-            "frames as `skinstretch analyze` gives them to the extractor (glass shading removed over a ridge or a "
-            "valley when the skin slid far enough) and scores as `skinstretch evaluate` gives them: one-to-one "
-            "matching within 0.1 mm, per kind, eligible truth visible and >= 0.3 mm from the image and contact edges "
-            "(experiments/evaluation/features.py); `--only accuracy` runs the same over 20 seeds.",
+            "frames as `skinstretch analyze` gives them to the extractor (as recorded: the glass shading it removes "
+            "over a ridge or a valley serves the motion measurement) and scores as `skinstretch evaluate` gives "
+            "them: one-to-one matching within 0.1 mm, per kind, eligible truth visible and >= 0.3 mm from the image "
+            "and contact edges (experiments/evaluation/features.py); `--only accuracy` runs the same over 20 seeds.",
             "fps: extraction + editing + sub-pixel per frame, after a warm-up frame; cpu ms/frame: process CPU time "
             f"of the single-thread run (less sensitive than fps to other loads on the machine); all three the best of "
             f"{_PASSES} passes.",
