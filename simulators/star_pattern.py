@@ -25,37 +25,46 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from pydantic import Field, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import (
+    FiniteFloat,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    validated_dataclass,
+)
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class StarLayout:
     """Size and displacement of a star pair (px, grey levels)."""
 
-    width: int = 2048
-    height: int = 384
-    amplitude_px: float = 0.5
-    max_period_px: float = 300.0
-    min_period_px: float = 10.0
-    flat_px: int = 256
-    ramp_px: int = 150
-    tail_px: int = 64
-    dot_sigma_px: float = 1.6
-    dot_density: float = 0.04
-    dark: float = 30.0
-    bright: float = 220.0
-    noise_sigma: float = 2.0
+    width: PositiveInt = 2048
+    height: int = Field(default=384, ge=32)
+    amplitude_px: PositiveFloat = 0.5
+    max_period_px: PositiveFloat = 300.0
+    min_period_px: PositiveFloat = 10.0
+    flat_px: NonNegativeInt = 256
+    ramp_px: NonNegativeInt = 150
+    tail_px: NonNegativeInt = 64
+    dot_sigma_px: FiniteFloat = Field(default=1.6, ge=1.0)
+    dot_density: PositiveFloat = 0.04
+    dark: FiniteFloat = 30.0
+    bright: FiniteFloat = 220.0
+    noise_sigma: NonNegativeFloat = 2.0
 
-    def __post_init__(self) -> None:
-        if self.width < self.flat_px + self.ramp_px + self.tail_px + 64 or self.height < 32:
+    @model_validator(mode="after")
+    def _parts_fit(self) -> "StarLayout":
+        if self.width < self.flat_px + self.ramp_px + self.tail_px + 64:
             raise InvalidInputError(f"a star of {self.width} x {self.height} px has no room for its parts")
-        if not 0 < self.min_period_px < self.max_period_px:
+        if not self.min_period_px < self.max_period_px:
             raise InvalidInputError("need 0 < min_period_px < max_period_px")
-        if not 0 < 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
+        if not 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
             raise InvalidInputError("amplitude_px must be below min_period_px / (2 pi) (the warp must invert)")
-        if self.dot_sigma_px < 1.0 or self.dot_density <= 0 or self.noise_sigma < 0:
-            raise InvalidInputError("dot_sigma_px >= 1, dot_density > 0 and noise_sigma >= 0 needed")
+        return self
 
     @property
     def center_row(self) -> float:
