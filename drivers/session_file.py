@@ -591,25 +591,13 @@ class SessionWriter:
             return
         self._closed = True
         self._reserve.release()
-        deadline = time.monotonic() + CLOSE_RETRY_S
-        while True:
-            try:
-                self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
-                self._file["status"][()] = np.int8(status)
-                self._file.flush()
-                break
-            except (OSError, RuntimeError) as exc:
-                if not is_disk_full(exc):
-                    self._file.close()
-                    raise
-                if time.monotonic() >= deadline:
-                    # Closing now would fail and leave HDF5 unable to shut down: keep the handle, say so.
-                    _UNCLOSED.append(self.path)
-                    raise DiskFullError(f"{self.path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be "
-                                        "closed (writes since its last flush are lost, frames flushed before are "
-                                        "kept)") from None
-                time.sleep(0.05)
-        self._file.close()
+
+        def mark() -> None:
+            self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
+            self._file["status"][()] = np.int8(status)
+
+        _close_on_a_full_disk(self._file, self.path, last_writes=mark,
+                              lost="writes since its last flush are lost, frames flushed before are kept")
 
     def fail(self, reason: str) -> None:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
@@ -628,6 +616,31 @@ class SessionWriter:
 #: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
 CLOSE_RETRY_S = 1.0
 _UNCLOSED: list[Path] = []
+
+
+def _close_on_a_full_disk(f: h5py.File, path: Path, *, last_writes: Callable[[], None] = lambda: None,
+                          reserve: SpaceReserve | None = None, lost: str) -> None:
+    """Make ``last_writes`` and close ``f``; while the disk is full (``reserve`` given back first), retry the writes
+    and the flush for up to ``CLOSE_RETRY_S`` (space may come back) before giving up with DiskFullError, keeping
+    the handle open (closing it then would fail and leave HDF5 unable to shut down; :func:`unclosed_sessions`)."""
+    deadline = time.monotonic() + CLOSE_RETRY_S
+    while True:
+        try:
+            last_writes()
+            f.flush()
+            break
+        except (OSError, RuntimeError) as exc:
+            if not is_disk_full(exc):
+                f.close()
+                raise
+            if reserve is not None:
+                reserve.release()
+            if time.monotonic() >= deadline:
+                _UNCLOSED.append(path)
+                raise DiskFullError(f"{path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be closed ({lost})"
+                                    ) from None
+            time.sleep(0.05)
+    f.close()
 
 
 def unclosed_sessions() -> list[Path]:
@@ -671,7 +684,7 @@ def write_session(
     if truth is not None:
         truth.validate(n)
     # HDF5 does not survive a full disk (see disk_space): refuse what cannot fit before writing a byte
-    truth_bytes = sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS) if truth is not None else 0
+    truth_bytes = _truth_bytes(truth) if truth is not None else 0
     check_fits(path.parent, frames.nbytes + 24 * n + truth_bytes + _LAYOUT_BYTES, what=f"session {path.name}")
     with replacing_file(path, overwrite=overwrite) as tmp:
         with h5py.File(tmp, "w", libver="latest") as f:
@@ -696,27 +709,62 @@ def write_session(
     return path
 
 
-def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
+def _write_truth(f: h5py.File, truth: SessionTruth, room: Callable[[int], Any] = lambda nbytes: None) -> None:
+    """The truth group; ``room(nbytes)`` is asked before each array is written (it raises when there is none).
+
+    Each array is flushed before the next is created: a compressed dataset writes its cached chunks when its handle
+    is dropped, where an ENOSPC can only be printed ("Exception ignored"), not raised to the caller."""
     g = f.create_group("truth")
     for key, value in truth.attrs.items():
         g.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
     for name in SessionTruth._ARRAYS:
         arr = np.asarray(getattr(truth, name))
+        room(arr.nbytes)
         big = arr.ndim >= 3  # the per-frame fields: lzf keeps ~10 % off at half gzip's time (noisy floats)
         ds = g.create_dataset(name, data=arr, compression="lzf" if big else None)
         describe_dataset(ds, SESSION_DATASETS[f"truth/{name}"])
+        f.flush()
+
+
+def _truth_bytes(truth: SessionTruth) -> int:
+    return sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS)
 
 
 def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
     """Add the ground truth of a simulated *recorded* session to its closed file (the truth of frame k of the
-    file must be row k of ``truth``). A file that already has a truth is an error."""
+    file must be row k of ``truth``). A file that already has a truth is an error.
+
+    The disk is handled as a recording's is (:mod:`skinstretch.drivers.disk_space`): a truth that does not fit is
+    refused (DiskFullError) before the file is opened, and if another process fills the disk while it is written,
+    the part written is removed with the room of a reserve and the file closed as it was, its recording intact.
+    """
     path = Path(path)
-    with h5py.File(path, "r+", libver="latest") as f:
-        if "truth" in f:
-            raise InvalidInputError(f"{path} already has a ground truth")
-        n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
-        truth.validate(n)
-        _write_truth(f, truth)
+    check_fits(path.parent, _truth_bytes(truth) + DEFAULT_RESERVE_BYTES + _LAYOUT_BYTES,
+               what=f"the ground truth of {path.name}")
+    with SpaceReserve(path) as reserve:
+        f = h5py.File(path, "r+", libver="latest")
+        try:
+            if "truth" in f:
+                raise InvalidInputError(f"{path} already has a ground truth")
+            n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
+            truth.validate(n)
+            _write_truth(f, truth, room=lambda nbytes: check_fits(path.parent, nbytes + (1 << 20),
+                                                                  what=f"the ground truth of {path.name}"))
+        except (OSError, RuntimeError, DiskFullError) as exc:
+            if not is_disk_full(exc):
+                raise
+            reserve.release()
+
+            def without_truth() -> None:
+                if "truth" in f:
+                    del f["truth"]
+
+            _close_on_a_full_disk(f, path, last_writes=without_truth, lost="its recording is kept")
+            raise DiskFullError(f"{path}: disk full while adding the ground truth; the recording is kept without "
+                                "it") from None
+        finally:
+            if f.id.valid and path not in _UNCLOSED:
+                _close_on_a_full_disk(f, path, reserve=reserve, lost="its recording is kept")
     return path
 
 

@@ -109,6 +109,52 @@ def test_no_room_for_the_reserve_means_no_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def _closed_session(path: Path, n: int = 20) -> Path:
+    with SessionWriter(path, camera_mode=TINY, calibration=CAL, flush_interval_s=0.0) as w:
+        for k in range(n):
+            w.append_frame(_frame(k), timestamp=k / 100, frame_id=k)
+    return path
+
+
+def _noisy_truth(n: int, grid_px: int = 400):
+    """A simulated truth of ``n`` frames whose per-frame fields (24 bytes a grid point) do not compress."""
+    from tests.test_session_file import _truth
+
+    rng = np.random.default_rng(0)
+    t = _truth(n)
+    g = np.arange(0, grid_px, 8.0)
+    t.grid_x = t.grid_y = g
+    t.displacement = rng.normal(size=(n, g.size, g.size, 2)).astype(np.float32)
+    t.displacement_valid = np.ones((n, g.size, g.size), bool)
+    t.strain = rng.normal(size=(n, g.size, g.size, 3)).astype(np.float32)
+    return t
+
+
+def test_a_truth_that_meets_a_full_disk_leaves_the_recording_as_it_was(tmp_path, monkeypatch):
+    """The simulated truth is added after the trial: an ENOSPC inside HDF5 then must not corrupt the session file
+    (it did: the file no longer opened, and the process died of SIGSEGV at exit)."""
+    from skinstretch.drivers import session_file
+
+    path = _closed_session(tmp_path / "s.h5")
+    real_write = session_file._write_truth
+
+    def enospc_midway(f, truth, room):
+        f.create_group("truth").create_dataset("feature_id", data=truth.feature_id)
+        raise RuntimeError("Can't write data (file write failed: errno = 28, error message = 'No space left on "
+                           "device')")
+
+    monkeypatch.setattr(session_file, "_write_truth", enospc_midway)
+    with pytest.raises(DiskFullError, match="disk full while adding the ground truth; the recording is kept"):
+        session_file.attach_truth(path, _noisy_truth(20, 40))
+    monkeypatch.setattr(session_file, "_write_truth", real_write)
+    assert not list(tmp_path.glob(".*.reserve")) and not session_file.unclosed_sessions()
+    with open_session(path) as s:
+        assert s.status == "complete" and s.n_frames == 20 and not s.has_truth
+    monkeypatch.setattr(disk_space, "free_bytes", lambda _p: 1_000_000)
+    with pytest.raises(DiskFullError, match="needed for the ground truth of s.h5, only 1.0 MB free"):
+        session_file.attach_truth(path, _noisy_truth(20, 40))  # refused before the file is opened
+
+
 # ------------------------------------------------------------------------------------------------- the runner
 
 
@@ -242,3 +288,37 @@ def test_recording_onto_a_tmpfs_another_process_fills(tmp_path, small_disk):
     assert [d["exit_status"] for d in stops] == ["fail"] and "disk full" in stops[0]["reason"]
     assert not (sdir / "001-t1-r1").exists()
     assert not list(sdir.glob("*/.*.reserve"))
+
+
+TRUTH_ON_A_FULL_DISK = """
+import sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[2])
+from tests.test_reliability_disk_full import _closed_session, _noisy_truth
+from skinstretch.drivers import disk_space, session_file
+from skinstretch.drivers.errors import DiskFullError
+
+path = _closed_session(Path(sys.argv[1]) / "s.h5", 40)
+with open(Path(sys.argv[1]) / "filler.bin", "wb", buffering=0) as fh:  # leave 6 MB: the reserve and 2 MB
+    while disk_space.free_bytes(path) > 6 << 20:
+        fh.write(bytes(1 << 20))
+session_file.check_fits = lambda *a, **k: 0  # another process filled the disk after the check
+try:
+    session_file.attach_truth(path, _noisy_truth(40, 800))  # ~10 MB
+except DiskFullError as exc:
+    print("refused:", exc)
+"""
+
+
+def test_a_truth_added_on_a_tmpfs_that_fills_keeps_the_session_readable(tmp_path, small_disk):
+    done = subprocess.run([sys.executable, "-c", TRUTH_ON_A_FULL_DISK, str(small_disk), str(Path(__file__).parents[1])],
+                          capture_output=True, text=True, timeout=120)
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out  # not a signal (SIGSEGV at exit: -11)
+    assert "refused: " in out and "the recording is kept" in out, out
+    for bad in ("Traceback", "Exception ignored", "HDF5-DIAG"):
+        assert bad not in out, out
+    (small_disk / "filler.bin").unlink()
+    with open_session(small_disk / "s.h5") as s:
+        assert s.status == "complete" and s.n_frames == 40 and not s.has_truth
+        s.read_frames()
