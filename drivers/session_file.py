@@ -45,8 +45,8 @@ import h5py
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
-from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, free_bytes, is_disk_full,
-                                            megabytes)
+from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, close_on_a_full_disk,
+                                            free_bytes, is_disk_full, megabytes, unclosed_files)
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DiskFullError, SessionFileError
@@ -583,9 +583,9 @@ class SessionWriter:
         """Mark the session complete (or failed, with a reason) and close the file. Idempotent.
 
         The disk reserve is released first, so the last writes have room even on a full disk. If HDF5 still
-        cannot write (another process took that room too) the flush is retried for up to ``CLOSE_RETRY_S`` while
-        space may come back; after that the file stays open in HDF5 and DiskFullError says so (see
-        :func:`unclosed_sessions`).
+        cannot write (another process took that room too) the flush is retried while space may come back (see
+        :func:`~skinstretch.drivers.disk_space.close_on_a_full_disk`); after that the file stays open in HDF5 and
+        DiskFullError says so (:func:`unclosed_sessions`).
         """
         if self._closed:
             return
@@ -596,8 +596,8 @@ class SessionWriter:
             self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
             self._file["status"][()] = np.int8(status)
 
-        _close_on_a_full_disk(self._file, self.path, last_writes=mark,
-                              lost="writes since its last flush are lost, frames flushed before are kept")
+        close_on_a_full_disk(self._file, self.path, last_writes=mark, keep=self,
+                             lost="writes since its last flush are lost, frames flushed before are kept")
 
     def fail(self, reason: str) -> None:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
@@ -613,43 +613,10 @@ class SessionWriter:
             self.fail(f"{exc_type.__name__}: {exc}")
 
 
-#: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
-CLOSE_RETRY_S = 1.0
-_UNCLOSED: list[Path] = []
-
-
-def _close_on_a_full_disk(f: h5py.File, path: Path, *, last_writes: Callable[[], None] = lambda: None,
-                          reserve: SpaceReserve | None = None, lost: str) -> None:
-    """Make ``last_writes`` and close ``f``; while the disk is full (``reserve`` given back first), retry the writes
-    and the flush for up to ``CLOSE_RETRY_S`` (space may come back) before giving up with DiskFullError, keeping
-    the handle open (closing it then would fail and leave HDF5 unable to shut down; :func:`unclosed_sessions`)."""
-    deadline = time.monotonic() + CLOSE_RETRY_S
-    while True:
-        try:
-            last_writes()
-            f.flush()
-            break
-        except (OSError, RuntimeError) as exc:
-            if not is_disk_full(exc):
-                f.close()
-                raise
-            if reserve is not None:
-                reserve.release()
-            if time.monotonic() >= deadline:
-                _UNCLOSED.append(path)
-                raise DiskFullError(f"{path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be closed ({lost})"
-                                    ) from None
-            time.sleep(0.05)
-    f.close()
-
-
 def unclosed_sessions() -> list[Path]:
-    """Session files this process could not close because the disk stayed full (normally none).
-
-    HDF5 keeps such a file open, and crashes while shutting down the library at interpreter exit; a program that
-    sees any should end with ``os._exit`` once its output is flushed (the command line does).
-    """
-    return list(_UNCLOSED)
+    """Session files this process could not close because the disk stayed full (normally none); see
+    :func:`skinstretch.drivers.disk_space.unclosed_files`, which also lists other HDF5 files left so."""
+    return unclosed_files()
 
 
 def write_session(
@@ -759,12 +726,12 @@ def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
                 if "truth" in f:
                     del f["truth"]
 
-            _close_on_a_full_disk(f, path, last_writes=without_truth, lost="its recording is kept")
+            close_on_a_full_disk(f, path, last_writes=without_truth, lost="its recording is kept")
             raise DiskFullError(f"{path}: disk full while adding the ground truth; the recording is kept without "
                                 "it") from None
         finally:
-            if f.id.valid and path not in _UNCLOSED:
-                _close_on_a_full_disk(f, path, reserve=reserve, lost="its recording is kept")
+            if f.id.valid and path not in unclosed_files():
+                close_on_a_full_disk(f, path, reserve=reserve, lost="its recording is kept")
     return path
 
 

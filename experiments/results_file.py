@@ -12,6 +12,7 @@ Every dataset has a ``units`` attribute (a JSON object naming the unit of each c
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections.abc import Sequence
@@ -25,7 +26,8 @@ from typing import Any, Callable, Iterator
 import h5py
 import numpy as np
 
-from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.disk_space import SpaceReserve, close_on_a_full_disk
+from skinstretch.drivers.errors import DiskFullError, SessionFileError
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.stretch import StretchProfile
@@ -36,6 +38,8 @@ __all__ = [
     "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "MeshDensity", "Results", "ResultsWriter",
     "read_results", "AXIS_NAMES",
 ]
+
+log = logging.getLogger(__name__)
 
 FORMAT_NAME = "skinstretch-results"
 FORMAT_VERSION = 2
@@ -223,7 +227,14 @@ class ResultsWriter:
                                 backing_store=False)
         else:
             self._tmp = self.path.with_name(self.path.name + ".partial")
-            self._f = h5py.File(self._tmp, "w")
+            # room to close the file even if the disk fills meanwhile (HDF5 would crash at exit otherwise)
+            self._reserve = SpaceReserve(self._tmp)
+            try:
+                self._f = h5py.File(self._tmp, "w")
+            except BaseException:  # e.g. no room for its first bytes: HDF5 leaves an empty file
+                self._reserve.release()
+                self._tmp.unlink(missing_ok=True)
+                raise
         f = self._f
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
@@ -326,7 +337,13 @@ class ResultsWriter:
         if self.path is None:
             self._f.flush()
             return Results(self._f, source_name="(in memory)")
-        self._f.close()
+        try:
+            close_on_a_full_disk(self._f, self._tmp, reserve=self._reserve, lost="no results kept", keep=self)
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
+        finally:
+            self._reserve.release()
         os.replace(self._tmp, self.path)
         return read_results(self.path)
 
@@ -335,8 +352,15 @@ class ResultsWriter:
         if self._done:
             return
         self._done = True
-        self._f.close()
-        if self._tmp is not None:
+        if self._tmp is None:
+            self._f.close()
+            return
+        try:
+            close_on_a_full_disk(self._f, self._tmp, reserve=self._reserve, lost="no results kept", keep=self)
+        except (DiskFullError, OSError, RuntimeError) as exc:  # the error that made us abort is the one to report
+            log.warning("%s: %s", self._tmp, exc)
+        finally:
+            self._reserve.release()
             self._tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> "ResultsWriter":
