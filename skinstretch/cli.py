@@ -79,8 +79,10 @@ def main(argv: list[str] | None = None) -> int:
         log.error("skinstretch %s: error: %s", args.command, exc.message_for(lambda p: flags.get(p, p)))
         rc = 2
     except OSError as exc:  # what the system refused (a full disk, a permission, a vanished file): one line too
-        where = f"{exc.filename}: " if exc.filename else ""
-        log.error("skinstretch %s: error: %s%s", args.command, where, " ".join((exc.strerror or str(exc)).split()))
+        from skinstretch.experiments.output_paths import os_error_line  # noqa: PLC0415
+
+        text = os_error_line(exc) if exc.filename else (exc.strerror or str(exc))
+        log.error("skinstretch %s: error: %s", args.command, " ".join(text.split()))
         log.debug("where it happened", exc_info=True)
         rc = 1
     except KeyboardInterrupt:
