@@ -24,13 +24,16 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import time
 from pathlib import Path
+from typing import Any, Callable
 
 import psutil
 
 from skinstretch.drivers.errors import DiskFullError
 
-__all__ = ["free_bytes", "check_fits", "SpaceReserve", "is_disk_full", "megabytes", "DEFAULT_RESERVE_BYTES"]
+__all__ = ["free_bytes", "check_fits", "SpaceReserve", "is_disk_full", "megabytes", "DEFAULT_RESERVE_BYTES",
+           "close_on_a_full_disk", "unclosed_files", "CLOSE_RETRY_S"]
 
 log = logging.getLogger(__name__)
 
@@ -144,3 +147,45 @@ def _write_zeros(fd: int, nbytes: int) -> None:
     while left > 0:
         left -= os.write(fd, block[: min(left, len(block))])
     os.fsync(fd)
+
+
+#: How long :func:`close_on_a_full_disk` waits for space to come back when even the reserve was not enough.
+CLOSE_RETRY_S = 1.0
+_UNCLOSED: list[tuple[Path, Any]] = []  # and the objects kept alive with each
+
+
+def close_on_a_full_disk(f: Any, path: str | os.PathLike, *, last_writes: Callable[[], None] = lambda: None,
+                         reserve: SpaceReserve | None = None, lost: str, keep: Any = None) -> None:
+    """Make ``last_writes`` and close the HDF5 file ``f`` (an ``h5py.File``); while the disk is full (``reserve``
+    given back first), retry the writes and the flush for up to ``CLOSE_RETRY_S`` (space may come back) before
+    giving up with DiskFullError naming ``path`` and what is ``lost``. The handle then stays open, listed by
+    :func:`unclosed_files`: closing it would fail and leave HDF5 unable to shut down. It is kept alive with
+    ``keep`` (the owner of its dataset handles) until the process ends: a dataset handle dropped on a full disk
+    prints h5py's "Exception ignored" tracebacks."""
+    deadline = time.monotonic() + CLOSE_RETRY_S
+    while True:
+        try:
+            last_writes()
+            f.flush()
+            break
+        except (OSError, RuntimeError) as exc:
+            if not is_disk_full(exc):
+                f.close()
+                raise
+            if reserve is not None:
+                reserve.release()
+            if time.monotonic() >= deadline:
+                _UNCLOSED.append((Path(path), (f, keep)))
+                raise DiskFullError(f"{path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be closed ({lost})"
+                                    ) from None
+            time.sleep(0.05)
+    f.close()
+
+
+def unclosed_files() -> list[Path]:
+    """HDF5 files this process could not close because the disk stayed full (normally none).
+
+    HDF5 keeps such a file open, and crashes while shutting down the library at interpreter exit; a program that
+    sees any should end with ``os._exit`` once its output is flushed (the command line does).
+    """
+    return [path for path, _ in _UNCLOSED]

@@ -45,8 +45,8 @@ import h5py
 import numpy as np
 
 from skinstretch.drivers.camera_modes import CameraMode
-from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, free_bytes, is_disk_full,
-                                            megabytes)
+from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve, check_fits, close_on_a_full_disk,
+                                            free_bytes, is_disk_full, megabytes, unclosed_files)
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DiskFullError, SessionFileError
@@ -583,33 +583,21 @@ class SessionWriter:
         """Mark the session complete (or failed, with a reason) and close the file. Idempotent.
 
         The disk reserve is released first, so the last writes have room even on a full disk. If HDF5 still
-        cannot write (another process took that room too) the flush is retried for up to ``CLOSE_RETRY_S`` while
-        space may come back; after that the file stays open in HDF5 and DiskFullError says so (see
-        :func:`unclosed_sessions`).
+        cannot write (another process took that room too) the flush is retried while space may come back (see
+        :func:`~skinstretch.drivers.disk_space.close_on_a_full_disk`); after that the file stays open in HDF5 and
+        DiskFullError says so (:func:`unclosed_sessions`).
         """
         if self._closed:
             return
         self._closed = True
         self._reserve.release()
-        deadline = time.monotonic() + CLOSE_RETRY_S
-        while True:
-            try:
-                self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
-                self._file["status"][()] = np.int8(status)
-                self._file.flush()
-                break
-            except (OSError, RuntimeError) as exc:
-                if not is_disk_full(exc):
-                    self._file.close()
-                    raise
-                if time.monotonic() >= deadline:
-                    # Closing now would fail and leave HDF5 unable to shut down: keep the handle, say so.
-                    _UNCLOSED.append(self.path)
-                    raise DiskFullError(f"{self.path}: disk full for {CLOSE_RETRY_S:g} s, the file cannot be "
-                                        "closed (writes since its last flush are lost, frames flushed before are "
-                                        "kept)") from None
-                time.sleep(0.05)
-        self._file.close()
+
+        def mark() -> None:
+            self._file["status_reason"][()] = np.bytes_(reason.encode("utf-8")[:_REASON_LEN].ljust(_REASON_LEN))
+            self._file["status"][()] = np.int8(status)
+
+        close_on_a_full_disk(self._file, self.path, last_writes=mark, keep=self,
+                             lost="writes since its last flush are lost, frames flushed before are kept")
 
     def fail(self, reason: str) -> None:
         """Close the session marked failed with ``reason``; the data written so far is kept."""
@@ -625,18 +613,10 @@ class SessionWriter:
             self.fail(f"{exc_type.__name__}: {exc}")
 
 
-#: How long :meth:`SessionWriter.close` waits for space to come back when even its reserve was not enough.
-CLOSE_RETRY_S = 1.0
-_UNCLOSED: list[Path] = []
-
-
 def unclosed_sessions() -> list[Path]:
-    """Session files this process could not close because the disk stayed full (normally none).
-
-    HDF5 keeps such a file open, and crashes while shutting down the library at interpreter exit; a program that
-    sees any should end with ``os._exit`` once its output is flushed (the command line does).
-    """
-    return list(_UNCLOSED)
+    """Session files this process could not close because the disk stayed full (normally none); see
+    :func:`skinstretch.drivers.disk_space.unclosed_files`, which also lists other HDF5 files left so."""
+    return unclosed_files()
 
 
 def write_session(
@@ -671,7 +651,7 @@ def write_session(
     if truth is not None:
         truth.validate(n)
     # HDF5 does not survive a full disk (see disk_space): refuse what cannot fit before writing a byte
-    truth_bytes = sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS) if truth is not None else 0
+    truth_bytes = _truth_bytes(truth) if truth is not None else 0
     check_fits(path.parent, frames.nbytes + 24 * n + truth_bytes + _LAYOUT_BYTES, what=f"session {path.name}")
     with replacing_file(path, overwrite=overwrite) as tmp:
         with h5py.File(tmp, "w", libver="latest") as f:
@@ -696,27 +676,62 @@ def write_session(
     return path
 
 
-def _write_truth(f: h5py.File, truth: SessionTruth) -> None:
+def _write_truth(f: h5py.File, truth: SessionTruth, room: Callable[[int], Any] = lambda nbytes: None) -> None:
+    """The truth group; ``room(nbytes)`` is asked before each array is written (it raises when there is none).
+
+    Each array is flushed before the next is created: a compressed dataset writes its cached chunks when its handle
+    is dropped, where an ENOSPC can only be printed ("Exception ignored"), not raised to the caller."""
     g = f.create_group("truth")
     for key, value in truth.attrs.items():
         g.attrs[key] = value if isinstance(value, (str, int, float, bool, np.number)) else json.dumps(value)
     for name in SessionTruth._ARRAYS:
         arr = np.asarray(getattr(truth, name))
+        room(arr.nbytes)
         big = arr.ndim >= 3  # the per-frame fields: lzf keeps ~10 % off at half gzip's time (noisy floats)
         ds = g.create_dataset(name, data=arr, compression="lzf" if big else None)
         describe_dataset(ds, SESSION_DATASETS[f"truth/{name}"])
+        f.flush()
+
+
+def _truth_bytes(truth: SessionTruth) -> int:
+    return sum(np.asarray(getattr(truth, a)).nbytes for a in SessionTruth._ARRAYS)
 
 
 def attach_truth(path: str | os.PathLike, truth: SessionTruth) -> Path:
     """Add the ground truth of a simulated *recorded* session to its closed file (the truth of frame k of the
-    file must be row k of ``truth``). A file that already has a truth is an error."""
+    file must be row k of ``truth``). A file that already has a truth is an error.
+
+    The disk is handled as a recording's is (:mod:`skinstretch.drivers.disk_space`): a truth that does not fit is
+    refused (DiskFullError) before the file is opened, and if another process fills the disk while it is written,
+    the part written is removed with the room of a reserve and the file closed as it was, its recording intact.
+    """
     path = Path(path)
-    with h5py.File(path, "r+", libver="latest") as f:
-        if "truth" in f:
-            raise InvalidInputError(f"{path} already has a ground truth")
-        n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
-        truth.validate(n)
-        _write_truth(f, truth)
+    check_fits(path.parent, _truth_bytes(truth) + DEFAULT_RESERVE_BYTES + _LAYOUT_BYTES,
+               what=f"the ground truth of {path.name}")
+    with SpaceReserve(path) as reserve:
+        f = h5py.File(path, "r+", libver="latest")
+        try:
+            if "truth" in f:
+                raise InvalidInputError(f"{path} already has a ground truth")
+            n = int(min(f["frames"].shape[0], f["timestamps"].shape[0], f["frame_ids"].shape[0]))
+            truth.validate(n)
+            _write_truth(f, truth, room=lambda nbytes: check_fits(path.parent, nbytes + (1 << 20),
+                                                                  what=f"the ground truth of {path.name}"))
+        except (OSError, RuntimeError, DiskFullError) as exc:
+            if not is_disk_full(exc):
+                raise
+            reserve.release()
+
+            def without_truth() -> None:
+                if "truth" in f:
+                    del f["truth"]
+
+            close_on_a_full_disk(f, path, last_writes=without_truth, lost="its recording is kept")
+            raise DiskFullError(f"{path}: disk full while adding the ground truth; the recording is kept without "
+                                "it") from None
+        finally:
+            if f.id.valid and path not in unclosed_files():
+                close_on_a_full_disk(f, path, reserve=reserve, lost="its recording is kept")
     return path
 
 

@@ -42,6 +42,7 @@ __all__ = [
     "play_movie",
     "load_movie",
     "rms_tracking_error",
+    "rms_text",
     "play_protocol_movie",
     "resample_movie",
     "fit_movie",
@@ -211,13 +212,19 @@ class PlaybackResult:
 
 
 def rms_tracking_error(target_um: np.ndarray, measured_um: np.ndarray, *, settle: int = 0) -> float:
-    """RMS position error (um) over frames with a measurement; NaN-free: raises when there is none."""
+    """RMS position error (um) over frames with a measurement; NaN when there is none (a run stopped within its
+    start-up frames): :func:`rms_text` says so in words."""
     t = np.asarray(target_um, float)[settle:]
     m = np.asarray(measured_um, float)[settle:]
     ok = np.isfinite(m)
     if not np.any(ok):
         return float("nan")
     return float(np.sqrt(np.mean((m[ok] - t[ok]) ** 2)))
+
+
+def rms_text(rms_um: float) -> str:
+    """An RMS error for people: "0.24 um", or "n/a" when no frame was measured after the start-up."""
+    return f"{rms_um:.2f} um" if math.isfinite(rms_um) else "n/a (no measured frame after the start-up)"
 
 
 def play_movie(
@@ -381,7 +388,7 @@ def play_movie(
     if progress is not None:
         progress(
             f"  playback ({'closed' if closed_loop else 'open'} loop): {sent}/{n} frames at {rate_hz:g} Hz, "
-            f"RMS error {result.rms_error_um:.2f} um, {result.late_frames} late"
+            f"RMS error {rms_text(result.rms_error_um)}, {result.late_frames} late"
             + (f", STOPPED: {stopped}" if stopped else "")
         )
     return result

@@ -32,7 +32,6 @@ import os
 import queue
 import select
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -171,24 +170,36 @@ def _serve_requests(requests: queue.SimpleQueue) -> None:
 # -- whatever else the command started ----------------------------------------------------------------------------
 
 
-_WATCHER: list[subprocess.Popen] = []  # one per process, kept referenced for the process's whole life
+_WATCHER: list[int] = []  # the watcher's pid, one per process
 
 
-def guard_process_tree() -> subprocess.Popen | None:
+def guard_process_tree() -> int | None:
     """Start (once per process) a watcher process that kills whatever this process started (children,
-    grandchildren) as soon as this process has ended, however it ended. Returns the watcher (None where it
-    cannot start: the workers' own parent-death signal still holds)."""
-    if _WATCHER and _WATCHER[0].poll() is None:
+    grandchildren) as soon as this process has ended, however it ended. Returns the watcher's pid (None where it
+    cannot start: the workers' own parent-death signal still holds).
+
+    Spawned without a :class:`subprocess.Popen`: the watcher is meant to outlive this process, and a Popen still
+    running when the interpreter ends says so with a ResourceWarning ("subprocess N is still running").
+    """
+    if _WATCHER and _running_child(_WATCHER[0]):
         return _WATCHER[0]
+    devnull = [(os.POSIX_SPAWN_OPEN, fd, os.devnull, flags, 0) for fd, flags in ((0, os.O_RDONLY), (1, os.O_WRONLY))]
     try:
-        watcher = subprocess.Popen(
-            [sys.executable, "-m", "skinstretch.experiments.process_lifetime", "--watch", str(os.getpid())],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, close_fds=True)
+        pid = os.posix_spawn(sys.executable, [sys.executable, "-m", "skinstretch.experiments.process_lifetime",
+                                              "--watch", str(os.getpid())], os.environ, file_actions=devnull)
     except OSError as exc:
         log.debug("process-tree guard not started (%s); worker processes still die with their parent", exc)
         return None
-    _WATCHER[:] = [watcher]
-    return watcher
+    _WATCHER[:] = [pid]
+    return pid
+
+
+def _running_child(pid: int) -> bool:
+    """Whether ``pid``, a child of this process, still runs (one that has ended is reaped)."""
+    try:
+        return os.waitpid(pid, os.WNOHANG) == (0, 0)
+    except ChildProcessError:  # not ours (inherited through a fork) or already reaped
+        return False
 
 
 def _is_resource_tracker(proc) -> bool:

@@ -12,11 +12,12 @@ Every dataset has a ``units`` attribute (a JSON object naming the unit of each c
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from enum import IntEnum
 from functools import cached_property
 from pathlib import Path
@@ -25,7 +26,8 @@ from typing import Any, Callable, Iterator
 import h5py
 import numpy as np
 
-from skinstretch.drivers.errors import SessionFileError
+from skinstretch.drivers.disk_space import SpaceReserve, close_on_a_full_disk
+from skinstretch.drivers.errors import DiskFullError, SessionFileError
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.stretch import StretchProfile
@@ -33,9 +35,11 @@ from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Traj
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
-    "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "Results", "ResultsWriter", "read_results",
-    "AXIS_NAMES",
+    "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "MeshDensity", "Results", "ResultsWriter",
+    "read_results", "AXIS_NAMES",
 ]
+
+log = logging.getLogger(__name__)
 
 FORMAT_NAME = "skinstretch-results"
 FORMAT_VERSION = 2
@@ -134,6 +138,77 @@ class FlowResults:
     valid: np.ndarray
 
 
+@dataclass(frozen=True)
+class MeshDensity:
+    """Density of an analysis' measurement (``summary["density"]``; :attr:`Results.density` in Python), computed by
+    :func:`skinstretch.experiments.analysis.density.mesh_density`.
+
+    Attributes
+    ----------
+    method : str
+    features_per_frame : float or None
+        Features found per frame (mean; None for the flow method).
+    trajectories_kept : int or None
+        Trajectories at least the minimum length (None for the flow method).
+    fraction_kept : float or None
+        Of the features that stay in view for the window, the fraction in a kept trajectory (module doc; None for
+        the flow method or when no feature stays in view).
+    features_in_view : int or None
+        Features that stay in view for the window (the denominator of ``fraction_kept``).
+    window_frames : int or None
+        The window: the minimum trajectory length.
+    points_per_pair : float
+        Points measured between consecutive frames (median over pairs).
+    mesh_edge_mm : float or None
+        Mean edge length of the consecutive pairs' strain triangulations (None: no triangulation).
+    strain_pairs, strain_pairs_ok : dict
+        Frame pairs and pairs with a strain triangulation, per span.
+    too_sparse : bool
+        The mesh is too sparse to map strain (``warning`` says why).
+    warning : str or None
+        Why the mesh is too sparse, or the fraction kept too low, when it is.
+    """
+
+    method: str
+    features_per_frame: float | None
+    trajectories_kept: int | None
+    fraction_kept: float | None
+    features_in_view: int | None
+    window_frames: int | None
+    points_per_pair: float
+    mesh_edge_mm: float | None
+    strain_pairs: dict[int, int] = field(default_factory=dict)
+    strain_pairs_ok: dict[int, int] = field(default_factory=dict)
+    too_sparse: bool = False
+    warning: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["strain_pairs"] = {str(k): v for k, v in self.strain_pairs.items()}
+        d["strain_pairs_ok"] = {str(k): v for k, v in self.strain_pairs_ok.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "MeshDensity":
+        """The inverse of :meth:`to_dict` (a results file's summary)."""
+        d = dict(d)
+        for name in ("strain_pairs", "strain_pairs_ok"):
+            d[name] = {int(k): int(v) for k, v in (d.get(name) or {}).items()}
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def describe(self) -> str:
+        """One line for people: features, trajectories, fraction kept, mesh edge."""
+        parts = []
+        if self.features_per_frame is not None:
+            frac = "n/a" if self.fraction_kept is None else f"{100 * self.fraction_kept:.0f} %"
+            parts.append(f"{self.features_per_frame:.1f} features/frame, {self.trajectories_kept} trajectories kept, "
+                         f"{frac} of the features in view for {self.window_frames} frames kept")
+        parts.append(f"{self.points_per_pair:g} points per frame pair")
+        parts.append("no strain mesh" if self.mesh_edge_mm is None else f"mesh edge {self.mesh_edge_mm:.2f} mm")
+        return ", ".join(parts)
+
+
 # ----------------------------------------------------------------------------------------------------- writing
 
 
@@ -152,7 +227,14 @@ class ResultsWriter:
                                 backing_store=False)
         else:
             self._tmp = self.path.with_name(self.path.name + ".partial")
-            self._f = h5py.File(self._tmp, "w")
+            # room to close the file even if the disk fills meanwhile (HDF5 would crash at exit otherwise)
+            self._reserve = SpaceReserve(self._tmp)
+            try:
+                self._f = h5py.File(self._tmp, "w")
+            except BaseException:  # e.g. no room for its first bytes: HDF5 leaves an empty file
+                self._reserve.release()
+                self._tmp.unlink(missing_ok=True)
+                raise
         f = self._f
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
@@ -255,7 +337,13 @@ class ResultsWriter:
         if self.path is None:
             self._f.flush()
             return Results(self._f, source_name="(in memory)")
-        self._f.close()
+        try:
+            close_on_a_full_disk(self._f, self._tmp, reserve=self._reserve, lost="no results kept", keep=self)
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
+        finally:
+            self._reserve.release()
         os.replace(self._tmp, self.path)
         return read_results(self.path)
 
@@ -264,8 +352,15 @@ class ResultsWriter:
         if self._done:
             return
         self._done = True
-        self._f.close()
-        if self._tmp is not None:
+        if self._tmp is None:
+            self._f.close()
+            return
+        try:
+            close_on_a_full_disk(self._f, self._tmp, reserve=self._reserve, lost="no results kept", keep=self)
+        except (DiskFullError, OSError, RuntimeError) as exc:  # the error that made us abort is the one to report
+            log.warning("%s: %s", self._tmp, exc)
+        finally:
+            self._reserve.release()
             self._tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> "ResultsWriter":
@@ -460,12 +555,9 @@ class Results:
         return self._read("features") if self.has_features else None
 
     @property
-    def density(self):
-        """How dense the measurement is (:class:`skinstretch.experiments.analysis.density.MeshDensity`: features per
-        frame, trajectories kept, fraction kept, mesh edge, whether the mesh is too sparse to map strain), or None
-        for results written before it was reported."""
-        from skinstretch.experiments.analysis.density import MeshDensity  # noqa: PLC0415 - analysis imports this module
-
+    def density(self) -> MeshDensity | None:
+        """How dense the measurement is (:class:`MeshDensity`: features per frame, trajectories kept, fraction kept,
+        mesh edge, whether the mesh is too sparse to map strain), or None for results written before it was reported."""
         d = self.summary.get("density")
         return MeshDensity.from_dict(d) if d else None
 

@@ -440,7 +440,7 @@ def record_trial(
         failure = recorder.failure
     stats = recorder.finish(failed_reason=failure)
     truth = getattr(camera, "truth", None)
-    if truth is not None and stats.frames_written > 0:
+    if truth is not None and stats.frames_written > 0 and not recorder.disk_full:
         _attach_truth(path, truth)
     summary = _summarise(path, stats)
     status = "complete" if stats.status == "complete" else "failed"
@@ -487,8 +487,9 @@ def _attach_truth(path: Path, truth) -> None:
         rows = ids - ids[0] if ids.size else ids
         if ids.size and rows[-1] < np.asarray(truth.feature_x).shape[0]:
             attach_truth(path, subset_truth(truth, rows))
-    except (SessionFileError, OSError, InvalidInputError):
-        pass  # the recording stands without its truth; the report then shows no measured-vs-true section
+    except (SessionFileError, OSError, InvalidInputError) as exc:
+        # the recording stands without its truth; the report then shows no measured-vs-true section
+        log.warning("%s: recorded without its simulated ground truth: %s", path, exc)
 
 
 def _print(msg: str) -> None:

@@ -420,6 +420,7 @@ class FeatureExtractor:
         self.calibration = calibration
         self.params = params
         self._plan = _Plan.make(calibration, params)
+        self._gate = TextureGateParams(black_level=params.black_level, saturated_fraction=params.saturated_fraction)
         self.illumination = illumination
 
     @property
@@ -479,8 +480,7 @@ class FeatureExtractor:
             background = cv2.dilate(background.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (d, d))).view(bool)
         if np.count_nonzero(background) > p.no_finger_fraction * background.size:
             return self._empty(frame.shape, {"no_finger"}, background=background)
-        gate = TextureGateParams(black_level=p.black_level, saturated_fraction=p.saturated_fraction)
-        refused = texture_verdict(raw, px_per_mm=self.calibration.px_per_mm, params=gate).reason
+        refused = texture_verdict(raw, px_per_mm=self.calibration.px_per_mm, params=self._gate).reason
         if refused:  # noise, a blank or out-of-focus frame: no print in contact, no features (texture_gate.py)
             return self._empty(frame.shape, {refused}, background=background)
         thr = avg if p.binarization_scale == 1.0 else cv2.multiply(avg, float(p.binarization_scale))

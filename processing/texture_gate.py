@@ -37,9 +37,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from skinstretch.processing.argument_checks import positive_number
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import FiniteFloat, PositiveFloat, validated_dataclass
 
 __all__ = ["TextureGateParams", "TextureVerdict", "EXPOSURE_REASONS", "TEXTURE_REASONS", "exposure_reason",
            "texture_verdict"]
@@ -49,7 +51,7 @@ EXPOSURE_REASONS = ("all_black", "saturated")
 TEXTURE_REASONS = ("out_of_focus", "no_texture")
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class TextureGateParams:
     """Options of the texture gate, in mm and grey levels (see the module docstring for where each comes from).
 
@@ -75,28 +77,18 @@ class TextureGateParams:
         Exposure checks, as :class:`skinstretch.processing.extraction.ExtractionParams` defines them.
     """
 
-    ridge_period_mm: float = 0.43
-    block_periods: float = 3.5
-    min_coherence: float = 0.6
-    min_band_fraction: float = 0.12
-    min_band_rms: float = 2.0
-    min_textured_mm2: float = 4.0
-    structure_rms: float = 0.1
-    black_level: float = 20.0
-    saturated_fraction: float = 0.5
+    ridge_period_mm: PositiveFloat = 0.43
+    block_periods: PositiveFloat = 3.5
+    min_coherence: FiniteFloat = Field(default=0.6, gt=0, lt=1)
+    min_band_fraction: FiniteFloat = Field(default=0.12, gt=0, lt=1)
+    min_band_rms: PositiveFloat = 2.0
+    min_textured_mm2: PositiveFloat = 4.0
+    structure_rms: PositiveFloat = 0.1
+    black_level: FiniteFloat = Field(default=20.0, ge=0, le=255)
+    saturated_fraction: FiniteFloat = Field(default=0.5, gt=0, le=1)
 
-    def __post_init__(self) -> None:
-        for name in ("ridge_period_mm", "block_periods", "min_band_rms", "min_textured_mm2", "structure_rms"):
-            positive_number(getattr(self, name), f"TextureGateParams.{name}")
-        # name, allowed interval (as text), test
-        checks = (("min_coherence", "(0, 1)", lambda v: 0 < v < 1),
-                  ("min_band_fraction", "(0, 1)", lambda v: 0 < v < 1),
-                  ("saturated_fraction", "(0, 1]", lambda v: 0 < v <= 1),
-                  ("black_level", "[0, 255]", lambda v: 0 <= v <= 255))
-        for name, interval, test in checks:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float, np.number)) and test(v)):
-                raise InvalidInputError(f"TextureGateParams.{name} must lie in {interval}, got {v!r}")
+
+_DEFAULT_PARAMS = TextureGateParams()
 
 
 @dataclass(frozen=True)
@@ -137,7 +129,7 @@ def texture_verdict(frame: np.ndarray, *, px_per_mm: float, params: TextureGateP
     >>> texture_verdict(ridges, px_per_mm=62.0).ok
     True
     """
-    p = params or TextureGateParams()
+    p = _DEFAULT_PARAMS if params is None else params
     px_per_mm = positive_number(px_per_mm, "px_per_mm")
     frame = np.asarray(frame)
     if frame.ndim != 2 or frame.dtype != np.uint8:

@@ -14,6 +14,8 @@ take Python and numpy numbers, not text (pydantic alone would read ``"62"`` as 6
 from __future__ import annotations
 
 import functools
+import math
+import numbers
 from typing import Annotated, Any, Callable, TypeVar
 
 from pydantic import BeforeValidator, ConfigDict, Field, ValidationError
@@ -41,13 +43,32 @@ def _not_text(value: Any) -> Any:
     return value
 
 
+def _not_nan(value: Any) -> Any:
+    """A number that is not NaN, said before any bound is tested (NaN fails every bound: "nan should be less than
+    80" would be the message)."""
+    value = _not_text(value)
+    if isinstance(value, numbers.Real) and math.isnan(value):
+        raise PydanticCustomError("finite_number", "Input should be a number, not NaN")
+    return value
+
+
+def _finite(value: Any) -> Any:
+    value = _not_text(value)
+    if isinstance(value, numbers.Real) and not math.isfinite(value):
+        raise PydanticCustomError("finite_number", "Input should be a finite number")
+    return value
+
+
 _Number = BeforeValidator(_not_text)
-Float = Annotated[float, _Number]
-FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
-PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
-NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
+_NotNaN = BeforeValidator(_not_nan)
+_Finite = BeforeValidator(_finite)
+#: Any number but NaN (infinity allowed, e.g. a camera that never answers).
+Float = Annotated[float, _NotNaN]
+FiniteFloat = Annotated[float, _Finite, Field(allow_inf_nan=False)]
+PositiveFloat = Annotated[float, _Finite, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, _Finite, Field(ge=0, allow_inf_nan=False)]
 #: A probability of an event that must not be certain: [0, 1).
-Probability = Annotated[float, _Number, Field(ge=0, lt=1)]
+Probability = Annotated[float, _Finite, Field(ge=0, lt=1)]
 PositiveInt = Annotated[int, _Number, Field(gt=0)]
 NonNegativeInt = Annotated[int, _Number, Field(ge=0)]
 

@@ -57,10 +57,12 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+from pydantic import Field, model_validator
 from scipy.interpolate import PchipInterpolator
 from scipy.special import erf as _erf
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import FiniteFloat, PositiveFloat, validated_dataclass
 
 
 def rotation_matrix(theta_deg: float) -> np.ndarray:
@@ -133,70 +135,50 @@ class MotionProfile:
         return float(self._interp(self.u, t, 1)[0]), float(self._interp(self.s, t, 1)[0])
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class PlasticDistortion:
     """Cappelli-style sticking ellipse (skin coordinates, mm) and how it lags the bulk motion."""
 
-    center_mm: tuple[float, float] = (0.0, 0.0)
-    semi_axes_mm: tuple[float, float] = (3.0, 4.0)
-    band_mm: float = 2.0
-    stick: float = 0.0
-    lag_mm: float = 0.0
-    lag_speed_mm_s: float = 1.0
-    stick_slip_mm: float = 0.0
-    stick_slip_period_s: float = 0.25
-    slip_fraction: float = 0.15
-
-    def __post_init__(self) -> None:
-        if min(self.semi_axes_mm) <= 0:
-            raise InvalidInputError(f"semi_axes_mm must be positive, got {self.semi_axes_mm}")
-        if self.band_mm <= 0:
-            raise InvalidInputError(f"band_mm must be positive, got {self.band_mm}")
-        if not 0.0 <= self.stick <= 1.0:
-            raise InvalidInputError(f"stick must be in [0, 1], got {self.stick}")
-        if self.lag_speed_mm_s <= 0 or self.stick_slip_period_s <= 0 or not 0 < self.slip_fraction < 1:
-            raise InvalidInputError("lag_speed_mm_s, stick_slip_period_s must be positive, slip_fraction in (0, 1)")
+    center_mm: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    semi_axes_mm: tuple[PositiveFloat, PositiveFloat] = (3.0, 4.0)
+    band_mm: PositiveFloat = 2.0
+    stick: FiniteFloat = Field(default=0.0, ge=0, le=1)
+    lag_mm: FiniteFloat = 0.0
+    lag_speed_mm_s: PositiveFloat = 1.0
+    stick_slip_mm: FiniteFloat = 0.0
+    stick_slip_period_s: PositiveFloat = 0.25
+    slip_fraction: FiniteFloat = Field(default=0.15, gt=0, lt=1)
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class RidgeMechanics:
     """Skin slowed across a shape centred at arc length ``center_s_mm`` (see module doc): compression before it and
     expansion after it between consecutive frames (reversed for a negative ``peak_strain``, a valley)."""
 
-    peak_strain: float = 0.0
-    center_s_mm: float = 0.0
-    sigma_mm: float = 0.75
-    speed_scale_mm_s: float = 0.3
-
-    def __post_init__(self) -> None:
-        if abs(self.peak_strain) >= 0.5:
-            raise InvalidInputError(f"peak_strain must be below 0.5 in magnitude, got {self.peak_strain}")
-        if self.sigma_mm <= 0 or self.speed_scale_mm_s <= 0:
-            raise InvalidInputError("sigma_mm and speed_scale_mm_s must be positive")
+    peak_strain: FiniteFloat = Field(default=0.0, gt=-0.5, lt=0.5)
+    center_s_mm: FiniteFloat = 0.0
+    sigma_mm: PositiveFloat = 0.75
+    speed_scale_mm_s: PositiveFloat = 0.3
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class SlipFront:
     """A band of uniaxial strain ``amplitude`` (negative: compression) travelling along ``direction_deg``
     (counter-clockwise on the image from +x), Gaussian across with ``width_mm`` full width at half height, at
     ``position_mm`` along the direction interpolated linearly between ``keyframes`` ``(t_s, position_mm)``.
     ``amplitude`` 0 turns it off (see the module doc, 4.)."""
 
-    amplitude: float = 0.0
-    width_mm: float = 0.8
-    direction_deg: float = -90.0
-    keyframes: tuple[tuple[float, float], ...] = ((0.0, 0.0),)
+    amplitude: FiniteFloat = Field(default=0.0, gt=-0.3, lt=0.3)
+    width_mm: PositiveFloat = 0.8
+    direction_deg: FiniteFloat = -90.0
+    keyframes: tuple[tuple[FiniteFloat, FiniteFloat], ...] = Field(default=((0.0, 0.0),), min_length=1)
 
-    def __post_init__(self) -> None:
-        if not abs(self.amplitude) < 0.3:
-            raise InvalidInputError(f"amplitude must be below 0.3 in magnitude, got {self.amplitude}")
-        if not self.width_mm > 0:
-            raise InvalidInputError(f"width_mm must be positive, got {self.width_mm}")
-        k = np.asarray(self.keyframes, dtype=np.float64)
-        if k.ndim != 2 or k.shape[1] != 2 or k.shape[0] < 1 or not np.all(np.isfinite(k)):
-            raise InvalidInputError(f"keyframes must be a list of finite (t_s, position_mm), got {self.keyframes}")
-        if np.any(np.diff(k[:, 0]) <= 0):
-            raise InvalidInputError(f"keyframe times must increase strictly, got {k[:, 0].tolist()}")
+    @model_validator(mode="after")
+    def _times_increase(self) -> "SlipFront":
+        times = [t for t, _ in self.keyframes]
+        if any(b <= a for a, b in zip(times, times[1:])):
+            raise InvalidInputError(f"keyframe times must increase strictly, got {times}")
+        return self
 
     @property
     def sigma_mm(self) -> float:

@@ -39,52 +39,52 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+from pydantic import Field, model_validator
 from scipy import sparse
 from scipy.fft import dctn, idctn
 from scipy.ndimage import convolve, gaussian_filter, label
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import (
+    FiniteFloat,
+    NonNegativeFloat,
+    PositiveFloat,
+    Probability,
+    validated_dataclass,
+)
 from skinstretch.processing.feature_table import FeatureKind
 
 _GRID_MM = 0.04
 _GRID_MARGIN_MM = 1.0
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class FingerprintParams:
     """Statistics of a synthetic print (defaults from FACTS: 0.43 mm period, ~0.2 minutiae and ~3 pores / mm^2)."""
 
-    ridge_period_mm: float = 0.43
-    period_variation: float = 0.06
-    orientation_deg: float = 0.0
-    cores_mm: tuple[tuple[float, float], ...] = ((0.0, -9.0),)
-    deltas_mm: tuple[tuple[float, float], ...] = ()
-    minutia_density_per_mm2: float = 0.2
-    minutia_spacing_mm: float = 0.6
-    pore_density_per_mm2: float = 3.0
-    pore_diameter_mm: tuple[float, float] = (0.06, 0.16)
-    pore_spacing_mm: float = 0.25
-    pore_minutia_clearance_mm: float = 0.3
-    ridge_sharpness: float = 1.5
-    ridge_contrast_variation: float = 0.15
-    ridge_texture: float = 0.12
+    ridge_period_mm: FiniteFloat = Field(default=0.43, ge=0.2, le=1.0)
+    period_variation: FiniteFloat = Field(default=0.06, ge=0, lt=0.5)
+    orientation_deg: FiniteFloat = 0.0
+    cores_mm: tuple[tuple[FiniteFloat, FiniteFloat], ...] = ((0.0, -9.0),)
+    deltas_mm: tuple[tuple[FiniteFloat, FiniteFloat], ...] = ()
+    minutia_density_per_mm2: NonNegativeFloat = 0.2
+    minutia_spacing_mm: PositiveFloat = 0.6
+    pore_density_per_mm2: NonNegativeFloat = 3.0
+    pore_diameter_mm: tuple[PositiveFloat, PositiveFloat] = (0.06, 0.16)
+    pore_spacing_mm: PositiveFloat = 0.25
+    pore_minutia_clearance_mm: NonNegativeFloat = 0.3
+    ridge_sharpness: PositiveFloat = 1.5
+    ridge_contrast_variation: Probability = 0.15
+    ridge_texture: FiniteFloat = 0.12
 
-    def __post_init__(self) -> None:
-        if not 0.2 <= self.ridge_period_mm <= 1.0:
-            raise InvalidInputError(f"ridge_period_mm must be in [0.2, 1.0], got {self.ridge_period_mm}")
-        if not 0 <= self.period_variation < 0.5:
-            raise InvalidInputError(f"period_variation must be in [0, 0.5), got {self.period_variation}")
-        if self.minutia_density_per_mm2 < 0 or self.pore_density_per_mm2 < 0:
-            raise InvalidInputError("feature densities must be non-negative")
+    @model_validator(mode="after")
+    def _consistent(self) -> "FingerprintParams":
         lo, hi = self.pore_diameter_mm
-        if not 0 < lo <= hi <= 0.3:
+        if not lo <= hi <= 0.3:
             raise InvalidInputError(f"pore_diameter_mm must satisfy 0 < min <= max <= 0.3, got {self.pore_diameter_mm}")
-        if self.minutia_spacing_mm <= 0 or self.pore_spacing_mm <= 0 or self.pore_minutia_clearance_mm < 0:
-            raise InvalidInputError("spacings must be positive")
-        if self.ridge_sharpness <= 0 or not 0 <= self.ridge_contrast_variation < 1:
-            raise InvalidInputError("ridge_sharpness must be positive and ridge_contrast_variation in [0, 1)")
         if not 0 <= self.ridge_texture + self.ridge_contrast_variation < 1:
             raise InvalidInputError("ridge_texture + ridge_contrast_variation must be in [0, 1)")
+        return self
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray:

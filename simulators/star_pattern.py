@@ -25,36 +25,41 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from pydantic import Field, model_validator
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import (
+    FiniteFloat,
+    NonNegativeFloat,
+    PositiveFloat,
+    validated_dataclass,
+)
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class StarLayout:
     """Size and displacement of a star pair (px, grey levels); the defaults are the DIC Challenge 2.0 Star
     images' layout (a narrower ``width`` keeps the period range: the period then grows faster along x and the
     fringes slant more, for tests)."""
 
-    width: int = 4000
-    height: int = 501
-    amplitude_px: float = 0.5
-    min_period_px: float = 10.0
-    max_period_px: float = 300.0
-    dot_sigma_px: float = 1.3
-    dot_density: float = 0.08
-    dark: float = 50.0
-    bright: float = 205.0
-    noise_sigma: float = 2.0
+    width: int = Field(default=4000, ge=256)
+    height: int = Field(default=501, ge=64)
+    amplitude_px: PositiveFloat = 0.5
+    min_period_px: PositiveFloat = 10.0
+    max_period_px: PositiveFloat = 300.0
+    dot_sigma_px: FiniteFloat = Field(default=1.3, ge=1.0)
+    dot_density: PositiveFloat = 0.08
+    dark: FiniteFloat = 50.0
+    bright: FiniteFloat = 205.0
+    noise_sigma: NonNegativeFloat = 2.0
 
-    def __post_init__(self) -> None:
-        if self.width < 256 or self.height < 64:
-            raise InvalidInputError(f"a star of {self.width} x {self.height} px is too small (>= 256 x 64 px)")
-        if not 0 < self.min_period_px < self.max_period_px:
+    @model_validator(mode="after")
+    def _periods_invert(self) -> "StarLayout":
+        if not self.min_period_px < self.max_period_px:
             raise InvalidInputError("need 0 < min_period_px < max_period_px")
-        if not 0 < 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
+        if not 2 * np.pi * self.amplitude_px / self.min_period_px < 1:
             raise InvalidInputError("amplitude_px must be below min_period_px / (2 pi) (the warp must invert)")
-        if self.dot_sigma_px < 1.0 or self.dot_density <= 0 or self.noise_sigma < 0:
-            raise InvalidInputError("dot_sigma_px >= 1, dot_density > 0 and noise_sigma >= 0 needed")
+        return self
 
     @property
     def center_row(self) -> float:

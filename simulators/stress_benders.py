@@ -6,35 +6,27 @@ Integrated exactly between events (piecewise-constant targets). Used by :class:`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from skinstretch.drivers.display import stress_protocol as sp
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import NonNegativeFloat, PositiveFloat, validated_dataclass
 
 __all__ = ["BenderParameters", "BenderArray"]
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class BenderParameters:
     """Piezo bender model. Values are plausible for STReSS-class benders; no datasheet is public."""
 
-    tau_s: float = 0.0004  # first-order lag
-    hysteresis_um: float = 0.6  # play-operator half width
-    gain_spread: float = 0.03  # seeded per-contactor gain 1 +/- spread (1 sigma)
-    offset_spread_um: float = 1.0  # seeded position-sensor offsets (removed by ZERO)
-    noise_um: float = 0.05  # position-sensor noise (1 sigma)
-    bender_stiffness_n_per_mm: float = 0.5  # lateral stiffness of one bender tip
-    rest_tau_s: float = 0.005  # soft return to rest
-
-    def __post_init__(self) -> None:
-        for name in ("tau_s", "rest_tau_s", "bender_stiffness_n_per_mm"):
-            if not getattr(self, name) > 0:
-                raise InvalidInputError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("hysteresis_um", "gain_spread", "offset_spread_um", "noise_um"):
-            if not getattr(self, name) >= 0:
-                raise InvalidInputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+    tau_s: PositiveFloat = 0.0004  # first-order lag
+    hysteresis_um: NonNegativeFloat = 0.6  # play-operator half width
+    gain_spread: NonNegativeFloat = 0.03  # seeded per-contactor gain 1 +/- spread (1 sigma)
+    offset_spread_um: NonNegativeFloat = 1.0  # seeded position-sensor offsets (removed by ZERO)
+    noise_um: NonNegativeFloat = 0.05  # position-sensor noise (1 sigma)
+    bender_stiffness_n_per_mm: PositiveFloat = 0.5  # lateral stiffness of one bender tip
+    rest_tau_s: PositiveFloat = 0.005  # soft return to rest
 
 
 class BenderArray:

@@ -12,13 +12,14 @@ import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from pydantic import Field
 
 from skinstretch.drivers.display import stress_protocol as sp
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import FiniteFloat, NonNegativeInt, validated_dataclass
 
 if TYPE_CHECKING:
     from .stress_firmware import StressFirmware
@@ -65,24 +66,14 @@ class LinkVanished(ConnectionError):
     """The simulated link is gone (unplugged cable, USB device removed)."""
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class LinkFaults:
     """Fault injection. Rates are per byte; ``*_after_frames`` count FRAME packets received."""
 
-    drop_rate: float = 0.0
-    corrupt_rate: float = 0.0
-    stall_after_frames: int | None = None
-    vanish_after_frames: int | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("drop_rate", "corrupt_rate"):
-            v = getattr(self, name)
-            if not (0.0 <= v <= 1.0):
-                raise InvalidInputError(f"{name} must be in 0..1, got {v!r}")
-        for name in ("stall_after_frames", "vanish_after_frames"):
-            v = getattr(self, name)
-            if v is not None and v < 0:
-                raise InvalidInputError(f"{name} must be >= 0, got {v!r}")
+    drop_rate: FiniteFloat = Field(default=0.0, ge=0, le=1)
+    corrupt_rate: FiniteFloat = Field(default=0.0, ge=0, le=1)
+    stall_after_frames: NonNegativeInt | None = None
+    vanish_after_frames: NonNegativeInt | None = None
 
     @classmethod
     def parse(cls, text: str) -> "LinkFaults":

@@ -3,7 +3,9 @@
 Every subcommand takes ``-v/--verbose`` (more log lines; twice for debugging) and ``-q/--quiet`` (warnings and errors
 only, no progress bars). Library code logs through :mod:`logging`; this is the one place that configures it. Any
 :class:`~skinstretch.processing.errors.SkinstretchError` ends the command with its one-line message and status 2, and
-so does a usage error (an unknown flag, a value its type refuses), naming the argument.
+so does a usage error (an unknown flag, a value its type refuses), naming the argument. An OSError nothing caught
+before (the system refused a file: a full disk, a permission) ends it with one line and status 1 (its traceback with
+``-vv``).
 """
 
 from __future__ import annotations
@@ -76,6 +78,13 @@ def main(argv: list[str] | None = None) -> int:
         flags = getattr(args, "cli_flags", {})
         log.error("skinstretch %s: error: %s", args.command, exc.message_for(lambda p: flags.get(p, p)))
         rc = 2
+    except OSError as exc:  # what the system refused (a full disk, a permission, a vanished file): one line too
+        from skinstretch.experiments.output_paths import os_error_line  # noqa: PLC0415
+
+        text = os_error_line(exc) if exc.filename else (exc.strerror or str(exc))
+        log.error("skinstretch %s: error: %s", args.command, " ".join(text.split()))
+        log.debug("where it happened", exc_info=True)
+        rc = 1
     except KeyboardInterrupt:
         log.error("skinstretch %s: interrupted", args.command)
         rc = 130
@@ -84,12 +93,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _exit_now_if_hdf5_cannot_shut_down(rc: int) -> None:
-    """A session file the disk never let close stays open inside HDF5, which then crashes (SIGSEGV) while
+    """An HDF5 file the disk never let close stays open inside HDF5, which then crashes (SIGSEGV) while
     shutting down at exit: end the process here instead, output flushed (see skinstretch.drivers.disk_space)."""
-    session_file = sys.modules.get("skinstretch.drivers.session_file")  # not imported: nothing was written
-    if session_file is not None and session_file.unclosed_sessions():
-        log.error("skinstretch: %d session file(s) could not be closed on the full disk; exiting without HDF5's "
-                  "shutdown", len(session_file.unclosed_sessions()))
+    disk_space = sys.modules.get("skinstretch.drivers.disk_space")  # not imported: nothing was written
+    if disk_space is not None and disk_space.unclosed_files():
+        log.error("skinstretch: %d file(s) could not be closed on the full disk; exiting without HDF5's shutdown",
+                  len(disk_space.unclosed_files()))
         logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()

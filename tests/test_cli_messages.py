@@ -48,3 +48,18 @@ def test_commands_name_their_flags(tmp_path, capsys, args, flag):
     assert main([*args, "-o", str(tmp_path / "out"), "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and flag in err[0], err
+
+
+@pytest.mark.parametrize("error,line", [
+    (PermissionError(13, "Permission denied", "/data/s01/x.h5"), "/data/s01/x.h5: no permission to write there"),
+    (OSError(28, "No space left on device"), "No space left on device"),
+])
+def test_an_os_error_nothing_caught_is_one_line_with_status_1(monkeypatch, capsys, error, line):
+    import skinstretch.experiments.commands.analyze as analyze_command
+
+    def refused(args):
+        raise error
+
+    monkeypatch.setattr(analyze_command, "run", refused)
+    assert main(["analyze", "s.h5", "-o", "out", "-q"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [f"skinstretch analyze: error: {line}"]

@@ -155,6 +155,13 @@ def test_link_failure_stops_movie_and_reports_it():
     assert not display.armed
 
 
+def test_a_run_stopped_within_its_start_up_says_no_rms_error_in_words():
+    lines = []
+    result = _play(PlantDisplay(fail_after=5), _movie(200), settle_frames=20, progress=lines.append)
+    assert result.frames_sent == 5 and np.isnan(result.rms_error_um)
+    assert "nan" not in lines[-1].lower() and "RMS error n/a" in lines[-1]
+
+
 def test_corrector_learns_gain_offset_and_backlash():
     display = PlantDisplay(seed=3)
     corrector = ContactorCorrector()

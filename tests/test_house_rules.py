@@ -46,3 +46,28 @@ def _resolves(dotted: str) -> bool:
 def test_no_processing_module_is_over_900_lines():
     sizes = {p.name: len(p.read_text().splitlines()) for p in (ROOT / "processing").glob("*.py")}
     assert max(sizes.values()) <= 900, sorted(sizes.items(), key=lambda kv: -kv[1])[:3]
+
+
+def test_no_hand_written_validators_in_post_init():
+    """Field checks are pydantic's (``@validated_dataclass``): a ``__post_init__`` may only derive state."""
+    import ast
+
+    offences = []
+    for folder in ("processing", "drivers", "simulators", "experiments", "skinstretch"):
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.FunctionDef) and node.name == "__post_init__":
+                    if any(isinstance(n, ast.Raise) for n in ast.walk(node)):
+                        offences.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not offences, "__post_init__ raising (use field types or a model_validator): " + ", ".join(offences)
+
+
+def test_validated_fields_name_nan_before_any_bound():
+    from skinstretch.processing.errors import InvalidInputError
+    from skinstretch.processing.texture_gate import TextureGateParams
+    from skinstretch.simulators.prism_optics import PrismOptics
+
+    with pytest.raises(InvalidInputError, match="black_level should be a finite number"):
+        TextureGateParams(black_level=float("nan"))
+    with pytest.raises(InvalidInputError, match="view_angle_deg should be a number, not NaN"):
+        PrismOptics(view_angle_deg=float("nan"))

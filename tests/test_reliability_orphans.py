@@ -194,3 +194,18 @@ def test_a_worker_whose_owner_is_already_gone_exits():
     code = ("import os, sys; from skinstretch.experiments.process_lifetime import die_with_parent\n"
             "die_with_parent(os.getppid()); sys.exit(0)")
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
+
+
+def test_the_process_tree_guard_ends_with_its_process_and_says_nothing():
+    """The watcher outlives the guarded process on purpose: started as a Popen, every in-process command (the test
+    suite's) ended with "ResourceWarning: subprocess N is still running" at interpreter exit."""
+    code = ("from skinstretch.experiments.process_lifetime import guard_process_tree as g\n"
+            "pid = g()\nassert pid and g() == pid\nprint(pid)")
+    done = subprocess.run([sys.executable, "-X", "dev", "-W", "error", "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    watcher = int(done.stdout)
+    deadline = time.monotonic() + 10
+    while psutil.pid_exists(watcher) and psutil.Process(watcher).status() != psutil.STATUS_ZOMBIE:
+        assert time.monotonic() < deadline, "the watcher outlived its process by 10 s"
+        time.sleep(0.05)

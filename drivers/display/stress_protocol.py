@@ -33,10 +33,12 @@ import struct
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import Field
 
 from skinstretch.drivers.errors import ProtocolError
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import FiniteFloat, NonNegativeInt, PositiveInt, validated_dataclass
 
 SYNC = b"\xa5\x5a"
 HEADER_SIZE = 5  # sync (2) + len + seq + cmd
@@ -316,18 +318,12 @@ class Identity:
         return cls(version, rows, cols, float(range_um), rate, payload[6:].decode("ascii", "replace"))
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class WatchdogConfig:
     """CONFIGURE payload: watchdog time and the firmware's own per-frame slew limit."""
 
-    watchdog_s: float = DEFAULT_WATCHDOG_S
-    max_step_um: float = DEFAULT_MAX_STEP_UM
-
-    def __post_init__(self) -> None:
-        if not 0.001 <= self.watchdog_s <= 65.535:
-            raise InvalidInputError(f"watchdog_s must be in 0.001..65.535 s, got {self.watchdog_s!r}")
-        if not POSITION_STEP_UM <= self.max_step_um <= 2 * RANGE_UM:
-            raise InvalidInputError(f"max_step_um must be in 0.5..100 um, got {self.max_step_um!r}")
+    watchdog_s: FiniteFloat = Field(default=DEFAULT_WATCHDOG_S, ge=0.001, le=65.535)  # u16 milliseconds
+    max_step_um: FiniteFloat = Field(default=DEFAULT_MAX_STEP_UM, ge=POSITION_STEP_UM, le=2 * RANGE_UM)
 
     def encode(self) -> bytes:
         return struct.pack(">HB", round(self.watchdog_s * 1000), int(self.max_step_um / POSITION_STEP_UM))
@@ -433,21 +429,13 @@ def _i32(value: int) -> int:
     return int(max(-2**31, min(2**31 - 1, value)))
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class MovieStart:
     """START_MOVIE payload: tick k plays ``start_delay_us + tick_time_us(k)`` after the command arrived."""
 
-    rate_mhz: int
-    n_frames: int  # ticks 0..n_frames-1; 0 = open-ended
-    start_delay_us: int
-
-    def __post_init__(self) -> None:
-        if not MIN_RATE_MHZ <= self.rate_mhz <= MAX_RATE_MHZ:
-            raise InvalidInputError(f"rate_mhz must be in {MIN_RATE_MHZ}..{MAX_RATE_MHZ}, got {self.rate_mhz!r}")
-        if not 0 <= self.n_frames <= 0xFFFFFFFF:
-            raise InvalidInputError(f"n_frames must be in 0..2**32-1, got {self.n_frames!r}")
-        if not 0 <= self.start_delay_us <= MAX_START_DELAY_US:
-            raise InvalidInputError(f"start_delay_us must be in 0..{MAX_START_DELAY_US}, got {self.start_delay_us!r}")
+    rate_mhz: PositiveInt = Field(ge=MIN_RATE_MHZ, le=MAX_RATE_MHZ)
+    n_frames: NonNegativeInt = Field(le=0xFFFFFFFF)  # ticks 0..n_frames-1; 0 = open-ended
+    start_delay_us: NonNegativeInt = Field(le=MAX_START_DELAY_US)
 
     def encode(self) -> bytes:
         return struct.pack(">III", self.rate_mhz, self.n_frames, self.start_delay_us)

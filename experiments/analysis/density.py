@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, Protocol
 
 import cv2
@@ -44,7 +44,7 @@ import h5py
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from skinstretch.experiments.results_file import PairStatus
+from skinstretch.experiments.results_file import MeshDensity, PairStatus
 from skinstretch.processing.global_motion import local_predictions
 
 __all__ = ["MeshDensity", "FractionKept", "SkinPointMotion", "mesh_density", "fraction_kept", "MeasuredMotion",
@@ -262,76 +262,6 @@ def _region(xy: np.ndarray, max_edge: float):
     corners = np.round((p - origin) / _REGION_PX).astype(np.int32)
     cv2.fillPoly(mask, list(corners), 1)
     return mask, origin
-
-
-@dataclass(frozen=True)
-class MeshDensity:
-    """Density of an analysis' measurement (``summary["density"]``; :attr:`Results.density` in Python).
-
-    Attributes
-    ----------
-    method : str
-    features_per_frame : float or None
-        Features found per frame (mean; None for the flow method).
-    trajectories_kept : int or None
-        Trajectories at least the minimum length (None for the flow method).
-    fraction_kept : float or None
-        Of the features that stay in view for the window, the fraction in a kept trajectory (module doc; None for
-        the flow method or when no feature stays in view).
-    features_in_view : int or None
-        Features that stay in view for the window (the denominator of ``fraction_kept``).
-    window_frames : int or None
-        The window: the minimum trajectory length.
-    points_per_pair : float
-        Points measured between consecutive frames (median over pairs).
-    mesh_edge_mm : float or None
-        Mean edge length of the consecutive pairs' strain triangulations (None: no triangulation).
-    strain_pairs, strain_pairs_ok : dict
-        Frame pairs and pairs with a strain triangulation, per span.
-    too_sparse : bool
-        The mesh is too sparse to map strain (``warning`` says why).
-    warning : str or None
-        Why the mesh is too sparse, or the fraction kept too low, when it is.
-    """
-
-    method: str
-    features_per_frame: float | None
-    trajectories_kept: int | None
-    fraction_kept: float | None
-    features_in_view: int | None
-    window_frames: int | None
-    points_per_pair: float
-    mesh_edge_mm: float | None
-    strain_pairs: dict[int, int] = field(default_factory=dict)
-    strain_pairs_ok: dict[int, int] = field(default_factory=dict)
-    too_sparse: bool = False
-    warning: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["strain_pairs"] = {str(k): v for k, v in self.strain_pairs.items()}
-        d["strain_pairs_ok"] = {str(k): v for k, v in self.strain_pairs_ok.items()}
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "MeshDensity":
-        """The inverse of :meth:`to_dict` (a results file's summary)."""
-        d = dict(d)
-        for name in ("strain_pairs", "strain_pairs_ok"):
-            d[name] = {int(k): int(v) for k, v in (d.get(name) or {}).items()}
-        known = {f for f in cls.__dataclass_fields__}
-        return cls(**{k: v for k, v in d.items() if k in known})
-
-    def describe(self) -> str:
-        """One line for people: features, trajectories, fraction kept, mesh edge."""
-        parts = []
-        if self.features_per_frame is not None:
-            frac = "n/a" if self.fraction_kept is None else f"{100 * self.fraction_kept:.0f} %"
-            parts.append(f"{self.features_per_frame:.1f} features/frame, {self.trajectories_kept} trajectories kept, "
-                         f"{frac} of the features in view for {self.window_frames} frames kept")
-        parts.append(f"{self.points_per_pair:g} points per frame pair")
-        parts.append("no strain mesh" if self.mesh_edge_mm is None else f"mesh edge {self.mesh_edge_mm:.2f} mm")
-        return ", ".join(parts)
 
 
 def _frame_offsets(features: h5py.Dataset, n_frames: int) -> np.ndarray:

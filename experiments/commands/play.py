@@ -118,6 +118,6 @@ def run(args: argparse.Namespace) -> int:
                                       metadata={"movie": str(args.movie)}))
     finally:
         devices.close()
-    if len(results) == 2 and results[1].rms_error_um > 0:
+    if len(results) == 2 and results[1].rms_error_um > 0 and math.isfinite(results[0].rms_error_um):
         print(f"closed loop cuts the RMS error {results[0].rms_error_um / results[1].rms_error_um:.1f} times")
     return 0 if all(r.complete for r in results) else 3
