@@ -32,7 +32,7 @@ def _fake_analyse_trial(session_path, outdir, method, params):
     from pathlib import Path
 
     from skinstretch.drivers.session_file import open_session
-    from skinstretch.experiments.results_file import PAIR_DTYPE, MOTION_DTYPE, UNITS, ResultsWriter
+    from skinstretch.experiments.results_file import PAIR_DTYPE, MOTION_DTYPE, ResultsWriter
     from skinstretch.experiments.runner import TrialAnalysis
 
     try:
@@ -44,18 +44,18 @@ def _fake_analyse_trial(session_path, outdir, method, params):
     x = np.arange(0, w, 16.0)
     Path(outdir).mkdir(parents=True, exist_ok=True)
     wr = ResultsWriter(Path(outdir) / "results.h5")
-    wr.append("motion_pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
-    wr.append("motion", np.zeros(0, MOTION_DTYPE), UNITS["motion"])
-    wr.append("strain/span_1/pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
+    wr.append("motion_pairs", np.zeros(0, PAIR_DTYPE))
+    wr.append("motion", np.zeros(0, MOTION_DTYPE))
+    wr.append("strain/span_1/pairs", np.zeros(0, PAIR_DTYPE))
     wr.file["strain/span_1"].attrs["span"] = 1
-    wr.array("frame_flags", np.array([b""] * n, dtype="S128"), "")
-    wr.array("fingertip/displacement", np.zeros((n - 1, 2)), "px")
-    wr.array("fingertip/n_points", np.zeros(n - 1, np.int64), "count")
-    wr.array("fingertip/valid", np.ones(n - 1, bool), "")
-    wr.array("fingertip/position", np.zeros((n, 2)), "px")
-    wr.array("profile/position", x, "px")
-    wr.array("profile/change", 1e-4 * x, "fraction")
-    wr.array("profile/valid", np.ones(x.size, bool), "")
+    wr.array("frame_flags", np.array([b""] * n, dtype="S128"))
+    wr.array("fingertip/displacement", np.zeros((n - 1, 2)))
+    wr.array("fingertip/n_points", np.zeros(n - 1, np.int64))
+    wr.array("fingertip/valid", np.ones(n - 1, bool))
+    wr.array("fingertip/position", np.zeros((n, 2)))
+    wr.array("profile/position", x)
+    wr.array("profile/change", 1e-4 * x)
+    wr.array("profile/valid", np.ones(x.size, bool))
     wr.file["profile"].attrs["axis"] = "x"
     attrs = {"method": method, "session_path": str(session_path), "n_frames": n, "image_shape": [h, w],
              "px_per_mm": px, "coordinates": "image", "timing_json": "{}", "params_json": "{}", "versions_json": "{}",

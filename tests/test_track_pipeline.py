@@ -14,6 +14,7 @@ from skinstretch.drivers.errors import SessionFileError
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.flow import DenseFlow
 from skinstretch.processing.tracking import TrackingParams
+from tests.helpers import assert_file_explains_itself
 from tests.test_track_support import affine_field, render
 
 scene = pytest.importorskip("skinstretch.simulators.scene")
@@ -64,16 +65,15 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
 def _every_dataset_has_units_and_codes(path):
     import h5py
 
+    infos = assert_file_explains_itself(path)
     with h5py.File(path, "r") as f:
         assert json.loads(f.attrs["status_codes"])["0"] == "ok" and json.loads(f.attrs["kind_codes"])["2"] == "pore"
         assert f["profile"].attrs["axis"] in ("x", "y")
-        missing = []
-        f.visititems(lambda name, obj: missing.append(name)
-                     if isinstance(obj, h5py.Dataset) and "units" not in obj.attrs else None)
-        assert not missing, missing
-        for name in ("motion", "strain/span_1/edges"):
-            units = json.loads(f[name].attrs["units"])
-            assert set(units) == set(f[name].dtype.names) and units.get("x", units.get("xa")) == "px"
+    for name in ("motion", "strain/span_1/edges"):
+        units = infos[name].column_units()
+        assert units.get("x", units.get("xa")) == "px" and units.get("pair") == "1"
+    assert infos["strain/span_1/edges"].column_units()["change"] == "1"  # a strain: a fraction
+    assert read_results(path).dataset_info("fingertip/position") == infos["fingertip/position"]
 
 
 def test_results_file_errors(tmp_path):
