@@ -31,6 +31,8 @@ import numpy as np
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.drivers.file_vocabulary import (CONVENTIONS, DEG, ONE, PX, PX2, TEXT, UM, DatasetInfo,
                                                   describe_dataset, read_dataset_info)
+from skinstretch.experiments.output_paths import OutputPathError, check_output_dir
+from skinstretch.processing.errors import Remedy
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.stretch import StretchProfile
@@ -39,11 +41,14 @@ from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Traj
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
     "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "Results", "ResultsWriter", "read_results",
-    "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info",
+    "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info", "RESULTS_FILE", "SUMMARY_FILE", "held_results",
+    "check_results_dir", "refuse_held_results",
 ]
 
 FORMAT_NAME = "skinstretch-results"
 FORMAT_VERSION = 2
+#: The files ``skinstretch analyze`` writes into its output directory.
+RESULTS_FILE, SUMMARY_FILE = "results.h5", "summary.json"
 
 #: Image axes by index: 0 = x (columns), 1 = y (rows).
 AXIS_NAMES = ("x", "y")
@@ -632,12 +637,37 @@ class Results:
         return f"Results({str(self.path)!r}, method={self.method}, frames={self.n_frames})"
 
 
+def held_results(outdir: str | os.PathLike) -> list[Path]:
+    """The results files of an analysis already in ``outdir`` (``results.h5``, ``summary.json``)."""
+    outdir = Path(outdir)
+    return [outdir / name for name in (RESULTS_FILE, SUMMARY_FILE) if (outdir / name).exists()]
+
+
+def check_results_dir(outdir: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Check, before anything is analysed, that an analysis can write into ``outdir``: a writable directory (or
+    one that can be created) holding no results of an earlier analysis, unless ``overwrite``. Raises
+    :class:`~skinstretch.experiments.output_paths.OutputPathError` in one line naming the directory and, for
+    results already there, the ``overwrite`` argument (``--overwrite`` on the command line)."""
+    outdir = check_output_dir(outdir)
+    refuse_held_results(outdir, held_results(outdir), overwrite=overwrite)
+    return outdir
+
+
+def refuse_held_results(outdir: Path, held: Sequence[Path], *, overwrite: bool) -> None:
+    """OutputPathError naming ``outdir``, the first of ``held`` (results already there) and the ``overwrite``
+    argument, unless ``held`` is empty or ``overwrite``."""
+    if held and not overwrite:
+        first = held[0].relative_to(outdir) if held[0].is_relative_to(outdir) else held[0]
+        raise OutputPathError(f"{outdir}: holds the results of an analysis already ({first})",
+                              remedy=Remedy(("overwrite",), "to replace them", True))
+
+
 def read_results(path: str | os.PathLike) -> Results:
     """Open a results file (or an analysis directory holding ``results.h5``), or raise SessionFileError saying why
     it cannot be read."""
     path = Path(path)
     if path.is_dir():
-        path = path / "results.h5"
+        path = path / RESULTS_FILE
     if not path.exists():
         raise SessionFileError(f"{path}: no such results file")
     return Results(path)

@@ -26,7 +26,7 @@ def batch_dir(tmp_path, rng):
     return d
 
 
-def _fake_analyse_trial(session_path, outdir, method, params):
+def _fake_analyse_trial(session_path, outdir, method, params, overwrite=False):
     """Stands in for the (slow, JIT-compiled) analysis: a valid results file with a known profile."""
     import json
     from pathlib import Path
@@ -84,6 +84,14 @@ def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch,
     np.testing.assert_allclose(mean, 1e-4 * x * good_px_per_mm(batch_dir), rtol=1e-6)
     assert result.figure is not None and result.figure.exists()
     assert "FAILED" in caplog.text
+    # The same folder again: refused before anything is analysed, naming overwrite; replaced with it.
+    from skinstretch.experiments.output_paths import OutputPathError
+
+    with pytest.raises(OutputPathError, match=r"out: holds the results of an analysis already \(batch.json\); "
+                                              r"pass overwrite=True to replace them"):
+        analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", progress=False)
+    again = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", progress=False, overwrite=True)
+    assert [r.status for r in again.rows] == [r.status for r in result.rows]
 
 
 @pytest.fixture

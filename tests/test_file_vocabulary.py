@@ -1,6 +1,7 @@
 """Every file skinstretch writes explains itself in one vocabulary (skinstretch.drivers.file_vocabulary): a session
 recorded on the simulated rig (frames, force, display state, the simulator's truth attached), a simulated session
-and the log of a played movie here; analysis outputs of both methods in test_track_pipeline."""
+and the log of a played movie here; analysis outputs of both methods in test_track_pipeline. And an output that
+exists already is refused in one line naming --overwrite, or replaced with it (play, calibrate)."""
 
 import numpy as np
 import pytest
@@ -51,6 +52,29 @@ def test_a_recorded_a_simulated_session_and_a_playback_log_explain_themselves(tm
     played = assert_file_explains_itself(log)
     assert played["streams/display_measured/data"].axes == ("sample", "contactor_row", "contactor_column")
     assert played["streams/force/data"].columns == ("fx", "fy", "fz", "tx", "ty", "tz")
+
+    # The log exists now: refused in one line naming --overwrite (untouched), replaced with it.
+    capsys.readouterr()
+    stamp = log.stat().st_mtime_ns
+    assert main(["play", str(movie), "--movie-rate", "700", "-o", str(log)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"skinstretch play: error: {log}: exists already; pass --overwrite to replace it"]
+    assert log.stat().st_mtime_ns == stamp
+    assert main(["play", str(movie), "--movie-rate", "350", "-o", str(log), "--overwrite", "--quiet"]) in (0, 3)
+    with open_session(log) as s:  # the movie resampled from 350 Hz: twice the frames of the first
+        assert s.metadata["frames"] == 139 and s.status in ("complete", "failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "m.npy", "p.yaml", "pb.h5", "sim.h5"]
+
+
+def test_calibrate_refuses_an_existing_output_before_fitting(tmp_path, capsys):
+    out = tmp_path / "cal.json"
+    out.write_text("{}")
+    assert main(["calibrate", str(tmp_path / "no-grid.png"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{out}: exists already; pass --overwrite to replace it" in err[0]
+    assert out.read_text() == "{}"
+    assert main(["calibrate", str(tmp_path / "no-grid.png"), "-o", str(out), "--overwrite"]) == 2
+    assert "no-grid.png" in capsys.readouterr().err  # with --overwrite it goes on, to the missing image
 
 
 @pytest.mark.parametrize("name", ["session-v1-before-units.h5", "session-v1-simulated-before-units.h5"])

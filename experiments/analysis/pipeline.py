@@ -47,8 +47,9 @@ from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
+    EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter, check_results_dir,
 )
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
@@ -202,9 +203,10 @@ def analyze(
     session_path: str = "",
     surface: str | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
-    results file in memory) and return it opened.
+    results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -212,6 +214,8 @@ def analyze(
     """
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    if results_path is not None:
+        check_output_file(results_path, overwrite=overwrite, remedy=REPLACE_IT)
     params = analysis_params(params)
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
@@ -404,14 +408,17 @@ def analyze_session(
     params: AnalysisParams | dict | None = None,
     executor: Executor | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Results:
     """Analyse one session file into ``outdir`` (created): ``results.h5`` and ``summary.json``; returns the results.
 
-    Frames are read from the file as they are measured, so a session of any length fits in memory."""
+    Frames are read from the file as they are measured, so a session of any length fits in memory. An ``outdir``
+    that holds results already is refused (before anything is analysed) unless ``overwrite``."""
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     session_path, outdir = Path(session_path), Path(outdir)
     with open_session(session_path) as session:
+        check_results_dir(outdir, overwrite=overwrite)
         mapping = None
         if session.mapping_json:
             from skinstretch.processing.geometric_calibration import mapping_from_dict  # noqa: PLC0415
@@ -424,7 +431,7 @@ def analyze_session(
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress)
+                    surface=surface, progress=progress, overwrite=overwrite)
     finally:
         source.close()
     (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
