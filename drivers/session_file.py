@@ -23,7 +23,8 @@ Reading
 Files that explain themselves
 -----------------------------
 Every dataset is written with ``units``, a ``description``, named axes (HDF5 dimension labels), ``columns`` for
-a set of columns and ``enum_values`` / ``enum_names`` for codes, from :data:`SESSION_DATASETS` and the
+a set of columns and ``enum_values`` / ``enum_names`` for codes, in the words of
+:mod:`skinstretch.drivers.file_vocabulary` (shared with the results files), from :data:`SESSION_DATASETS` and the
 :class:`StreamSpec` of each stream (:data:`KNOWN_STREAMS`); :meth:`Session.dataset_info` reads them back, and
 describes a file written before they existed from the same tables.
 """
@@ -50,6 +51,9 @@ from skinstretch.drivers.disk_space import (DEFAULT_RESERVE_BYTES, SpaceReserve,
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DiskFullError, SessionFileError
+from skinstretch.drivers.file_vocabulary import (DEG, GREY_LEVEL, N, N_M, ONE, PX, S, TEXT, UM, UNSPECIFIED,
+                                                  CONVENTIONS, DatasetInfo, describe_dataset,
+                                                  read_dataset_info)
 from skinstretch.processing.errors import InvalidInputError, Remedy
 
 FORMAT_NAME = "skinstretch-session"
@@ -60,41 +64,6 @@ STATUS_COMPLETE = 1
 STATUS_FAILED = 2
 STATUS_NAMES = {STATUS_RECORDING: "recording", STATUS_COMPLETE: "complete", STATUS_FAILED: "failed"}
 _REASON_LEN = 512
-
-#: The conventions every session states in its root attribute ``conventions``.
-CONVENTIONS = (
-    "image pixels, x = column, y = row, origin at the centre of the top-left pixel; times in s; lengths in mm "
-    "unless a name or a units attribute says px or um; each dataset has units, its axes are named by HDF5 "
-    "dimension labels, named columns of its last axis are in its columns attribute, codes are keyed by its "
-    "enum_values / enum_names attributes"
-)
-
-
-@dataclass(frozen=True)
-class DatasetInfo:
-    """What a session dataset holds, written as its attributes so the file explains itself.
-
-    Attributes
-    ----------
-    units : str
-        Units of the values: ``"px"``, ``"s"``, ``"1"`` for a dimensionless number or a code, ``""`` for text;
-        per column, comma-separated in the order of ``columns``, when the columns differ.
-    axes : tuple of str
-        Name of every axis (HDF5 dimension labels), e.g. ``("frame", "y", "x")``.
-    description : str
-        One line on the meaning.
-    columns : tuple of str
-        Names along the last axis (``fx, fy, fz, tx, ty, tz``), empty when the last axis is not a set of columns.
-    enum : mapping int -> str, optional
-        The name of every code (``status``, ``feature_kind``).
-    """
-
-    units: str
-    axes: tuple[str, ...]
-    description: str
-    columns: tuple[str, ...] = ()
-    enum: Mapping[int, str] | None = None
-
 
 @dataclass(frozen=True)
 class StreamSpec:
@@ -117,61 +86,48 @@ _CONTACTOR_AXES = ("contactor_row", "contactor_column")
 
 #: How the streams skinstretch records explain themselves (a declaration by name and shape picks these up).
 KNOWN_STREAMS: dict[str, StreamSpec] = {
-    "force": StreamSpec((6,), "f8", "N, N, N, N m, N m, N m", ("component",), ("fx", "fy", "fz", "tx", "ty", "tz"),
-                        "force (N) and torque (N m) in the sensor frame"),
-    "display_state": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+    "force": StreamSpec((6,), "f8", ", ".join([N, N, N, N_M, N_M, N_M]), ("component",),
+                        ("fx", "fy", "fz", "tx", "ty", "tz"), "force (N) and torque (N m) in the sensor frame"),
+    "display_state": StreamSpec((10, 10), "f4", UM, _CONTACTOR_AXES, (),
                                 "measured lateral position of every contactor of the display"),
-    "display_target": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (), "target position of every contactor"),
-    "display_command": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+    "display_target": StreamSpec((10, 10), "f4", UM, _CONTACTOR_AXES, (), "target position of every contactor"),
+    "display_command": StreamSpec((10, 10), "f4", UM, _CONTACTOR_AXES, (),
                                   "position sent to every contactor (after the driver's limits)"),
-    "display_measured": StreamSpec((10, 10), "f4", "um", _CONTACTOR_AXES, (),
+    "display_measured": StreamSpec((10, 10), "f4", UM, _CONTACTOR_AXES, (),
                                    "measured position of every contactor, aligned to the target it answers"),
 }
 
 #: Every dataset of a session (``streams/<name>/data`` come from their :class:`StreamSpec`). Files written before
 #: these attributes existed are read with these same descriptions (:meth:`Session.dataset_info`).
 SESSION_DATASETS: dict[str, DatasetInfo] = {
-    "frames": DatasetInfo("grey level", ("frame", "y", "x"), "8-bit grey images (0 black, 255 white)"),
-    "timestamps": DatasetInfo("s", ("frame",), "host time of each frame (Unix epoch; imported sessions: from the "
-                                               "first frame)"),
-    "device_timestamps": DatasetInfo("s", ("frame",), "camera (or file) time of each frame; NaN where none"),
-    "frame_ids": DatasetInfo("1", ("frame",), "camera frame counter (a gap is a dropped frame)"),
-    "status": DatasetInfo("1", (), "state of the session", enum=STATUS_NAMES),
-    "status_reason": DatasetInfo("", (), "why the session failed (empty otherwise)"),
-    "truth/feature_id": DatasetInfo("1", ("feature",), "stable id of every true minutia and pore"),
-    "truth/feature_kind": DatasetInfo("1", ("feature",), "kind of every true feature", enum=KIND_NAMES),
-    "truth/feature_x": DatasetInfo("px", ("frame", "feature"), "true x (column) of every feature in every frame"),
-    "truth/feature_y": DatasetInfo("px", ("frame", "feature"), "true y (row) of every feature in every frame"),
-    "truth/feature_visible": DatasetInfo("1", ("frame", "feature"), "feature in view and in contact (bool)"),
-    "truth/grid_x": DatasetInfo("px", ("grid_x",), "frame-0 x of the displacement grid"),
-    "truth/grid_y": DatasetInfo("px", ("grid_y",), "frame-0 y of the displacement grid"),
-    "truth/displacement": DatasetInfo("px", ("frame", "grid_y", "grid_x", "component"),
+    "frames": DatasetInfo(GREY_LEVEL, ("frame", "y", "x"), "8-bit grey images (0 black, 255 white)"),
+    "timestamps": DatasetInfo(S, ("frame",), "host time of each frame (Unix epoch; imported sessions: from the "
+                                             "first frame)"),
+    "device_timestamps": DatasetInfo(S, ("frame",), "camera (or file) time of each frame; NaN where none"),
+    "frame_ids": DatasetInfo(ONE, ("frame",), "camera frame counter (a gap is a dropped frame)"),
+    "status": DatasetInfo(ONE, (), "state of the session", enum=STATUS_NAMES),
+    "status_reason": DatasetInfo(TEXT, (), "why the session failed (empty otherwise)"),
+    "truth/feature_id": DatasetInfo(ONE, ("feature",), "stable id of every true minutia and pore"),
+    "truth/feature_kind": DatasetInfo(ONE, ("feature",), "kind of every true feature", enum=KIND_NAMES),
+    "truth/feature_x": DatasetInfo(PX, ("frame", "feature"), "true x (column) of every feature in every frame"),
+    "truth/feature_y": DatasetInfo(PX, ("frame", "feature"), "true y (row) of every feature in every frame"),
+    "truth/feature_visible": DatasetInfo(ONE, ("frame", "feature"), "feature in view and in contact (bool)"),
+    "truth/grid_x": DatasetInfo(PX, ("grid_x",), "frame-0 x of the displacement grid"),
+    "truth/grid_y": DatasetInfo(PX, ("grid_y",), "frame-0 y of the displacement grid"),
+    "truth/displacement": DatasetInfo(PX, ("frame", "grid_y", "grid_x", "component"),
                                       "Lagrangian displacement of the skin point at the grid point in frame 0",
                                       ("dx", "dy")),
-    "truth/displacement_valid": DatasetInfo("1", ("frame", "grid_y", "grid_x"),
+    "truth/displacement_valid": DatasetInfo(ONE, ("frame", "grid_y", "grid_x"),
                                             "that skin point is in view and in contact (bool)"),
-    "truth/rigid": DatasetInfo("px, px, deg", ("frame", "component"),
+    "truth/rigid": DatasetInfo(", ".join([PX, PX, DEG]), ("frame", "component"),
                                "fingertip rigid motion relative to frame 0 (theta counter-clockwise on the image)",
                                ("tx", "ty", "theta")),
-    "truth/rigid_center": DatasetInfo("px", ("component",), "centre of that rotation in frame 0", ("x", "y")),
-    "truth/strain": DatasetInfo("1", ("frame", "grid_y", "grid_x", "component"),
+    "truth/rigid_center": DatasetInfo(PX, ("component",), "centre of that rotation in frame 0", ("x", "y")),
+    "truth/strain": DatasetInfo(ONE, ("frame", "grid_y", "grid_x", "component"),
                                 "Green-Lagrange strain of frame k relative to frame 0, image axes (a fraction)",
                                 ("exx", "eyy", "exy")),
 }
-_STREAM_TIME = DatasetInfo("s", ("sample",), "host time of each sample")
-
-
-def describe_dataset(ds: h5py.Dataset, info: DatasetInfo) -> None:
-    """Write ``info`` as the attributes of ``ds`` (units, description, axis labels, columns, enum keys)."""
-    ds.attrs["units"] = info.units
-    ds.attrs["description"] = info.description
-    for k, label in enumerate(info.axes[: ds.ndim]):
-        ds.dims[k].label = label
-    if info.columns:
-        ds.attrs["columns"] = np.array(info.columns, dtype=h5py.string_dtype())
-    if info.enum:
-        ds.attrs["enum_values"] = np.array(sorted(info.enum), dtype=np.int64)
-        ds.attrs["enum_names"] = np.array([info.enum[k] for k in sorted(info.enum)], dtype=h5py.string_dtype())
+_STREAM_TIME = DatasetInfo(S, ("sample",), "host time of each sample")
 
 
 def stream_spec(name: str, declared: StreamSpec | tuple) -> StreamSpec:
@@ -184,7 +140,7 @@ def stream_spec(name: str, declared: StreamSpec | tuple) -> StreamSpec:
     known = KNOWN_STREAMS.get(name)
     if known is not None and known.shape == shape:
         return StreamSpec(shape, dtype, known.units, known.axes, known.columns, known.description)
-    return StreamSpec(shape, dtype, "unspecified")
+    return StreamSpec(shape, dtype, UNSPECIFIED)
 
 
 @contextmanager
@@ -935,18 +891,9 @@ class Session:
             raise SessionFileError(f"{self.path}: no dataset {name!r}") from None
         if not isinstance(ds, h5py.Dataset):
             raise SessionFileError(f"{self.path}: {name!r} is a group, not a dataset")
-        a = ds.attrs
-        if "units" in a:
-            values, names = a.get("enum_values"), a.get("enum_names")
-            enum = ({int(v): _text(n) for v, n in zip(values, names)} if values is not None and names is not None
-                    else None)
-            return DatasetInfo(
-                units=_text(a["units"]),
-                axes=tuple(_text(d.label) for d in ds.dims),
-                description=_text(a.get("description", "")),
-                columns=tuple(_text(c) for c in a.get("columns", ())),
-                enum=enum,
-            )
+        info = read_dataset_info(ds)
+        if info is not None:
+            return info
         parts = name.strip("/").split("/")
         if len(parts) == 3 and parts[0] == "streams":
             if parts[2] == "t":
@@ -1002,10 +949,6 @@ class Session:
 
     def __repr__(self) -> str:
         return f"Session({str(self.path)!r}, frames={self.n_frames}, mode={self.camera_mode.name}, {self.status})"
-
-
-def _text(value: Any) -> str:
-    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
 
 
 def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:

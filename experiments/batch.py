@@ -28,6 +28,8 @@ import numpy as np
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.parameters import AnalysisParams, analysis_params
+from skinstretch.experiments.output_paths import check_output_dir
+from skinstretch.experiments.results_file import held_results, refuse_held_results
 from skinstretch.experiments.runner import TrialAnalysis, analyse_trial
 from skinstretch.processing.errors import InvalidInputError, SkinstretchError
 from skinstretch.progress import logging_above_bars, progress_bar
@@ -110,10 +112,10 @@ def _describe(path: Path) -> dict[str, str]:
         return {"subject": "?", "surface": "?", "scene": ""}
 
 
-def _task(session: str, outdir: str, method: str, params) -> TrialAnalysis:
+def _task(session: str, outdir: str, method: str, params, overwrite: bool) -> TrialAnalysis:
     """One Dask task: analyse on the threads of that worker (no pool of its own); a failure is a value, the batch
     goes on."""
-    return analyse_trial(session, outdir, method, params)
+    return analyse_trial(session, outdir, method, params, overwrite=overwrite)
 
 
 def _out_dir(outdir: Path, session: Path, roots: Sequence[Path]) -> Path:
@@ -172,6 +174,7 @@ def analyze_many(
     method: str = "features",
     params: AnalysisParams | dict[str, Any] | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> BatchResult:
     """Analyse every session of ``paths`` (files or directories) into ``outdir``; summarise across sessions.
 
@@ -192,6 +195,9 @@ def analyze_many(
     progress : bool
         A progress bar over the sessions (with a local or an external scheduler alike); each session's outcome is
         also logged.
+    overwrite : bool
+        Replace the results of an earlier batch in ``outdir``; without it, an ``outdir`` holding any (a session's
+        results, or the batch table) is refused before anything is analysed.
     """
     if method not in ("features", "flow"):
         raise InvalidInputError(f"method must be 'features' or 'flow', got {method!r}")
@@ -201,9 +207,12 @@ def analyze_many(
     t0 = time.perf_counter()
     sessions = find_sessions(paths)
     roots = [Path(p) for p in paths if Path(p).is_dir()]
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
+    outdir = check_output_dir(outdir)
     jobs = [(s, _out_dir(outdir, s, roots)) for s in sessions]
+    held = [p for p in (outdir / "batch.json", outdir / "batch.csv") if p.exists()]
+    held += [p for _, o in jobs for p in held_results(o)]
+    refuse_held_results(outdir, held, overwrite=overwrite)
+    outdir.mkdir(parents=True, exist_ok=True)
     log.info("batch: %d sessions, method %s, scheduler %s", len(jobs), method, scheduler or "local cluster")
     outcomes: list[TrialAnalysis | None] = [None] * len(jobs)
     bar = progress_bar(len(jobs), enabled=progress, desc="sessions", unit="session")
@@ -217,13 +226,13 @@ def analyze_many(
         try:
             if scheduler == "synchronous":
                 for k, (s, o) in enumerate(jobs):
-                    done(k, _task(str(s), str(o), method, params))
+                    done(k, _task(str(s), str(o), method, params, overwrite))
             else:
                 from dask.distributed import as_completed  # noqa: PLC0415
 
                 client, cluster = _client(scheduler)
                 try:
-                    futures = {client.submit(_task, str(s), str(o), method, params, pure=False): k
+                    futures = {client.submit(_task, str(s), str(o), method, params, overwrite, pure=False): k
                                for k, (s, o) in enumerate(jobs)}
                     for fut in as_completed(futures):
                         k = futures[fut]

@@ -2,10 +2,13 @@
 is wrong with it (read-only file system, no permission, a file where a directory is expected, an output that
 exists already, no space left).
 
-Every command that writes uses these two checks first (``record``, ``play``, ``simulate``; any other command may):
+Every command that writes uses these two checks first (``record``, ``play``, ``simulate``, ``analyze``,
+``calibrate``, ``flow``):
 
 * :func:`check_output_dir` for a directory that will receive files (created later by the caller);
-* :func:`check_output_file` for a new file (recordings are never overwritten).
+* :func:`check_output_file` for a new file: an existing one is refused, naming the argument that replaces it
+  (:data:`REPLACE_IT`: ``--overwrite``) where the caller allows that (docs/experiments.md, "Outputs that exist
+  already").
 
 Both test for real: a throw-away file is created and removed in the nearest existing directory, because
 permission bits do not tell (root ignores them, a read-only mount or a full disk does not show in them). Nothing
@@ -27,7 +30,11 @@ from pathlib import Path
 
 from skinstretch.processing.errors import ConfigError, Remedy
 
-__all__ = ["OutputPathError", "check_output_dir", "check_output_file", "os_error_line"]
+__all__ = ["OutputPathError", "REPLACE_IT", "check_output_dir", "check_output_file", "os_error_line"]
+
+#: The remedy of an output that exists already, for a writer that may replace it: ``overwrite=True`` in Python,
+#: ``--overwrite`` on the command line (docs/experiments.md, "Outputs that exist already").
+REPLACE_IT = Remedy(("overwrite",), "to replace it", True)
 
 _PROBLEMS = {
     errno.EROFS: "is on a read-only file system",

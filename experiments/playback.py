@@ -33,7 +33,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.session_file import SessionWriter, open_session
 from skinstretch.drivers.errors import DeviceError, SafetyStop, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.experiments.output_paths import check_output_dir, check_output_file
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_dir, check_output_file
 from skinstretch.experiments.protocol import MAX_FORCE_CEILING_N
 
 __all__ = [
@@ -242,6 +242,7 @@ def play_movie(
     progress: Callable[[str], None] | None = None,
     clock: Callable[[], float] = time.perf_counter,
     buffered: bool | None = None,
+    overwrite: bool = False,
 ) -> PlaybackResult:
     """Play a (T, 10, 10) movie in micrometres at ``rate_hz``; return what was commanded and measured.
 
@@ -267,7 +268,8 @@ def play_movie(
         Session file recording target, command, measured positions and force (streams ``display_target``,
         ``display_command``, ``display_measured``, ``force``), written after the movie so the deadline path
         never waits on the disk. A movie interrupted by an exception (Ctrl-C, a failing force sensor) still writes
-        what it played, without measured positions, in a session marked failed with the exception.
+        what it played, without measured positions, in a session marked failed with the exception. An existing
+        file is refused before the first frame unless ``overwrite``.
     settle_frames : int
         Frames excluded from :attr:`PlaybackResult.rms_error_um` (the start-up transient).
     clock : callable
@@ -287,7 +289,8 @@ def play_movie(
     if not (0 < force_ceiling_n <= MAX_FORCE_CEILING_N):
         raise InvalidInputError(f"force_ceiling_n must be in (0, {MAX_FORCE_CEILING_N:g}] N, got {force_ceiling_n!r}")
     if path is not None:
-        check_output_file(path)  # before the first frame: what is played must be recordable
+        # before the first frame: what is played must be recordable
+        check_output_file(path, overwrite=overwrite, remedy=REPLACE_IT)
     n = movie.shape[0]
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
     forces = np.full((n, 6), np.nan)
@@ -397,10 +400,13 @@ def play_movie(
 def _record_playback(path, result: PlaybackResult, t: np.ndarray, force: tuple[np.ndarray, np.ndarray], *, metadata,
                      force_ceiling_n):
     """Write a played movie's streams; ``t`` times the played frames, ``force`` is (times, wrenches) of every
-    force sample taken (NaN rows: none that frame), the one that tripped the ceiling included."""
+    force sample taken (NaN rows: none that frame), the one that tripped the ceiling included. A log already at
+    ``path`` (which :func:`play_movie` let through only with ``overwrite``) is replaced once the new one is closed."""
+    path = Path(path)
+    fresh = path.with_name(f".{path.name}.new") if path.exists() else path
     mode = CAMERA_MODES["full"]
     writer = SessionWriter(
-        path,
+        fresh,
         camera_mode=mode,
         calibration=Calibration(px_per_mm=mode.width / 10.3),
         metadata={"kind": "playback", "closed_loop": result.closed_loop, "frames": result.frames_total,
@@ -414,22 +420,26 @@ def _record_playback(path, result: PlaybackResult, t: np.ndarray, force: tuple[n
         },
     )
     try:
-        k = result.frames_played
-        if k:
-            writer.append_samples("display_target", t, result.target_um.astype(np.float32))
-            writer.append_samples("display_command", t, result.command_um.astype(np.float32))
-            writer.append_samples("display_measured", t, result.measured_um.astype(np.float32))
-        force_t, forces = force
-        ok = np.all(np.isfinite(forces), axis=1)
-        if np.any(ok):
-            writer.append_samples("force", force_t[ok], forces[ok])
-    except BaseException as exc:
-        writer.fail(f"{type(exc).__name__}: {exc}")
-        raise
-    if result.stopped:
-        writer.fail(result.stopped)
-    else:
-        writer.close()
+        try:
+            k = result.frames_played
+            if k:
+                writer.append_samples("display_target", t, result.target_um.astype(np.float32))
+                writer.append_samples("display_command", t, result.command_um.astype(np.float32))
+                writer.append_samples("display_measured", t, result.measured_um.astype(np.float32))
+            force_t, forces = force
+            ok = np.all(np.isfinite(forces), axis=1)
+            if np.any(ok):
+                writer.append_samples("force", force_t[ok], forces[ok])
+        except BaseException as exc:
+            writer.fail(f"{type(exc).__name__}: {exc}")
+            raise
+        if result.stopped:
+            writer.fail(result.stopped)
+        else:
+            writer.close()
+    finally:
+        if fresh != path:
+            os.replace(fresh, path)
 
 
 def _record_interrupted(path, exc: BaseException, *, played, movie, host_t, intended, forces, closed_loop, rate_hz,

@@ -5,8 +5,10 @@ The layout is documented in ``docs/results-format.md``; this module is the only 
 memory does not grow with the session); :func:`read_results` opens one as a :class:`Results`, which reads each
 part when it is first asked for. Variable-length per-pair data (motion samples, triangulation edges and triangles)
 are flat tables with a ``pair`` column indexing a per-span ``pairs`` table that carries each pair's status.
-Every dataset has a ``units`` attribute (a JSON object naming the unit of each column for tables); enum codes
-(pair ``status``, feature ``kind``) have their keys in a ``*_codes`` attribute; image axes are named ``x``/``y``.
+Every dataset explains itself in the words of :mod:`skinstretch.drivers.file_vocabulary` (shared with session
+files): ``units`` (a JSON object naming the unit of each field for tables), named axes, a ``description``,
+``columns``; coded columns (pair ``status``, feature ``kind``) have their keys in a ``<column>_codes`` attribute;
+image axes are named ``x``/``y``. :data:`RESULTS_DATASETS` says how each is described.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager, nullcontext
@@ -28,6 +31,10 @@ import numpy as np
 
 from skinstretch.drivers.disk_space import SpaceReserve, close_on_a_full_disk
 from skinstretch.drivers.errors import DiskFullError, SessionFileError
+from skinstretch.drivers.file_vocabulary import (CONVENTIONS, DEG, ONE, PX, PX2, TEXT, UM, DatasetInfo,
+                                                  describe_dataset, read_dataset_info)
+from skinstretch.experiments.output_paths import OutputPathError, check_output_dir
+from skinstretch.processing.errors import Remedy
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.stretch import StretchProfile
@@ -36,13 +43,16 @@ from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Traj
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
     "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "MeshDensity", "Results", "ResultsWriter",
-    "read_results", "AXIS_NAMES",
+    "read_results", "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info", "RESULTS_FILE", "SUMMARY_FILE",
+    "held_results", "check_results_dir", "refuse_held_results",
 ]
 
 log = logging.getLogger(__name__)
 
 FORMAT_NAME = "skinstretch-results"
 FORMAT_VERSION = 2
+#: The files ``skinstretch analyze`` writes into its output directory.
+RESULTS_FILE, SUMMARY_FILE = "results.h5", "summary.json"
 
 #: Image axes by index: 0 = x (columns), 1 = y (rows).
 AXIS_NAMES = ("x", "y")
@@ -81,25 +91,74 @@ TRIANGLE_DTYPE = np.dtype(
 TRACK_DTYPE = np.dtype([("track", np.int64), ("kind", np.int8), ("n_frames", np.int32), ("first_frame", np.int32),
                         ("last_frame", np.int32)])
 
-_PX = "px"
-UNITS: dict[str, Any] = {
-    "frame_flags": "",
-    "pairs": {"frame_a": "frame", "frame_b": "frame", "n_points": "count", "status": "code", "reason": ""},
-    "motion": {"pair": "index", "id": "index", "x": _PX, "y": _PX, "dx": _PX, "dy": _PX},
-    "edges": {"pair": "index", "id_a": "index", "id_b": "index", "xa": _PX, "ya": _PX, "xb": _PX, "yb": _PX,
-              "length": _PX, "change": "fraction"},
-    "triangles": {"pair": "index", "id_a": "index", "id_b": "index", "id_c": "index", "x0": _PX, "y0": _PX,
-                  "x1": _PX, "y1": _PX, "x2": _PX, "y2": _PX, "area": "px^2", "change": "fraction", "flipped": ""},
-    "features": {"id": "index", "frame": "frame", "x": _PX, "y": _PX, "kind": "code", "orientation": "deg",
-                 "orientation_known": "", "quality": "1"},
-    "trajectories": {"frame": "frame", "track": "index", "x": _PX, "y": _PX, "raw_x": _PX, "raw_y": _PX,
-                     "feature_index": "index", "linked": "", "refined": "", "run": "index"},
-    "tracks": {"track": "index", "kind": "code", "n_frames": "frames", "first_frame": "frame", "last_frame": "frame"},
+
+def _table_units(**units: str) -> str:
+    return json.dumps(units)
+
+
+_XY, _DXY = ("x", "y"), ("dx", "dy")
+_CODES = {"status": {int(s): s.key for s in PairStatus}, "kind": dict(KIND_NAMES)}
+_PAIRS = DatasetInfo(_table_units(frame_a=ONE, frame_b=ONE, n_points=ONE, status=ONE, reason=TEXT), ("pair",),
+                     "one row per frame pair: its frames, the points measured, status 0 or why not (reason)",
+                     column_codes={"status": _CODES["status"]})
+_MOVIE_AXES = ("frame", "contactor_row", "contactor_column")
+
+#: Every dataset of a results file (``strain/span_<s>/...`` for every span ``s``), as the writer describes it in
+#: the file (:mod:`skinstretch.drivers.file_vocabulary`); :meth:`Results.dataset_info` reads it back.
+RESULTS_DATASETS: dict[str, DatasetInfo] = {
+    "frame_flags": DatasetInfo(TEXT, ("frame",), "empty, or why a frame gave nothing (all_black, saturated, "
+                                                 "no_finger, no contact)"),
+    "motion_pairs": _PAIRS,
+    "motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX), ("row",),
+                          "every displacement measured between consecutive frames: point in frame a, to frame b"),
+    "fingertip/displacement": DatasetInfo(PX, ("pair", "component"), "mean displacement per consecutive pair; 0 "
+                                          "where not valid", _DXY),
+    "fingertip/n_points": DatasetInfo(ONE, ("pair",), "displacements averaged"),
+    "fingertip/valid": DatasetInfo(ONE, ("pair",), "at least 3 displacements averaged (bool)"),
+    "fingertip/position": DatasetInfo(PX, ("frame", "component"), "fingertip displacement since frame 0", _XY),
+    "window_centers": DatasetInfo(PX, ("frame", "component"), "centre of the visibility window", _XY),
+    "profile/position": DatasetInfo(PX, ("bin",), "position along the sliding axis (the group's axis attribute)"),
+    "profile/change": DatasetInfo(ONE, ("bin",), "change in stretch averaged over the sequence (a fraction); NaN "
+                                                 "exactly where not valid"),
+    "profile/valid": DatasetInfo(ONE, ("bin",), "the change was measured there (bool)"),
+    "tactile_movie/positions_um": DatasetInfo(UM, _MOVIE_AXES, "contactor positions along the sliding direction "
+                                              "(the group's motion_axis attribute), clipped to +/-50 um"),
+    "tactile_movie/reset": DatasetInfo(ONE, _MOVIE_AXES, "contactor reset that frame (bool)"),
+    "tactile_movie/clipped": DatasetInfo(ONE, _MOVIE_AXES, "position clipped to the display's range (bool)"),
+    "tactile_movie/stretch_change": DatasetInfo(ONE, ("frame", "contactor_row", "contactor_gap"),
+                                                "change in stretch between neighbours along the sliding axis "
+                                                "(a fraction)"),
+    "features": DatasetInfo(_table_units(id=ONE, frame=ONE, x=PX, y=PX, kind=ONE, orientation=DEG,
+                                         orientation_known=ONE, quality=ONE), ("row",),
+                            "every extracted feature (id = row)", column_codes={"kind": _CODES["kind"]}),
+    "trajectories": DatasetInfo(_table_units(frame=ONE, track=ONE, x=PX, y=PX, raw_x=PX, raw_y=PX, feature_index=ONE,
+                                             linked=ONE, refined=ONE, run=ONE), ("row",),
+                                "one row per track per frame it is present in: refined position, extracted "
+                                "position (NaN where followed by registration), row in features (-1 there)"),
+    "tracks": DatasetInfo(_table_units(track=ONE, kind=ONE, n_frames=ONE, first_frame=ONE, last_frame=ONE),
+                          ("track",), "one row per kept trajectory", column_codes={"kind": _CODES["kind"]}),
+    "flow/grid_x": DatasetInfo(PX, ("grid_x",), "x of the grid nodes in frame a"),
+    "flow/grid_y": DatasetInfo(PX, ("grid_y",), "y of the grid nodes in frame a"),
+    "flow/displacement": DatasetInfo(PX, ("pair", "grid_y", "grid_x", "component"),
+                                     "displacement of each node to the next frame; 0 where not valid", _DXY),
+    "flow/valid": DatasetInfo(ONE, ("pair", "grid_y", "grid_x"), "node in contact and registered (bool)"),
+    "strain/span_<s>/pairs": _PAIRS,
+    "strain/span_<s>/edges": DatasetInfo(
+        _table_units(pair=ONE, id_a=ONE, id_b=ONE, xa=PX, ya=PX, xb=PX, yb=PX, length=PX, change=ONE), ("row",),
+        "Delaunay edges of every pair: endpoints in frame a, length, change L_b/L_a - 1 (a fraction)"),
+    "strain/span_<s>/triangles": DatasetInfo(
+        _table_units(pair=ONE, id_a=ONE, id_b=ONE, id_c=ONE, x0=PX, y0=PX, x1=PX, y1=PX, x2=PX, y2=PX, area=PX2,
+                     change=ONE, flipped=ONE), ("row",),
+        "Delaunay triangles of every pair: corners in frame a, area, change A_b/A_a - 1 (a fraction), flipped"),
 }
 
 
-def _units_text(units: Any) -> str:
-    return units if isinstance(units, str) else json.dumps(units)
+def results_dataset_info(name: str) -> DatasetInfo:
+    """How the results dataset ``name`` (``"motion"``, ``"strain/span_11/edges"``...) is described."""
+    key = re.sub(r"^strain/span_\d+/", "strain/span_<s>/", name.strip("/"))
+    if key not in RESULTS_DATASETS:
+        raise KeyError(f"{name!r} is not a dataset of a results file (docs/results-format.md)")
+    return RESULTS_DATASETS[key]
 
 
 @dataclass
@@ -239,8 +298,9 @@ class ResultsWriter:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["created_unix"] = time.time()
-        f.attrs["status_codes"] = json.dumps({int(s): s.key for s in PairStatus})
-        f.attrs["kind_codes"] = json.dumps(KIND_NAMES)
+        f.attrs["conventions"] = CONVENTIONS
+        f.attrs["status_codes"] = json.dumps(_CODES["status"])
+        f.attrs["kind_codes"] = json.dumps(_CODES["kind"])
         self._tables: dict[str, h5py.Dataset] = {}
         self._done = False
 
@@ -257,68 +317,55 @@ class ResultsWriter:
         """The motion samples written so far (``motion_pairs`` and ``motion``), read back lazily."""
         return StoredSamples(lambda: nullcontext(self._f), _pair_index(self._f["motion_pairs"]))
 
-    def _table(self, name: str, dtype: np.dtype, units: Any, *, compress: bool = True) -> h5py.Dataset:
+    def _table(self, name: str, dtype: np.dtype) -> h5py.Dataset:
         if name not in self._tables:
-            opts = {"compression": "gzip", "compression_opts": 1} if compress else {}
             ds = self._f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype,
-                                        chunks=(max(1, (1 << 16) // dtype.itemsize),), **opts)
-            ds.attrs["units"] = _units_text(units)
-            if "status" in (dtype.names or ()):
-                ds.attrs["status_codes"] = self._f.attrs["status_codes"]
-            if "kind" in (dtype.names or ()):
-                ds.attrs["kind_codes"] = self._f.attrs["kind_codes"]
+                                        chunks=(max(1, (1 << 16) // dtype.itemsize),), compression="gzip",
+                                        compression_opts=1)
+            describe_dataset(ds, results_dataset_info(name))
             self._tables[name] = ds
         return self._tables[name]
 
-    def append(self, name: str, rows: np.ndarray, units: Any) -> None:
+    def append(self, name: str, rows: np.ndarray) -> None:
         """Append ``rows`` (a structured array) to the table ``name`` (created on first use)."""
-        ds = self._table(name, rows.dtype, units)
+        ds = self._table(name, rows.dtype)
         n = ds.shape[0]
         ds.resize((n + rows.shape[0],))
         step = 1 << 16  # a block at a time: h5py converts a compound selection through a buffer of its size
         for i in range(0, rows.shape[0], step):
             ds[n + i : n + min(i + step, rows.shape[0])] = rows[i : i + step]
 
-    def append_array(self, name: str, block: np.ndarray, units: str, *, columns: Sequence[str] | None = None) -> None:
+    def append_array(self, name: str, block: np.ndarray) -> None:
         """Append ``block`` along its first axis to the array ``name`` (created on first use, like :meth:`array`):
         per-frame arrays written a block of frames at a time."""
         if name not in self._tables:
             row_bytes = max(1, int(np.prod(block.shape[1:], dtype=np.int64)) * block.dtype.itemsize)
             ds = self._f.create_dataset(name, shape=(0, *block.shape[1:]), maxshape=(None, *block.shape[1:]),
                                         dtype=block.dtype, chunks=(max(1, (1 << 16) // row_bytes), *block.shape[1:]))
-            ds.attrs["units"] = units
-            if columns is not None:
-                ds.attrs["columns"] = list(columns)
+            describe_dataset(ds, results_dataset_info(name))
             self._tables[name] = ds
         ds = self._tables[name]
         n = ds.shape[0]
         ds.resize(n + block.shape[0], axis=0)
         ds[n:] = block
 
-    def array(self, name: str, data: np.ndarray, units: str, *, columns: Sequence[str] | None = None,
-              compress: bool = False, **attrs: Any) -> None:
-        """Write ``data`` as the dataset ``name``; ``columns`` names the last axis (e.g. ``("x", "y")``)."""
-        opts = {"compression": "gzip", "compression_opts": 1} if compress else {}
-        ds = self._f.create_dataset(name, data=data, **opts)
-        ds.attrs["units"] = units
-        if columns is not None:
-            ds.attrs["columns"] = list(columns)
-        for k, v in attrs.items():
-            ds.attrs[k] = v
+    def array(self, name: str, data: np.ndarray) -> None:
+        """Write ``data`` as the dataset ``name``, described as :data:`RESULTS_DATASETS` says."""
+        ds = self._f.create_dataset(name, data=data)
+        describe_dataset(ds, results_dataset_info(name))
 
     def start_flow(self, grid_x: np.ndarray, grid_y: np.ndarray) -> None:
         g = self._f.require_group("flow")
         for name, arr in (("grid_x", grid_x), ("grid_y", grid_y)):
             g[name] = arr
-            g[name].attrs["units"] = _PX
+            describe_dataset(g[name], results_dataset_info(f"flow/{name}"))
         gy, gx = grid_y.size, grid_x.size
         d = g.create_dataset("displacement", shape=(0, gy, gx, 2), maxshape=(None, gy, gx, 2), dtype=np.float32,
                              chunks=(1, gy, gx, 2), compression="gzip", compression_opts=1)
-        d.attrs["units"] = _PX
-        d.attrs["columns"] = list(AXIS_NAMES)
+        describe_dataset(d, results_dataset_info("flow/displacement"))
         v = g.create_dataset("valid", shape=(0, gy, gx), maxshape=(None, gy, gx), dtype=bool, chunks=(1, gy, gx),
                              compression="gzip", compression_opts=1)
-        v.attrs["units"] = ""
+        describe_dataset(v, results_dataset_info("flow/valid"))
 
     def append_flow(self, displacement: np.ndarray, valid: np.ndarray) -> None:
         """One pair's field: displacement (GY, GX, 2) with NaN where not valid (stored as 0), valid (GY, GX)."""
@@ -500,6 +547,17 @@ class Results:
         with self.open() as f:
             return f[name][()]
 
+    def dataset_info(self, name: str) -> DatasetInfo:
+        """What dataset ``name`` holds ("motion", "strain/span_1/edges", "flow/displacement"...): its units, axis
+        names, columns and code names, from its attributes; a file written before they were complete is described
+        by :data:`RESULTS_DATASETS`, which is what its writer meant."""
+        with self.open() as f:
+            ds = f.get(name)
+            if not isinstance(ds, h5py.Dataset):
+                raise SessionFileError(f"{self.path}: no dataset {name!r}")
+            info = read_dataset_info(ds)
+        return info if info is not None else results_dataset_info(name)
+
     # -- per pair
     @cached_property
     def motion_pairs(self) -> np.ndarray:
@@ -671,12 +729,37 @@ class Results:
         return f"Results({str(self.path)!r}, method={self.method}, frames={self.n_frames})"
 
 
+def held_results(outdir: str | os.PathLike) -> list[Path]:
+    """The results files of an analysis already in ``outdir`` (``results.h5``, ``summary.json``)."""
+    outdir = Path(outdir)
+    return [outdir / name for name in (RESULTS_FILE, SUMMARY_FILE) if (outdir / name).exists()]
+
+
+def check_results_dir(outdir: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Check, before anything is analysed, that an analysis can write into ``outdir``: a writable directory (or
+    one that can be created) holding no results of an earlier analysis, unless ``overwrite``. Raises
+    :class:`~skinstretch.experiments.output_paths.OutputPathError` in one line naming the directory and, for
+    results already there, the ``overwrite`` argument (``--overwrite`` on the command line)."""
+    outdir = check_output_dir(outdir)
+    refuse_held_results(outdir, held_results(outdir), overwrite=overwrite)
+    return outdir
+
+
+def refuse_held_results(outdir: Path, held: Sequence[Path], *, overwrite: bool) -> None:
+    """OutputPathError naming ``outdir``, the first of ``held`` (results already there) and the ``overwrite``
+    argument, unless ``held`` is empty or ``overwrite``."""
+    if held and not overwrite:
+        first = held[0].relative_to(outdir) if held[0].is_relative_to(outdir) else held[0]
+        raise OutputPathError(f"{outdir}: holds the results of an analysis already ({first})",
+                              remedy=Remedy(("overwrite",), "to replace them", True))
+
+
 def read_results(path: str | os.PathLike) -> Results:
     """Open a results file (or an analysis directory holding ``results.h5``), or raise SessionFileError saying why
     it cannot be read."""
     path = Path(path)
     if path.is_dir():
-        path = path / "results.h5"
+        path = path / RESULTS_FILE
     if not path.exists():
         raise SessionFileError(f"{path}: no such results file")
     return Results(path)

@@ -182,9 +182,11 @@ class TrialAnalysis:
     error: str = ""
 
 
-def analyse_trial(session_path: str, outdir: str, method: str, options: Any = None) -> TrialAnalysis:
+def analyse_trial(session_path: str, outdir: str, method: str, options: Any = None, *,
+                  overwrite: bool = False) -> TrialAnalysis:
     """Analyse one recorded trial (runs in a worker process, on threads of it); never raises: a failure comes back
-    as a one-line reason (a SkinstretchError's message; anything else with its exception type).
+    as a one-line reason (a SkinstretchError's message; anything else with its exception type). Results already
+    in ``outdir`` are a failure unless ``overwrite``.
 
     Imports :mod:`skinstretch.experiments.analysis` here, in the worker, so the recording process never pays for it.
     """
@@ -192,7 +194,8 @@ def analyse_trial(session_path: str, outdir: str, method: str, options: Any = No
 
     t0 = time.perf_counter()
     try:
-        result = analyze_session(session_path, outdir, method=method, params=analysis_params(options))
+        result = analyze_session(session_path, outdir, method=method, params=analysis_params(options),
+                                 overwrite=overwrite)
     except SkinstretchError as exc:
         return TrialAnalysis(False, seconds=time.perf_counter() - t0, error=" ".join(str(exc).split()))
     except Exception as exc:  # noqa: BLE001 - a bug must not sink the recording; reported in one line
@@ -696,6 +699,8 @@ def run_protocol(
                         str(tdir / ANALYSIS_DIR),
                         protocol.analysis.method,
                         protocol.analysis.options,
+                        # the trial was recorded just now: results in its folder (left by hand) cannot be its own
+                        overwrite=True,
                     )
                     pending.append((result, fut, run_uid))
             recorded = {t.trial for t in results}

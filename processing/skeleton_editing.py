@@ -43,12 +43,14 @@ from __future__ import annotations
 
 import math
 import operator
-from dataclasses import dataclass
 
 import numpy as np
+from pydantic import model_validator
+
 from skinstretch.processing.argument_checks import positive_number
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.jit import njit
+from skinstretch.processing.validated_dataclass import PositiveFloat, PositiveInt, validated_dataclass
 from skinstretch.processing.skeleton_graph import (
     _NODES,
     _PATH,
@@ -618,7 +620,7 @@ def line_pixels(x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
 RIDGE_DARKNESS = 0.75
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class GapEvidence:
     """What healing (4.8.2) asks the image: is the gap between two facing endings a ridge (module doc)?
 
@@ -634,15 +636,14 @@ class GapEvidence:
     """
 
     image: np.ndarray
-    window_px: int
-    max_ridge_px: float
+    window_px: PositiveInt
+    max_ridge_px: PositiveFloat
 
-    def __post_init__(self) -> None:
-        if self.image.ndim != 2:
-            raise InvalidInputError(f"GapEvidence.image must be a 2-D array, got shape {self.image.shape}")
-        if not isinstance(self.window_px, (int, np.integer)) or self.window_px < 1:
-            raise InvalidInputError(f"GapEvidence.window_px must be a positive integer, got {self.window_px!r}")
-        positive_number(self.max_ridge_px, "max_ridge_px")
+    @model_validator(mode="after")
+    def _image_is_2d(self) -> "GapEvidence":
+        if np.ndim(self.image) != 2:
+            raise InvalidInputError(f"GapEvidence.image must be a 2-D array, got shape {np.shape(self.image)}")
+        return self
 
     def crosses_ridge(self, x1: float, y1: float, x2: float, y2: float) -> bool:
         """Whether the straight line between two endings crosses more than ``max_ridge_px`` of ridge-dark skin in

@@ -38,3 +38,42 @@ def sliding_feature_grid(k: int, rng_seed: int = 0) -> np.ndarray:
     keep[(np.arange(x.size) % 7 == k % 7)] = False  # each feature missing one frame in 7
     keep[5:9] = k < 25  # some end for good
     return make_features(x[keep], y[keep], kind[keep], frame=k)
+
+
+def assert_file_explains_itself(path) -> dict:
+    """Every dataset of the HDF5 file ``path`` (a session, a results file, a playback log) carries a description,
+    units in the shared vocabulary (one per column or field where they differ), named axes from the shared list,
+    columns matching its last axis and the keys of its codes. Returns {dataset name: DatasetInfo}."""
+    import json
+
+    import h5py
+
+    from skinstretch.drivers.file_vocabulary import AXES, CONVENTIONS, UNITS, read_dataset_info, unit_words
+
+    infos = {}
+    with h5py.File(path, "r") as f:
+        assert f.attrs["conventions"] == CONVENTIONS, path
+        datasets = []
+        f.visititems(lambda name, obj: datasets.append(name) if isinstance(obj, h5py.Dataset) else None)
+        assert datasets, path
+        for name in datasets:
+            ds = f[name]
+            info = read_dataset_info(ds)
+            assert info is not None, f"{path}: {name} has no units or description"
+            assert info.description, f"{path}: {name} has no description"
+            words = unit_words(info.units)
+            assert set(words) <= UNITS, f"{path}: {name} units {info.units!r} outside the vocabulary"
+            assert len(info.axes) == ds.ndim and set(info.axes) <= set(AXES), f"{path}: {name} axes {info.axes}"
+            if ds.dtype.names:  # a table: a unit for every field, codes for every coded field
+                assert info.units.startswith("{") and list(json.loads(info.units)) == list(ds.dtype.names), name
+                for coded in {"status", "kind"} & set(ds.dtype.names):
+                    assert info.column_codes[coded][0] in ("ok", "valley_ending"), (name, info.column_codes)
+            elif info.columns:
+                assert len(info.columns) == ds.shape[-1] and info.axes[-1] == "component", name
+                assert len(words) in (1, len(info.columns)), (name, info.units)
+            else:
+                assert len(words) == 1 and "component" not in info.axes, (name, info.units, info.axes)
+            if name.split("/")[-1] in ("status", "feature_kind"):
+                assert info.enum and info.enum[0] in ("recording", "valley_ending"), (name, info.enum)
+            infos[name] = info
+    return infos

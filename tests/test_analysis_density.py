@@ -14,7 +14,7 @@ from skinstretch.experiments.analysis import analysis_params, analyze_frames
 from skinstretch.experiments.analysis.density import MeshDensity, fraction_kept, mesh_density
 from skinstretch.experiments.analysis.derive import motion_rows, span_strain
 from skinstretch.experiments.evaluation.trajectories import truth_fraction_kept
-from skinstretch.experiments.results_file import UNITS, ResultsWriter
+from skinstretch.experiments.results_file import ResultsWriter
 from skinstretch.processing.feature_table import make_features
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.tracking import MotionSample
@@ -68,14 +68,14 @@ def _sparse_results():
     p = np.array([[100.0, 100.0], [300.0, 100.0], [100.0, 300.0], [300.0, 300.0]])
     samples = [MotionSample(k, k + 1, p + k, np.ones((4, 2)), np.arange(4)) for k in range(5)]
     pairs, rows = motion_rows(samples)
-    w.append("motion_pairs", pairs, UNITS["pairs"])
-    w.append("motion", rows, UNITS["motion"])
+    w.append("motion_pairs", pairs)
+    w.append("motion", rows)
     s = span_strain(samples, span=1, max_edge_px=1e6)
     for part, table in (("pairs", s.pairs), ("edges", s.edges), ("triangles", s.triangles)):
-        w.append(f"strain/span_1/{part}", table, UNITS[part])
+        w.append(f"strain/span_1/{part}", table)
     feats = np.concatenate([make_features(p[:, 0] + k, p[:, 1] + k, [2] * 4, frame=k) for k in range(6)])
     feats["id"] = np.arange(feats.shape[0])
-    w.append("features", feats, UNITS["features"])
+    w.append("features", feats)
     return w
 
 

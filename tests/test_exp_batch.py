@@ -26,13 +26,13 @@ def batch_dir(tmp_path, rng):
     return d
 
 
-def _fake_analyse_trial(session_path, outdir, method, params):
+def _fake_analyse_trial(session_path, outdir, method, params, overwrite=False):
     """Stands in for the (slow, JIT-compiled) analysis: a valid results file with a known profile."""
     import json
     from pathlib import Path
 
     from skinstretch.drivers.session_file import open_session
-    from skinstretch.experiments.results_file import PAIR_DTYPE, MOTION_DTYPE, UNITS, ResultsWriter
+    from skinstretch.experiments.results_file import PAIR_DTYPE, MOTION_DTYPE, ResultsWriter
     from skinstretch.experiments.runner import TrialAnalysis
 
     try:
@@ -44,18 +44,18 @@ def _fake_analyse_trial(session_path, outdir, method, params):
     x = np.arange(0, w, 16.0)
     Path(outdir).mkdir(parents=True, exist_ok=True)
     wr = ResultsWriter(Path(outdir) / "results.h5")
-    wr.append("motion_pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
-    wr.append("motion", np.zeros(0, MOTION_DTYPE), UNITS["motion"])
-    wr.append("strain/span_1/pairs", np.zeros(0, PAIR_DTYPE), UNITS["pairs"])
+    wr.append("motion_pairs", np.zeros(0, PAIR_DTYPE))
+    wr.append("motion", np.zeros(0, MOTION_DTYPE))
+    wr.append("strain/span_1/pairs", np.zeros(0, PAIR_DTYPE))
     wr.file["strain/span_1"].attrs["span"] = 1
-    wr.array("frame_flags", np.array([b""] * n, dtype="S128"), "")
-    wr.array("fingertip/displacement", np.zeros((n - 1, 2)), "px")
-    wr.array("fingertip/n_points", np.zeros(n - 1, np.int64), "count")
-    wr.array("fingertip/valid", np.ones(n - 1, bool), "")
-    wr.array("fingertip/position", np.zeros((n, 2)), "px")
-    wr.array("profile/position", x, "px")
-    wr.array("profile/change", 1e-4 * x, "fraction")
-    wr.array("profile/valid", np.ones(x.size, bool), "")
+    wr.array("frame_flags", np.array([b""] * n, dtype="S128"))
+    wr.array("fingertip/displacement", np.zeros((n - 1, 2)))
+    wr.array("fingertip/n_points", np.zeros(n - 1, np.int64))
+    wr.array("fingertip/valid", np.ones(n - 1, bool))
+    wr.array("fingertip/position", np.zeros((n, 2)))
+    wr.array("profile/position", x)
+    wr.array("profile/change", 1e-4 * x)
+    wr.array("profile/valid", np.ones(x.size, bool))
     wr.file["profile"].attrs["axis"] = "x"
     attrs = {"method": method, "session_path": str(session_path), "n_frames": n, "image_shape": [h, w],
              "px_per_mm": px, "coordinates": "image", "timing_json": "{}", "params_json": "{}", "versions_json": "{}",
@@ -91,6 +91,14 @@ def test_batch_reports_failures_and_summarises(batch_dir, tmp_path, monkeypatch,
     np.testing.assert_allclose(mean, 1e-4 * x * good_px_per_mm(batch_dir), rtol=1e-6)
     assert result.figure is not None and result.figure.exists()
     assert "FAILED" in caplog.text
+    # The same folder again: refused before anything is analysed, naming overwrite; replaced with it.
+    from skinstretch.experiments.output_paths import OutputPathError
+
+    with pytest.raises(OutputPathError, match=r"out: holds the results of an analysis already \(batch.json\); "
+                                              r"pass overwrite=True to replace them"):
+        analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", progress=False)
+    again = analyze_many([batch_dir], tmp_path / "out", scheduler="synchronous", progress=False, overwrite=True)
+    assert [r.status for r in again.rows] == [r.status for r in result.rows]
 
 
 @pytest.fixture

@@ -164,7 +164,7 @@ def test_an_analysis_aborted_on_a_full_disk_leaves_no_partial_results(tmp_path, 
 
     w = ResultsWriter(tmp_path / "results.h5")
     assert (tmp_path / ".results.h5.partial.reserve").stat().st_size == disk_space.DEFAULT_RESERVE_BYTES
-    w.append("motion", np.zeros(1000, MOTION_DTYPE), {})
+    w.append("motion", np.zeros(1000, MOTION_DTYPE))
     real_flush, failed = h5py.File.flush, []
 
     def enospc_once(self):

@@ -8,12 +8,14 @@ import pytest
 from skinstretch.cli import main
 from skinstretch.experiments.analysis import analysis_params, analyze_frames, analyze_session
 from skinstretch.experiments.analysis.derive import chain_flows
+from skinstretch.experiments.output_paths import OutputPathError
 from skinstretch.experiments.results_file import PairStatus, read_results
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.flow import DenseFlow
 from skinstretch.processing.tracking import TrackingParams
+from tests.helpers import assert_file_explains_itself
 from tests.test_track_support import affine_field, render
 
 scene = pytest.importorskip("skinstretch.simulators.scene")
@@ -59,21 +61,30 @@ def test_analyze_and_evaluate_commands(session_file, tmp_path, method, capsys):
         assert result["features"]["pore"]["recall"] > 0.5
     else:
         assert result["tracking"]["wrong_match_rate"] is None
+    # Results already in the folder: refused in one line naming --overwrite, untouched; replaced with it.
+    stamp = (out / "results.h5").stat().st_mtime_ns
+    assert main(["analyze", str(session_file), "-o", str(out), "--method", method]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{out}: holds the results of an analysis already" in err[0], err
+    assert err[0].endswith("pass --overwrite to replace them") and (out / "results.h5").stat().st_mtime_ns == stamp
+    if method == "flow":
+        assert main(["analyze", str(session_file), "-o", str(out), "--method", method, "--span", "2",
+                     "--overwrite", "--quiet"]) == 0
+        assert set(read_results(out).strain) == {2} and json.loads((out / "summary.json").read_text())["n_frames"]
 
 
 def _every_dataset_has_units_and_codes(path):
     import h5py
 
+    infos = assert_file_explains_itself(path)
     with h5py.File(path, "r") as f:
         assert json.loads(f.attrs["status_codes"])["0"] == "ok" and json.loads(f.attrs["kind_codes"])["2"] == "pore"
         assert f["profile"].attrs["axis"] in ("x", "y")
-        missing = []
-        f.visititems(lambda name, obj: missing.append(name)
-                     if isinstance(obj, h5py.Dataset) and "units" not in obj.attrs else None)
-        assert not missing, missing
-        for name in ("motion", "strain/span_1/edges"):
-            units = json.loads(f[name].attrs["units"])
-            assert set(units) == set(f[name].dtype.names) and units.get("x", units.get("xa")) == "px"
+    for name in ("motion", "strain/span_1/edges"):
+        units = infos[name].column_units()
+        assert units.get("x", units.get("xa")) == "px" and units.get("pair") == "1"
+    assert infos["strain/span_1/edges"].column_units()["change"] == "1"  # a strain: a fraction
+    assert read_results(path).dataset_info("fingertip/position") == infos["fingertip/position"]
 
 
 def test_results_file_errors(tmp_path):
@@ -136,6 +147,14 @@ def test_analyze_session_rejects_bad_method(session_file, tmp_path):
         analysis_params({"strain": {"spans": [0]}})
     with pytest.raises(SessionFileError):
         analyze_session(tmp_path / "nope.h5", tmp_path)
+    (tmp_path / "summary.json").write_text("{}")  # an earlier analysis' output: refused before any work
+    with pytest.raises(OutputPathError, match=r"holds the results of an analysis already \(summary.json\); pass "
+                                              r"overwrite=True to replace them"):
+        analyze_session(session_file, tmp_path)
+    (tmp_path / "r.h5").write_bytes(b"x")
+    with pytest.raises(OutputPathError, match=r"r.h5: exists already; pass overwrite=True to replace it"):
+        analyze_frames(np.zeros((3, 8, 8), np.uint8), calibration=Calibration(px_per_mm=62.0),
+                       results_path=tmp_path / "r.h5")
     assert TrackingParams().min_length_frames is None  # the seed's 30, adapted by the analysis to short clips
 
 

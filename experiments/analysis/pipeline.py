@@ -56,8 +56,9 @@ from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    AXIS_NAMES, EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, UNITS, PairStatus, Results, ResultsWriter,
+    EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter, check_results_dir,
 )
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
@@ -115,9 +116,9 @@ class _StrainTables:
             self.executor = InlineExecutor()
             s = span_strain(buf, **kwargs)
         g = f"strain/span_{span}"
-        self.writer.append(f"{g}/pairs", s.pairs, UNITS["pairs"])
-        self.writer.append(f"{g}/edges", s.edges, UNITS["edges"])
-        self.writer.append(f"{g}/triangles", s.triangles, UNITS["triangles"])
+        self.writer.append(f"{g}/pairs", s.pairs)
+        self.writer.append(f"{g}/edges", s.edges)
+        self.writer.append(f"{g}/triangles", s.triangles)
         self.writer.file[g].attrs["span"] = span
         self.ok[span] += int(np.sum(s.pairs["status"] == PairStatus.OK))
         self.edge_change[span].add(s.edges["change"])
@@ -131,7 +132,7 @@ class _StrainTables:
             g = f"strain/span_{span}"
             if g not in self.writer.file:
                 for name, dtype in (("pairs", PAIR_DTYPE), ("edges", EDGE_DTYPE), ("triangles", TRIANGLE_DTYPE)):
-                    self.writer.append(f"{g}/{name}", np.zeros(0, dtype), UNITS[name])
+                    self.writer.append(f"{g}/{name}", np.zeros(0, dtype))
                 self.writer.file[g].attrs["span"] = span
 
 
@@ -151,8 +152,8 @@ class _MotionTable:
     def flush(self) -> None:
         if self.block:
             pairs, rows = motion_rows(self.block, first_pair=self.written)
-            self.writer.append("motion_pairs", pairs, UNITS["pairs"])
-            self.writer.append("motion", rows, UNITS["motion"])
+            self.writer.append("motion_pairs", pairs)
+            self.writer.append("motion", rows)
             self.written += len(self.block)
             self.block = []
 
@@ -177,7 +178,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
         rows = block.rows
         if mapping is not None:
             _rectify_rows(rows, mapping, px_per_mm)
-        writer.append("trajectories", rows, UNITS["trajectories"])
+        writer.append("trajectories", rows)
         tr = Trajectories(n_frames=block.stop, rows=np.concatenate([carry, rows]), kind=kinds)
         last = n - 2 if block.stop == n else block.stop - 1 - longest  # the last pair whose frames are all built
         for k in range(first, last + 1):
@@ -196,7 +197,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
     tracks["track"] = np.arange(tracks.size)
     for name, column in table.items():
         tracks[name] = column
-    writer.append("tracks", tracks, UNITS["tracks"])
+    writer.append("tracks", tracks)
 
 
 def analyze(
@@ -211,9 +212,10 @@ def analyze(
     session_path: str = "",
     surface: str | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
-    results file in memory) and return it opened.
+    results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -221,6 +223,8 @@ def analyze(
     """
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    if results_path is not None:
+        check_output_file(results_path, overwrite=overwrite, remedy=REPLACE_IT)
     params = analysis_params(params)
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
@@ -254,7 +258,7 @@ def analyze(
                 feats["frame"] = np.repeat(np.arange(first, first + len(tables), dtype=np.int32), sizes)
                 feats["id"] = np.arange(n_features, n_features + feats.shape[0])
                 n_features += feats.shape[0]
-                writer.append("features", feats, UNITS["features"])
+                writer.append("features", feats)
                 flags[first : first + len(chunk_flags)] = chunk_flags
 
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
@@ -333,26 +337,26 @@ def analyze(
 
 
 def _write_derived(w: ResultsWriter, d: Derived, flags: list[str]) -> None:
-    w.array("frame_flags", np.array([s.encode() for s in flags], dtype="S128"), "")
+    w.array("frame_flags", np.array([s.encode() for s in flags], dtype="S128"))
     ft = d.fingertip
-    w.array("fingertip/displacement", ft.displacement, "px", columns=AXIS_NAMES)
-    w.array("fingertip/n_points", ft.n_features, "count")
-    w.array("fingertip/valid", ft.valid, "")
-    w.array("fingertip/position", ft.position, "px", columns=AXIS_NAMES)
+    w.array("fingertip/displacement", ft.displacement)
+    w.array("fingertip/n_points", ft.n_features)
+    w.array("fingertip/valid", ft.valid)
+    w.array("fingertip/position", ft.position)
     if d.window is not None:
-        w.array("window_centers", d.window.centers, "px", columns=AXIS_NAMES)
-    w.array("profile/position", d.profile.x, "px")
-    w.array("profile/change", d.profile.change, "fraction")
-    w.array("profile/valid", d.profile.valid, "")
+        w.array("window_centers", d.window.centers)
+    w.array("profile/position", d.profile.x)
+    w.array("profile/change", d.profile.change)
+    w.array("profile/valid", d.profile.valid)
     w.file["profile"].attrs["axis"] = d.profile_axis
 
 
 def _append_movie(w: ResultsWriter, movie: TactileMovie) -> None:
     """The next block of frames of the tactile movie."""
-    w.append_array("tactile_movie/positions_um", movie.positions_um, "um")
-    w.append_array("tactile_movie/reset", movie.reset, "")
-    w.append_array("tactile_movie/clipped", movie.clipped, "")
-    w.append_array("tactile_movie/stretch_change", movie.stretch_change, "fraction")
+    w.append_array("tactile_movie/positions_um", movie.positions_um)
+    w.append_array("tactile_movie/reset", movie.reset)
+    w.append_array("tactile_movie/clipped", movie.clipped)
+    w.append_array("tactile_movie/stretch_change", movie.stretch_change)
 
 
 def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
@@ -417,14 +421,17 @@ def analyze_session(
     params: AnalysisParams | dict | None = None,
     executor: Executor | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Results:
     """Analyse one session file into ``outdir`` (created): ``results.h5`` and ``summary.json``; returns the results.
 
-    Frames are read from the file as they are measured, so a session of any length fits in memory."""
+    Frames are read from the file as they are measured, so a session of any length fits in memory. An ``outdir``
+    that holds results already is refused (before anything is analysed) unless ``overwrite``."""
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     session_path, outdir = Path(session_path), Path(outdir)
     with open_session(session_path) as session:
+        check_results_dir(outdir, overwrite=overwrite)
         mapping = None
         if session.mapping_json:
             from skinstretch.processing.geometric_calibration import mapping_from_dict  # noqa: PLC0415
@@ -437,7 +444,7 @@ def analyze_session(
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress)
+                    surface=surface, progress=progress, overwrite=overwrite)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):

@@ -25,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scheduler", default=None,
                    help="batch: address of an existing Dask scheduler (default: a local cluster)")
     p.add_argument("-o", "--output", dest="outdir", type=Path, required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier analysis in the output directory (refused without it)")
     p.add_argument("--method", choices=("features", "flow"), default="features", help="measurement method")
     p.add_argument("--span", default="1,11", help="comma-separated frame spans of the strain (default 1,11)")
     p.add_argument("--min-track", type=int, default=None,
@@ -105,9 +107,10 @@ def run(args: argparse.Namespace) -> int:
         from skinstretch.experiments.batch import analyze_many  # noqa: PLC0415
 
         result = analyze_many(args.session, args.outdir, scheduler=args.scheduler, method=args.method, params=params,
-                              progress=not args.quiet)
+                              progress=not args.quiet, overwrite=args.overwrite)
         return 0 if not result.failed else 1
-    r = analyze_session(args.session[0], args.outdir, method=args.method, params=params, progress=not args.quiet)
+    r = analyze_session(args.session[0], args.outdir, method=args.method, params=params, progress=not args.quiet,
+                        overwrite=args.overwrite)
     t = r.timing
     log.info("%s: %d frames in %.1f s (%.1f frames/s) -> %s", args.method, r.n_frames, t["total_s"],
              t["frames_per_s"], r.path)

@@ -37,10 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenes", default="", help="comma-separated scene names for the sections that use scenes")
     p.add_argument("--seconds", type=float, default=None, help="duration of streaming benchmarks")
     p.add_argument("--workdir", type=Path, default=Path("bench-output"), help="scratch directory")
-    p.add_argument("--json", type=Path, default=None, help="also write all tables to this JSON file")
+    p.add_argument("--json", type=Path, default=None,
+                   help="also write all tables to this JSON file (overwritten if it exists)")
     p.add_argument("--markdown", type=Path, default=None, metavar="FILE",
                    help="also write every table with its notes, the date, the machine and this command line as "
-                        "Markdown to FILE ('-': standard output instead of the plain tables), e.g. docs/benchmarks.md")
+                        "Markdown to FILE ('-': standard output instead of the plain tables), e.g. docs/benchmarks.md; "
+                        "overwritten if it exists")
     p.set_defaults(func=run)
 
 

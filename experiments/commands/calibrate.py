@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("source", type=Path, help="grid image (PNG/TIFF...), session file (.h5) showing the grid, or a calibration JSON to apply")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration JSON to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing -o file (refused without it)")
     p.add_argument("--apply-to", type=Path, default=None,
                    help="also store the calibration in this session file (a half/strip-mode session gets the "
                         "central window of a full-frame calibration)")
@@ -42,6 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file  # noqa: PLC0415
     from skinstretch.experiments.skin_mapping_step import calibrate_source, store_calibration  # noqa: PLC0415
 
     if args.max_frames < 1:
@@ -50,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
                         ("--dot-diameter-mm", args.dot_diameter_mm), ("--max-rms-px", args.max_rms_px)):
         if not value > 0:
             raise InvalidInputError(f"{flag} must be positive, got {value}")
+    check_output_file(args.output, overwrite=args.overwrite, remedy=REPLACE_IT)  # before the fit
     mapping, summary = calibrate_source(
         args.source,
         surface=args.surface,

@@ -80,14 +80,14 @@ def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file  # noqa: PLC0415
     from skinstretch.processing.flow import DenseFlow, FlowParams  # noqa: PLC0415
     from skinstretch.processing.pixel_scale import Calibration  # noqa: PLC0415
 
     if not (np.isfinite(args.px_per_mm) and args.px_per_mm > 0):
         raise InvalidInputError(f"--px-per-mm must be positive, got {args.px_per_mm}")
     a, b = read_grey(args.image_a), read_grey(args.image_b)
-    if args.output.exists() and not args.overwrite:
-        raise InvalidInputError(f"{args.output} exists (give --overwrite to replace it)")
+    check_output_file(args.output, overwrite=args.overwrite, remedy=REPLACE_IT)
     if a.shape != b.shape:
         raise InvalidInputError(f"the images differ in size: {a.shape[1]} x {a.shape[0]} and {b.shape[1]} x {b.shape[0]}")
     a, b = to_8bit_pair(a, b)

@@ -76,12 +76,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="stop above this normal force, in (0, 50] N (default 5)")
     p.add_argument("--no-force", action="store_true", help="play without the force sensor")
     p.add_argument("-o", "--output", type=Path, default=None, help="session file recording the playback (.h5)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing -o file (refused without it)")
     p.set_defaults(func=run)
 
 
 def _outputs(args: argparse.Namespace, loops: list[bool]) -> list[Path | None]:
     """The playback recording of each loop (None without -o), each checked writable and new."""
-    from skinstretch.experiments.output_paths import check_output_file  # noqa: PLC0415
+    from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file  # noqa: PLC0415
 
     if args.output is None:
         return [None] * len(loops)
@@ -90,7 +91,7 @@ def _outputs(args: argparse.Namespace, loops: list[bool]) -> list[Path | None]:
     else:
         paths = [args.output.with_name(f"{args.output.stem}-{'closed' if closed else 'open'}"
                                        f"{args.output.suffix or '.h5'}") for closed in loops]
-    return [check_output_file(p) for p in paths]
+    return [check_output_file(p, overwrite=args.overwrite, remedy=REPLACE_IT) for p in paths]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
         for closed, path in zip(loops, outputs):
             results.append(play_movie(devices.display_device(), movie, rate_hz=args.rate, closed_loop=closed,
                                       force=devices.force, force_ceiling_n=args.force_ceiling, path=path,
+                                      overwrite=args.overwrite,
                                       settle_frames=min(150, movie.shape[0] // 4), progress=print,
                                       metadata={"movie": str(args.movie)}))
     finally:

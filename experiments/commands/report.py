@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a session directory written by skinstretch record, an analysis output directory, or a "
                         "session file")
     p.add_argument("-o", "--output", type=Path, default=None,
-                   help="HTML file (default: report.html in the directory, or SESSION-report.html beside a file)")
+                   help="HTML file (default: report.html in the directory, or SESSION-report.html beside a file); "
+                        "an existing one is overwritten: a report is regenerated from the data")
     p.add_argument("--title", default=None)
     p.set_defaults(func=run)
 

@@ -8,7 +8,7 @@ import logging
 import time
 from pathlib import Path
 
-from skinstretch.processing.errors import InvalidInputError, Remedy
+from skinstretch.processing.errors import InvalidInputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so that `skinstretch --help` stays fast.
-    from skinstretch.experiments.output_paths import check_output_file
+    from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
     from skinstretch.simulators.scene import load_scene, simulate_to_file
 
     if args.frames is not None and args.frames < 1:
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise InvalidInputError(f"--seed must be non-negative, got {args.seed}")
     # before the scene is loaded and rendered: a file that cannot be written is refused now, not after minutes
-    check_output_file(args.output, overwrite=args.overwrite, remedy=Remedy(("overwrite",), "to replace it", True))
+    check_output_file(args.output, overwrite=args.overwrite, remedy=REPLACE_IT)
     scene = load_scene(args.scene)
     if args.texture is not None:
         scene = scene.with_texture(args.texture, dpi=args.dpi)
