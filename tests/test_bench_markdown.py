@@ -64,3 +64,19 @@ def test_a_failed_section_is_reported_and_the_others_still_run(sections, tmp_pat
 def test_unknown_sections_are_named(sections, tmp_path, capsys):
     assert main(["bench", "--only", "nosuch", "--workdir", str(tmp_path)]) == 2
     assert "nosuch" in capsys.readouterr().err
+
+
+def test_the_bench_says_a_repeated_log_message_once(monkeypatch, capsys):
+    """Each of a section's clips would log the same line (a print's dpi, a short clip's note): the first one shows."""
+    import logging
+
+    def chatty(options):
+        for name in ("p1", "p1", "p2", "p1"):
+            logging.getLogger("skinstretch.simulators.x").info("%s: 500 dpi", name)
+        return []
+
+    monkeypatch.setattr(bench_command, "available_sections",
+                        lambda: {"chatty": types.SimpleNamespace(SECTION="chatty", DESCRIPTION="d", run=chatty)})
+    assert main(["bench", "--only", "chatty", "--quick"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("p1: 500 dpi") == 1 and err.count("p2: 500 dpi") == 1

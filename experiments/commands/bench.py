@@ -62,7 +62,26 @@ def command_line(args: argparse.Namespace) -> str:
     return shlex.join(words)
 
 
+class _FirstTimeOnly(logging.Filter):
+    """Passes a log message the first time only: a section renders and analyses many clips, and each would say the
+    same thing again (a print's dpi, a short clip's minimum trajectory length)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._seen: set[tuple[str, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, record.getMessage())
+        if key in self._seen:
+            return False
+        self._seen.add(key)
+        return True
+
+
 def run(args: argparse.Namespace) -> int:
+    if not getattr(args, "verbose", 0):
+        for handler in logging.getLogger("skinstretch").handlers:
+            handler.addFilter(_FirstTimeOnly())
     sections = available_sections()
     if args.list:
         for name, module in sections.items():
