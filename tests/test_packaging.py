@@ -24,7 +24,7 @@ def test_every_package_folder_is_declared():
         for d in [ROOT / folder, *(p for p in (ROOT / folder).rglob("*") if p.is_dir())]:
             if "__pycache__" in d.parts:
                 continue
-            if any(d.glob("*.py")) or any(d.glob("*.yaml")):
+            if any(d.glob("*.py")) or any(d.glob("*.yaml")) or any(d.glob("*.html")):
                 rel = d.relative_to(ROOT / folder).parts
                 found.add(".".join([dotted, *rel]))
     assert found == set(_declared())
