@@ -292,7 +292,7 @@ def import_frames(
                 metadata["surface"] = _detected_surface(contrast, reader.name)
                 write_metadata(tmp, metadata)
             else:
-                log.info("surface: %s (given)", surface)
+                log.info("surface %s (given by --surface)", surface)
     seconds = time.perf_counter() - t_start
     log.debug("imported %d frames of %s into %s in %.1f s (%s)", n, reader.name, output, seconds, conversion)
     return ImportResult(path=output, n_frames=n, width=width, height=height, fps=fps_out, fps_source=fps_source,
@@ -306,7 +306,7 @@ def _detected_surface(contrast: ContrastAccumulator, where: str) -> dict[str, An
     try:
         evidence: SurfaceEvidence = contrast.result()
     except InsufficientDataError as exc:
-        log.info("surface: not detected (%s); pass --surface to give it", exc)
+        log.info("surface not detected in %s (%s); analysed as flat unless --surface gives it", where, exc)
         return {"kind": None, "decided_by": f"not detected: {exc}"}
     log.info("surface detected in %s: %s (--surface overrides)", where, evidence.describe())
     return {"kind": evidence.kind, "decided_by": "detected from the frames",
