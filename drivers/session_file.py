@@ -711,6 +711,20 @@ def write_calibration(path: str | os.PathLike, calibration: Calibration) -> Path
     return path
 
 
+def write_metadata(path: str | os.PathLike, metadata: Mapping[str, Any]) -> Path:
+    """Replace the metadata of an existing, closed session file (e.g. what an import learned from all its frames).
+
+    The file is opened read-write (not SWMR): a recorder must have closed it. Returns the path.
+    """
+    path = Path(path)
+    try:
+        with h5py.File(path, "r+", libver="latest") as f:
+            f.attrs["metadata_json"] = _json_attr(metadata)
+    except OSError as exc:
+        raise SessionFileError(f"{path}: cannot open the session to write its metadata ({exc})") from None
+    return path
+
+
 def _calibration_from_attrs(path: Path, px_per_mm: float, mapping_json: str) -> Calibration:
     """The session's Calibration, with its fitted pixel-to-skin mapping rebuilt when one is stored."""
     if not mapping_json:

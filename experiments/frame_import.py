@@ -19,6 +19,8 @@ Rules
   rate (an image folder) needs ``fps``. Times are seconds after the first frame.
 * **Pixel scale**: ``px_per_mm`` given, else ``calibration`` (a fitted mapping, cut to the crop), else the pixel
   size the file declares (OME, ImageJ); a file that declares none needs one of the two.
+* **Surface**: ``surface`` given, else read from the frames as they are written
+  (:mod:`skinstretch.processing.surface_detection`: flat, ridge or valley), recorded with how it was decided.
 """
 
 from __future__ import annotations
@@ -36,9 +38,10 @@ import numpy as np
 from skinstretch import __version__
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.frame_readers import FrameReader, SourceFrame, open_frame_reader
-from skinstretch.drivers.session_file import SessionWriter, replacing_file
-from skinstretch.processing.errors import InvalidInputError, Remedy
+from skinstretch.drivers.session_file import SessionWriter, replacing_file, write_metadata
+from skinstretch.processing.errors import InsufficientDataError, InvalidInputError, Remedy
 from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.surface_detection import ContrastAccumulator, SurfaceEvidence
 from skinstretch.progress import progress_bar
 
 if TYPE_CHECKING:
@@ -51,6 +54,7 @@ log = logging.getLogger(__name__)
 #: Camera-mode name of an imported session (its size and rate are the file's).
 IMPORTED_MODE_NAME = "imported"
 _BATCH = 16  # frames per write: one resize of each dataset per batch, a few MB in memory
+_SURFACE_FRAMES = 240  # frames of a long file the surface detection averages (evenly spread)
 
 
 @dataclass(frozen=True)
@@ -99,6 +103,9 @@ class ImportResult:
         Pixel scale; ``px_per_mm_source`` says where it came from.
     conversion : str
         How the pixels became 8-bit grey.
+    surface : str or None
+        The session's surface (None: not given and not readable from the frames); ``surface_source`` says how it
+        was decided.
     seconds : float
         Wall time of the import.
     """
@@ -112,6 +119,8 @@ class ImportResult:
     px_per_mm: float
     px_per_mm_source: str
     conversion: str
+    surface: str | None
+    surface_source: str
     seconds: float
 
 
@@ -232,7 +241,8 @@ def import_frames(
         Window of the frames to keep.
     surface : str, optional
         What the finger slid on ("flat", "ridge", "valley"...): recorded as the session's ``surface`` (the
-        analysis removes the glass shading of non-flat surfaces).
+        analysis removes the glass shading of non-flat surfaces). None: read from the frames
+        (:func:`~skinstretch.processing.surface_detection.detect_surface`), recorded with the evidence.
 
     Raises
     ------
@@ -263,13 +273,14 @@ def import_frames(
         metadata: dict[str, Any] = {"source": source_record, "imported_by": f"skinstretch {__version__}",
                                     "imported_unix": time.time()}
         if surface:
-            metadata["surface"] = {"kind": surface}
+            metadata["surface"] = {"kind": surface, "decided_by": "given"}
+        contrast = None if surface else ContrastAccumulator(px_per_mm=cal.px_per_mm)
         mode = CameraMode(IMPORTED_MODE_NAME, width, height, nominal_fps)
         with replacing_file(output, overwrite=overwrite) as tmp:
             writer = SessionWriter(tmp, camera_mode=mode, calibration=cal, metadata=metadata, flush_interval_s=1.0)
             try:
                 n, times = _write_frames(writer, frames, crop=crop, depth=depth, total=reader.n_frames,
-                                         progress=progress, where=reader.name)
+                                         progress=progress, where=reader.name, contrast=contrast)
                 writer.close()
             except BaseException as exc:
                 writer.fail(f"import stopped: {type(exc).__name__}: {exc}")
@@ -277,16 +288,36 @@ def import_frames(
             fps_out, fps_source = _nominal_rate(fps, reader.fps, times, time_source)
             if fps_out != nominal_fps:
                 _set_rate(tmp, fps_out)
+            if contrast is not None:
+                metadata["surface"] = _detected_surface(contrast, reader.name)
+                write_metadata(tmp, metadata)
+            else:
+                log.info("surface %s (given by --surface)", surface)
     seconds = time.perf_counter() - t_start
     log.debug("imported %d frames of %s into %s in %.1f s (%s)", n, reader.name, output, seconds, conversion)
     return ImportResult(path=output, n_frames=n, width=width, height=height, fps=fps_out, fps_source=fps_source,
                         px_per_mm=cal.px_per_mm, px_per_mm_source=scale_source, conversion=conversion,
+                        surface=metadata["surface"]["kind"], surface_source=metadata["surface"]["decided_by"],
                         seconds=seconds)
 
 
+def _detected_surface(contrast: ContrastAccumulator, where: str) -> dict[str, Any]:
+    """The session's ``surface`` record read from the frames, logged in one line."""
+    try:
+        evidence: SurfaceEvidence = contrast.result()
+    except InsufficientDataError as exc:
+        log.info("surface not detected in %s (%s); analysed as flat unless --surface gives it", where, exc)
+        return {"kind": None, "decided_by": f"not detected: {exc}"}
+    log.info("surface detected in %s: %s (--surface overrides)", where, evidence.describe())
+    return {"kind": evidence.kind, "decided_by": "detected from the frames",
+            "detection": {"rule": "skinstretch.processing.surface_detection", **evidence.to_dict()}}
+
+
 def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _DepthMap, total: int | None,
-                  progress: bool, where: str) -> tuple[int, np.ndarray]:
-    """Write every frame in batches; returns the count and every frame's time."""
+                  progress: bool, where: str, contrast: ContrastAccumulator | None = None) -> tuple[int, np.ndarray]:
+    """Write every frame in batches, adding every ``stride``-th to ``contrast`` (the surface detection: at most
+    ~:data:`_SURFACE_FRAMES` frames of a long file); returns the count and every frame's time."""
+    stride = max(1, (total or 0) // _SURFACE_FRAMES)
     times: list[float] = []
     batch: list[np.ndarray] = []
     batch_t: list[float] = []
@@ -302,8 +333,10 @@ def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _D
 
     with progress_bar(total, enabled=progress, desc="importing") as bar:
         for frame, t in frames:
-            image = crop.apply(frame.image) if crop is not None else frame.image
-            batch.append(depth(image))
+            image = depth(crop.apply(frame.image) if crop is not None else frame.image)
+            if contrast is not None and len(times) % stride == 0:
+                contrast.add(image)
+            batch.append(image)
             batch_t.append(t)
             times.append(t)
             if len(batch) >= _BATCH:

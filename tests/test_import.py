@@ -39,6 +39,9 @@ def test_video_imports_as_a_complete_session_with_its_source(tmp_path):
         src = s.metadata["source"]
         assert src["kind"] == "video" and src["codec"] == "ffv1" and src["path"].endswith("clip.avi")
         assert src["times"] == "video time stamps" and src["px_per_mm"] == "given"
+        # too small to read a surface from (detection needs 2 mm each way): recorded as not detected, and why
+        assert s.metadata["surface"]["kind"] is None
+        assert s.metadata["surface"]["decided_by"].startswith("not detected: surface detection needs frames of")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.avi", "s.h5"]  # no temporary file left
 
 
@@ -56,7 +59,7 @@ def test_deep_stack_is_mapped_from_its_whole_range_and_keeps_its_metadata(tmp_pa
     want = np.rint((cropped - lo) * 255 / (hi - lo)).astype(np.uint8)
     with open_session(r.path) as s:
         np.testing.assert_array_equal(s.read_frames(), want)
-        assert s.metadata["surface"] == {"kind": "ridge"}
+        assert s.metadata["surface"] == {"kind": "ridge", "decided_by": "given"}  # --surface wins: no detection
         assert s.metadata["source"]["crop"] == [2, 3, 20, 10]
         assert f"[{lo:g}, {hi:g}]" in s.metadata["source"]["conversion"]
 
@@ -175,10 +178,11 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
             cv2.imwrite(str(source / f"frame{k}.png"), f)
         args += ["--fps", str(fps)]
     session = d / f"{kind}.h5"
-    assert main(["import", str(source), "-o", str(session), "--surface", "flat", *args, "-q"]) == 0
+    assert main(["import", str(source), "-o", str(session), *args, "-q"]) == 0  # as a user would: no --surface
     assert main(["analyze", str(session), "-o", str(d / kind), "-q"]) == 0
     with open_session(session) as s:
         assert s.camera_mode.fps == pytest.approx(fps) and s.calibration.px_per_mm == pytest.approx(ppm)
+        assert s.metadata["surface"]["kind"] == "flat" and s.metadata["surface"]["decided_by"] == "detected from the frames"
     from skinstretch.experiments.viewer.session_data import SessionSource, find_view_target
 
     target = find_view_target(d / kind)  # the viewer takes the imported session like a recorded one
