@@ -179,13 +179,13 @@ class SubpixelRefiner:
         low = (std < self.params.min_contrast).view(np.uint8)
         integral = cv2.integral(low, sdepth=cv2.CV_32S)
         if self.params.normalize_sigma_mm is None:
-            return PreparedImage(image, integral)
+            return PreparedImage(image, integral, image_gradient(image))
         # 128 + 40 d / (std + 2), clipped, truncated to uint8 (in place: the same operations as written out).
         np.multiply(d, 40.0, out=d)
         np.divide(d, np.add(std, 2.0, out=std), out=d)
         np.add(d, 128.0, out=d)
         norm = np.clip(d, 0, 255, out=d).astype(np.uint8)
-        return PreparedImage(norm, integral)
+        return PreparedImage(norm, integral, image_gradient(norm))
 
     def refine(
         self,
@@ -202,6 +202,7 @@ class SubpixelRefiner:
         exceeds ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
         """
         prev_nc = curr_nc = None
+        prev_given = prev_image
         if isinstance(prev_image, PreparedImage):
             prev_image, prev_nc = prev_image.image, prev_image.no_contact_integral
         if isinstance(curr_image, PreparedImage):
@@ -221,7 +222,7 @@ class SubpixelRefiner:
         window = np.full(n, self._win, np.int64)
         if self._wide > self._win and ok.any():
             # Points the first window measures less precisely than the target: registered again, wider.
-            var = self._predicted_variance(prev_image, curr_image, points, disp, self._win)
+            var = self._predicted_variance(prev_given, curr_image, points, disp, self._win)
             again = np.flatnonzero(ok & ~(var <= self._target_var))
             if again.size:
                 d2, ok2, r2 = self._register(prev_image, curr_image, points[again], disp[again], init[again],
@@ -271,13 +272,9 @@ class SubpixelRefiner:
     def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
         """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
         variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
-        a = prev_image.astype(np.float32)
-        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
-        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-        return _predicted_variance_kernel(a, curr_image.astype(np.float32), gx, gy, np.ascontiguousarray(points),
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
+        return _predicted_variance_kernel(a, curr_image, gx, gy, np.ascontiguousarray(points),
                                           np.ascontiguousarray(disp), win // 2)
-
 
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                          fallback: np.ndarray) -> np.ndarray:
@@ -290,17 +287,14 @@ class SubpixelRefiner:
         out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
         if self._gradient_half == 0 or out.shape[0] == 0:
             return out
-        if isinstance(prev_image, PreparedImage):
-            prev_image = prev_image.image
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
         if isinstance(curr_image, PreparedImage):
             curr_image = curr_image.image
-        a = _as_gray(prev_image, "prev_image").astype(np.float32)
-        b = _as_gray(curr_image, "curr_image").astype(np.float32)
+        b = _as_gray(curr_image, "curr_image")
+        if a.shape != b.shape:
+            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
-        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
-        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
         g, ok = _affine_gradient_kernel(a, b, gx, gy, points, displacement, self._gradient_half)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
         out[ok] = g[ok]
@@ -319,9 +313,7 @@ class SubpixelRefiner:
         pixel over 11 frames when the skin stretches, as much as all the noise). ``window_px``: the window each
         point was registered with (:attr:`RefinedDisplacements.window_px`; default the first window).
         """
-        if isinstance(prev_image, PreparedImage):
-            prev_image = prev_image.image
-        image = _as_gray(prev_image, "prev_image").astype(np.float32)
+        _, gx, gy = _image_and_gradient(prev_image, "prev_image")
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         gradient = np.asarray(gradient, dtype=np.float64).reshape(-1, 2, 2)
         if gradient.shape[0] != points.shape[0]:
@@ -334,12 +326,15 @@ class SubpixelRefiner:
             if halves.shape[0] != points.shape[0]:
                 raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
         # The derivative operator of OpenCV's pyramidal Lucas-Kanade (Scharr); its scale cancels.
-        gx = cv2.Scharr(image, cv2.CV_32F, 1, 0)
-        gy = cv2.Scharr(image, cv2.CV_32F, 0, 1)
         return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient), halves)
 
 
-@numba.njit(cache=True, nogil=True)
+#: The kernels below sum over windows of up to 63 x 63 pixels in any order (``reassoc``: vectorised sums, rounding
+#: differences ~1e-15 relative) and keep IEEE NaN and infinity semantics (a failed fit stays NaN, then rejected).
+_FAST = {"reassoc", "contract"}
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
     or T is singular)."""
@@ -378,20 +373,18 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear(image, x, y):
-    """``image`` at (x, y) by bilinear interpolation; NaN where its 2 x 2 neighbourhood leaves the image."""
-    h, w = image.shape
-    x0 = int(np.floor(x))
-    y0 = int(np.floor(y))
-    if x0 < 0 or y0 < 0 or x0 + 1 >= w or y0 + 1 >= h:
-        return np.nan
-    fx = x - x0
-    fy = y - y0
-    return ((image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx) * (1.0 - fy)
-            + (image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx) * fy)
+def _shifted_window(b, c, r, half, dx, dy):
+    """The window of side 2 half + 1 around pixel (c, r) shifted by (dx, dy), for bilinear sampling of ``b``: its
+    integer offset (ix, iy), fractions (fx, fy) (the same for every pixel of the window), and whether every
+    sample's 2 x 2 neighbourhood lies in ``b``."""
+    h, w = b.shape
+    ix = int(np.floor(dx))
+    iy = int(np.floor(dy))
+    inside = c - half + ix >= 0 and r - half + iy >= 0 and c + half + ix + 1 < w and r + half + iy + 1 < h
+    return ix, iy, dx - ix, dy - iy, inside
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
     """Per point, trace of s^2 T^-1 over its window: T the structure tensor of ``a``, s^2 the variance of the
     residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either image or T is singular."""
@@ -401,15 +394,17 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
         c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
+        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, disp[i, 0], disp[i, 1])
+        if not inside:
+            continue
         txx = txy = tyy = 0.0
         rr = 0.0
-        inside = True
         for y in range(r - half, r + half + 1):
+            yy = y + iy
             for x in range(c - half, c + half + 1):
-                v = _bilinear(b, x + disp[i, 0], y + disp[i, 1])
-                if np.isnan(v):
-                    inside = False
-                    break
+                xx = x + ix
+                v = ((b[yy, xx] * (1.0 - fx) + b[yy, xx + 1] * fx) * (1.0 - fy)
+                     + (b[yy + 1, xx] * (1.0 - fx) + b[yy + 1, xx + 1] * fx) * fy)
                 d = v - a[y, x]
                 ax = float(gx[y, x])
                 ay = float(gy[y, x])
@@ -417,66 +412,128 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
                 txy += ax * ay
                 tyy += ay * ay
                 rr += d * d
-            if not inside:
-                break
         det = txx * tyy - txy * txy
-        if not inside or det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
+        if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
             continue
         s2 = rr / ((2 * half + 1) ** 2 - 2)
         out[i] = s2 * (txx + tyy) / det
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
     """Per point, G of the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p
     onto ``b`` (2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0); ok False where the window
-    leaves an image or the 6 x 6 system is singular."""
+    leaves an image or the 6 x 6 system is singular.
+
+    The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
+    first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
+    gradient products (``gx^2, gx gy, gy^2`` times ``1, ox, oy, ox^2, ox oy, oy^2``) row by row. The first step
+    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp."""
     h, w = a.shape
     n = points.shape[0]
     out = np.zeros((n, 2, 2))
     ok = np.zeros(n, np.bool_)
+    hess = np.zeros((6, 6))
+    rhs = np.zeros(6)
     for i in range(n):
         px, py = points[i, 0], points[i, 1]
         c, r = int(np.round(px)), int(np.round(py))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
-        q = np.zeros(6)  # delta_x, delta_y, G00, G01, G10, G11
-        good = True
-        for _ in range(2):
-            hess = np.zeros((6, 6))
-            rhs = np.zeros(6)
-            jac = np.zeros(6)
-            for y in range(r - half, r + half + 1):
-                oy = y - py
-                for x in range(c - half, c + half + 1):
-                    ox = x - px
-                    v = _bilinear(b, x + disp[i, 0] + q[0] + q[2] * ox + q[3] * oy,
-                                  y + disp[i, 1] + q[1] + q[4] * ox + q[5] * oy)
-                    if np.isnan(v):
-                        good = False
-                        break
-                    err = a[y, x] - v
-                    ax = float(gx[y, x])
-                    ay = float(gy[y, x])
-                    jac[0], jac[1], jac[2], jac[3], jac[4], jac[5] = ax, ay, ax * ox, ax * oy, ay * ox, ay * oy
-                    for k in range(6):
-                        rhs[k] += jac[k] * err
-                        for l in range(k, 6):
-                            hess[k, l] += jac[k] * jac[l]
-                if not good:
-                    break
-            if not good:
-                break
-            for k in range(6):
-                for l in range(k):
-                    hess[k, l] = hess[l, k]
-            scale = hess[0, 0] + hess[1, 1]
-            if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
-                good = False
-                break
-            q += np.linalg.solve(hess, rhs)
-        if good and np.all(np.isfinite(q)):
+        dx, dy = disp[i, 0], disp[i, 1]
+        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, dx, dy)
+        if not inside:
+            continue
+        # sums of gx^2, gx gy, gy^2 (xx, xy, yy) times 1, ox, oy, ox^2, ox oy, oy^2 (0..5)
+        xx0 = xx1 = xx2 = xx3 = xx4 = xx5 = 0.0
+        xy0 = xy1 = xy2 = xy3 = xy4 = xy5 = 0.0
+        yy0 = yy1 = yy2 = yy3 = yy4 = yy5 = 0.0
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0  # sum J e
+        for y in range(r - half, r + half + 1):
+            oy = y - py
+            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = 0.0  # this row's, times 1, ox, ox^2
+            ex0 = ex1 = ey0 = ey1 = 0.0  # this row's gx e, gy e, times 1, ox
+            sy = y + iy
+            for x in range(c - half, c + half + 1):
+                ox = x - px
+                sx = x + ix
+                v = ((b[sy, sx] * (1.0 - fx) + b[sy, sx + 1] * fx) * (1.0 - fy)
+                     + (b[sy + 1, sx] * (1.0 - fx) + b[sy + 1, sx + 1] * fx) * fy)
+                err = a[y, x] - v
+                ax = float(gx[y, x])
+                ay = float(gy[y, x])
+                pxx, pxy, pyy, ox2 = ax * ax, ax * ay, ay * ay, ox * ox
+                rxx0 += pxx
+                rxx1 += pxx * ox
+                rxx2 += pxx * ox2
+                rxy0 += pxy
+                rxy1 += pxy * ox
+                rxy2 += pxy * ox2
+                ryy0 += pyy
+                ryy1 += pyy * ox
+                ryy2 += pyy * ox2
+                ex, ey = ax * err, ay * err
+                ex0 += ex
+                ex1 += ex * ox
+                ey0 += ey
+                ey1 += ey * ox
+            oy2 = oy * oy
+            xx0 += rxx0; xx1 += rxx1; xx2 += rxx0 * oy; xx3 += rxx2; xx4 += rxx1 * oy; xx5 += rxx0 * oy2  # noqa: E702
+            xy0 += rxy0; xy1 += rxy1; xy2 += rxy0 * oy; xy3 += rxy2; xy4 += rxy1 * oy; xy5 += rxy0 * oy2  # noqa: E702
+            yy0 += ryy0; yy1 += ryy1; yy2 += ryy0 * oy; yy3 += ryy2; yy4 += ryy1 * oy; yy5 += ryy0 * oy2  # noqa: E702
+            g0 += ex0; g1 += ey0; g2 += ex1; g3 += ex0 * oy; g4 += ey1; g5 += ey0 * oy  # noqa: E702
+        hess[0, 0], hess[0, 1], hess[0, 2], hess[0, 3], hess[0, 4], hess[0, 5] = xx0, xy0, xx1, xx2, xy1, xy2
+        hess[1, 1], hess[1, 2], hess[1, 3], hess[1, 4], hess[1, 5] = yy0, xy1, xy2, yy1, yy2
+        hess[2, 2], hess[2, 3], hess[2, 4], hess[2, 5] = xx3, xx4, xy3, xy4
+        hess[3, 3], hess[3, 4], hess[3, 5] = xx5, xy4, xy5
+        hess[4, 4], hess[4, 5] = yy3, yy4
+        hess[5, 5] = yy5
+        for k in range(6):
+            for l in range(k):
+                hess[k, l] = hess[l, k]
+        scale = hess[0, 0] + hess[1, 1]
+        if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
+            continue
+        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+        q = np.linalg.solve(hess, rhs)  # delta_x, delta_y, G00, G01, G10, G11
+        # Second step along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
+        for cy in (r - half, r + half):
+            for cx in (c - half, c + half):
+                qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
+                qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
+                if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
+                    inside = False
+        if not inside:
+            continue
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        for y in range(r - half, r + half + 1):
+            oy = y - py
+            ex0 = ex1 = ey0 = ey1 = 0.0
+            bx = dx + q[0] + q[3] * oy
+            by = y + dy + q[1] + q[5] * oy
+            for x in range(c - half, c + half + 1):
+                ox = x - px
+                qx = x + bx + q[2] * ox
+                qy = by + q[4] * ox
+                # >= 0 (the corners'): truncation is floor; min() guards a last-bit overshoot at the far edge
+                x0 = min(int(qx), w - 2)
+                y0 = min(int(qy), h - 2)
+                sfx = qx - x0
+                sfy = qy - y0
+                v = ((b[y0, x0] * (1.0 - sfx) + b[y0, x0 + 1] * sfx) * (1.0 - sfy)
+                     + (b[y0 + 1, x0] * (1.0 - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
+                err = a[y, x] - v
+                ex = float(gx[y, x]) * err
+                ey = float(gy[y, x]) * err
+                ex0 += ex
+                ex1 += ex * ox
+                ey0 += ey
+                ey1 += ey * ox
+            g0 += ex0; g1 += ey0; g2 += ex1; g3 += ex0 * oy; g4 += ey1; g5 += ey0 * oy  # noqa: E702
+        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+        q = q + np.linalg.solve(hess, rhs)
+        if np.all(np.isfinite(q)):
             out[i, 0, 0], out[i, 0, 1], out[i, 1, 0], out[i, 1, 1] = q[2], q[3], q[4], q[5]
             ok[i] = True
     return out, ok
@@ -488,6 +545,7 @@ class PreparedImage:
 
     image: np.ndarray
     no_contact_integral: np.ndarray  # int32 integral image of the no-contact mask
+    gradient: tuple[np.ndarray, np.ndarray] | None = None  # float32 (gx, gy) of ``image`` (:func:`image_gradient`)
 
 
 def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
@@ -508,6 +566,24 @@ def _window_fraction_kernel(integral, points, half):
         total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
         out[i] = total / max((r1 - r0) * (c1 - c0), 1)
     return out
+
+
+def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grey-level gradient (gx, gy), float32 grey levels per pixel, of a uint8 image: Scharr, as OpenCV's
+    Lucas-Kanade differentiates (/32). Computed once per frame by :meth:`SubpixelRefiner.prepare`."""
+    a = image.astype(np.float32)
+    return (cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0), cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0))
+
+
+def _image_and_gradient(image, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(uint8 image, gx, gy) of a :class:`PreparedImage` (its stored gradient) or of a raw image."""
+    if isinstance(image, PreparedImage):
+        if image.gradient is not None:
+            return image.image, image.gradient[0], image.gradient[1]
+        image = image.image
+    image = _as_gray(image, name)
+    gx, gy = image_gradient(image)
+    return image, gx, gy
 
 
 def _as_gray(image: np.ndarray, name: str) -> np.ndarray:
