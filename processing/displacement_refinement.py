@@ -277,14 +277,22 @@ class SubpixelRefiner:
                                           np.ascontiguousarray(disp), win // 2)
 
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
-                         fallback: np.ndarray) -> np.ndarray:
+                         fallback: np.ndarray | None = None) -> np.ndarray:
         """The skin's displacement gradient at each point, measured in the images: an affine Lucas-Kanade
         registration (Gauss-Newton, 2 steps, started from the point's displacement and no deformation) of a
         ``gradient_window_mm`` window around it; ``gradient[i, j, l] = d u_j / d x_l`` as
         :func:`~skinstretch.processing.global_motion.local_gradients`. ``fallback`` (n, 2, 2) is kept where the
         window leaves an image, the fit is singular, or it finds a frame-to-frame strain above 5 % (no skin
-        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None."""
-        out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
+        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None; without it those
+        points' gradients are NaN (for the caller to fill: :meth:`FeatureTracker._refine` fits the neighbours'
+        displacements there only)."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        if fallback is None:
+            out = np.full((points.shape[0], 2, 2), np.nan)
+        else:
+            out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
+            if out.shape[0] != points.shape[0]:
+                raise InvalidInputError(f"fallback has {out.shape[0]} rows for {points.shape[0]} points")
         if self._gradient_half == 0 or out.shape[0] == 0:
             return out
         a, gx, gy = _image_and_gradient(prev_image, "prev_image")
@@ -293,8 +301,9 @@ class SubpixelRefiner:
         b = _as_gray(curr_image, "curr_image")
         if a.shape != b.shape:
             raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
-        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
+        if displacement.shape != points.shape:
+            raise InvalidInputError(f"displacement has shape {displacement.shape}, expected {points.shape}")
         g, ok = _affine_gradient_kernel(a, b, gx, gy, points, displacement, self._gradient_half)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
         out[ok] = g[ok]
@@ -347,23 +356,38 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
         g00, g01, g10, g11 = gradient[i, 0, 0], gradient[i, 0, 1], gradient[i, 1, 0], gradient[i, 1, 1]
+        # sum g g^T G (x - p) from the moments of gx^2, gx gy, gy^2 times ox and oy (float32 row sums)
         txx = txy = tyy = 0.0
-        bx = by = 0.0
+        mxx_x = mxx_y = mxy_x = mxy_y = myy_x = myy_y = 0.0
+        ox0 = c - half - px
         for y in range(r - half, r + half + 1):
             oy = y - py
-            for x in range(c - half, c + half + 1):
-                ox = x - px
-                ax = float(gx[y, x])
-                ay = float(gy[y, x])
-                txx += ax * ax
-                txy += ax * ay
-                tyy += ay * ay
-                # G (x - p), then g g^T of it
-                ux = g00 * ox + g01 * oy
-                uy = g10 * ox + g11 * oy
-                proj = ax * ux + ay * uy
-                bx += ax * proj
-                by += ay * proj
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            z = np.float32(0.0)
+            sxx = sxy = syy = sxx_x = sxy_x = syy_x = z
+            for k in range(2 * half + 1):
+                ox = np.float32(ox0 + k)
+                ax = gxr[k]
+                ay = gyr[k]
+                pxx, pxy, pyy = ax * ax, ax * ay, ay * ay
+                sxx += pxx
+                sxy += pxy
+                syy += pyy
+                sxx_x += pxx * ox
+                sxy_x += pxy * ox
+                syy_x += pyy * ox
+            txx += float(sxx)
+            txy += float(sxy)
+            tyy += float(syy)
+            mxx_x += float(sxx_x)
+            mxy_x += float(sxy_x)
+            myy_x += float(syy_x)
+            mxx_y += float(sxx) * oy
+            mxy_y += float(sxy) * oy
+            myy_y += float(syy) * oy
+        bx = g00 * mxx_x + g01 * mxx_y + g10 * mxy_x + g11 * mxy_y
+        by = g00 * mxy_x + g01 * mxy_y + g10 * myy_x + g11 * myy_y
         det = txx * tyy - txy * txy
         if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
             continue
@@ -397,21 +421,31 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
         ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, disp[i, 0], disp[i, 1])
         if not inside:
             continue
+        w00, w01 = np.float32((1.0 - fx) * (1.0 - fy)), np.float32(fx * (1.0 - fy))
+        w10, w11 = np.float32((1.0 - fx) * fy), np.float32(fx * fy)
         txx = txy = tyy = 0.0
         rr = 0.0
         for y in range(r - half, r + half + 1):
-            yy = y + iy
-            for x in range(c - half, c + half + 1):
-                xx = x + ix
-                v = ((b[yy, xx] * (1.0 - fx) + b[yy, xx + 1] * fx) * (1.0 - fy)
-                     + (b[yy + 1, xx] * (1.0 - fx) + b[yy + 1, xx + 1] * fx) * fy)
-                d = v - a[y, x]
-                ax = float(gx[y, x])
-                ay = float(gy[y, x])
-                txx += ax * ax
-                txy += ax * ay
-                tyy += ay * ay
-                rr += d * d
+            # float32 row sums (SIMD-wide), float64 window sums
+            b0 = b[y + iy, c - half + ix:c + half + ix + 2]
+            b1 = b[y + iy + 1, c - half + ix:c + half + ix + 2]
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            z = np.float32(0.0)
+            sxx = sxy = syy = srr = z
+            for k in range(2 * half + 1):
+                d = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11) - ar[k]
+                ax = gxr[k]
+                ay = gyr[k]
+                sxx += ax * ax
+                sxy += ax * ay
+                syy += ay * ay
+                srr += d * d
+            txx += float(sxx)
+            txy += float(sxy)
+            tyy += float(syy)
+            rr += float(srr)
         det = txx * tyy - txy * txy
         if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
             continue
@@ -429,7 +463,9 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
     The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
     first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
     gradient products (``gx^2, gx gy, gy^2`` times ``1, ox, oy, ox^2, ox oy, oy^2``) row by row. The first step
-    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp."""
+    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp.
+    Each row's sums are float32 (SIMD-wide; relative rounding ~1e-7 over a row of 63 pixels, 1e-8 of a
+    gradient of 0.01), the window's float64."""
     h, w = a.shape
     n = points.shape[0]
     out = np.zeros((n, 2, 2))
@@ -445,6 +481,13 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
         ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, dx, dy)
         if not inside:
             continue
+        oxs = np.empty(2 * half + 1, np.float32)
+        for k in range(2 * half + 1):
+            oxs[k] = np.float32(c - half + k - px)
+        w00 = np.float32((1.0 - fx) * (1.0 - fy))
+        w01 = np.float32(fx * (1.0 - fy))
+        w10 = np.float32((1.0 - fx) * fy)
+        w11 = np.float32(fx * fy)
         # sums of gx^2, gx gy, gy^2 (xx, xy, yy) times 1, ox, oy, ox^2, ox oy, oy^2 (0..5)
         xx0 = xx1 = xx2 = xx3 = xx4 = xx5 = 0.0
         xy0 = xy1 = xy2 = xy3 = xy4 = xy5 = 0.0
@@ -452,17 +495,21 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
         g0 = g1 = g2 = g3 = g4 = g5 = 0.0  # sum J e
         for y in range(r - half, r + half + 1):
             oy = y - py
-            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = 0.0  # this row's, times 1, ox, ox^2
-            ex0 = ex1 = ey0 = ey1 = 0.0  # this row's gx e, gy e, times 1, ox
+            z = np.float32(0.0)
+            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = z
+            ex0 = ex1 = ey0 = ey1 = z
             sy = y + iy
-            for x in range(c - half, c + half + 1):
-                ox = x - px
-                sx = x + ix
-                v = ((b[sy, sx] * (1.0 - fx) + b[sy, sx + 1] * fx) * (1.0 - fy)
-                     + (b[sy + 1, sx] * (1.0 - fx) + b[sy + 1, sx + 1] * fx) * fy)
-                err = a[y, x] - v
-                ax = float(gx[y, x])
-                ay = float(gy[y, x])
+            b0 = b[sy, c - half + ix:c + half + ix + 2]
+            b1 = b[sy + 1, c - half + ix:c + half + ix + 2]
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            for k in range(2 * half + 1):
+                ox = oxs[k]
+                v = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11)
+                err = ar[k] - v
+                ax = gxr[k]
+                ay = gyr[k]
                 pxx, pxy, pyy, ox2 = ax * ax, ax * ay, ay * ay, ox * ox
                 rxx0 += pxx
                 rxx1 += pxx * ox
@@ -479,10 +526,10 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
                 ey0 += ey
                 ey1 += ey * ox
             oy2 = oy * oy
-            xx0 += rxx0; xx1 += rxx1; xx2 += rxx0 * oy; xx3 += rxx2; xx4 += rxx1 * oy; xx5 += rxx0 * oy2  # noqa: E702
-            xy0 += rxy0; xy1 += rxy1; xy2 += rxy0 * oy; xy3 += rxy2; xy4 += rxy1 * oy; xy5 += rxy0 * oy2  # noqa: E702
-            yy0 += ryy0; yy1 += ryy1; yy2 += ryy0 * oy; yy3 += ryy2; yy4 += ryy1 * oy; yy5 += ryy0 * oy2  # noqa: E702
-            g0 += ex0; g1 += ey0; g2 += ex1; g3 += ex0 * oy; g4 += ey1; g5 += ey0 * oy  # noqa: E702
+            xx0 += float(rxx0); xx1 += float(rxx1); xx2 += float(rxx0) * oy; xx3 += float(rxx2); xx4 += float(rxx1) * oy; xx5 += float(rxx0) * oy2  # noqa: E702
+            xy0 += float(rxy0); xy1 += float(rxy1); xy2 += float(rxy0) * oy; xy3 += float(rxy2); xy4 += float(rxy1) * oy; xy5 += float(rxy0) * oy2  # noqa: E702
+            yy0 += float(ryy0); yy1 += float(ryy1); yy2 += float(ryy0) * oy; yy3 += float(ryy2); yy4 += float(ryy1) * oy; yy5 += float(ryy0) * oy2  # noqa: E702
+            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
         hess[0, 0], hess[0, 1], hess[0, 2], hess[0, 3], hess[0, 4], hess[0, 5] = xx0, xy0, xx1, xx2, xy1, xy2
         hess[1, 1], hess[1, 2], hess[1, 3], hess[1, 4], hess[1, 5] = yy0, xy1, xy2, yy1, yy2
         hess[2, 2], hess[2, 3], hess[2, 4], hess[2, 5] = xx3, xx4, xy3, xy4
@@ -507,30 +554,34 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
         if not inside:
             continue
         g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        one = np.float32(1.0)
         for y in range(r - half, r + half + 1):
             oy = y - py
-            ex0 = ex1 = ey0 = ey1 = 0.0
+            z = np.float32(0.0)
+            ex0 = ex1 = ey0 = ey1 = z
             bx = dx + q[0] + q[3] * oy
             by = y + dy + q[1] + q[5] * oy
-            for x in range(c - half, c + half + 1):
-                ox = x - px
-                qx = x + bx + q[2] * ox
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            for k in range(2 * half + 1):
+                ox = oxs[k]
+                qx = c - half + k + bx + q[2] * ox
                 qy = by + q[4] * ox
-                # >= 0 (the corners'): truncation is floor; min() guards a last-bit overshoot at the far edge
                 x0 = min(int(qx), w - 2)
                 y0 = min(int(qy), h - 2)
-                sfx = qx - x0
-                sfy = qy - y0
-                v = ((b[y0, x0] * (1.0 - sfx) + b[y0, x0 + 1] * sfx) * (1.0 - sfy)
-                     + (b[y0 + 1, x0] * (1.0 - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
-                err = a[y, x] - v
-                ex = float(gx[y, x]) * err
-                ey = float(gy[y, x]) * err
+                sfx = np.float32(qx - x0)
+                sfy = np.float32(qy - y0)
+                v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
+                     + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
+                err = ar[k] - v
+                ex = gxr[k] * err
+                ey = gyr[k] * err
                 ex0 += ex
                 ex1 += ex * ox
                 ey0 += ey
                 ey1 += ey * ox
-            g0 += ex0; g1 += ey0; g2 += ex1; g3 += ex0 * oy; g4 += ey1; g5 += ey0 * oy  # noqa: E702
+            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
         rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
         q = q + np.linalg.solve(hess, rhs)
         if np.all(np.isfinite(q)):
