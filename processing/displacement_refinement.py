@@ -179,13 +179,13 @@ class SubpixelRefiner:
         low = (std < self.params.min_contrast).view(np.uint8)
         integral = cv2.integral(low, sdepth=cv2.CV_32S)
         if self.params.normalize_sigma_mm is None:
-            return PreparedImage(image, integral)
+            return PreparedImage(image, integral, image_gradient(image))
         # 128 + 40 d / (std + 2), clipped, truncated to uint8 (in place: the same operations as written out).
         np.multiply(d, 40.0, out=d)
         np.divide(d, np.add(std, 2.0, out=std), out=d)
         np.add(d, 128.0, out=d)
         norm = np.clip(d, 0, 255, out=d).astype(np.uint8)
-        return PreparedImage(norm, integral)
+        return PreparedImage(norm, integral, image_gradient(norm))
 
     def refine(
         self,
@@ -202,6 +202,7 @@ class SubpixelRefiner:
         exceeds ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
         """
         prev_nc = curr_nc = None
+        prev_given = prev_image
         if isinstance(prev_image, PreparedImage):
             prev_image, prev_nc = prev_image.image, prev_image.no_contact_integral
         if isinstance(curr_image, PreparedImage):
@@ -221,7 +222,7 @@ class SubpixelRefiner:
         window = np.full(n, self._win, np.int64)
         if self._wide > self._win and ok.any():
             # Points the first window measures less precisely than the target: registered again, wider.
-            var = self._predicted_variance(prev_image, curr_image, points, disp, self._win)
+            var = self._predicted_variance(prev_given, curr_image, points, disp, self._win)
             again = np.flatnonzero(ok & ~(var <= self._target_var))
             if again.size:
                 d2, ok2, r2 = self._register(prev_image, curr_image, points[again], disp[again], init[again],
@@ -271,36 +272,38 @@ class SubpixelRefiner:
     def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
         """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
         variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
-        a = prev_image.astype(np.float32)
-        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
-        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-        return _predicted_variance_kernel(a, curr_image.astype(np.float32), gx, gy, np.ascontiguousarray(points),
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
+        return _predicted_variance_kernel(a, curr_image, gx, gy, np.ascontiguousarray(points),
                                           np.ascontiguousarray(disp), win // 2)
 
-
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
-                         fallback: np.ndarray) -> np.ndarray:
+                         fallback: np.ndarray | None = None) -> np.ndarray:
         """The skin's displacement gradient at each point, measured in the images: an affine Lucas-Kanade
         registration (Gauss-Newton, 2 steps, started from the point's displacement and no deformation) of a
         ``gradient_window_mm`` window around it; ``gradient[i, j, l] = d u_j / d x_l`` as
         :func:`~skinstretch.processing.global_motion.local_gradients`. ``fallback`` (n, 2, 2) is kept where the
         window leaves an image, the fit is singular, or it finds a frame-to-frame strain above 5 % (no skin
-        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None."""
-        out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
+        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None; without it those
+        points' gradients are NaN (for the caller to fill: :meth:`FeatureTracker._refine` fits the neighbours'
+        displacements there only)."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        if fallback is None:
+            out = np.full((points.shape[0], 2, 2), np.nan)
+        else:
+            out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
+            if out.shape[0] != points.shape[0]:
+                raise InvalidInputError(f"fallback has {out.shape[0]} rows for {points.shape[0]} points")
         if self._gradient_half == 0 or out.shape[0] == 0:
             return out
-        if isinstance(prev_image, PreparedImage):
-            prev_image = prev_image.image
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
         if isinstance(curr_image, PreparedImage):
             curr_image = curr_image.image
-        a = _as_gray(prev_image, "prev_image").astype(np.float32)
-        b = _as_gray(curr_image, "curr_image").astype(np.float32)
-        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        b = _as_gray(curr_image, "curr_image")
+        if a.shape != b.shape:
+            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
         displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
-        # Scharr, as OpenCV's Lucas-Kanade differentiates; /32 makes it grey levels per pixel.
-        gx = cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-        gy = cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
+        if displacement.shape != points.shape:
+            raise InvalidInputError(f"displacement has shape {displacement.shape}, expected {points.shape}")
         g, ok = _affine_gradient_kernel(a, b, gx, gy, points, displacement, self._gradient_half)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
         out[ok] = g[ok]
@@ -319,9 +322,7 @@ class SubpixelRefiner:
         pixel over 11 frames when the skin stretches, as much as all the noise). ``window_px``: the window each
         point was registered with (:attr:`RefinedDisplacements.window_px`; default the first window).
         """
-        if isinstance(prev_image, PreparedImage):
-            prev_image = prev_image.image
-        image = _as_gray(prev_image, "prev_image").astype(np.float32)
+        _, gx, gy = _image_and_gradient(prev_image, "prev_image")
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         gradient = np.asarray(gradient, dtype=np.float64).reshape(-1, 2, 2)
         if gradient.shape[0] != points.shape[0]:
@@ -334,12 +335,15 @@ class SubpixelRefiner:
             if halves.shape[0] != points.shape[0]:
                 raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
         # The derivative operator of OpenCV's pyramidal Lucas-Kanade (Scharr); its scale cancels.
-        gx = cv2.Scharr(image, cv2.CV_32F, 1, 0)
-        gy = cv2.Scharr(image, cv2.CV_32F, 0, 1)
         return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient), halves)
 
 
-@numba.njit(cache=True, nogil=True)
+#: The kernels below sum over windows of up to 63 x 63 pixels in any order (``reassoc``: vectorised sums, rounding
+#: differences ~1e-15 relative) and keep IEEE NaN and infinity semantics (a failed fit stays NaN, then rejected).
+_FAST = {"reassoc", "contract"}
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
     or T is singular)."""
@@ -352,23 +356,38 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
         g00, g01, g10, g11 = gradient[i, 0, 0], gradient[i, 0, 1], gradient[i, 1, 0], gradient[i, 1, 1]
+        # sum g g^T G (x - p) from the moments of gx^2, gx gy, gy^2 times ox and oy (float32 row sums)
         txx = txy = tyy = 0.0
-        bx = by = 0.0
+        mxx_x = mxx_y = mxy_x = mxy_y = myy_x = myy_y = 0.0
+        ox0 = c - half - px
         for y in range(r - half, r + half + 1):
             oy = y - py
-            for x in range(c - half, c + half + 1):
-                ox = x - px
-                ax = float(gx[y, x])
-                ay = float(gy[y, x])
-                txx += ax * ax
-                txy += ax * ay
-                tyy += ay * ay
-                # G (x - p), then g g^T of it
-                ux = g00 * ox + g01 * oy
-                uy = g10 * ox + g11 * oy
-                proj = ax * ux + ay * uy
-                bx += ax * proj
-                by += ay * proj
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            z = np.float32(0.0)
+            sxx = sxy = syy = sxx_x = sxy_x = syy_x = z
+            for k in range(2 * half + 1):
+                ox = np.float32(ox0 + k)
+                ax = gxr[k]
+                ay = gyr[k]
+                pxx, pxy, pyy = ax * ax, ax * ay, ay * ay
+                sxx += pxx
+                sxy += pxy
+                syy += pyy
+                sxx_x += pxx * ox
+                sxy_x += pxy * ox
+                syy_x += pyy * ox
+            txx += float(sxx)
+            txy += float(sxy)
+            tyy += float(syy)
+            mxx_x += float(sxx_x)
+            mxy_x += float(sxy_x)
+            myy_x += float(syy_x)
+            mxx_y += float(sxx) * oy
+            mxy_y += float(sxy) * oy
+            myy_y += float(syy) * oy
+        bx = g00 * mxx_x + g01 * mxx_y + g10 * mxy_x + g11 * mxy_y
+        by = g00 * mxy_x + g01 * mxy_y + g10 * myy_x + g11 * myy_y
         det = txx * tyy - txy * txy
         if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
             continue
@@ -378,20 +397,18 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear(image, x, y):
-    """``image`` at (x, y) by bilinear interpolation; NaN where its 2 x 2 neighbourhood leaves the image."""
-    h, w = image.shape
-    x0 = int(np.floor(x))
-    y0 = int(np.floor(y))
-    if x0 < 0 or y0 < 0 or x0 + 1 >= w or y0 + 1 >= h:
-        return np.nan
-    fx = x - x0
-    fy = y - y0
-    return ((image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx) * (1.0 - fy)
-            + (image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx) * fy)
+def _shifted_window(b, c, r, half, dx, dy):
+    """The window of side 2 half + 1 around pixel (c, r) shifted by (dx, dy), for bilinear sampling of ``b``: its
+    integer offset (ix, iy), fractions (fx, fy) (the same for every pixel of the window), and whether every
+    sample's 2 x 2 neighbourhood lies in ``b``."""
+    h, w = b.shape
+    ix = int(np.floor(dx))
+    iy = int(np.floor(dy))
+    inside = c - half + ix >= 0 and r - half + iy >= 0 and c + half + ix + 1 < w and r + half + iy + 1 < h
+    return ix, iy, dx - ix, dy - iy, inside
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
     """Per point, trace of s^2 T^-1 over its window: T the structure tensor of ``a``, s^2 the variance of the
     residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either image or T is singular."""
@@ -401,82 +418,173 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
         c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
+        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, disp[i, 0], disp[i, 1])
+        if not inside:
+            continue
+        w00, w01 = np.float32((1.0 - fx) * (1.0 - fy)), np.float32(fx * (1.0 - fy))
+        w10, w11 = np.float32((1.0 - fx) * fy), np.float32(fx * fy)
         txx = txy = tyy = 0.0
         rr = 0.0
-        inside = True
         for y in range(r - half, r + half + 1):
-            for x in range(c - half, c + half + 1):
-                v = _bilinear(b, x + disp[i, 0], y + disp[i, 1])
-                if np.isnan(v):
-                    inside = False
-                    break
-                d = v - a[y, x]
-                ax = float(gx[y, x])
-                ay = float(gy[y, x])
-                txx += ax * ax
-                txy += ax * ay
-                tyy += ay * ay
-                rr += d * d
-            if not inside:
-                break
+            # float32 row sums (SIMD-wide), float64 window sums
+            b0 = b[y + iy, c - half + ix:c + half + ix + 2]
+            b1 = b[y + iy + 1, c - half + ix:c + half + ix + 2]
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            z = np.float32(0.0)
+            sxx = sxy = syy = srr = z
+            for k in range(2 * half + 1):
+                d = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11) - ar[k]
+                ax = gxr[k]
+                ay = gyr[k]
+                sxx += ax * ax
+                sxy += ax * ay
+                syy += ay * ay
+                srr += d * d
+            txx += float(sxx)
+            txy += float(sxy)
+            tyy += float(syy)
+            rr += float(srr)
         det = txx * tyy - txy * txy
-        if not inside or det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
+        if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
             continue
         s2 = rr / ((2 * half + 1) ** 2 - 2)
         out[i] = s2 * (txx + tyy) / det
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
     """Per point, G of the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p
     onto ``b`` (2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0); ok False where the window
-    leaves an image or the 6 x 6 system is singular."""
+    leaves an image or the 6 x 6 system is singular.
+
+    The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
+    first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
+    gradient products (``gx^2, gx gy, gy^2`` times ``1, ox, oy, ox^2, ox oy, oy^2``) row by row. The first step
+    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp.
+    Each row's sums are float32 (SIMD-wide; relative rounding ~1e-7 over a row of 63 pixels, 1e-8 of a
+    gradient of 0.01), the window's float64."""
     h, w = a.shape
     n = points.shape[0]
     out = np.zeros((n, 2, 2))
     ok = np.zeros(n, np.bool_)
+    hess = np.zeros((6, 6))
+    rhs = np.zeros(6)
     for i in range(n):
         px, py = points[i, 0], points[i, 1]
         c, r = int(np.round(px)), int(np.round(py))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
-        q = np.zeros(6)  # delta_x, delta_y, G00, G01, G10, G11
-        good = True
-        for _ in range(2):
-            hess = np.zeros((6, 6))
-            rhs = np.zeros(6)
-            jac = np.zeros(6)
-            for y in range(r - half, r + half + 1):
-                oy = y - py
-                for x in range(c - half, c + half + 1):
-                    ox = x - px
-                    v = _bilinear(b, x + disp[i, 0] + q[0] + q[2] * ox + q[3] * oy,
-                                  y + disp[i, 1] + q[1] + q[4] * ox + q[5] * oy)
-                    if np.isnan(v):
-                        good = False
-                        break
-                    err = a[y, x] - v
-                    ax = float(gx[y, x])
-                    ay = float(gy[y, x])
-                    jac[0], jac[1], jac[2], jac[3], jac[4], jac[5] = ax, ay, ax * ox, ax * oy, ay * ox, ay * oy
-                    for k in range(6):
-                        rhs[k] += jac[k] * err
-                        for l in range(k, 6):
-                            hess[k, l] += jac[k] * jac[l]
-                if not good:
-                    break
-            if not good:
-                break
-            for k in range(6):
-                for l in range(k):
-                    hess[k, l] = hess[l, k]
-            scale = hess[0, 0] + hess[1, 1]
-            if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
-                good = False
-                break
-            q += np.linalg.solve(hess, rhs)
-        if good and np.all(np.isfinite(q)):
+        dx, dy = disp[i, 0], disp[i, 1]
+        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, dx, dy)
+        if not inside:
+            continue
+        oxs = np.empty(2 * half + 1, np.float32)
+        for k in range(2 * half + 1):
+            oxs[k] = np.float32(c - half + k - px)
+        w00 = np.float32((1.0 - fx) * (1.0 - fy))
+        w01 = np.float32(fx * (1.0 - fy))
+        w10 = np.float32((1.0 - fx) * fy)
+        w11 = np.float32(fx * fy)
+        # sums of gx^2, gx gy, gy^2 (xx, xy, yy) times 1, ox, oy, ox^2, ox oy, oy^2 (0..5)
+        xx0 = xx1 = xx2 = xx3 = xx4 = xx5 = 0.0
+        xy0 = xy1 = xy2 = xy3 = xy4 = xy5 = 0.0
+        yy0 = yy1 = yy2 = yy3 = yy4 = yy5 = 0.0
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0  # sum J e
+        for y in range(r - half, r + half + 1):
+            oy = y - py
+            z = np.float32(0.0)
+            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = z
+            ex0 = ex1 = ey0 = ey1 = z
+            sy = y + iy
+            b0 = b[sy, c - half + ix:c + half + ix + 2]
+            b1 = b[sy + 1, c - half + ix:c + half + ix + 2]
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            for k in range(2 * half + 1):
+                ox = oxs[k]
+                v = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11)
+                err = ar[k] - v
+                ax = gxr[k]
+                ay = gyr[k]
+                pxx, pxy, pyy, ox2 = ax * ax, ax * ay, ay * ay, ox * ox
+                rxx0 += pxx
+                rxx1 += pxx * ox
+                rxx2 += pxx * ox2
+                rxy0 += pxy
+                rxy1 += pxy * ox
+                rxy2 += pxy * ox2
+                ryy0 += pyy
+                ryy1 += pyy * ox
+                ryy2 += pyy * ox2
+                ex, ey = ax * err, ay * err
+                ex0 += ex
+                ex1 += ex * ox
+                ey0 += ey
+                ey1 += ey * ox
+            oy2 = oy * oy
+            xx0 += float(rxx0); xx1 += float(rxx1); xx2 += float(rxx0) * oy; xx3 += float(rxx2); xx4 += float(rxx1) * oy; xx5 += float(rxx0) * oy2  # noqa: E702
+            xy0 += float(rxy0); xy1 += float(rxy1); xy2 += float(rxy0) * oy; xy3 += float(rxy2); xy4 += float(rxy1) * oy; xy5 += float(rxy0) * oy2  # noqa: E702
+            yy0 += float(ryy0); yy1 += float(ryy1); yy2 += float(ryy0) * oy; yy3 += float(ryy2); yy4 += float(ryy1) * oy; yy5 += float(ryy0) * oy2  # noqa: E702
+            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
+        hess[0, 0], hess[0, 1], hess[0, 2], hess[0, 3], hess[0, 4], hess[0, 5] = xx0, xy0, xx1, xx2, xy1, xy2
+        hess[1, 1], hess[1, 2], hess[1, 3], hess[1, 4], hess[1, 5] = yy0, xy1, xy2, yy1, yy2
+        hess[2, 2], hess[2, 3], hess[2, 4], hess[2, 5] = xx3, xx4, xy3, xy4
+        hess[3, 3], hess[3, 4], hess[3, 5] = xx5, xy4, xy5
+        hess[4, 4], hess[4, 5] = yy3, yy4
+        hess[5, 5] = yy5
+        for k in range(6):
+            for l in range(k):
+                hess[k, l] = hess[l, k]
+        scale = hess[0, 0] + hess[1, 1]
+        if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
+            continue
+        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+        q = np.linalg.solve(hess, rhs)  # delta_x, delta_y, G00, G01, G10, G11
+        # Second step along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
+        for cy in (r - half, r + half):
+            for cx in (c - half, c + half):
+                qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
+                qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
+                if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
+                    inside = False
+        if not inside:
+            continue
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        one = np.float32(1.0)
+        for y in range(r - half, r + half + 1):
+            oy = y - py
+            z = np.float32(0.0)
+            ex0 = ex1 = ey0 = ey1 = z
+            bx = dx + q[0] + q[3] * oy
+            by = y + dy + q[1] + q[5] * oy
+            ar = a[y, c - half:c + half + 1]
+            gxr = gx[y, c - half:c + half + 1]
+            gyr = gy[y, c - half:c + half + 1]
+            for k in range(2 * half + 1):
+                ox = oxs[k]
+                qx = c - half + k + bx + q[2] * ox
+                qy = by + q[4] * ox
+                x0 = min(int(qx), w - 2)
+                y0 = min(int(qy), h - 2)
+                sfx = np.float32(qx - x0)
+                sfy = np.float32(qy - y0)
+                v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
+                     + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
+                err = ar[k] - v
+                ex = gxr[k] * err
+                ey = gyr[k] * err
+                ex0 += ex
+                ex1 += ex * ox
+                ey0 += ey
+                ey1 += ey * ox
+            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
+        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+        q = q + np.linalg.solve(hess, rhs)
+        if np.all(np.isfinite(q)):
             out[i, 0, 0], out[i, 0, 1], out[i, 1, 0], out[i, 1, 1] = q[2], q[3], q[4], q[5]
             ok[i] = True
     return out, ok
@@ -488,6 +596,7 @@ class PreparedImage:
 
     image: np.ndarray
     no_contact_integral: np.ndarray  # int32 integral image of the no-contact mask
+    gradient: tuple[np.ndarray, np.ndarray] | None = None  # float32 (gx, gy) of ``image`` (:func:`image_gradient`)
 
 
 def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.ndarray:
@@ -508,6 +617,24 @@ def _window_fraction_kernel(integral, points, half):
         total = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
         out[i] = total / max((r1 - r0) * (c1 - c0), 1)
     return out
+
+
+def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grey-level gradient (gx, gy), float32 grey levels per pixel, of a uint8 image: Scharr, as OpenCV's
+    Lucas-Kanade differentiates (/32). Computed once per frame by :meth:`SubpixelRefiner.prepare`."""
+    a = image.astype(np.float32)
+    return (cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0), cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0))
+
+
+def _image_and_gradient(image, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(uint8 image, gx, gy) of a :class:`PreparedImage` (its stored gradient) or of a raw image."""
+    if isinstance(image, PreparedImage):
+        if image.gradient is not None:
+            return image.image, image.gradient[0], image.gradient[1]
+        image = image.image
+    image = _as_gray(image, name)
+    gx, gy = image_gradient(image)
+    return image, gx, gy
 
 
 def _as_gray(image: np.ndarray, name: str) -> np.ndarray:

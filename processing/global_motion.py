@@ -128,21 +128,25 @@ def local_predictions(
     return _knn_median(points, matched_points, matched_displacements, k)
 
 
-def local_gradients(points: np.ndarray, displacements: np.ndarray, *, neighbours: int = 10) -> np.ndarray:
+def local_gradients(points: np.ndarray, displacements: np.ndarray, *, neighbours: int = 10,
+                    at: np.ndarray | None = None) -> np.ndarray:
     """The displacement gradient at each of ``points`` from an affine least-squares fit of its ``neighbours``
     nearest points' ``displacements`` (itself included): ``out[i, j, l] = d u_j / d x_l``, (n, 2, 2). Zero where
-    the fit is degenerate (fewer than 3 points, collinear neighbours)."""
+    the fit is degenerate (fewer than 3 points, collinear neighbours). ``at`` (indices into ``points``): only at
+    those points, (len(at), 2, 2), fitted to all of them."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     displacements = np.asarray(displacements, dtype=np.float64).reshape(-1, 2)
     if points.shape != displacements.shape:
         raise InvalidInputError(f"points {points.shape} and displacements {displacements.shape} differ")
-    n = points.shape[0]
+    where = points if at is None else points[np.asarray(at, dtype=np.int64).reshape(-1)]
+    n = where.shape[0]
     out = np.zeros((n, 2, 2))
-    if n < 3:
+    if points.shape[0] < 3 or n == 0:
         return out
-    k = min(int(neighbours), n)
-    _, idx = cKDTree(points).query(points, k=k)
-    rel = points[idx] - points[:, None, :]  # (n, k, 2)
+    k = min(int(neighbours), points.shape[0])
+    _, idx = cKDTree(points).query(where, k=k)
+    idx = idx.reshape(n, k)
+    rel = points[idx] - where[:, None, :]  # (n, k, 2)
     a = np.concatenate([np.ones((n, k, 1)), rel], axis=2)  # (n, k, 3): u = u0 + G rel
     ata = np.einsum("nki,nkj->nij", a, a)
     atb = np.einsum("nki,nkj->nij", a, displacements[idx])  # (n, 3, 2)

@@ -516,7 +516,10 @@ class FeatureTracker:
             sel = np.flatnonzero(good)
             windows = np.concatenate([win, cand_win])[sel]
             # The gradient measured in each point's own window; the neighbours' fit where that fails.
-            grads = self.refiner.window_gradients(a, b, points[sel], disp[sel], local_gradients(points[sel], disp[sel]))
+            grads = self.refiner.window_gradients(a, b, points[sel], disp[sel])
+            failed = np.flatnonzero(np.isnan(grads[:, 0, 0]))
+            if failed.size:
+                grads[failed] = local_gradients(points[sel], disp[sel], at=failed)
             bias = self.refiner.deformation_bias(a, points[sel], grads, windows)
             # A correction as large as the consistency bound comes from a window with texture in one direction
             # only (parallel ridges, no landmark), where it is ill-determined: left alone.

@@ -130,3 +130,12 @@ def test_a_uniform_strain_is_exact_whatever_the_spacing(seed, spacing, e):
     if r.points.shape[0] > 1:
         gaps = np.hypot(*(r.points[:, None] - r.points[None]).transpose(2, 0, 1))
         assert gaps[np.triu_indices(r.points.shape[0], 1)].min() >= spacing
+
+
+def test_local_gradients_at_some_points_are_those_rows_of_all():
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0, 300, (40, 2))
+    d = rng.normal(0, 0.5, (40, 2))
+    at = np.array([3, 17, 39])
+    np.testing.assert_array_equal(local_gradients(p, d, at=at), local_gradients(p, d)[at])
+    assert local_gradients(p, d, at=np.zeros(0, np.int64)).shape == (0, 2, 2)
