@@ -29,7 +29,7 @@ kept under :data:`MIN_FRACTION_KEPT` is warned about too.
 
 Everything is read from the results file as it is being written, a frame or a block of rows at a time.
 Hand-written: following points through a measured motion and testing them against a triangulated region is
-specific to this analysis' tables (scipy's Delaunay and k-d tree do the geometry).
+specific to this analysis' tables (scipy's k-d tree and the strain mesh's own Delaunay do the geometry).
 """
 
 from __future__ import annotations
@@ -42,9 +42,10 @@ from typing import Any, Protocol
 import cv2
 import h5py
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
 from skinstretch.experiments.results_file import MeshDensity, PairStatus
+from skinstretch.processing.delaunay import triangulate_points
 from skinstretch.processing.global_motion import local_predictions
 
 __all__ = ["MeshDensity", "FractionKept", "SkinPointMotion", "mesh_density", "fraction_kept", "MeasuredMotion",
@@ -244,14 +245,11 @@ _REGION_PX = 2.0  # the in-view region is drawn at this resolution
 def _region(xy: np.ndarray, max_edge: float):
     """The triangles of the Delaunay triangulation of ``xy`` without an edge longer than ``max_edge``, drawn as a
     mask (one cell every :data:`_REGION_PX` pixels) and the mask's origin; None without a triangle."""
-    xy = np.unique(xy[np.all(np.isfinite(xy), axis=1)], axis=0)
-    if xy.shape[0] < 3:
+    xy = np.ascontiguousarray(xy[np.all(np.isfinite(xy), axis=1)], dtype=np.float64)
+    simplices = triangulate_points(xy)  # ours: ~10x quicker than Qhull on a frame's features; duplicates skipped
+    if simplices.shape[0] == 0:  # fewer than 3 distinct points, or collinear
         return None
-    try:
-        tri = Delaunay(xy)
-    except QhullError:  # collinear
-        return None
-    p = xy[tri.simplices]
+    p = xy[simplices]
     longest = np.max(np.hypot(*(p - np.roll(p, 1, axis=1)).transpose(2, 0, 1)), axis=1)
     p = p[longest <= max_edge]
     if p.shape[0] == 0:
@@ -260,7 +258,7 @@ def _region(xy: np.ndarray, max_edge: float):
     size = np.ceil((xy.max(axis=0) - origin) / _REGION_PX).astype(int) + 2
     mask = np.zeros((size[1], size[0]), np.uint8)
     corners = np.round((p - origin) / _REGION_PX).astype(np.int32)
-    cv2.fillPoly(mask, list(corners), 1)
+    cv2.fillPoly(mask, corners, 1)
     return mask, origin
 
 
