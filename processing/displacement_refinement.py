@@ -174,7 +174,9 @@ class SubpixelRefiner:
         f = image.astype(np.float32)
         d = f - _smooth_half(f, sigma)
         sq = np.multiply(d, d, out=f)
-        std = np.sqrt(_smooth_half(sq, sigma), out=sq)
+        var = _smooth_half(sq, sigma)
+        # A flat field (glass, a saturated patch) smooths to a rounding error either side of 0: no NaN from it.
+        std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
         # FTIR: skin out of contact shows no ridges, a flat bright field (seed 3.1).
         low = (std < self.params.min_contrast).view(np.uint8)
         integral = cv2.integral(low, sdepth=cv2.CV_32S)

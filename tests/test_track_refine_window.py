@@ -2,9 +2,12 @@
 the target (clean parallel ridges: the displacement along them is poorly determined) are registered again wider;
 windows with texture in every direction keep the first one."""
 
+import warnings
+
 import cv2
 import numpy as np
 
+from skinstretch.experiments.viewer.live_analysis import _SyntheticPrint
 from skinstretch.processing.displacement_refinement import SubpixelParams, SubpixelRefiner
 from skinstretch.processing.pixel_scale import Calibration
 
@@ -146,3 +149,16 @@ def test_window_gradients_measure_an_affine_field_as_the_plain_fit_does():
     assert np.isnan(out[3]).all()
     fallback = np.full((4, 2, 2), 0.5)
     np.testing.assert_array_equal(r.window_gradients(a, b, pts, disp, fallback)[3], fallback[3])
+
+
+def test_a_flat_field_prepares_without_nan():
+    """Flat glass round a contact: its local variance rounds either side of 0; the normalised image is the
+    middle grey or brighter there (a NaN cast to 0 before), and the gradients are finite."""
+    frame = _SyntheticPrint().frame(0)  # ridges inside an ellipse, flat 230 outside
+    flat = frame == 230
+    refiner = SubpixelRefiner(calibration=Calibration(px_per_mm=62.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        prepared = refiner.prepare(frame)
+    assert (prepared.image[flat] >= 128).all()
+    assert all(np.isfinite(g).all() for g in prepared.gradient)

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from skinstretch.drivers.errors import SessionFileError
 from skinstretch.drivers.session_file import SessionWriter, write_session
 from skinstretch.experiments.results_file import read_results
-from skinstretch.experiments.viewer.live_analysis import LiveAnalyzer
+from skinstretch.experiments.viewer.live_analysis import LiveAnalyzer, _SyntheticPrint, warm_up
 from skinstretch.experiments.viewer.live_check import live_accuracy
 from skinstretch.experiments.viewer.server import TOKEN_COOKIE, ViewerState, create_app
 from skinstretch.experiments.viewer.session_data import (
@@ -115,7 +115,7 @@ def client(analysed):
 
 
 def test_every_route_needs_the_token(client):
-    for url in ("/", "/api/info", "/static/viewer.js", "/api/s/1/frame/0.png", "/api/s/1/overlay/0", "/api/events"):
+    for url in ("/", "/api/info", "/static/viewer.js", "/api/s/1/frame/0.bmp", "/api/s/1/overlay/0", "/api/events"):
         assert client.get(url).status_code == 403, url
         assert client.get(url + ("&" if "?" in url else "?") + "token=wrong").status_code == 403, url
     page = client.get(f"/?token={TOKEN}")
@@ -127,22 +127,22 @@ def test_every_route_needs_the_token(client):
 def test_serves_this_sessions_frames_losslessly(client, sim_session):
     info = client.get(f"/api/info?token={TOKEN}").json()
     assert info["n_frames"] == 20 and info["has_truth"] and info["results"]["method"] == "features"
-    png = client.get(f"/api/s/{info['sid']}/frame/7.png?token={TOKEN}")
-    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    image = client.get(f"/api/s/{info['sid']}/frame/7.bmp?token={TOKEN}")
+    assert image.status_code == 200 and image.headers["content-type"] == "image/bmp"
     # Compared with the frames written (a second handle on a file this process holds open in SWMR mode reads
     # wrong chunks with this HDF5: the viewer opens each session once).
-    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED),
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(image.content, np.uint8), cv2.IMREAD_UNCHANGED),
                                   sim_session.frames[7])
     ov = client.get(f"/api/s/{info['sid']}/overlay/7?span=5&token={TOKEN}").json()
     assert ov["source"] == "results" and ov["mesh"]["span"] == 5 and ov["truth"] is not None
-    assert client.get(f"/api/s/{info['sid']}/frame/20.png?token={TOKEN}").status_code == 404
-    assert client.get(f"/api/s/{info['sid'] + 1}/frame/0.png?token={TOKEN}").status_code == 404
+    assert client.get(f"/api/s/{info['sid']}/frame/20.bmp?token={TOKEN}").status_code == 404
+    assert client.get(f"/api/s/{info['sid'] + 1}/frame/0.bmp?token={TOKEN}").status_code == 404
 
 
 @pytest.mark.parametrize("url", [
     "/static/../session.h5", "/static/%2e%2e/%2e%2e/session.h5", "/static/..%2f..%2fsession.h5",
     "/static//etc/passwd", "/static/%2fetc%2fpasswd", "/api/s/1/frame/..%2f..%2fsession.h5",
-    "/session.h5", "/analysis/results.h5", "/api/s/1/frame/-1.png", "/api/s/1/overlay/../../other.h5",
+    "/session.h5", "/analysis/results.h5", "/api/s/1/frame/-1.bmp", "/api/s/1/overlay/../../other.h5",
 ])
 def test_path_traversal_and_other_files_are_refused(client, url):
     r = client.get(url + ("&" if "?" in url else "?") + f"token={TOKEN}")
@@ -156,7 +156,7 @@ def test_other_sessions_cannot_be_asked_for(client, analysed, sim_session):
     info = client.get(f"/api/info?token={TOKEN}&path={other}&session={other}").json()
     assert info["n_frames"] == 20 and info["path_name"] == "session.h5"
     for query in (f"session={other}", f"path={other}", f"file={other}"):
-        r = client.get(f"/api/s/{info['sid']}/frame/0.png?token={TOKEN}&{query}")
+        r = client.get(f"/api/s/{info['sid']}/frame/0.bmp?token={TOKEN}&{query}")
         assert r.status_code == 200
         frame = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(frame, sim_session.frames[0])  # this session's frame, not the other's
@@ -247,6 +247,17 @@ def test_live_analysis_of_a_recording_matches_the_truth(tmp_path, sim_session):
     assert acc.displacement_rmse_px < 0.1
     assert acc.area_change_rmse < 0.005
     assert all(o.tails for o in overlays[2:])
+
+
+def test_the_warm_up_runs_the_whole_live_analysis_on_a_made_up_print():
+    """The warm-up (loading the compiled kernels before a recording's first frame) goes through extraction,
+    matching, refinement and the strain mesh, and the flat glass around its contact leaves no NaN."""
+    analyzer = LiveAnalyzer(_SyntheticPrint())
+    first, second = analyzer.analyse_frame(0), analyzer.analyse_frame(1)
+    assert len(first.features.x) >= 10 and first.mesh is None
+    assert second.mesh is not None and len(second.mesh.change) >= 10
+    assert np.isfinite(second.mesh.change).all() and np.isfinite(second.arrows).all()
+    assert warm_up(frames=2) > 0
 
 
 def test_state_follows_the_newest_trial_and_picks_up_results(tmp_path, analysed, sim_session):

@@ -189,7 +189,7 @@ def _stepping(scene, work: Path) -> BenchTable:
                  "page errors"],
         rows=[[int(ms.size), float(np.median(ms)), float(np.percentile(ms, 95)), float(ms.max()),
                int((ms > 200).sum()), (n - 1) / wall, len(errors)]],
-        notes=["ms = from the page asking for a frame to its image and overlays drawn (PNG frame + JSON overlays "
+        notes=["ms = from the page asking for a frame to its image and overlays drawn (BMP frame + JSON overlays "
                "from the local server; each frame seen for the first time, the page fetching the next frame in the "
                "stepping direction while it shows the current one)."],
     )

@@ -112,7 +112,7 @@ function buildLegend() {
 async function imageFor(sid, k) {
   const key = `${sid}/${k}`;
   if (S.images.has(key)) return S.images.get(key);
-  const p = fetch(`api/s/${sid}/frame/${k}.png`).then((r) => {
+  const p = fetch(`api/s/${sid}/frame/${k}.bmp`).then((r) => {
     if (!r.ok) throw new Error(`frame ${k}: ${r.status}`);
     return r.blob();
   }).then((b) => createImageBitmap(b));
