@@ -64,6 +64,17 @@ def test_deep_stack_is_mapped_from_its_whole_range_and_keeps_its_metadata(tmp_pa
         assert f"[{lo:g}, {hi:g}]" in s.metadata["source"]["conversion"]
 
 
+@pytest.mark.parametrize("compression", ["lzw", "zlib", "zstd"])
+def test_compressed_tiff_stacks_import_exactly(tmp_path, compression):
+    """Microscopes and OpenCV write compressed TIFFs (OpenCV: LZW by default): they import bit for bit."""
+    frames = _frames(4)
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, frames, compression=compression, photometric="minisblack")
+    r = import_frames(path, tmp_path / "s.h5", fps=50.0, px_per_mm=62.0)
+    with open_session(r.path) as s:
+        np.testing.assert_array_equal(s.read_frames(), frames)
+
+
 def test_image_folder_needs_a_rate_and_a_scale_named_as_flags(tmp_path, capsys):
     folder = tmp_path / "frames"
     folder.mkdir()
