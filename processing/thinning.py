@@ -10,6 +10,9 @@ may be deleted. The Zhang-Suen passes run on bit-packed rows, 64 pixels per mach
 conditions written as bitwise logic (about 10 times faster than a per-pixel table lookup on a 640 x 484 frame);
 the staircase passes, which are sequential, look the table up per skeleton pixel, found from the packed words one
 set bit at a time. Packing and unpacking are numpy's packbits / unpackbits.
+
+Hand-written because no library has these rules: ``cv2.ximgproc.thinning`` (Zhang-Suen, Guo-Hall) and
+``skimage.morphology.thin`` / ``skeletonize`` leave out the Ritter-Wilson conditions and the staircase passes.
 """
 
 from __future__ import annotations
