@@ -139,10 +139,11 @@ class _DepthMap:
         out = (image.astype(np.float32) - np.float32(self.lo)) * np.float32(scale)
         return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
-    def describe(self, dtype: np.dtype) -> str:
+    def describe(self, dtype: np.dtype, *, colour: bool) -> str:
+        grey = "colour to grey by the luma rule (BT.601), " if colour else ""
         if self.identity:
-            return "8-bit grey, unchanged"
-        return f"{dtype} mapped linearly from [{self.lo:g}, {self.hi:g}] (the whole file's range) to [0, 255]"
+            return f"{grey}8-bit, unchanged" if colour else "8-bit grey, unchanged"
+        return f"{grey}{dtype} mapped linearly from [{self.lo:g}, {self.hi:g}] (the whole file's range) to [0, 255]"
 
 
 def _depth_map(reader: FrameReader, crop: Crop | None, progress: bool) -> _DepthMap:
@@ -262,7 +263,7 @@ def import_frames(
         if nominal_fps is None:  # times from the file and no declared rate: derived once they are known
             nominal_fps = 1.0
         depth = _depth_map(reader, crop, progress)
-        conversion = depth.describe(reader.dtype)
+        conversion = depth.describe(reader.dtype, colour=reader.colour)
         source_record: dict[str, Any] = {
             **reader.describe(),
             "times": time_source,

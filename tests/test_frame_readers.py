@@ -48,6 +48,7 @@ def test_colour_video_becomes_bt601_luma(tmp_path):
     path = write_video(tmp_path / "c.mkv", rgb, pix_fmt="bgr0", in_format="rgb24")
     with VideoFile(path) as v:
         got = np.stack([f.image for f in v.frames()])
+        assert v.colour and v.describe()["colour"] is True
     want = np.stack([cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in rgb])
     assert np.abs(got.astype(int) - want).max() <= 1
 
@@ -95,11 +96,12 @@ def test_plain_and_colour_stacks_and_the_axes_refused(tmp_path):
     plain = tmp_path / "plain.tif"
     tifffile.imwrite(plain, _frames(4), photometric="minisblack")
     with TiffStack(plain) as t:
-        assert t.fps is None and t.px_per_mm is None and math.isnan(t.read(1).time_s)
+        assert t.fps is None and t.px_per_mm is None and math.isnan(t.read(1).time_s) and not t.colour
     rgb = np.random.default_rng(2).integers(0, 256, (4, 8, 10, 3), dtype=np.uint8)
     tifffile.imwrite(tmp_path / "rgb.tif", rgb, photometric="rgb")
     with TiffStack(tmp_path / "rgb.tif") as t:
         np.testing.assert_array_equal(t.read(2).image, cv2.cvtColor(rgb[2], cv2.COLOR_RGB2GRAY))
+        assert t.colour
     tifffile.imwrite(tmp_path / "tc.ome.tif", np.zeros((3, 2, 8, 10), np.uint8), ome=True, metadata={"axes": "TCYX"})
     with pytest.raises(FrameFileError, match="tc.ome.tif.*TCYX.*more than one stack axis"):
         TiffStack(tmp_path / "tc.ome.tif")
@@ -117,7 +119,7 @@ def test_folder_is_read_in_natural_order(tmp_path_factory, numbers):
     with ImageFolder(folder) as f:
         assert [p.name for p in f.paths] == [f"frame{n}.png" for n in sorted(numbers)]
         assert [int(fr.image[0, 0]) for fr in f.frames()] == [n % 256 for n in sorted(numbers)]
-        assert f.fps is None and f.px_per_mm is None
+        assert f.fps is None and f.px_per_mm is None and not f.colour
 
 
 def test_folder_errors_name_the_file(tmp_path):

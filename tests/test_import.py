@@ -75,6 +75,26 @@ def test_compressed_tiff_stacks_import_exactly(tmp_path, compression):
         np.testing.assert_array_equal(s.read_frames(), frames)
 
 
+def test_the_session_says_how_colour_and_grey_sources_were_converted(tmp_path):
+    """A colour source is stored as its luma and its session says so; a grey 8-bit one is stored unchanged."""
+    rgb = np.random.default_rng(3).integers(0, 256, (3, 12, 16, 3), dtype=np.uint8)
+    folder = tmp_path / "colour"
+    folder.mkdir()
+    for k, f in enumerate(rgb):
+        cv2.imwrite(str(folder / f"c{k}.png"), f[:, :, ::-1])  # OpenCV writes BGR
+    r = import_frames(folder, tmp_path / "c.h5", fps=30.0, px_per_mm=62.0)
+    assert r.conversion == "colour to grey by the luma rule (BT.601), 8-bit, unchanged"
+    with open_session(r.path) as s:
+        np.testing.assert_array_equal(s.read_frames(), [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in rgb])
+        assert s.metadata["source"]["colour"] is True and s.metadata["source"]["conversion"] == r.conversion
+    grey = tmp_path / "grey.tif"
+    tifffile.imwrite(grey, _frames(3), photometric="minisblack")
+    r = import_frames(grey, tmp_path / "g.h5", fps=30.0, px_per_mm=62.0)
+    assert r.conversion == "8-bit grey, unchanged"
+    with open_session(r.path) as s:
+        assert s.metadata["source"]["colour"] is False
+
+
 def test_image_folder_needs_a_rate_and_a_scale_named_as_flags(tmp_path, capsys):
     folder = tmp_path / "frames"
     folder.mkdir()

@@ -31,7 +31,7 @@ import numpy as np
 
 from skinstretch.drivers.errors import FrameFileError
 
-__all__ = ["FrameReader", "SourceFrame", "LUMA_WEIGHTS_RGB", "to_grey"]
+__all__ = ["FrameReader", "SourceFrame", "LUMA_WEIGHTS_RGB", "is_colour", "to_grey"]
 
 #: BT.601 luma weights of R, G, B (the colour rule above).
 LUMA_WEIGHTS_RGB = (0.299, 0.587, 0.114)
@@ -55,6 +55,11 @@ class SourceFrame:
     index: int
     image: np.ndarray
     time_s: float
+
+
+def is_colour(image: np.ndarray) -> bool:
+    """Whether a decoded image has colour channels (3 or 4: RGB or BGR, with or without alpha)."""
+    return image.ndim == 3 and image.shape[2] >= 3
 
 
 def to_grey(image: np.ndarray, *, channel_order: str, where: str) -> np.ndarray:
@@ -94,7 +99,8 @@ class FrameReader(ABC):
 
     Attributes set by every reader: ``path``, ``shape`` (H, W), ``dtype`` (of the grey frames), ``n_frames``
     (None while unknown: a video whose container does not say), ``fps`` and ``px_per_mm`` (None when the file
-    does not declare them). Use as a context manager or call :meth:`close`.
+    does not declare them), ``colour`` (the file's pixels are colour: its frames are their luma by the grey rule).
+    Use as a context manager or call :meth:`close`.
     """
 
     #: What kind of file this reader reads, for messages and the session's record of its source.
@@ -107,6 +113,7 @@ class FrameReader(ABC):
         self.n_frames: int | None = None
         self.fps: float | None = None
         self.px_per_mm: float | None = None
+        self.colour = False
         self._cursor: Iterator[SourceFrame] | None = None
         self._next_index = 0
 
@@ -142,6 +149,7 @@ class FrameReader(ABC):
             "width": self.shape[1],
             "height": self.shape[0],
             "dtype": str(self.dtype),
+            "colour": self.colour,
             "fps_declared": self.fps,
             "px_per_mm_declared": self.px_per_mm,
         }

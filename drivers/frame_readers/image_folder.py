@@ -16,7 +16,7 @@ import cv2
 from natsort import natsorted, ns
 
 from skinstretch.drivers.errors import FrameFileError
-from skinstretch.drivers.frame_readers.base import FrameReader, SourceFrame, to_grey
+from skinstretch.drivers.frame_readers.base import FrameReader, SourceFrame, is_colour, to_grey
 
 __all__ = ["IMAGE_SUFFIXES", "ImageFolder"]
 
@@ -62,6 +62,7 @@ class ImageFolder(FrameReader):
         first = self._image(0)
         self.shape = first.shape
         self.dtype = first.dtype
+        self.colour = self._first_colour
 
     @property
     def name(self) -> str:
@@ -72,6 +73,8 @@ class ImageFolder(FrameReader):
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise FrameFileError(f"{path}: cannot be read as an image (corrupt, or not PNG/TIFF)")
+        if k == 0:
+            self._first_colour = is_colour(image)
         return to_grey(image, channel_order="bgr", where=str(path))
 
     def read(self, index: int) -> SourceFrame:

@@ -29,7 +29,7 @@ import numpy as np
 import tifffile
 
 from skinstretch.drivers.errors import FrameFileError
-from skinstretch.drivers.frame_readers.base import FrameReader, SourceFrame, positive_or_none, to_grey
+from skinstretch.drivers.frame_readers.base import FrameReader, SourceFrame, is_colour, positive_or_none, to_grey
 
 __all__ = ["TiffStack"]
 
@@ -136,6 +136,7 @@ class TiffStack(FrameReader):
         first = self._image(0)
         self.shape = first.shape
         self.dtype = first.dtype
+        self.colour = self._first_colour
 
     def _read_metadata(self) -> None:
         self.metadata_source = "none"
@@ -177,6 +178,8 @@ class TiffStack(FrameReader):
             raise FrameFileError(f"{where}: cannot be read ({exc})") from None
         if self._samples_first and raw.ndim == 3:
             raw = np.moveaxis(raw, 0, -1)
+        if k == 0:
+            self._first_colour = is_colour(raw)
         return to_grey(raw, channel_order="rgb", where=where)
 
     def read(self, index: int) -> SourceFrame:

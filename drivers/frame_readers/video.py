@@ -46,6 +46,7 @@ class VideoFile(FrameReader):
             self._pixel_format = "gray16le" if bits > 8 else "gray"
             self.dtype = np.dtype(np.uint16 if bits > 8 else np.uint8)
             self.source_pixel_format = fmt.name if fmt is not None else "unknown"
+            self.colour = fmt is not None and len(fmt.components) >= 3  # YUV or RGB; grey has one (two with alpha)
             self.fps = positive_or_none(stream.average_rate) or positive_or_none(stream.guessed_rate)
             self.n_frames = int(stream.frames) if stream.frames and stream.frames > 0 else None
         frames = self.frames()
