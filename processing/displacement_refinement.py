@@ -79,6 +79,11 @@ class SubpixelParams:
 
 #: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
 _MAX_FRAME_GRADIENT = 0.05
+#: Largest displacement gradient :meth:`SubpixelRefiner.register_span` accepts over a span (20 %: a failed fit).
+_MAX_SPAN_GRADIENT = 0.2
+#: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves the window's corners by
+#: less than 1e-4 px; from chained displacements it converges in 3-4).
+SPAN_REGISTRATION_STEPS = 8
 
 
 def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
@@ -306,10 +311,47 @@ class SubpixelRefiner:
         displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
         if displacement.shape != points.shape:
             raise InvalidInputError(f"displacement has shape {displacement.shape}, expected {points.shape}")
-        g, ok = _affine_gradient_kernel(a, b, gx, gy, points, displacement, self._gradient_half)
+        q, ok = _affine_kernel(a, b, gx, gy, points, displacement, self._gradient_half, 2)
+        g = q[:, 2:].reshape(-1, 2, 2)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
         out[ok] = g[ok]
         return out
+
+    def register_span(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """The displacement of ``points`` from ``prev_image`` to a frame several frames later, ``curr_image``,
+        registered directly: an affine Lucas-Kanade registration (Gauss-Newton, up to
+        :data:`SPAN_REGISTRATION_STEPS` steps) of the ``window_mm`` window around each point, started from
+        ``displacement`` (the chained frame-to-frame displacements). Over a span the skin deforms by several per
+        cent, which a translation-only window would read as noise and bias; the affine warp follows it, and the
+        displacement is that of the window's centre. Returns ``(displacement (n, 2), ok (n,))``: ``displacement``
+        as given where not ok (the window leaves an image, overlaps skin out of contact as :meth:`refine` judges
+        it, the fit is singular, or it moves the point by more than ``max_correction_mm``)."""
+        prev_nc = curr_nc = None
+        if isinstance(prev_image, PreparedImage):
+            prev_nc = prev_image.no_contact_integral
+        if isinstance(curr_image, PreparedImage):
+            curr_nc, curr_image = curr_image.no_contact_integral, curr_image.image
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
+        b = _as_gray(curr_image, "curr_image")
+        if a.shape != b.shape:
+            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        init = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
+        if init.shape != points.shape:
+            raise InvalidInputError(f"displacement has shape {init.shape}, expected {points.shape}")
+        if points.shape[0] == 0:
+            return np.zeros((0, 2)), np.zeros(0, bool)
+        half = self._win // 2
+        q, ok = _affine_kernel(a, b, gx, gy, points, init, half, SPAN_REGISTRATION_STEPS)
+        d = init + q[:, :2]
+        ok &= np.all(np.isfinite(d), axis=1) & (np.hypot(*q[:, :2].T) <= self._max_corr)
+        ok &= np.all(np.abs(q[:, 2:]) <= _MAX_SPAN_GRADIENT, axis=1)
+        limit = self.params.max_no_contact_fraction
+        for integral, where in ((prev_nc, points), (curr_nc, points + init)):
+            if integral is not None:
+                ok &= _window_fraction(integral, where, half) <= limit
+        return np.where(ok[:, None], d, init), ok
 
     def deformation_bias(self, prev_image, points: np.ndarray, gradient: np.ndarray,
                          window_px: np.ndarray | None = None) -> np.ndarray:
@@ -457,10 +499,11 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
-    """Per point, G of the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p
-    onto ``b`` (2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0); ok False where the window
-    leaves an image or the 6 x 6 system is singular.
+def _affine_kernel(a, b, gx, gy, points, disp, half, steps):
+    """Per point, the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p onto
+    ``b`` (``steps`` >= 2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0; fewer when a step
+    moves the window's corners by less than 1e-4 px): rows (delta_x, delta_y, G00, G01, G10, G11); ok False where
+    the window leaves an image or the 6 x 6 system is singular.
 
     The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
     first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
@@ -470,7 +513,7 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
     gradient of 0.01), the window's float64."""
     h, w = a.shape
     n = points.shape[0]
-    out = np.zeros((n, 2, 2))
+    out = np.zeros((n, 6))
     ok = np.zeros(n, np.bool_)
     hess = np.zeros((6, 6))
     rhs = np.zeros(6)
@@ -546,50 +589,63 @@ def _affine_gradient_kernel(a, b, gx, gy, points, disp, half):
             continue
         rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
         q = np.linalg.solve(hess, rhs)  # delta_x, delta_y, G00, G01, G10, G11
-        # Second step along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
-        for cy in (r - half, r + half):
-            for cx in (c - half, c + half):
-                qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
-                qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
-                if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
-                    inside = False
-        if not inside:
-            continue
-        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-        one = np.float32(1.0)
-        for y in range(r - half, r + half + 1):
-            oy = y - py
-            z = np.float32(0.0)
-            ex0 = ex1 = ey0 = ey1 = z
-            bx = dx + q[0] + q[3] * oy
-            by = y + dy + q[1] + q[5] * oy
-            ar = a[y, c - half:c + half + 1]
-            gxr = gx[y, c - half:c + half + 1]
-            gyr = gy[y, c - half:c + half + 1]
-            for k in range(2 * half + 1):
-                ox = oxs[k]
-                qx = c - half + k + bx + q[2] * ox
-                qy = by + q[4] * ox
-                x0 = min(int(qx), w - 2)
-                y0 = min(int(qy), h - 2)
-                sfx = np.float32(qx - x0)
-                sfy = np.float32(qy - y0)
-                v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
-                     + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
-                err = ar[k] - v
-                ex = gxr[k] * err
-                ey = gyr[k] * err
-                ex0 += ex
-                ex1 += ex * ox
-                ey0 += ey
-                ey1 += ey * ox
-            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-        q = q + np.linalg.solve(hess, rhs)
-        if np.all(np.isfinite(q)):
-            out[i, 0, 0], out[i, 0, 1], out[i, 1, 0], out[i, 1, 1] = q[2], q[3], q[4], q[5]
+        # Later steps along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
+        for _ in range(steps - 1):
+            for cy in (r - half, r + half):
+                for cx in (c - half, c + half):
+                    qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
+                    qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
+                    if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
+                        inside = False
+            if not inside:
+                break
+            step = _affine_step(a, b, gx, gy, hess, rhs, oxs, c, r, half, px, py, dx, dy, q)
+            q = q + step
+            if (abs(step[0]) + abs(step[1]) + half * (abs(step[2]) + abs(step[3]) + abs(step[4]) + abs(step[5]))
+                    < 1e-4):
+                break
+        if inside and np.all(np.isfinite(q)):
+            out[i] = q
             ok[i] = True
     return out, ok
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _affine_step(a, b, gx, gy, hess, rhs, oxs, c, r, half, px, py, dx, dy, q):
+    """One Gauss-Newton step of :func:`_affine_kernel` along the current warp ``q`` (the Hessian is the first
+    image's, fixed)."""
+    h, w = a.shape
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    one = np.float32(1.0)
+    for y in range(r - half, r + half + 1):
+        oy = y - py
+        z = np.float32(0.0)
+        ex0 = ex1 = ey0 = ey1 = z
+        bx = dx + q[0] + q[3] * oy
+        by = y + dy + q[1] + q[5] * oy
+        ar = a[y, c - half:c + half + 1]
+        gxr = gx[y, c - half:c + half + 1]
+        gyr = gy[y, c - half:c + half + 1]
+        for k in range(2 * half + 1):
+            ox = oxs[k]
+            qx = c - half + k + bx + q[2] * ox
+            qy = by + q[4] * ox
+            x0 = min(int(qx), w - 2)
+            y0 = min(int(qy), h - 2)
+            sfx = np.float32(qx - x0)
+            sfy = np.float32(qy - y0)
+            v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
+                 + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
+            err = ar[k] - v
+            ex = gxr[k] * err
+            ey = gyr[k] * err
+            ex0 += ex
+            ex1 += ex * ox
+            ey0 += ey
+            ey1 += ey * ox
+        g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
+    rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+    return np.linalg.solve(hess, rhs)
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ extraction's accuracy divided by the square root of the track length.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -120,6 +121,45 @@ class MotionSample:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+
+class SpanRegistration:
+    """The motion of tracked points over a longer span (the 11-frame strain), measured twice and averaged (beyond
+    the seed).
+
+    A span's chained motion (:meth:`Trajectories.motion`) sums its frame-to-frame displacements, and with them
+    their errors: random, and the part of each step's deformation bias that
+    :meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.deformation_bias` leaves, all one way
+    where the shear changes within a window. Registering the span's two frames directly
+    (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, an affine window started
+    from the chained motion) has neither, but the noise of one registration across a larger deformation. On real
+    and simulated prints the two err about equally and mostly independently (either one alone is worse than their
+    mean on some prints and fields), so their mean is kept; a point the direct registration cannot measure keeps
+    its chained motion. ``frame(j)`` gives frame j; a frame is prepared once, as the second frame of a span and later as the
+    first, and dropped once the spans have passed it (call :meth:`refine` in increasing ``frame_a``).
+    """
+
+    def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray]) -> None:
+        self.refiner = refiner
+        self._frame = frame
+        self._prepared: dict[int, PreparedImage] = {}
+
+    def _get(self, j: int) -> PreparedImage:
+        if j not in self._prepared:
+            self._prepared[j] = self.refiner.prepare(self._frame(j))
+        return self._prepared[j]
+
+    def refine(self, sample: MotionSample) -> MotionSample:
+        """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the mean of the chained
+        one and the direct registration's."""
+        k0, k1 = int(sample.frame_a), int(sample.frame_b)
+        for j in [j for j in self._prepared if j < k0]:
+            del self._prepared[j]
+        if len(sample) == 0:
+            return sample
+        direct, ok = self.refiner.register_span(self._get(k0), self._get(k1), sample.points, sample.displacement)
+        disp = np.where(ok[:, None], 0.5 * (direct + sample.displacement), sample.displacement)
+        return MotionSample(k0, k1, sample.points, disp, sample.ids)
 
 
 @dataclass

@@ -63,7 +63,8 @@ from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
-from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
+from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, SpanRegistration, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
 
@@ -167,28 +168,37 @@ def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
 
 
 def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
-                             motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float) -> None:
+                             motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float,
+                             span_registration: SpanRegistration | None = None) -> None:
     """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
-    them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built."""
+    them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built. With
+    ``span_registration``, a longer span's chained motion is refined by registering its two frames (in image
+    pixels, before the mapping to the skin)."""
     longest = max(spans)
     kinds = store.kinds
-    carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need
+    carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need (image pixels)
     first = 0  # the next pair (first, first + 1)
     for block in store.blocks():
         rows = block.rows
         if mapping is not None:
-            _rectify_rows(rows, mapping, px_per_mm)
-        writer.append("trajectories", rows)
+            written = rows.copy()
+            _rectify_rows(written, mapping, px_per_mm)
+            writer.append("trajectories", written)
+        else:
+            writer.append("trajectories", rows)
         tr = Trajectories(n_frames=block.stop, rows=np.concatenate([carry, rows]), kind=kinds)
         last = n - 2 if block.stop == n else block.stop - 1 - longest  # the last pair whose frames are all built
         for k in range(first, last + 1):
-            s = tr.motion(k, k + 1)
+            s = rectified_sample(tr.motion(k, k + 1), mapping, px_per_mm)
             motion.add(s)
             for span in spans:
                 if span == 1:
                     strain.add(1, s)
                 elif k + span < n:
-                    strain.add(span, tr.motion(k, k + span))
+                    chained = tr.motion(k, k + span)
+                    if span_registration is not None:
+                        chained = span_registration.refine(chained)
+                    strain.add(span, rectified_sample(chained, mapping, px_per_mm))
         first = max(first, last + 1)
         carry = tr.rows[tr.rows["frame"] >= first]
     motion.flush()
@@ -264,8 +274,14 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
+            # A longer span is also registered directly between its two frames (SpanRegistration). Not over a
+            # ridge or valley, as for the flow: it would follow the glass-fixed patterns the skin moves through.
+            span_registration = None
+            if params.subpixel is not None and shading is None and surface in (None, "", "flat"):
+                span_registration = SpanRegistration(SubpixelRefiner(calibration=calibration, params=params.subpixel),
+                                                     reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
-                                     px_per_mm=calibration.px_per_mm)
+                                     px_per_mm=calibration.px_per_mm, span_registration=span_registration)
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
             timing, parallel = dict(m.timing), m.parallel

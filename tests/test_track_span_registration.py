@@ -1,0 +1,123 @@
+"""A longer span's motion registered directly between its two frames (``SubpixelRefiner.register_span``) and averaged
+with the chained motion (``SpanRegistration``): exact on a known affine deformation of several per cent, where a
+translation-only window is biased; points it cannot measure keep the chained motion; and the analysis uses it."""
+
+import cv2
+import numpy as np
+import pytest
+
+from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.tracking import MotionSample, SpanRegistration
+
+CAL = Calibration(px_per_mm=62.0)
+H, W = 240, 260
+
+
+def _texture(seed=3):
+    """A blotchy skin-like texture (texture in every direction), grey levels around 128."""
+    t = cv2.GaussianBlur(np.random.default_rng(seed).uniform(0, 255, (H, W)).astype(np.float32), (0, 0), 2.5)
+    return (t - t.mean()) * (60 / t.std()) + 128
+
+
+def _deformed(texture, u0, grad, centre):
+    """``texture`` moved by the affine field u(x) = u0 + grad (x - centre): b(x + u(x)) = a(x)."""
+    m = np.eye(2) + grad
+    t = np.asarray(u0) + np.asarray(centre) - m @ np.asarray(centre)
+    fwd = np.hstack([m, t[:, None]]).astype(np.float32)
+    return cv2.warpAffine(texture, fwd, (W, H), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
+def _true(points, u0, grad, centre):
+    return np.asarray(u0) + (points - np.asarray(centre)) @ np.asarray(grad).T
+
+
+@pytest.fixture(scope="module")
+def span_pair():
+    """A stretch of 4 % along x, -2 % along y and a 2 % shear (an 11-frame span of a fast stretch), 0.8 px noise."""
+    rng = np.random.default_rng(0)
+    tex = _texture()
+    u0, grad, centre = (1.7, -0.6), np.array([[0.04, 0.02], [0.0, -0.02]]), (130.0, 120.0)
+    a = np.clip(tex + rng.normal(0, 0.8, tex.shape), 0, 255).astype(np.uint8)
+    b = np.clip(_deformed(tex, u0, grad, centre) + rng.normal(0, 0.8, tex.shape), 0, 255).astype(np.uint8)
+    pts = np.array([[x, y] for x in (90.0, 120.3, 150.6, 170.0) for y in (80.0, 110.5, 140.2, 160.0)])
+    return a, b, pts, _true(pts, u0, grad, centre)
+
+
+def test_register_span_recovers_an_affine_deformation_a_translation_window_misreads(span_pair):
+    a, b, pts, truth = span_pair
+    r = SubpixelRefiner(calibration=CAL)
+    start = truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)  # chained motion, a few tenths off
+    d, ok = r.register_span(r.prepare(a), r.prepare(b), pts, start)
+    assert ok.all()
+    err = np.hypot(*(d - truth).T)
+    assert err.max() < 0.03, err
+    # The same windows registered by translation only (refine): the deformation across them biases it more.
+    lk = r.refine(r.prepare(a), r.prepare(b), pts, start)
+    assert np.sqrt(np.mean(np.hypot(*(lk.displacement - truth).T) ** 2)) > 3 * np.sqrt(np.mean(err ** 2))
+
+
+def test_register_span_keeps_the_start_where_it_cannot_measure(span_pair):
+    a, b, pts, truth = span_pair
+    r = SubpixelRefiner(calibration=CAL)
+    edge = np.array([[5.0, 120.0], [130.0, 120.0]])  # the first window leaves the image
+    start = _true(edge, (1.7, -0.6), np.array([[0.04, 0.02], [0.0, -0.02]]), (130.0, 120.0)) + 0.2
+    flat = np.full_like(a, 200)  # a flat field: skin out of contact, no texture to register
+    d, ok = r.register_span(r.prepare(a), r.prepare(b), edge, start)
+    assert ok.tolist() == [False, True] and np.array_equal(d[0], start[0])
+    d, ok = r.register_span(r.prepare(flat), r.prepare(flat), pts[:3], truth[:3])
+    assert not ok.any() and np.array_equal(d, truth[:3]) and np.isfinite(d).all()
+    d, ok = r.register_span(a, b, np.zeros((0, 2)), np.zeros((0, 2)))
+    assert d.shape == (0, 2) and ok.shape == (0,)
+    with pytest.raises(InvalidInputError, match="displacement has shape"):
+        r.register_span(a, b, pts, truth[:2])
+
+
+def test_span_registration_averages_the_direct_and_the_chained_motion(span_pair):
+    a, b, pts, truth = span_pair
+    frames = {0: a, 11: b}
+    asked = []
+
+    def frame(j):
+        asked.append(j)
+        return frames[j]
+
+    reg = SpanRegistration(SubpixelRefiner(calibration=CAL), frame)
+    chained = truth + np.where(np.arange(len(pts))[:, None] % 2 == 0, 0.2, -0.2)  # a chain's accumulated error
+    out = reg.refine(MotionSample(0, 11, pts, chained, np.arange(len(pts))))
+    r = SubpixelRefiner(calibration=CAL)
+    direct, ok = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
+    assert ok.all() and out.frame_a == 0 and out.frame_b == 11 and np.array_equal(out.ids, np.arange(len(pts)))
+    np.testing.assert_allclose(out.displacement, 0.5 * (direct + chained), rtol=0, atol=1e-12)
+    # the chained error is halved
+    np.testing.assert_allclose(np.abs(out.displacement - truth), 0.1, atol=0.03)
+    assert sorted(asked) == [0, 11]  # each frame prepared once
+    empty = MotionSample(0, 11, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
+    assert len(reg.refine(empty)) == 0
+
+
+def test_the_feature_analysis_registers_its_long_spans_on_a_flat_surface_only(sim_session, monkeypatch):
+    """On a flat surface every 11-frame pair goes through the direct registration, and its strain is measured against
+    the truth as well as before; over a ridge (glass-fixed patterns the skin moves through) it is left out."""
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.evaluation.tracking import evaluate_tracking
+
+    calls = []
+    original = SpanRegistration.refine
+
+    def counting(self, sample):
+        calls.append((sample.frame_a, sample.frame_b))
+        return original(self, sample)
+
+    monkeypatch.setattr(SpanRegistration, "refine", counting)
+    s = sim_session
+    r = analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(),
+                       surface="flat")
+    n = len(s.frames)
+    assert calls == [(k, k + 11) for k in range(n - 11)]  # the strain's 11-frame span: pairs (k, k + 11)
+    ev = evaluate_tracking(r, s.truth)
+    assert ev["strain"]["n_edges_11"] > 0 and ev["strain"]["edge_rmse_11"] < 0.002
+    calls.clear()
+    analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="ridge")
+    assert calls == []
