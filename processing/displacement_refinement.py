@@ -599,7 +599,37 @@ def _affine_kernel(a, b, gx, gy, points, disp, half, steps):
                         inside = False
             if not inside:
                 break
-            step = _affine_step(a, b, gx, gy, hess, rhs, oxs, c, r, half, px, py, dx, dy, q)
+            g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+            one = np.float32(1.0)
+            for y in range(r - half, r + half + 1):
+                oy = y - py
+                z = np.float32(0.0)
+                ex0 = ex1 = ey0 = ey1 = z
+                bx = dx + q[0] + q[3] * oy
+                by = y + dy + q[1] + q[5] * oy
+                ar = a[y, c - half:c + half + 1]
+                gxr = gx[y, c - half:c + half + 1]
+                gyr = gy[y, c - half:c + half + 1]
+                for k in range(2 * half + 1):
+                    ox = oxs[k]
+                    qx = c - half + k + bx + q[2] * ox
+                    qy = by + q[4] * ox
+                    x0 = min(int(qx), w - 2)
+                    y0 = min(int(qy), h - 2)
+                    sfx = np.float32(qx - x0)
+                    sfy = np.float32(qy - y0)
+                    v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
+                         + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
+                    err = ar[k] - v
+                    ex = gxr[k] * err
+                    ey = gyr[k] * err
+                    ex0 += ex
+                    ex1 += ex * ox
+                    ey0 += ey
+                    ey1 += ey * ox
+                g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
+            rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
+            step = np.linalg.solve(hess, rhs)
             q = q + step
             if (abs(step[0]) + abs(step[1]) + half * (abs(step[2]) + abs(step[3]) + abs(step[4]) + abs(step[5]))
                     < 1e-4):
@@ -608,44 +638,6 @@ def _affine_kernel(a, b, gx, gy, points, disp, half, steps):
             out[i] = q
             ok[i] = True
     return out, ok
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _affine_step(a, b, gx, gy, hess, rhs, oxs, c, r, half, px, py, dx, dy, q):
-    """One Gauss-Newton step of :func:`_affine_kernel` along the current warp ``q`` (the Hessian is the first
-    image's, fixed)."""
-    h, w = a.shape
-    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-    one = np.float32(1.0)
-    for y in range(r - half, r + half + 1):
-        oy = y - py
-        z = np.float32(0.0)
-        ex0 = ex1 = ey0 = ey1 = z
-        bx = dx + q[0] + q[3] * oy
-        by = y + dy + q[1] + q[5] * oy
-        ar = a[y, c - half:c + half + 1]
-        gxr = gx[y, c - half:c + half + 1]
-        gyr = gy[y, c - half:c + half + 1]
-        for k in range(2 * half + 1):
-            ox = oxs[k]
-            qx = c - half + k + bx + q[2] * ox
-            qy = by + q[4] * ox
-            x0 = min(int(qx), w - 2)
-            y0 = min(int(qy), h - 2)
-            sfx = np.float32(qx - x0)
-            sfy = np.float32(qy - y0)
-            v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
-                 + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
-            err = ar[k] - v
-            ex = gxr[k] * err
-            ey = gyr[k] * err
-            ex0 += ex
-            ex1 += ex * ox
-            ey0 += ey
-            ey1 += ey * ox
-        g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-    rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-    return np.linalg.solve(hess, rhs)
 
 
 @dataclass(frozen=True)
