@@ -219,9 +219,7 @@ class SubpixelRefiner:
         if prev_image.shape != curr_image.shape:
             raise InvalidInputError(f"images differ in shape: {prev_image.shape} vs {curr_image.shape}")
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        init = np.asarray(initial_displacement, dtype=np.float64).reshape(-1, 2)
-        if init.shape != points.shape:
-            raise InvalidInputError(f"initial_displacement has shape {init.shape}, expected {points.shape}")
+        init = _displacement_rows(initial_displacement, points, "initial_displacement")
         n = points.shape[0]
         if n == 0:
             return RefinedDisplacements(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64))
@@ -302,15 +300,8 @@ class SubpixelRefiner:
                 raise InvalidInputError(f"fallback has {out.shape[0]} rows for {points.shape[0]} points")
         if self._gradient_half == 0 or out.shape[0] == 0:
             return out
-        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
-        if isinstance(curr_image, PreparedImage):
-            curr_image = curr_image.image
-        b = _as_gray(curr_image, "curr_image")
-        if a.shape != b.shape:
-            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
-        displacement = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
-        if displacement.shape != points.shape:
-            raise InvalidInputError(f"displacement has shape {displacement.shape}, expected {points.shape}")
+        a, gx, gy, b = _registration_pair(prev_image, curr_image)
+        displacement = _displacement_rows(displacement, points, "displacement")
         q, ok = _affine_kernel(a, b, gx, gy, points, displacement, self._gradient_half, 2)
         g = q[:, 2:].reshape(-1, 2, 2)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
@@ -327,19 +318,11 @@ class SubpixelRefiner:
         displacement is that of the window's centre. Returns ``(displacement (n, 2), ok (n,))``: ``displacement``
         as given where not ok (the window leaves an image, overlaps skin out of contact as :meth:`refine` judges
         it, the fit is singular, or it moves the point by more than ``max_correction_mm``)."""
-        prev_nc = curr_nc = None
-        if isinstance(prev_image, PreparedImage):
-            prev_nc = prev_image.no_contact_integral
-        if isinstance(curr_image, PreparedImage):
-            curr_nc, curr_image = curr_image.no_contact_integral, curr_image.image
-        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
-        b = _as_gray(curr_image, "curr_image")
-        if a.shape != b.shape:
-            raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
+        prev_nc = prev_image.no_contact_integral if isinstance(prev_image, PreparedImage) else None
+        curr_nc = curr_image.no_contact_integral if isinstance(curr_image, PreparedImage) else None
+        a, gx, gy, b = _registration_pair(prev_image, curr_image)
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-        init = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
-        if init.shape != points.shape:
-            raise InvalidInputError(f"displacement has shape {init.shape}, expected {points.shape}")
+        init = _displacement_rows(displacement, points, "displacement")
         if points.shape[0] == 0:
             return np.zeros((0, 2)), np.zeros(0, bool)
         half = self._win // 2
@@ -674,6 +657,26 @@ def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Lucas-Kanade differentiates (/32). Computed once per frame by :meth:`SubpixelRefiner.prepare`."""
     a = image.astype(np.float32)
     return (cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1.0 / 32.0), cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1.0 / 32.0))
+
+
+def _registration_pair(prev_image, curr_image) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(a, gx, gy, b): the first image with its gradient, and the second, grey and of the same shape (prepared
+    images or arrays)."""
+    a, gx, gy = _image_and_gradient(prev_image, "prev_image")
+    if isinstance(curr_image, PreparedImage):
+        curr_image = curr_image.image
+    b = _as_gray(curr_image, "curr_image")
+    if a.shape != b.shape:
+        raise InvalidInputError(f"images differ in shape: {a.shape} vs {b.shape}")
+    return a, gx, gy, b
+
+
+def _displacement_rows(displacement, points: np.ndarray, name: str) -> np.ndarray:
+    """``displacement`` as (n, 2) float64 rows, one per row of ``points``, or an error naming it."""
+    rows = np.ascontiguousarray(displacement, dtype=np.float64).reshape(-1, 2)
+    if rows.shape != points.shape:
+        raise InvalidInputError(f"{name} has shape {rows.shape}, expected {points.shape}")
+    return rows
 
 
 def _image_and_gradient(image, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
