@@ -82,7 +82,8 @@ _MAX_FRAME_GRADIENT = 0.05
 #: Largest displacement gradient :meth:`SubpixelRefiner.register_span` accepts over a span (20 %: a failed fit).
 _MAX_SPAN_GRADIENT = 0.2
 #: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves the window's corners by
-#: less than 1e-4 px; from chained displacements it converges in 3-4).
+#: less than 1e-4 px). With the first image's Hessian kept fixed the steps converge slowly across a span's
+#: deformation: 2 or 4 steps measured a reversal field's 11-frame strain worse than 8 on a sparse real print.
 SPAN_REGISTRATION_STEPS = 8
 
 
