@@ -43,7 +43,7 @@ from skinstretch.processing.global_motion import GlobalMotionEstimator
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
-from skinstretch.processing.tracking import MotionSample
+from skinstretch.processing.tracking import MotionSample, SpanFrames
 
 
 @parameters
@@ -729,27 +729,20 @@ def _affine_init(a: np.ndarray, b: np.ndarray, shift: np.ndarray) -> np.ndarray 
 class SpanRefiner:
     """Refines spans one at a time, as consecutive fields arrive (a streaming analysis, or
     :meth:`DenseFlow.compute_spans`): the fields of frames k..k + s composed (:func:`compose_fields`), then
-    registered from frame k to frame k + s directly. ``frame(j)`` gives frame j (the fields' frame numbers); a frame
-    is prepared once, as the second frame of a span and later as the first, and dropped once behind the spans."""
+    registered from frame k to frame k + s directly. ``frame(j)`` gives frame j (the fields' frame numbers), each
+    prepared once (:class:`~skinstretch.processing.tracking.SpanFrames`)."""
 
     def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
         self.flow = flow
-        self._frame = frame
-        self._prepared: dict[int, _Prepared] = {}
-
-    def _get(self, j: int) -> _Prepared:
-        if j not in self._prepared:
-            self._prepared[j] = self.flow._prepare(self.flow._frame([self._frame(j)], 0))
-        return self._prepared[j]
+        self._frames = SpanFrames(frame, lambda image: flow._prepare(flow._frame([image], 0)))
 
     def refine(self, fields: Sequence[FlowField]) -> FlowField:
         """The span from ``fields[0].frame_a`` to ``fields[-1].frame_b`` (consecutive fields, in order)."""
         if not fields:
             raise InvalidInputError("a span needs at least one field")
         k0, k1 = int(fields[0].frame_a), int(fields[-1].frame_b)
-        for j in [j for j in self._prepared if j < k0]:
-            del self._prepared[j]
-        return self.flow._register(self._get(k0), self._get(k1), k0, k1, None, compose_fields(fields))
+        prev, curr = self._frames.pair(k0, k1)
+        return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
 
 
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numba
 import numpy as np
@@ -123,6 +124,29 @@ class MotionSample:
         return int(self.points.shape[0])
 
 
+class SpanFrames:
+    """Frames prepared once for the spans that use them, in increasing first frame (the features'
+    :class:`SpanRegistration` and the flow's ``SpanRefiner``): a frame is prepared as the second frame of a span,
+    reused as the first frame of later ones, and dropped once the spans have passed it. ``frame(j)`` gives frame j,
+    ``prepare`` turns it into what the registration takes."""
+
+    def __init__(self, frame: Callable[[int], np.ndarray], prepare: Callable[[np.ndarray], Any]) -> None:
+        self._frame = frame
+        self._prepare = prepare
+        self._prepared: dict[int, Any] = {}
+
+    def pair(self, k0: int, k1: int) -> tuple[Any, Any]:
+        """Frames ``k0`` and ``k1`` prepared; frames before ``k0`` are dropped (no later span starts before it)."""
+        for j in [j for j in self._prepared if j < k0]:
+            del self._prepared[j]
+        return self.get(k0), self.get(k1)
+
+    def get(self, j: int) -> Any:
+        if j not in self._prepared:
+            self._prepared[j] = self._prepare(self._frame(j))
+        return self._prepared[j]
+
+
 class SpanRegistration:
     """The motion of tracked points over a longer span (the 11-frame strain), measured twice and averaged (beyond
     the seed).
@@ -135,29 +159,22 @@ class SpanRegistration:
     from the chained motion) has neither, but the noise of one registration across a larger deformation. On real
     and simulated prints the two err about equally and mostly independently (either one alone is worse than their
     mean on some prints and fields), so their mean is kept; a point the direct registration cannot measure keeps
-    its chained motion. ``frame(j)`` gives frame j; a frame is prepared once, as the second frame of a span and later as the
-    first, and dropped once the spans have passed it (call :meth:`refine` in increasing ``frame_a``).
+    its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
+    increasing ``frame_a``).
     """
 
     def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray]) -> None:
         self.refiner = refiner
-        self._frame = frame
-        self._prepared: dict[int, PreparedImage] = {}
-
-    def _get(self, j: int) -> PreparedImage:
-        if j not in self._prepared:
-            self._prepared[j] = self.refiner.prepare(self._frame(j))
-        return self._prepared[j]
+        self._frames = SpanFrames(frame, refiner.prepare)
 
     def refine(self, sample: MotionSample) -> MotionSample:
         """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the mean of the chained
         one and the direct registration's."""
         k0, k1 = int(sample.frame_a), int(sample.frame_b)
-        for j in [j for j in self._prepared if j < k0]:
-            del self._prepared[j]
         if len(sample) == 0:
             return sample
-        direct, ok = self.refiner.register_span(self._get(k0), self._get(k1), sample.points, sample.displacement)
+        prev, curr = self._frames.pair(k0, k1)
+        direct, ok = self.refiner.register_span(prev, curr, sample.points, sample.displacement)
         disp = np.where(ok[:, None], 0.5 * (direct + sample.displacement), sample.displacement)
         return MotionSample(k0, k1, sample.points, disp, sample.ids)
 

@@ -62,7 +62,6 @@ class ImageFolder(FrameReader):
         first = self._image(0)
         self.shape = first.shape
         self.dtype = first.dtype
-        self.colour = self._first_colour
 
     @property
     def name(self) -> str:
@@ -73,8 +72,8 @@ class ImageFolder(FrameReader):
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise FrameFileError(f"{path}: cannot be read as an image (corrupt, or not PNG/TIFF)")
-        if k == 0:
-            self._first_colour = is_colour(image)
+        if k == 0:  # the file's first image says whether it is colour
+            self.colour = is_colour(image)
         return to_grey(image, channel_order="bgr", where=str(path))
 
     def read(self, index: int) -> SourceFrame:

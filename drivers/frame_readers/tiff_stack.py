@@ -136,7 +136,6 @@ class TiffStack(FrameReader):
         first = self._image(0)
         self.shape = first.shape
         self.dtype = first.dtype
-        self.colour = self._first_colour
 
     def _read_metadata(self) -> None:
         self.metadata_source = "none"
@@ -178,8 +177,8 @@ class TiffStack(FrameReader):
             raise FrameFileError(f"{where}: cannot be read ({exc})") from None
         if self._samples_first and raw.ndim == 3:
             raw = np.moveaxis(raw, 0, -1)
-        if k == 0:
-            self._first_colour = is_colour(raw)
+        if k == 0:  # the file's first image says whether it is colour
+            self.colour = is_colour(raw)
         return to_grey(raw, channel_order="rgb", where=where)
 
     def read(self, index: int) -> SourceFrame:
