@@ -273,7 +273,7 @@ def test_state_follows_the_newest_trial_and_picks_up_results(tmp_path, analysed,
                       calibration=s.calibration)
         state.update()
         assert state.info()["n_frames"] == 4 and state.results is None
-        assert "no analysis results" in state.overlays(state.sid, 0, 1)["notes"][0]
+        assert "no analysis results" in json.loads(state.overlays(state.sid, 0, 1))["notes"][0]
         (first / "analysis").mkdir()
         (first / "analysis" / "results.h5").write_bytes(results.read_bytes())
         state.update()

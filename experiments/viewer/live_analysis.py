@@ -210,10 +210,9 @@ class LiveAnalyzer:
             matches=matches_seg, arrows=arrows, tails=tails, mesh=mesh, outline=convex_hull(xy), window=None,
             tactile_um=None, tactile_reset=None, tactile_clipped=None, truth=None,
             strain_scale=nice_scale(np.concatenate(self._recent_changes)) if self._recent_changes else 0.01,
-            notes=notes, exposure_time=exposure, analysed_time=time.time(),
+            notes=notes, arrow_ids=tracks[ci] if arrows.size else np.zeros(0, np.int64),
+            exposure_time=exposure, analysed_time=time.time(),
         )
-        if arrows.size:
-            overlays.arrow_ids = tracks[ci]
         self._prev = (k, xy, tracks, refine_image)
         with self._lock:
             self._overlays[k] = overlays
@@ -228,13 +227,15 @@ class LiveAnalyzer:
         return overlays
 
     def _tails(self, tracks: np.ndarray) -> list[np.ndarray]:
-        """Polylines of the current tracks through the last analysed frames."""
-        where: dict[int, list[np.ndarray]] = {int(t): [] for t in tracks}
-        for ids, xy in self._history:
-            for t, p in zip(ids.tolist(), xy):
-                if t in where:
-                    where[t].append(p)
-        return [np.asarray(v) for v in where.values() if len(v) >= 2]
+        """Polylines of the current tracks through the last analysed frames (oldest point first)."""
+        ids = np.concatenate([h[0] for h in self._history])
+        xy = np.concatenate([h[1] for h in self._history])
+        keep = np.isin(ids, tracks)
+        ids, xy = ids[keep], xy[keep]
+        order = np.argsort(ids, kind="stable")  # stable: each track's points stay in frame order
+        ids, xy = ids[order], xy[order]
+        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if ids.size else np.zeros(0, np.int64)
+        return [t for t in np.split(xy, starts[1:]) if len(t) >= 2]
 
 
 def _displacement_of(ids: np.ndarray, sample_ids: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -204,31 +204,32 @@ class ViewerState:
             raise InvalidInputError(f"frame {k} could not be encoded")
         return buf.tobytes()
 
-    def overlays(self, sid: int, k: int, span: int) -> dict[str, Any] | None:
+    def overlays(self, sid: int, k: int, span: int) -> bytes | None:
+        """Frame ``k``'s overlays as the page's JSON (bytes), None when there is no such frame."""
         with self._lock:
             if sid != self.sid or self.source is None or not 0 <= k < self.source.n_frames():
                 return None
             if self.results is not None:
-                return self.results.overlays(k, span=span, truth=self.source.truth()).to_json()
+                return self.results.overlays(k, span=span, truth=self.source.truth()).to_json_bytes()
             if self.analyzer is not None:
                 ov = self.analyzer.overlays(k)
                 if ov is not None:
-                    return ov.to_json()
+                    return ov.to_json_bytes()
                 note = "not analysed live: the live analysis takes the newest frame and skips the others"
             elif self._results_error:
                 note = f"results not shown: {self._results_error}"
             else:
                 note = "no analysis results yet: run skinstretch analyze on this session"
-            return empty_overlays(k, note).to_json()
+            return empty_overlays(k, note).to_json_bytes()
 
-    def live_update(self, seen_version: int) -> tuple[int, dict[str, Any] | None]:
-        """(version, the newest live overlays) when the live analysis analysed a frame since ``seen_version``."""
+    def live_update(self, seen_version: int) -> tuple[int, bytes | None]:
+        """(version, the newest live overlays as JSON) when a frame was analysed live since ``seen_version``."""
         with self._lock:
             a = self.analyzer
             if a is None or a.version == seen_version:
                 return seen_version, None
             ov = a.latest()
-            return a.version, (ov.to_json() if ov is not None else None)
+            return a.version, (ov.to_json_bytes() if ov is not None else None)
 
 
 # ------------------------------------------------------------------------------------------- security
@@ -294,7 +295,7 @@ def create_app(state: ViewerState, *, token: str, allowed_hosts: list[str] | Non
         data = await anyio.to_thread.run_sync(state.overlays, sid, k, span)
         if data is None:
             return PlainTextResponse(f"no frame {k} in session {sid}", status_code=404)
-        return JSONResponse(data, headers={"cache-control": "no-store"})
+        return Response(data, media_type="application/json", headers={"cache-control": "no-store"})
 
     async def events(request: Request) -> Response:
         from sse_starlette.sse import EventSourceResponse  # noqa: PLC0415
@@ -309,7 +310,7 @@ def create_app(state: ViewerState, *, token: str, allowed_hosts: list[str] | Non
                     yield {"event": "state", "data": json.dumps(snap)}
                 version, live = state.live_update(version)
                 if live is not None:
-                    yield {"event": "live", "data": json.dumps(live)}
+                    yield {"event": "live", "data": live.decode()}
                 await anyio.sleep(EVENT_INTERVAL_S)
 
         return EventSourceResponse(stream(), ping=10, headers={"cache-control": "no-store"})

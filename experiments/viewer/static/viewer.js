@@ -154,10 +154,10 @@ async function showFrame(k, live = null) {
     }
     $("slider").value = String(k);
     const fps = S.info.fps || 60;
-    $("frame-label").textContent = `frame ${k} / ${S.n - 1}  (t = ${(k / fps).toFixed(3)} s)`;
-    $("source-label").textContent = ov.source === "results" ? `results: ${S.info.results.method}` :
-      ov.source === "live" ? "live analysis" : "";
-    $("notes").textContent = ov.notes.join(" · ");
+    setText("frame-label", `frame ${k} / ${S.n - 1}  (t = ${(k / fps).toFixed(3)} s)`);
+    setText("source-label", ov.source === "results" ? `results: ${S.info.results.method}` :
+      ov.source === "live" ? "live analysis" : "");
+    setText("notes", ov.notes.join(" · "));
     drawTactile(ov);
     drawColorbar(ov.strain_scale, ov.mesh);
     updateReadout();
@@ -204,7 +204,10 @@ function draw() {
   if (S.on.tails) {
     ctx.strokeStyle = "rgba(255,140,60,0.85)"; ctx.lineWidth = 1.3 * lw;
     ctx.beginPath();
-    for (const t of ov.tails) t.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+    for (const t of ov.tails) {
+      ctx.moveTo(t[0][0], t[0][1]);
+      for (let i = 1; i < t.length; i++) ctx.lineTo(t[i][0], t[i][1]);
+    }
     ctx.stroke();
   }
   if (S.on.matches) {
@@ -230,15 +233,24 @@ function draw() {
   drawHighlight(lw);
 }
 
+// Triangles are filled one path per colour step (MESH_STEPS over the scale; flipped ones grey): a canvas fill per
+// triangle cost the live view most of its drawing time, and the steps are finer than the eye tells apart.
+const MESH_STEPS = 50;
 function drawMesh(mesh, scale, lw) {
-  const xy = mesh.xy;
+  const xy = mesh.xy, groups = new Map();
   for (let i = 0; i < xy.length; i++) {
-    const [x0, y0, x1, y1, x2, y2] = xy[i];
-    ctx.beginPath(); ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.lineTo(x2, y2); ctx.closePath();
-    if (mesh.flipped[i]) {
+    const key = mesh.flipped[i] ? "flipped" :
+      Math.round(Math.max(-1, Math.min(1, mesh.change[i] / scale)) * MESH_STEPS);
+    if (!groups.has(key)) groups.set(key, []);
+    groups.get(key).push(xy[i]);
+  }
+  for (const [key, tris] of groups) {
+    ctx.beginPath();
+    for (const [x0, y0, x1, y1, x2, y2] of tris) { ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.lineTo(x2, y2); ctx.closePath(); }
+    if (key === "flipped") {
       ctx.fillStyle = "rgba(60,60,60,0.65)";
     } else {
-      ctx.fillStyle = colorOf(STRAIN_MAP, mesh.change[i] / scale);
+      ctx.fillStyle = colorOf(STRAIN_MAP, key / MESH_STEPS);
       ctx.globalAlpha = 0.55;
     }
     ctx.fill();
@@ -283,10 +295,15 @@ function drawHighlight(lw) {
 
 // A horizontal colour bar on canvas ``c``: ``map`` from -limit to +limit, five ticks labelled by ``label(t)``.
 function drawBar(c, map, label, title) {
+  const key = `${label(1)}|${title}`;
+  if (c.dataset.drawn === key) return;  // unchanged: a canvas redrawn costs the page a raster pass
+  c.dataset.drawn = key;
   const g = c.getContext("2d");
   g.clearRect(0, 0, c.width, c.height);
   const x0 = 12, w = c.width - 24;
-  for (let i = 0; i < w; i++) { g.fillStyle = colorOf(map, (2 * i) / (w - 1) - 1); g.fillRect(x0 + i, 2, 1, 14); }
+  const grad = g.createLinearGradient(x0, 0, x0 + w, 0);  // the map's stops, interpolated in RGB as colorOf does
+  map.forEach((color, i) => grad.addColorStop(i / (map.length - 1), color));
+  g.fillStyle = grad; g.fillRect(x0, 2, w, 14);
   g.strokeStyle = "#333"; g.strokeRect(x0, 2, w, 14);
   g.fillStyle = "#111"; g.font = "11px system-ui, sans-serif"; g.textAlign = "center";
   for (const t of [-1, -0.5, 0, 0.5, 1]) {
@@ -298,21 +315,30 @@ function drawBar(c, map, label, title) {
 }
 
 function drawColorbar(scale, mesh) {
-  const ratio = mesh ? `A(${mesh.frame_b}) / A(${mesh.frame_a})` : "Ab / Aa";
+  // Written with k, the frame shown, so that the bar stays the same from frame to frame (the readout names the pair).
+  const n = mesh ? mesh.frame_b - mesh.frame_a : 1;
+  const ratio = !mesh ? "Ab / Aa" : mesh.drawn_at === "frame_a" ? `A(k+${n}) / A(k)` : `A(k) / A(k−${n})`;
   drawBar($("colorbar"), STRAIN_MAP, (t) => fmt(t * scale * 100), `%   (area change ${ratio} − 1; grey = flipped)`);
   $("colorbar").dataset.scale = String(scale);
 }
 function fmt(v) { return v >= 1 ? v.toFixed(v % 1 ? 1 : 0) : v.toPrecision(2).replace(/0+$/, ""); }
 
+function setText(id, text) {  // an unchanged text is left alone (setting it again invalidates the page's layout)
+  const el = $(id);
+  if (el.textContent !== text) el.textContent = text;
+}
+
 function drawTactile(ov) {
   const c = $("tactile"), g = c.getContext("2d");
-  g.clearRect(0, 0, c.width, c.height);
   const has = ov && ov.tactile_um;
   const axis = S.info && S.info.results ? S.info.results.motion_axis : 0;
-  $("tactile-note").textContent = has ?
+  setText("tactile-note", has ?
     `Columns run along the sliding axis (image ${axis ? "y" : "x"}); each dot is offset by its contactor's position. Hollow: reset; black ring: clipped at ±50 µm.` :
     (ov && ov.source === "live" ? "The tactile movie comes with the analysis after the trial." :
-      "No tactile movie for this frame (no results, or no visibility window).");
+      "No tactile movie for this frame (no results, or no visibility window)."));
+  if (!has && c.dataset.drawn === "empty") return;  // the empty grid is already there
+  c.dataset.drawn = has ? "" : "empty";
+  g.clearRect(0, 0, c.width, c.height);
   const pitch = c.width / 10;
   for (let r = 0; r < 10; r++) for (let col = 0; col < 10; col++) {
     const cx = (col + 0.5) * pitch, cy = (r + 0.5) * pitch;
