@@ -18,7 +18,8 @@ extraction's accuracy divided by the square root of the track length.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -170,13 +171,23 @@ class SpanRegistration:
     def refine(self, sample: MotionSample) -> MotionSample:
         """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the mean of the chained
         one and the direct registration's."""
-        k0, k1 = int(sample.frame_a), int(sample.frame_b)
         if len(sample) == 0:
             return sample
-        prev, curr = self._frames.pair(k0, k1)
-        direct, ok = self.refiner.register_span(prev, curr, sample.points, sample.displacement)
+        return self._registered(sample, self._frames.pair(int(sample.frame_a), int(sample.frame_b)))
+
+    def refine_all(self, samples: Sequence[MotionSample], *, threads: int = 1) -> list[MotionSample]:
+        """:meth:`refine` of each of ``samples`` (in increasing ``frame_a``), in order; the registrations run on
+        ``threads`` threads (the kernel releases the GIL), the frames are prepared in this one."""
+        pairs = [self._frames.pair(int(s.frame_a), int(s.frame_b)) if len(s) else None for s in samples]
+        if threads <= 1 or len(samples) <= 1:
+            return [s if p is None else self._registered(s, p) for s, p in zip(samples, pairs)]
+        with ThreadPoolExecutor(min(int(threads), len(samples)), thread_name_prefix="span-registration") as pool:
+            return list(pool.map(lambda s, p: s if p is None else self._registered(s, p), samples, pairs))
+
+    def _registered(self, sample: MotionSample, pair: tuple[Any, Any]) -> MotionSample:
+        direct, ok = self.refiner.register_span(pair[0], pair[1], sample.points, sample.displacement)
         disp = np.where(ok[:, None], 0.5 * (direct + sample.displacement), sample.displacement)
-        return MotionSample(k0, k1, sample.points, disp, sample.ids)
+        return MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, disp, sample.ids)
 
 
 @dataclass

@@ -95,6 +95,17 @@ def test_span_registration_averages_the_direct_and_the_chained_motion(span_pair)
     assert sorted(asked) == [0, 11]  # each frame prepared once
     empty = MotionSample(0, 11, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
     assert len(reg.refine(empty)) == 0
+    # Several spans at once on threads: in order, the same numbers as one at a time, each frame prepared once.
+    frames.update({1: a, 12: b, 2: a, 13: b})
+    asked.clear()
+    samples = [MotionSample(k, k + 11, pts + 0.1 * k, chained, np.arange(len(pts))) for k in range(3)]
+    samples.insert(1, MotionSample(1, 12, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64)))
+    together = reg.refine_all(samples, threads=2)
+    one_by_one = [SpanRegistration(SubpixelRefiner(calibration=CAL), frames.__getitem__).refine(s) for s in samples]
+    assert [(s.frame_a, len(s)) for s in together] == [(0, 16), (1, 0), (1, 16), (2, 16)]
+    for x, y in zip(together, one_by_one):
+        np.testing.assert_array_equal(x.displacement, y.displacement)
+    assert sorted(asked) == [1, 2, 12, 13]  # frames 0 and 11 kept from the span above
 
 
 def test_the_feature_analysis_registers_its_long_spans_on_a_flat_surface_only(sim_session, monkeypatch):
@@ -104,13 +115,13 @@ def test_the_feature_analysis_registers_its_long_spans_on_a_flat_surface_only(si
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking
 
     calls = []
-    original = SpanRegistration.refine
+    original = SpanRegistration.refine_all
 
-    def counting(self, sample):
-        calls.append((sample.frame_a, sample.frame_b))
-        return original(self, sample)
+    def counting(self, samples, **kwargs):
+        calls.extend((sample.frame_a, sample.frame_b) for sample in samples)
+        return original(self, samples, **kwargs)
 
-    monkeypatch.setattr(SpanRegistration, "refine", counting)
+    monkeypatch.setattr(SpanRegistration, "refine_all", counting)
     s = sim_session
     r = analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(),
                        surface="flat")

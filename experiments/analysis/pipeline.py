@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
+#: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
+#: threads): their prepared frames, about this many plus the longest span, are held at once.
+SPAN_REGISTRATION_BATCH = 16
 
 
 class _StrainTables:
@@ -169,11 +172,11 @@ def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
 
 def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
                              motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float,
-                             span_registration: SpanRegistration | None = None) -> None:
+                             span_registration: SpanRegistration | None = None, threads: int = 1) -> None:
     """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
     them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built. With
     ``span_registration``, a longer span's chained motion is refined by registering its two frames (in image
-    pixels, before the mapping to the skin)."""
+    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads."""
     longest = max(spans)
     kinds = store.kinds
     carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need (image pixels)
@@ -188,17 +191,21 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
             writer.append("trajectories", rows)
         tr = Trajectories(n_frames=block.stop, rows=np.concatenate([carry, rows]), kind=kinds)
         last = n - 2 if block.stop == n else block.stop - 1 - longest  # the last pair whose frames are all built
-        for k in range(first, last + 1):
-            s = rectified_sample(tr.motion(k, k + 1), mapping, px_per_mm)
-            motion.add(s)
-            for span in spans:
-                if span == 1:
-                    strain.add(1, s)
-                elif k + span < n:
-                    chained = tr.motion(k, k + span)
-                    if span_registration is not None:
-                        chained = span_registration.refine(chained)
-                    strain.add(span, rectified_sample(chained, mapping, px_per_mm))
+        for k0 in range(first, last + 1, SPAN_REGISTRATION_BATCH):
+            longer = []  # (span, chained motion) of this batch of pairs, registered together
+            for k in range(k0, min(last + 1, k0 + SPAN_REGISTRATION_BATCH)):
+                s = rectified_sample(tr.motion(k, k + 1), mapping, px_per_mm)
+                motion.add(s)
+                for span in spans:
+                    if span == 1:
+                        strain.add(1, s)
+                    elif k + span < n:
+                        longer.append((span, tr.motion(k, k + span)))
+            if span_registration is not None and longer:
+                refined = span_registration.refine_all([c for _, c in longer], threads=threads)
+                longer = [(span, r) for (span, _), r in zip(longer, refined)]
+            for span, chained in longer:
+                strain.add(span, rectified_sample(chained, mapping, px_per_mm))
         first = max(first, last + 1)
         carry = tr.rows[tr.rows["frame"] >= first]
     motion.flush()
@@ -281,7 +288,8 @@ def analyze(
                 span_registration = SpanRegistration(SubpixelRefiner(calibration=calibration, params=params.subpixel),
                                                      reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
-                                     px_per_mm=calibration.px_per_mm, span_registration=span_registration)
+                                     px_per_mm=calibration.px_per_mm, span_registration=span_registration,
+                                     threads=1 if params.execution.kind == "serial" else params.execution.workers)
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
             timing, parallel = dict(m.timing), m.parallel
