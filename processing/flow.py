@@ -98,7 +98,8 @@ class FlowParams:
     refine_spans : bool
         A longer span (the 11-frame strain) is the composition of the consecutive fields refined by registering
         its own two frames (:class:`SpanRefiner`, on a flat surface). False: the composition alone, about twice as
-        fast on a flat surface, but a slip front's 11-frame edge strain errs by 0.42 % instead of 0.14 %.
+        fast on a flat surface, but a slip front's 11-frame edge strain errs several times more (see
+        :meth:`DenseFlow.compute_spans`).
     """
 
     grid_step_mm: float = Field(0.2, gt=0)
@@ -327,7 +328,7 @@ class DenseFlow:
         Composing alone adds up every step's smoothing bias; the direct registration sees the whole span's
         deformation at once, which the adaptive regularization resolves (11-frame edge-strain RMSE, seed 0, frames
         30-100: a slip front 0.14 % against 0.42 % composed, flatL 0.07 % against 0.09 %, the back-and-forth flat2
-        0.10 % against 0.19 %). ``refine=False`` returns the compositions: for frames that carry patterns fixed to
+        0.10 % against 0.19 %, measured before the span's membrane was weakened to ``_SPAN_SMOOTHNESS``). ``refine=False`` returns the compositions: for frames that carry patterns fixed to
         the glass (a ridge or valley surface: its shading and lost contact, even once the mean shading is removed),
         which a direct registration over a span partly follows (ridgeL 0.25 % refined against 0.15 % composed,
         valleyL 0.18 % against 0.13 %)."""
