@@ -328,7 +328,8 @@ class DenseFlow:
         Composing alone adds up every step's smoothing bias; the direct registration sees the whole span's
         deformation at once, which the adaptive regularization resolves (11-frame edge-strain RMSE, seed 0, frames
         30-100: a slip front 0.14 % against 0.42 % composed, flatL 0.07 % against 0.09 %, the back-and-forth flat2
-        0.10 % against 0.19 %, measured before the span's membrane was weakened to ``_SPAN_SMOOTHNESS``). ``refine=False`` returns the compositions: for frames that carry patterns fixed to
+        0.10 % against 0.19 %, measured before the span's membrane was weakened to ``_SPAN_SMOOTHNESS``).
+        ``refine=False`` returns the compositions: for frames that carry patterns fixed to
         the glass (a ridge or valley surface: its shading and lost contact, even once the mean shading is removed),
         which a direct registration over a span partly follows (ridgeL 0.25 % refined against 0.15 % composed,
         valleyL 0.18 % against 0.13 %)."""
@@ -454,6 +455,7 @@ class DenseFlow:
                              np.full(2, np.nan), 0, fa.refused or fb.refused, (fa.refused, fb.refused))
         contact = fa.contact
         gxx, gyy = np.meshgrid(gx, gy)
+        span = initial is not None  # refining a composed span (compute_spans)
         if initial is not None:
             if initial.valid.shape != (gyn, gxn):
                 raise InvalidInputError(f"initial field is on a {initial.valid.shape} grid, this flow's is {(gyn, gxn)}")
@@ -496,13 +498,12 @@ class DenseFlow:
         levels = 0 if initial is not None else min(top, int(self.params.clg_levels))
         for level in range(levels, -1, -1):
             f = 2.0**level
-            span = initial is not None
             field, level_prior, lam, system = self._clg(pa[level], pb[level], gx / f, gy / f, field / f, contact,
                                                         prior / f, _SPAN_ITERATIONS if span else None,
                                                         _SPAN_SMOOTHNESS if span else 1.0)
             field = field * f
         if self.params.adaptive:
-            field, _ = self._adapt(system, field, level_prior, lam, span=initial is not None)
+            field, _ = self._adapt(system, field, level_prior, lam, span=span)
         residual = self._residual(pa[0], pb[0], gx, gy, field)
         med = float(np.median(residual[contact]))
         valid = contact & (residual <= self.params.max_residual_ratio * med + 1e-6)
