@@ -114,15 +114,16 @@ def test_star_pair_is_the_exact_warp_and_scores_its_own_truth():
 
 
 def test_the_window_knob_trades_resolution_for_noise():
+    # On an image this small (192 rows) one seed's resolution at a small window swings with where the noise first
+    # crosses the 10 % bias (30-130 px at 15 px over seeds 0-2): the median over three seeds.
     lay = StarLayout(width=1000, height=192, max_period_px=160.0)
-    pair = render_star_pair(lay, seed=0)
     cal = Calibration(px_per_mm=62.0)
-    scores = []
-    for w in (13, 21, 35):
-        field = DenseFlow(calibration=cal, params=FlowParams(window_px=w, texture_gate=False)).compute(
-            pair.image_a, pair.image_b)
-        scores.append(score_star(field.dense(pair.image_a.shape)[1], pair))
-    res = [s.resolution_px for s in scores]
-    noise = [s.noise_px for s in scores]
-    assert res[0] <= res[1] <= res[2] and res[0] < res[2]
-    assert noise[0] > noise[1] > noise[2]
+    pairs = [render_star_pair(lay, seed=seed) for seed in range(3)]
+    res, noise = [], []
+    for w in (15, 25, 41):
+        flow = DenseFlow(calibration=cal, params=FlowParams(window_px=w, texture_gate=False))
+        scores = [score_star(flow.compute(p.image_a, p.image_b).dense(p.image_a.shape)[1], p) for p in pairs]
+        res.append(np.median([s.resolution_px for s in scores]))
+        noise.append(np.median([s.noise_px for s in scores]))
+    assert res[0] < res[1] < res[2]  # 34 / 45 / 78 px
+    assert min(noise[0], noise[1]) > 2 * noise[2]  # 0.0052 / 0.0049 / 0.0020 px

@@ -181,3 +181,12 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
     except InsufficientDataError as exc:
         return None, f"not applied: {exc}"
     return Shading(shading, good), f"applied (motion ratio {shading.motion_ratio:.2f})"
+
+
+def plain_glass(shading: Shading | None, surface: str | None) -> bool:
+    """Whether the skin slides on plain glass as far as the motion measurement knows: a flat (or unknown) surface
+    and no glass-fixed shading removed. Only then is a longer span registered directly between its frames
+    (feature and flow methods) and does the flow's pair registration use its local prior
+    (:class:`~skinstretch.processing.flow.FlowParams` ``local_prior``): over a ridge or valley both would follow the
+    glass-fixed patterns the skin moves through."""
+    return shading is None and surface in (None, "", "flat")

@@ -258,18 +258,18 @@ def measure_flow(
     *,
     n_frames: int,
     calibration: Calibration,
-    params,
+    flow_params,
     executor: Executor,
     on_field: Callable[[Any], None],
     progress: bool = False,
 ) -> FlowMeasurement:
-    """Dense flow between consecutive frames in chunks on ``executor``; ``on_field(field)`` receives every field in
-    pair order."""
+    """Dense flow (:class:`~skinstretch.processing.flow.FlowParams` ``flow_params``) between consecutive frames in
+    chunks on ``executor``; ``on_field(field)`` receives every field in pair order."""
     width = executor_width(executor)
     plan = chunk_plan(n_frames, width=width, overlap=0)  # a chunk starts at the last frame of the one before
     here = len(plan) == 1
     run_on = InlineExecutor() if here else executor
-    tasks = [(flow_chunk, (reader.part(a, b) if not here else reader, a, b, calibration, params.flow))
+    tasks = [(flow_chunk, (reader.part(a, b) if not here else reader, a, b, calibration, flow_params))
              for a, b in plan]
     t0 = time.perf_counter()
     busy = 0.0

@@ -21,6 +21,7 @@ everything else is written as soon as it is final and read back when a later ste
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -42,7 +43,14 @@ from skinstretch.experiments.analysis.derive import (
 )
 from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
-from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, FrameSource, SessionFrames, estimate_shading
+from skinstretch.experiments.analysis.frames import (
+    ArrayFrames,
+    FrameReader,
+    FrameSource,
+    SessionFrames,
+    estimate_shading,
+    plain_glass,
+)
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
 from skinstretch.experiments.analysis.parameters import (
     METHODS,
@@ -284,7 +292,7 @@ def analyze(
             # A longer span is also registered directly between its two frames (SpanRegistration). Not over a
             # ridge or valley, as for the flow: it would follow the glass-fixed patterns the skin moves through.
             span_registration = None
-            if params.subpixel is not None and shading is None and surface in (None, "", "flat"):
+            if params.subpixel is not None and plain_glass(shading, surface):
                 span_registration = SpanRegistration(SubpixelRefiner(calibration=calibration, params=params.subpixel),
                                                      reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
@@ -298,9 +306,12 @@ def analyze(
             stride = params.strain.flow_stride
             # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
             # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front). Not over a
-            # ridge or valley: the refinement would follow the glass-fixed patterns the skin moves through.
+            # ridge or valley (plain_glass): the refinement would follow the glass-fixed patterns the skin moves
+            # through, and so would the pairs' local prior.
             refiner = None
-            if params.flow.refine_spans and shading is None and surface in (None, "", "flat"):
+            on_glass = plain_glass(shading, surface)
+            pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
+            if params.flow.refine_spans and on_glass:
                 from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=params.flow), reader)
@@ -322,7 +333,7 @@ def analyze(
                                    else chain_flows(steps, stride=stride))
                         strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
 
-            m = measure_flow(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
+            m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=pair_flow, executor=executor,
                              on_field=on_field, progress=progress)
             motion.flush()
             timing, parallel = dict(m.timing), m.parallel
