@@ -8,11 +8,12 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
    pyramid level started from it. Local window methods started at zero lock onto a neighbouring ridge; started
    from the affine motion they are within a fraction of a ridge period.
 3. Every node of a regular grid (0.2 mm) in the contact region is registered with a ~0.8 mm window
-   (Lucas-Kanade data term), coupled to its neighbours by a membrane term on the deviation from the (re-fitted)
-   affine motion, solved by over-relaxed (SOR) sweeps alternating with re-fits of the affine (a joint fit of
-   field and affine); Gauss-Newton iterations re-warp the second image. The
-   coupling supplies the along-ridge component a single window cannot see (aperture problem); acting on the
-   deviation from an affine, it does not bias uniform strain. The warp is bilinear: OpenCV's bicubic kernel
+   (Lucas-Kanade data term), coupled to its neighbours by a membrane term on the deviation from a prior (the
+   re-fitted affine motion plus the field's own deviation from it smoothed over about half a window, or the affine
+   alone: ``FlowParams.local_prior``), solved by over-relaxed (SOR) sweeps alternating with re-fits of the prior
+   (a joint fit of field and prior); Gauss-Newton iterations re-warp the second image. The coupling supplies the
+   along-ridge component a single window cannot see (aperture problem); acting on the deviation from such a
+   prior, it does not bias uniform strain. The warp is bilinear: OpenCV's bicubic kernel
    (a = -0.75) biased the displacement by up to 0.04 px depending on its sub-pixel part, bilinear by < 0.01 px
    (a noiseless rendering shifted in Fourier space, independent noise added). The kernels are numba (nogil,
    :mod:`skinstretch.processing.flow_kernels`):
