@@ -5,7 +5,9 @@
 instead of three, the same size: a narrower image would change the noise figures, its fringes slant more), scored
 the DIC community's way (:mod:`skinstretch.experiments.evaluation.star`): the period at which the amplitude bias
 reaches 10 %, and the noise along the centre row at the long-period end; every method on the same images in the
-same run.
+same run. ``skinstretch bench --only star --star-images REF DEF`` scores a pair of the user's own instead (the DIC
+Challenge 2.0 Star images, which we do not ship): every method on those two images, scored against the layout's
+truth.
 
 Our flow runs at the rig's scale (62.1 px/mm: the 0.8 mm default window is 51 px) with the window given in pixels
 (``FlowParams.window_px``, ``skinstretch flow --window-px``) and without the fingerprint texture gate (a speckle is
@@ -43,13 +45,22 @@ def _peers() -> dict:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from skinstretch.experiments.evaluation.star import BIAS_LIMIT, score_star  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.star import BIAS_LIMIT, score_star, star_pair_from_images  # noqa: PLC0415
     from skinstretch.processing.flow import DenseFlow, FlowParams  # noqa: PLC0415
     from skinstretch.processing.pixel_scale import Calibration  # noqa: PLC0415
     from skinstretch.simulators.star_pattern import StarLayout, render_star_pair  # noqa: PLC0415
 
-    seeds = (0,) if options.quick else (0, 1, 2)
     layout = StarLayout()
+    given = options.extra.get("star_images")  # (description, image a, image b): read by the command, checked here
+    if given is not None:
+        source, image_a, image_b = given
+        pairs = [star_pair_from_images(image_a, image_b, source=source)]
+        what = f"the images {source} (given with --star-images), scored against the layout's truth"
+    else:
+        seeds = (0,) if options.quick else (0, 1, 2)
+        pairs = [render_star_pair(layout, seed=seed) for seed in seeds]
+        what = (f"{len(seeds)} seed(s) ({', '.join(map(str, seeds))}) of our own star pairs: speckle dots sigma "
+                f"{layout.dot_sigma_px} px, {layout.dot_density} per px^2, noise {layout.noise_sigma} grey levels")
     cal = Calibration(px_per_mm=PX_PER_MM)
     methods: dict = {}
     for w in WINDOWS_PX:
@@ -62,11 +73,10 @@ def run(options: BenchOptions) -> list[BenchTable]:
     methods.update(_peers())
     scores: dict[str, list] = {k: [] for k in methods}
     seconds: dict[str, float] = {k: 0.0 for k in methods}
-    for seed in seeds:
-        pair = render_star_pair(layout, seed=seed)
+    for i, pair in enumerate(pairs):
         a, b = pair.image_a, pair.image_b
         for label, m in methods.items():
-            if isinstance(m, DenseFlow) and seed == seeds[0]:
+            if isinstance(m, DenseFlow) and i == 0:
                 m.compute(a, b)  # untimed: compiled kernels load at the first call
             t0 = time.perf_counter()
             if isinstance(m, DenseFlow):
@@ -97,10 +107,8 @@ def run(options: BenchOptions) -> list[BenchTable]:
         dom_rows.append([peer, float(np.mean([s.resolution_px for s in ps])), float(np.mean([s.noise_px for s in ps])),
                          "; ".join(winners) if winners else "none"])
     notes = [
-        f"{len(seeds)} seed(s) ({', '.join(map(str, seeds))}), image {layout.width} x {layout.height} px, speckle dots "
-        f"sigma {layout.dot_sigma_px} px, {layout.dot_density} per px^2, noise {layout.noise_sigma} grey levels, "
-        f"amplitude {layout.amplitude_px} px, periods {layout.min_period_px:.0f} -> {layout.max_period_px:.0f} px "
-        "(the DIC Challenge 2.0 Star layout)",
+        f"{what}; image {layout.width} x {layout.height} px, amplitude {layout.amplitude_px} px, periods "
+        f"{layout.min_period_px:.0f} -> {layout.max_period_px:.0f} px (the DIC Challenge 2.0 Star layout)",
         f"resolution: period at which the amplitude bias on the centre rows first reaches {BIAS_LIMIT:.0%}, scanning "
         "from the longest period (smaller is better; the shortest period means never reached); noise: std of v along "
         "the centre row (where v = 0.5 px) over the long-period end (periods ~190-296 px), less a quadratic trend; "
@@ -113,14 +121,14 @@ def run(options: BenchOptions) -> list[BenchTable]:
     ]
     return [
         BenchTable(
-            title="Star pattern: resolution and noise (mean and worst over seeds)",
+            title="Star pattern: resolution and noise (mean and worst over the pairs)",
             columns=["method", "resolution px mean", "resolution px worst", "noise px mean", "noise px worst",
                      "error at long periods px", "missing", "s/pair"],
             rows=rows,
             notes=notes,
         ),
         BenchTable(
-            title="Settings of ours that dominate each peer (resolution <= and noise <= the peer's on every seed)",
+            title="Settings of ours that dominate each peer (resolution <= and noise <= the peer's on every pair)",
             columns=["peer", "resolution px", "noise px", "ours (window) dominating it"],
             rows=dom_rows,
         ),

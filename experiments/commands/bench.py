@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 import skinstretch.experiments.bench as _bench
 from skinstretch.experiments.bench import BenchOptions, SectionResult, markdown_document
 from skinstretch.experiments.json_encoding import json_default, json_safe
@@ -36,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="short runs (a few seconds per section)")
     p.add_argument("--scenes", default="", help="comma-separated scene names for the sections that use scenes")
     p.add_argument("--seconds", type=float, default=None, help="duration of streaming benchmarks")
+    p.add_argument("--star-images", nargs=2, type=Path, default=None, metavar=("REF", "DEF"),
+                   help="the star section scores these two images (e.g. the DIC Challenge 2.0 Star pair, 4000 x 501 "
+                        "px, 8 or 16 bit) instead of star pairs of its own")
     p.add_argument("--workdir", type=Path, default=Path("bench-output"), help="scratch directory")
     p.add_argument("--json", type=Path, default=None,
                    help="also write all tables to this JSON file (overwritten if it exists)")
@@ -57,9 +62,23 @@ def command_line(args: argparse.Namespace) -> str:
         words += ["--scenes", args.scenes]
     if args.seconds is not None:
         words += ["--seconds", f"{args.seconds:g}"]
+    if args.star_images is not None:
+        words += ["--star-images", *map(str, args.star_images)]
     if args.markdown is not None:
         words += ["--markdown", str(args.markdown)]
     return shlex.join(words)
+
+
+def star_images(ref: Path, deformed: Path) -> tuple[str, np.ndarray, np.ndarray]:
+    """The two images of ``--star-images`` as an 8-bit grey pair (16-bit data by ``skinstretch flow``'s rule),
+    checked against the star layout; with their description for the table."""
+    from skinstretch.experiments.commands.flow import read_grey, to_8bit_pair  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.star import star_pair_from_images  # noqa: PLC0415
+
+    a, b = to_8bit_pair(read_grey(ref), read_grey(deformed))
+    source = f"{ref.name} -> {deformed.name}"
+    star_pair_from_images(a, b, source=source)
+    return source, a, b
 
 
 class _FirstTimeOnly(logging.Filter):
@@ -98,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
         scenes=[s for s in args.scenes.split(",") if s] or None,
         seconds=args.seconds,
     )
+    if args.star_images is not None:  # read and checked before any section runs: one line naming the file
+        if "star" not in wanted:
+            raise InvalidInputError("--star-images is for the star section: add --only star")
+        options.extra["star_images"] = star_images(*args.star_images)
     options.workdir.mkdir(parents=True, exist_ok=True)
     date = time.strftime("%Y-%m-%d %H:%M %Z")
     machine = machine_description()

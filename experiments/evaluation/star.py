@@ -58,6 +58,21 @@ class StarScore:
         return f"{self.resolution_px:.0f}"
 
 
+def star_pair_from_images(image_a: np.ndarray, image_b: np.ndarray, *, source: str = "the star images") -> StarPair:
+    """A star pair from two 8-bit grey images of the DIC Challenge 2.0 Star layout (the Challenge's own images, or
+    any rendered the same way): the truth is the layout's. One line naming ``source`` when they cannot be one."""
+    lay = StarLayout()
+    want = (lay.height, lay.width)
+    for img in (image_a, image_b):
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise InvalidInputError(f"{source}: need two 8-bit grey images, got {img.dtype} of shape {img.shape}")
+        if img.shape != want:
+            raise InvalidInputError(f"{source}: {img.shape[1]} x {img.shape[0]} px; the DIC Challenge 2.0 Star layout "
+                                    f"is {want[1]} x {want[0]} px (0.5 px vertical sine, periods "
+                                    f"{lay.min_period_px:.0f} to {lay.max_period_px:.0f} px)")
+    return StarPair(lay, image_a, image_b, lay.displacement())
+
+
 def score_star(v_measured: np.ndarray, star: StarLayout | StarPair) -> StarScore:
     """Score a measured vertical displacement (H, W) px (NaN where the method gives none) on a star layout (or
     pair: its layout)."""
