@@ -56,11 +56,13 @@ def run(options: BenchOptions) -> list[BenchTable]:
         source, image_a, image_b = given
         pairs = [star_pair_from_images(image_a, image_b, source=source)]
         what = f"the images {source} (given with --star-images), scored against the layout's truth"
+        over, every = "the pairs", "pair"
     else:
         seeds = (0,) if options.quick else (0, 1, 2)
         pairs = [render_star_pair(layout, seed=seed) for seed in seeds]
         what = (f"{len(seeds)} seed(s) ({', '.join(map(str, seeds))}) of our own star pairs: speckle dots sigma "
                 f"{layout.dot_sigma_px} px, {layout.dot_density} per px^2, noise {layout.noise_sigma} grey levels")
+        over, every = "seeds", "seed"
     cal = Calibration(px_per_mm=PX_PER_MM)
     methods: dict = {}
     for w in WINDOWS_PX:
@@ -121,14 +123,14 @@ def run(options: BenchOptions) -> list[BenchTable]:
     ]
     return [
         BenchTable(
-            title="Star pattern: resolution and noise (mean and worst over the pairs)",
+            title=f"Star pattern: resolution and noise (mean and worst over {over})",
             columns=["method", "resolution px mean", "resolution px worst", "noise px mean", "noise px worst",
                      "error at long periods px", "missing", "s/pair"],
             rows=rows,
             notes=notes,
         ),
         BenchTable(
-            title="Settings of ours that dominate each peer (resolution <= and noise <= the peer's on every pair)",
+            title=f"Settings of ours that dominate each peer (resolution <= and noise <= the peer's on every {every})",
             columns=["peer", "resolution px", "noise px", "ours (window) dominating it"],
             rows=dom_rows,
         ),
