@@ -278,9 +278,28 @@ class SubpixelRefiner:
     def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
         """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
         variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
+        cov = self.displacement_covariance(prev_image, curr_image, points, disp, np.full(len(points), win))
+        return cov[:, 0, 0] + cov[:, 1, 1]
+
+    def displacement_covariance(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
+                                window_px: np.ndarray | None = None) -> np.ndarray:
+        """The covariance (n, 2, 2) px^2 of each registered displacement, ``s^2 T^-1``: ``s^2`` the residual
+        variance of its window after registration (image noise and what the translation leaves), ``T`` the
+        window's structure tensor. Parallel ridges make it long along them (the aperture problem). NaN where the
+        window leaves an image or T is singular. ``window_px``: as :meth:`deformation_bias`."""
         a, gx, gy = _image_and_gradient(prev_image, "prev_image")
-        return _predicted_variance_kernel(a, curr_image, gx, gy, np.ascontiguousarray(points),
-                                          np.ascontiguousarray(disp), win // 2)
+        b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        displacement = _displacement_rows(displacement, points, "displacement")
+        halves = np.full(points.shape[0], self._win // 2, np.int64)
+        if window_px is not None:
+            halves = np.asarray(window_px, dtype=np.int64).reshape(-1) // 2
+            if halves.shape[0] != points.shape[0]:
+                raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
+        if points.shape[0] == 0:
+            return np.zeros((0, 2, 2))
+        return _covariances(_window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement),
+                                                      halves))
 
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                          fallback: np.ndarray | None = None) -> np.ndarray:
@@ -437,12 +456,14 @@ def _shifted_window(b, c, r, half, dx, dy):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
-    """Per point, trace of s^2 T^-1 over its window: T the structure tensor of ``a``, s^2 the variance of the
-    residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either image or T is singular."""
+def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
+    """Per point, rows (Txx, Txy, Tyy, s^2) over its window of half-side ``halves[i]``: T the structure tensor of
+    ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either
+    image."""
     h, w = a.shape
-    out = np.full(points.shape[0], np.nan)
+    out = np.full((points.shape[0], 4), np.nan)
     for i in range(points.shape[0]):
+        half = halves[i]
         c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
@@ -474,11 +495,22 @@ def _predicted_variance_kernel(a, b, gx, gy, points, disp, half):
             txy += float(sxy)
             tyy += float(syy)
             rr += float(srr)
-        det = txx * tyy - txy * txy
-        if det <= 1e-9 * (txx + tyy) ** 2 or det <= 0.0:
-            continue
-        s2 = rr / ((2 * half + 1) ** 2 - 2)
-        out[i] = s2 * (txx + tyy) / det
+        out[i, 0] = txx
+        out[i, 1] = txy
+        out[i, 2] = tyy
+        out[i, 3] = rr / ((2 * half + 1) ** 2 - 2)
+    return out
+
+
+def _covariances(stats: np.ndarray) -> np.ndarray:
+    """``s^2 T^-1`` (n, 2, 2) from :func:`_window_statistics_kernel`'s rows; NaN where T is singular or unknown."""
+    txx, txy, tyy, s2 = stats.T
+    det = txx * tyy - txy * txy
+    ok = np.isfinite(det) & (det > 0.0) & (det > 1e-9 * (txx + tyy) ** 2)
+    out = np.full((stats.shape[0], 2, 2), np.nan)
+    k = s2[ok] / det[ok]
+    out[ok, 0, 0], out[ok, 1, 1] = k * tyy[ok], k * txx[ok]
+    out[ok, 0, 1] = out[ok, 1, 0] = -k * txy[ok]
     return out
 
 

@@ -38,6 +38,7 @@ from skinstretch.processing.feature_matching import (  # noqa: F401 - match_feat
 )
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
+from skinstretch.processing.neighbour_fusion import fuse_with_neighbours
 # smooth_positions stays importable from here, where it was defined before it moved
 from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
 
@@ -75,6 +76,14 @@ class TrackingParams:
         missed; another feature this close starts no track of its own (one skin point detected twice). 0.1 mm =
         6 px at 62 px/mm, a quarter of a ridge period: the jitter of a detection is smaller, and distinct landmarks
         are rarely closer.
+    fusion_radius_mm : float or None
+        With sub-pixel refinement: each refined displacement is fused with the local affine prediction of its
+        refined neighbours within this radius, each weighted by its window's covariance (the window's parallel
+        ridges leave the motion along them ill-determined: :mod:`skinstretch.processing.neighbour_fusion`). None:
+        no fusion.
+    fusion_model_sigma_mm : float
+        How far a point's true motion may depart from its neighbours' local affine in one frame (a stick-slip or
+        slip band): the neighbours' prediction is never trusted more closely (0.0002 mm = 0.012 px).
     """
 
     search_radius_mm: float = Field(0.3, gt=0)
@@ -85,6 +94,8 @@ class TrackingParams:
     max_local_deviation_mm: float = Field(0.008, gt=0)
     max_bridge_frames: int | None = Field(0, ge=0)
     merge_radius_mm: float = Field(0.1, gt=0)
+    fusion_radius_mm: float | None = Field(1.5, gt=0)
+    fusion_model_sigma_mm: float = Field(0.0002, gt=0)
 
 
 def join_overlap_frames(params: TrackingParams) -> int:
@@ -356,6 +367,9 @@ class FeatureTracker:
         self._radius = calibration.px(self.params.search_radius_mm)
         self._max_deviation = calibration.px(self.params.max_local_deviation_mm)
         self._merge_radius = calibration.px(self.params.merge_radius_mm)
+        fusion = self.params.fusion_radius_mm
+        self._fusion_radius = calibration.px(fusion) if fusion is not None else 0.0
+        self._fusion_sigma = calibration.px(self.params.fusion_model_sigma_mm)
         self._n_frames = 0
         self._n_tracks = 0
         self._n_features = 0
@@ -583,6 +597,8 @@ class FeatureTracker:
         if int(good.sum()) >= 3:
             sel = np.flatnonzero(good)
             windows = np.concatenate([win, cand_win])[sel]
+            cov = (self.refiner.displacement_covariance(a, b, points[sel], disp[sel], windows)
+                   if self._fusion_radius > 0 else None)
             # The gradient measured in each point's own window; the neighbours' fit where that fails.
             grads = self.refiner.window_gradients(a, b, points[sel], disp[sel])
             failed = np.flatnonzero(np.isnan(grads[:, 0, 0]))
@@ -593,6 +609,10 @@ class FeatureTracker:
             # only (parallel ridges, no landmark), where it is ill-determined: left alone.
             bias[np.hypot(*bias.T) > self._max_deviation] = 0.0
             disp[sel] -= bias
+            if cov is not None:  # the motion along a window's ridges from its neighbours' (neighbour_fusion)
+                disp[sel] = fuse_with_neighbours(points[sel], disp[sel], cov, gradient=grads,
+                                                 radius_px=self._fusion_radius,
+                                                 model_sigma_px=self._fusion_sigma)[0]
             dd, cand_disp = disp[:m], disp[m:]
         bridged = np.concatenate([candidates[found], pi[detached]])
         bridged_disp = np.concatenate([cand_disp[found], dd[detached]])
