@@ -94,12 +94,32 @@ def fuse_with_neighbours(
 
 
 @numba.njit(cache=True, nogil=True)
+def _neighbour_weight(points, cov, i, j, sigma, model_var):
+    """Neighbour j of point i: its offset (ox, oy), distance weight wt, and weight matrix (w00, w01, w11), the
+    inverse of its covariance plus the model term times wt; wt = 0 where that covariance is not positive."""
+    ox = points[j, 0] - points[i, 0]
+    oy = points[j, 1] - points[i, 1]
+    a, b, c = cov[j, 0, 0] + model_var, cov[j, 0, 1], cov[j, 1, 1] + model_var
+    det = a * c - b * b
+    if not det > 0.0:
+        return ox, oy, 0.0, 0.0, 0.0, 0.0
+    wt = np.exp(-0.5 * (ox * ox + oy * oy) / (sigma * sigma))
+    return ox, oy, wt, wt * c / det, -wt * b / det, wt * a / det
+
+
+@numba.njit(cache=True, nogil=True)
 def _fuse_kernel(points, disp, cov, grad, usable, indptr, indices, sigma, model_var, min_neighbours):
     n = points.shape[0]
     out = disp.copy()
     changed = np.zeros(n, np.bool_)
     m = np.zeros((6, 6))
     v = np.zeros(6)
+    most = 0
+    for i in range(n):
+        most = max(most, indptr[i + 1] - indptr[i])
+    # the usable neighbours of the current point: index, offset, distance weight, weight matrix
+    nb_j = np.zeros(most, np.int64)
+    nb_w = np.zeros((most, 6))
     for i in range(n):
         if not usable[i]:
             continue
@@ -110,15 +130,12 @@ def _fuse_kernel(points, disp, cov, grad, usable, indptr, indices, sigma, model_
             j = indices[t]
             if j == i or not usable[j]:
                 continue
-            ox = points[j, 0] - points[i, 0]
-            oy = points[j, 1] - points[i, 1]
-            wt = np.exp(-0.5 * (ox * ox + oy * oy) / (sigma * sigma))
-            # weight of neighbour j: its inverse covariance (plus the model term), times the distance weight
-            a, b, c = cov[j, 0, 0] + model_var, cov[j, 0, 1], cov[j, 1, 1] + model_var
-            det = a * c - b * b
-            if not det > 0.0:
+            ox, oy, wt, w00, w01, w11 = _neighbour_weight(points, cov, i, j, sigma, model_var)
+            if not wt > 0.0:
                 continue
-            w00, w01, w11 = wt * c / det, -wt * b / det, wt * a / det
+            nb_j[used] = j
+            nb_w[used, 0], nb_w[used, 1], nb_w[used, 2] = ox, oy, wt
+            nb_w[used, 3], nb_w[used, 4], nb_w[used, 5] = w00, w01, w11
             # rows of the design: u = (ux0 + gxx ox + gxy oy, uy0 + gyx ox + gyy oy), unknowns
             # (ux0, uy0, gxx, gxy, gyx, gyy)
             bx = (1.0, 0.0, ox, oy, 0.0, 0.0)
@@ -146,20 +163,12 @@ def _fuse_kernel(points, disp, cov, grad, usable, indptr, indices, sigma, model_
         # where the affine holds; where it does not (a slip band), the prediction's covariance grows by as much.
         chi = 0.0
         wsum = 0.0
-        for t in range(indptr[i], indptr[i + 1]):
-            j = indices[t]
-            if j == i or not usable[j]:
-                continue
-            ox = points[j, 0] - points[i, 0]
-            oy = points[j, 1] - points[i, 1]
-            wt = np.exp(-0.5 * (ox * ox + oy * oy) / (sigma * sigma))
-            a, b, c = cov[j, 0, 0] + model_var, cov[j, 0, 1], cov[j, 1, 1] + model_var
-            det = a * c - b * b
-            if not det > 0.0:
-                continue
+        for k in range(used):
+            j = nb_j[k]
+            ox, oy, wt, w00, w01, w11 = nb_w[k, 0], nb_w[k, 1], nb_w[k, 2], nb_w[k, 3], nb_w[k, 4], nb_w[k, 5]
             rx = disp[j, 0] - (pred[0] + pred[2] * ox + pred[3] * oy)
             ry = disp[j, 1] - (pred[1] + pred[4] * ox + pred[5] * oy)
-            chi += wt * (c * rx * rx - 2.0 * b * rx * ry + a * ry * ry) / det
+            chi += w00 * rx * rx + 2.0 * w01 * rx * ry + w11 * ry * ry
             wsum += wt
         inflate = max(1.0, chi / (2.0 * wsum)) if wsum > 0.0 else 1.0
         # The point's own window gradient against the neighbours' affine: where the skin does not move affinely
