@@ -275,6 +275,15 @@ class SubpixelRefiner:
         residual = np.where(ok, err.reshape(-1).astype(np.float64), np.nan)
         return disp, ok, residual
 
+    def _window_halves(self, window_px: np.ndarray | None, n: int) -> np.ndarray:
+        """Half-sides (n,) of the windows each point was registered with (``window_px``; default the first)."""
+        if window_px is None:
+            return np.full(n, self._win // 2, np.int64)
+        halves = np.asarray(window_px, dtype=np.int64).reshape(-1) // 2
+        if halves.shape[0] != n:
+            raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {n} points")
+        return halves
+
     def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
         """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
         variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
@@ -291,11 +300,7 @@ class SubpixelRefiner:
         b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         displacement = _displacement_rows(displacement, points, "displacement")
-        halves = np.full(points.shape[0], self._win // 2, np.int64)
-        if window_px is not None:
-            halves = np.asarray(window_px, dtype=np.int64).reshape(-1) // 2
-            if halves.shape[0] != points.shape[0]:
-                raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
+        halves = self._window_halves(window_px, points.shape[0])
         if points.shape[0] == 0:
             return np.zeros((0, 2, 2))
         return _covariances(_window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement),
@@ -376,11 +381,7 @@ class SubpixelRefiner:
             raise InvalidInputError(f"gradient has {gradient.shape[0]} rows for {points.shape[0]} points")
         if points.shape[0] == 0:
             return np.zeros((0, 2))
-        halves = np.full(points.shape[0], self._win // 2, np.int64)
-        if window_px is not None:
-            halves = np.asarray(window_px, dtype=np.int64).reshape(-1) // 2
-            if halves.shape[0] != points.shape[0]:
-                raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {points.shape[0]} points")
+        halves = self._window_halves(window_px, points.shape[0])
         # The derivative operator of OpenCV's pyramidal Lucas-Kanade (Scharr); its scale cancels.
         return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient), halves)
 

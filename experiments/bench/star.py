@@ -45,16 +45,16 @@ def _peers() -> dict:
 
 
 def run(options: BenchOptions) -> list[BenchTable]:
-    from skinstretch.experiments.evaluation.star import BIAS_LIMIT, score_star, star_pair_from_images  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.star import BIAS_LIMIT, score_star  # noqa: PLC0415
     from skinstretch.processing.flow import DenseFlow, FlowParams  # noqa: PLC0415
     from skinstretch.processing.pixel_scale import Calibration  # noqa: PLC0415
     from skinstretch.simulators.star_pattern import StarLayout, render_star_pair  # noqa: PLC0415
 
     layout = StarLayout()
-    given = options.extra.get("star_images")  # (description, image a, image b): read by the command, checked here
+    given = options.extra.get("star_images")  # (description, StarPair): read and checked by the command
     if given is not None:
-        source, image_a, image_b = given
-        pairs = [star_pair_from_images(image_a, image_b, source=source)]
+        source, pair = given
+        pairs = [pair]
         what = f"the images {source} (given with --star-images), scored against the layout's truth"
         over, every = "the pairs", "pair"
     else:

@@ -14,8 +14,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 import skinstretch.experiments.bench as _bench
 from skinstretch.experiments.bench import BenchOptions, SectionResult, markdown_document
@@ -23,6 +22,9 @@ from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.module_discovery import public_submodules
 from skinstretch.experiments.provenance import machine_description
 from skinstretch.processing.errors import InvalidInputError
+
+if TYPE_CHECKING:
+    from skinstretch.simulators.star_pattern import StarPair
 
 log = logging.getLogger(__name__)
 
@@ -69,16 +71,15 @@ def command_line(args: argparse.Namespace) -> str:
     return shlex.join(words)
 
 
-def star_images(ref: Path, deformed: Path) -> tuple[str, np.ndarray, np.ndarray]:
-    """The two images of ``--star-images`` as an 8-bit grey pair (16-bit data by ``skinstretch flow``'s rule),
+def star_images(ref: Path, deformed: Path) -> tuple[str, "StarPair"]:
+    """The two images of ``--star-images`` as a star pair (8-bit grey; 16-bit data by ``skinstretch flow``'s rule),
     checked against the star layout; with their description for the table."""
     from skinstretch.experiments.commands.flow import read_grey, to_8bit_pair  # noqa: PLC0415
     from skinstretch.experiments.evaluation.star import star_pair_from_images  # noqa: PLC0415
 
     a, b = to_8bit_pair(read_grey(ref), read_grey(deformed))
     source = f"{ref.name} -> {deformed.name}"
-    star_pair_from_images(a, b, source=source)
-    return source, a, b
+    return source, star_pair_from_images(a, b, source=source)
 
 
 class _FirstTimeOnly(logging.Filter):
