@@ -19,7 +19,7 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
    :mod:`skinstretch.processing.flow_kernels`):
    window sums of the five gradient products in one pass down the image, the remap coordinates, the solver.
 4. Nodes out of contact (a flat window), whose window leaves the second image, or whose residual is far above
-   the median are flagged invalid, never silently kept.
+   the median (and above a floor, for noise-free images) are flagged invalid, never silently kept.
 
 Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
 :func:`skinstretch.processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
@@ -83,7 +83,13 @@ class FlowParams:
         there it follows the prior: with a single fit per iteration a wrong start in uniform strain (e.g.
         0.2 % along the ridges after ECC) persists.
     max_residual_ratio : float
-        A node whose registration residual exceeds this multiple of the median is flagged invalid.
+        A node whose registration residual exceeds this multiple of the median is flagged invalid...
+    residual_floor : float
+        ...unless its residual is at most this (mean absolute grey-level difference over the window, in the
+        locally normalised image, whose standard deviation is 40): a noise-free image pair (a synthetic speckle,
+        a rendered scene) registers to a median residual near 0, and the ratio alone then flagged most exact
+        nodes (two thirds of a speckle shifted by one pixel). The rig's frames give a median of about 3, so the
+        floor never acts there; a node that registered wrongly leaves tens.
     clg_levels : int
         Pyramid levels above full resolution on which the coupled registration also runs, coarse to fine, after
         the affine start (0: full resolution only, enough after the affine start on the seed's scenes).
@@ -120,6 +126,7 @@ class FlowParams:
     sor_omega: float = Field(1.8, gt=0, lt=2)
     prior_refits: int = Field(4, ge=1)
     max_residual_ratio: float = Field(3.0, gt=0)
+    residual_floor: float = Field(2.0, ge=0)
     clg_levels: int = Field(0, ge=0, le=5)
     normalize_sigma_mm: float | None = Field(0.15, gt=0)
     adaptive: bool = True
@@ -513,10 +520,11 @@ class DenseFlow:
             field, _ = self._adapt(system, field, level_prior, lam, span=span)
         residual = self._residual(pa[0], pb[0], gx, gy, field)
         med = float(np.median(residual[contact]))
-        valid = contact & (residual <= self.params.max_residual_ratio * med + 1e-6)
-        # A node whose window leaves the second image cannot be registered there.
+        valid = contact & (residual <= max(self.params.max_residual_ratio * med, self.params.residual_floor) + 1e-6)
+        # A node whose window leaves the second image cannot be registered there (the outer nodes' windows touch
+        # the image's edge: a solver's rounding, 1e-4 px outwards, does not count).
         h, w = fa.raw.shape
-        half = self._win // 2
+        half = self._win // 2 - _EDGE_TOLERANCE_PX
         tx, ty = gxx + field[..., 0], gyy + field[..., 1]
         valid &= (tx >= half) & (tx <= w - 1 - half) & (ty >= half) & (ty <= h - 1 - half)
         n_out = int((contact & ~valid).sum())
@@ -642,6 +650,8 @@ class DenseFlow:
 #: 0.038 % on the same pairs) but glass-fixed shading over a ridge or valley adds noise (0.034 % against 0.031 %,
 #: DeepFlow 0.032 %); the 11-frame spans, refined directly, meet their target either way.
 _SHARP = 0.03
+#: How far (px) a node's window may reach past the image's edge in the second image and still count as inside.
+_EDGE_TOLERANCE_PX = 0.01
 _SPAN_ITERATIONS = 1
 #: A span's membrane weight relative to a pair's. The membrane pulls the field towards the affine prior, so its bias
 #: grows with the non-affine part of the motion, about ten times a pair's over an 11-frame span, while the image

@@ -96,7 +96,12 @@ def run(args: argparse.Namespace) -> int:
         options["window_mm"] = args.window_mm
     if args.window_px is not None:
         options["window_px"] = args.window_px + (1 - args.window_px % 2)  # windows are centred: odd
-    flow = DenseFlow(calibration=Calibration(px_per_mm=float(args.px_per_mm)), params=FlowParams(**options))
+    try:
+        params = FlowParams(**options)
+    except InvalidInputError as exc:  # a bad value is named by the flag that gave it
+        text = str(exc).replace("FlowParams.window_px:", "--window-px:").replace("FlowParams.window_mm:", "--window-mm:")
+        raise InvalidInputError(text) from None
+    flow = DenseFlow(calibration=Calibration(px_per_mm=float(args.px_per_mm)), params=params)
     t0 = time.perf_counter()
     field = flow.compute(a, b)
     seconds = time.perf_counter() - t0
