@@ -59,6 +59,25 @@ def test_coverage_alpha_colour_and_ridge_period():
     np.testing.assert_allclose(prepare_print(bgra[..., :3], dpi=DPI).brightness, p.brightness, atol=1e-6)
 
 
+def test_ridge_period_of_a_blotchy_print(caplog):
+    # A faint latent print, its ridges broken, on a mottled surface (blotches 0.1-0.5 mm, a natural image's
+    # falling spectrum): the mottle must not pass for the ridge period (it read 1.21 mm), nor set off the dpi
+    # warning.
+    h = w = 400
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    rng = np.random.default_rng(5)
+    ridge = 0.5 + 0.5 * np.cos(2 * np.pi * (y + 0.002 * (x - w / 2) ** 2) / (0.42 * PPM))
+    quality = np.clip(ndi.gaussian_filter(rng.normal(size=(h, w)), 10) * 30 + 0.5, 0, 1)
+    mottle = sum(ndi.gaussian_filter(rng.normal(size=(h, w)), s) * s for s in (6, 12))
+    mottle *= 0.1 / mottle.std()
+    inside = (x > 20) & (x < w - 20) & (y > 20) & (y < h - 20)
+    img = np.clip(np.where(inside, 0.6 - 0.15 * ridge * quality + mottle, 1.0), 0, 1)
+    with caplog.at_level(logging.WARNING, logger="skinstretch.simulators.print_texture"):
+        p = prepare_print((img * 255).round().astype(np.uint8), dpi=DPI)
+    assert p.ridge_period_mm == pytest.approx(0.42, rel=0.1)
+    assert "is the dpi right" not in caplog.text
+
+
 def test_wrong_dpi_is_warned_and_bad_images_refused(caplog):
     grey, _ = _ridges(period_mm=0.45)
     with caplog.at_level(logging.WARNING, logger="skinstretch.simulators.print_texture"):
