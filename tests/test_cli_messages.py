@@ -33,6 +33,7 @@ def test_a_message_opening_with_a_parameter_opens_with_its_flag():
 @pytest.mark.parametrize("args,flag", [
     (["simulate", "flatL", "--frames", "2", "--workers", "0"], "--workers must be a positive integer"),
     (["simulate", "flatL", "--frames", "2", "--noise", "-1"], "--noise must be a non-negative number"),
+    (["simulate", "flatL", "--frames", "2", "--texture", "afis_p1_2", "--dpi", "50"], "--dpi must be between 100"),
     (["calibrate", "grid.png", "--spacing-mm", "0"], "--spacing-mm must be positive"),
     (["analyze", "s.h5", "--workers", "0"], "--workers: Input should be greater than or equal to 1"),
     (["analyze", "s.h5", "--method", "flow", "--flow-scale", "-1"], "--flow-scale: Input should be greater than 0"),
