@@ -71,7 +71,7 @@ def test_flow_command_writes_u_v_with_nan_outside(tmp_path, image_pair, capsys):
 
 def test_a_noise_free_pair_is_measured_wherever_a_window_fits(tmp_path, capsys):
     # Noise-free images register to a median residual near 0: the outlier test must not flag exact nodes for it
-    # (before the residual floor, two thirds of this speckle's nodes were NaN).
+    # (before the residual floor, a third of this speckle's nodes were NaN).
     t = _texture((200, 301)).round().astype(np.uint8)
     a, b = np.ascontiguousarray(t[:, 1:]), np.ascontiguousarray(t[:, :-1])  # b is a moved one pixel to the right
     pa, pb, out = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "f.npz"

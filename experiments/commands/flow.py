@@ -99,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         params = FlowParams(**options)
     except InvalidInputError as exc:  # a bad value is named by the flag that gave it
-        text = str(exc).replace("FlowParams.window_px:", "--window-px:").replace("FlowParams.window_mm:", "--window-mm:")
+        text = str(exc)
+        for field, flag in (("window_px", "--window-px"), ("window_mm", "--window-mm")):
+            text = text.replace(f"FlowParams.{field}:", f"{flag}:")
         raise InvalidInputError(text) from None
     flow = DenseFlow(calibration=Calibration(px_per_mm=float(args.px_per_mm)), params=params)
     t0 = time.perf_counter()
