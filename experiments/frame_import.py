@@ -42,6 +42,7 @@ from skinstretch.drivers.session_file import SessionWriter, replacing_file, writ
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError, Remedy
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.surface_detection import ContrastAccumulator, SurfaceEvidence
+from skinstretch.processing.texture_gate import PLAUSIBLE_RIDGE_PERIOD_MM, ridge_period_mm
 from skinstretch.progress import progress_bar
 
 if TYPE_CHECKING:
@@ -280,8 +281,8 @@ def import_frames(
         with replacing_file(output, overwrite=overwrite) as tmp:
             writer = SessionWriter(tmp, camera_mode=mode, calibration=cal, metadata=metadata, flush_interval_s=1.0)
             try:
-                n, times = _write_frames(writer, frames, crop=crop, depth=depth, total=reader.n_frames,
-                                         progress=progress, where=reader.name, contrast=contrast)
+                n, times, sample = _write_frames(writer, frames, crop=crop, depth=depth, total=reader.n_frames,
+                                                 progress=progress, where=reader.name, contrast=contrast)
                 writer.close()
             except BaseException as exc:
                 writer.fail(f"import stopped: {type(exc).__name__}: {exc}")
@@ -289,17 +290,36 @@ def import_frames(
             fps_out, fps_source = _nominal_rate(fps, reader.fps, times, time_source)
             if fps_out != nominal_fps:
                 _set_rate(tmp, fps_out)
+            source_record["ridge_period_mm"] = _checked_ridge_period(sample, cal.px_per_mm, reader.name,
+                                                                     scale_source)
             if contrast is not None:
                 metadata["surface"] = _detected_surface(contrast, reader.name)
-                write_metadata(tmp, metadata)
             else:
                 log.info("surface %s (given by --surface)", surface)
+            write_metadata(tmp, metadata)
     seconds = time.perf_counter() - t_start
     log.debug("imported %d frames of %s into %s in %.1f s (%s)", n, reader.name, output, seconds, conversion)
     return ImportResult(path=output, n_frames=n, width=width, height=height, fps=fps_out, fps_source=fps_source,
                         px_per_mm=cal.px_per_mm, px_per_mm_source=scale_source, conversion=conversion,
                         surface=metadata["surface"]["kind"], surface_source=metadata["surface"]["decided_by"],
                         seconds=seconds)
+
+
+def _checked_ridge_period(sample: np.ndarray | None, px_per_mm: float, where: str, scale_source: str) -> float | None:
+    """The ridge period of the clip's middle frame at the session's scale (mm; None when not measurable), with a
+    warning when no fingertip has it: a wrong pixel scale (a guessed ``--px-per-mm``) would otherwise surface only
+    as frames the analysis refuses as out of focus or without texture."""
+    if sample is None or min(sample.shape) < 32:
+        return None
+    period = ridge_period_mm(sample, px_per_mm=px_per_mm)
+    if not np.isfinite(period):
+        return None
+    lo, hi = PLAUSIBLE_RIDGE_PERIOD_MM
+    if not lo <= period <= hi:
+        log.warning("%s: the ridges repeat every %.2f mm at %.4g px/mm (%s), a fingertip's every 0.39-0.46 mm: is "
+                    "the pixel scale right (--px-per-mm, --calibration)? Or is there no fingerprint in the frames?",
+                    where, period, px_per_mm, scale_source)
+    return round(period, 4)
 
 
 def _detected_surface(contrast: ContrastAccumulator, where: str) -> dict[str, Any]:
@@ -315,10 +335,14 @@ def _detected_surface(contrast: ContrastAccumulator, where: str) -> dict[str, An
 
 
 def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _DepthMap, total: int | None,
-                  progress: bool, where: str, contrast: ContrastAccumulator | None = None) -> tuple[int, np.ndarray]:
+                  progress: bool, where: str, contrast: ContrastAccumulator | None = None,
+                  ) -> tuple[int, np.ndarray, np.ndarray | None]:
     """Write every frame in batches, adding every ``stride``-th to ``contrast`` (the surface detection: at most
-    ~:data:`_SURFACE_FRAMES` frames of a long file); returns the count and every frame's time."""
+    ~:data:`_SURFACE_FRAMES` frames of a long file); returns the count, every frame's time and the middle frame
+    (the first when the count is not declared)."""
     stride = max(1, (total or 0) // _SURFACE_FRAMES)
+    middle = (total or 0) // 2
+    sample = None
     times: list[float] = []
     batch: list[np.ndarray] = []
     batch_t: list[float] = []
@@ -335,6 +359,8 @@ def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _D
     with progress_bar(total, enabled=progress, desc="importing") as bar:
         for frame, t in frames:
             image = depth(crop.apply(frame.image) if crop is not None else frame.image)
+            if len(times) == middle:
+                sample = image
             if contrast is not None and len(times) % stride == 0:
                 contrast.add(image)
             batch.append(image)
@@ -346,7 +372,7 @@ def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _D
         flush()
     if not times:
         raise InvalidInputError(f"{where} holds no frame")
-    return len(times), np.asarray(times)
+    return len(times), np.asarray(times), sample
 
 
 def _nominal_rate(given: float | None, declared: float | None, times: np.ndarray, source: str) -> tuple[float, str]:

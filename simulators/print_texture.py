@@ -52,6 +52,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.texture_gate import PLAUSIBLE_RIDGE_PERIOD_MM, ridge_period_mm
 from skinstretch.simulators.deformation import rotation_matrix
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,6 @@ _TEXTURED = 0.1  # pixels with "some texture": contrast above this fraction of t
 _BORDER_EROSION_MM = 0.3
 _COVERAGE_EDGE_MM = 0.1
 _LEVEL_SIGMA_MM = 1.0
-_PLAUSIBLE_PERIOD_MM = (0.3, 0.7)
 
 
 @dataclass(frozen=True)
@@ -188,8 +188,8 @@ def prepare_print(
     brightness = _levelled(grey, inside, ppm)
     coverage = ndi.gaussian_filter(inside.astype(np.float32), _COVERAGE_EDGE_MM * ppm / 2.0)
     coverage = np.clip((coverage - 0.5) * 2.0 + 0.5, 0.0, 1.0) * alpha
-    period = _ridge_period_mm(brightness, inside, ppm)
-    lo, hi = _PLAUSIBLE_PERIOD_MM
+    period = ridge_period_mm(brightness, px_per_mm=ppm, window=ndi.gaussian_filter(inside.astype(np.float64), 2.0))
+    lo, hi = PLAUSIBLE_RIDGE_PERIOD_MM
     if not lo <= period <= hi:
         log.warning("%s: ridge period %.2f mm at %g dpi, far from a fingertip's 0.43 mm: is the dpi right?",
                     name, period, dpi)
@@ -261,25 +261,6 @@ def _levelled(grey: np.ndarray, inside: np.ndarray, ppm: float) -> np.ndarray:
     z = (grey - mean) / np.sqrt(np.maximum(var, 1e-8))
     lo, hi = np.percentile(z[inside], [1, 99])
     return np.clip((z - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
-
-
-def _ridge_period_mm(brightness: np.ndarray, inside: np.ndarray, ppm: float) -> float:
-    """Ridge period from the radial peak of the power spectrum of the print (windowed to where it is), each
-    annulus' power weighted by its frequency: a print's background (mottle, smudges, a latent print's surface)
-    has a natural image's 1/f^2 spectrum, whose power per annulus falls as 1/f and outweighed the ridges' ring in
-    a blotchy print (the WSQ test print of the ``wsq`` package read as 1.14 mm instead of 0.40 mm); weighted, it
-    is flat and the ring stands out."""
-    v = (brightness - brightness[inside].mean()) * ndi.gaussian_filter(inside.astype(np.float64), 2.0)
-    p = np.abs(np.fft.fftshift(np.fft.fft2(v))) ** 2
-    h, w = v.shape
-    fy, fx = np.meshgrid((np.arange(h) - h // 2) / h, (np.arange(w) - w // 2) / w, indexing="ij")
-    f = np.hypot(fx, fy) * ppm  # cycles per mm
-    band = (f > 0.8) & (f < 6.0)  # periods 0.17-1.25 mm
-    if not band.any():
-        return float("nan")
-    edges = np.linspace(0.8, 6.0, 105)
-    power, _ = np.histogram(f[band], bins=edges, weights=(p * f)[band])
-    return float(1.0 / (0.5 * (edges[:-1] + edges[1:]))[int(np.argmax(power))])
 
 
 class RealPrintTexture:

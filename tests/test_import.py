@@ -263,3 +263,29 @@ def test_a_calibration_goes_into_the_session_cut_to_the_crop(tmp_path):
     with pytest.raises(InvalidInputError, match="crop needs a calibration of the uncropped frames"):
         import_frames(tmp_path / "grid.avi", tmp_path / "t.h5", calibration=mapping.for_window(
             x0=0, y0=0, width=320, height=240), crop=Crop(0, 0, 10, 10))
+
+
+def test_a_pixel_scale_no_fingertip_has_is_warned_and_the_ridge_period_recorded(simulated_and_analysed, tmp_path,
+                                                                                caplog):
+    # A guessed --px-per-mm twice the true one: the ridges would repeat every 0.24 mm. The import says so (the
+    # analysis would otherwise only refuse the frames as out of focus) and records what it measured.
+    import logging
+
+    d, frames, fps, ppm, _ = simulated_and_analysed
+    folder = tmp_path / "png"
+    folder.mkdir()
+    for k, f in enumerate(frames[:5]):
+        cv2.imwrite(str(folder / f"frame{k}.png"), f)
+    periods = {}
+    for scale in (1.0, 2.0, 0.5):
+        caplog.clear()
+        out = tmp_path / f"s{scale}.h5"
+        with caplog.at_level(logging.WARNING, logger="skinstretch.experiments.frame_import"):
+            import_frames(folder, out, px_per_mm=scale * ppm, fps=fps, surface="flat")
+        with open_session(out) as s:
+            periods[scale] = s.metadata["source"]["ridge_period_mm"]
+        warned = "is the pixel scale right (--px-per-mm" in caplog.text
+        assert warned == (scale != 1.0), (scale, caplog.text)
+    assert 0.39 <= periods[1.0] <= 0.5
+    assert periods[2.0] == pytest.approx(periods[1.0] / 2, rel=0.1)
+    assert periods[0.5] == pytest.approx(periods[1.0] * 2, rel=0.1)

@@ -11,7 +11,12 @@ from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.extraction import extract_features
 from skinstretch.processing.flow import DenseFlow
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.texture_gate import TextureGateParams, texture_verdict
+from skinstretch.processing.texture_gate import (
+    PLAUSIBLE_RIDGE_PERIOD_MM,
+    TextureGateParams,
+    ridge_period_mm,
+    texture_verdict,
+)
 
 SCENES = ("flat1", "flat2", "flatL", "flatS", "ridgeL", "ridgeS", "valleyL", "valleyS")
 PX_PER_MM = 640 / 10.3
@@ -48,6 +53,17 @@ def test_every_real_frame_of_every_scene_passes(scene_frames):
         v = texture_verdict(frame, px_per_mm=px_per_mm)
         assert v.ok, f"{label}: {v}"
         assert v.textured_mm2 >= 20.0, f"{label}: only {v.textured_mm2:.1f} mm^2 textured"  # 5x the threshold
+
+
+def test_every_scene_frame_has_a_fingertips_ridge_period_at_its_scale_and_no_other(scene_frames):
+    lo, hi = PLAUSIBLE_RIDGE_PERIOD_MM
+    for label, frame, px_per_mm in scene_frames:
+        period = ridge_period_mm(frame, px_per_mm=px_per_mm)
+        assert lo <= period <= hi, f"{label}: {period:.3f} mm"
+        # The same frame read at twice or half the pixel scale (a wrong calibration) has ridges no finger has.
+        assert not lo <= ridge_period_mm(frame, px_per_mm=2 * px_per_mm) <= hi, label
+        assert not lo <= ridge_period_mm(frame, px_per_mm=px_per_mm / 2) <= hi, label
+    assert np.isnan(ridge_period_mm(np.full(SHAPE, 200, np.uint8), px_per_mm=62.0))  # flat: no period
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
