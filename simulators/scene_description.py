@@ -15,7 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from skinstretch.config_file import parse_yaml_model, validation_messages
-from skinstretch.processing.errors import ConfigError
+from skinstretch.processing.errors import ConfigError, InvalidInputError
 
 Pair = tuple[float, float]
 
@@ -163,6 +163,10 @@ class SlipFrontSpec(_Model):
         return _times_increasing(v)
 
 
+#: Resolutions (dots per inch) a print image may be given at.
+PRINT_DPI_RANGE = (100.0, 10000.0)
+
+
 class TextureSpec(_Model):
     """A real fingerprint image as the skin's texture instead of the synthetic print (see
     :mod:`skinstretch.simulators.print_texture`). The feature truth of such a scene is unknown (empty); its
@@ -171,7 +175,8 @@ class TextureSpec(_Model):
     image: str = Field(description="a built-in print (see skinstretch.simulators.prints.PRINT_NAMES) or an image "
                                    "file (PNG, TIFF, ...; grey, colour or with alpha); a relative path in a scene "
                                    "file is relative to that file")
-    dpi: float = Field(500.0, ge=100.0, le=10000.0, description="resolution of the image, dots per inch")
+    dpi: float = Field(500.0, ge=PRINT_DPI_RANGE[0], le=PRINT_DPI_RANGE[1],
+                       description="resolution of the image, dots per inch")
     polarity: Literal["auto", "dark_ridges", "bright_ridges"] = Field(
         "auto", description="auto: ridges are dark when the background around the print is bright (ink, live scan)")
     center_mm: Pair | None = Field(None, description="skin point (mm) under the print's centre; default the "
@@ -209,6 +214,9 @@ class Scene(_Model):
         """This scene with a real print as its texture (``image``: a built-in print name or a file path)."""
         spec = {"image": str(image)}
         if dpi is not None:
+            lo, hi = PRINT_DPI_RANGE
+            if not lo <= dpi <= hi:  # NaN fails too; named as "dpi" (the command line's --dpi)
+                raise InvalidInputError(f"dpi must be between {lo:g} and {hi:g}, got {dpi:g}")
             spec["dpi"] = float(dpi)
         if self.texture is not None:
             spec = {**self.texture.model_dump(), **spec}
