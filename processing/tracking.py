@@ -167,8 +167,9 @@ class SpanRegistration:
     their errors: random, and the part of each step's deformation bias that
     :meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.deformation_bias` leaves, all one way
     where the shear changes within a window. Registering the span's two frames directly
-    (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, an affine window started
-    from the chained motion) has neither, but the noise of one registration across a larger deformation. On real
+    (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, an affine or, where the
+    displacement is curved, a second-order window started from the chained motion) has neither, but the noise of one
+    registration across a larger deformation. On real
     and simulated prints the two err about equally and mostly independently (either one alone is worse than their
     mean on some prints and fields), so their mean is kept; a point the direct registration cannot measure keeps
     its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
