@@ -17,9 +17,10 @@ import numba
 import numpy as np
 from pydantic import Field
 
-from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.parameters import parameters
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
 
 
 @parameters
@@ -99,9 +100,10 @@ _MAX_FRAME_GRADIENT = 0.05
 _MAX_SPAN_GRADIENT = 0.2
 #: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves no pixel of the window by
 #: more than 1e-4 px). With the first image's Hessian kept fixed the steps alone contract slowly (about 0.65 a step
-#: on a real print's span); with the secant (Anderson) acceleration of :func:`_second_order_kernel` 5 steps leave
-#: the translation within 0.001 px (RMS 0.00005 px) of 40 steps' (an 11-frame span of the slide on afis_p1_2, points
-#: started 0.2 px off), against 0.011 px without it.
+#: on a real print's span); with the secant (Anderson) acceleration of
+#: :func:`~skinstretch.processing.warp_registration.second_order_kernel` 5 steps leave the translation within
+#: 0.001 px (RMS 0.00005 px) of 40 steps' (an 11-frame span of the slide on afis_p1_2, points started 0.2 px off),
+#: against 0.011 px without it.
 SPAN_REGISTRATION_STEPS = 5
 
 
@@ -346,7 +348,7 @@ class SubpixelRefiner:
             return out
         a, gx, gy, b = _registration_pair(prev_image, curr_image)
         displacement = _displacement_rows(displacement, points, "displacement")
-        q, ok = _affine_kernel(a, b, gx, gy, points, displacement, self._gradient_half, 2)
+        q, ok = affine_kernel(a, b, gx, gy, points, displacement, self._gradient_half, 2)
         g = q[:, 2:].reshape(-1, 2, 2)
         ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
         out[ok] = g[ok]
@@ -373,7 +375,7 @@ class SubpixelRefiner:
         if points.shape[0] == 0:
             return np.zeros((0, 2)), np.zeros(0, bool)
         half = self._span_half
-        fit, ok = _second_order_kernel(a, b, gx, gy, points, init, half, SPAN_REGISTRATION_STEPS)
+        fit, ok = second_order_kernel(a, b, gx, gy, points, init, half, SPAN_REGISTRATION_STEPS)
         curved = fit[:, 8] > self.params.span_curvature_threshold
         delta = np.where(curved[:, None], fit[:, 0:2], fit[:, 6:8])
         d = init + delta
@@ -410,12 +412,9 @@ class SubpixelRefiner:
         return _deformation_bias_kernel(gx, gy, np.ascontiguousarray(points), np.ascontiguousarray(gradient), halves)
 
 
-#: The kernels below sum over windows of up to 63 x 63 pixels in any order (``reassoc``: vectorised sums, rounding
-#: differences ~1e-15 relative) and keep IEEE NaN and infinity semantics (a failed fit stays NaN, then rejected).
-_FAST = {"reassoc", "contract"}
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
     or T is singular)."""
@@ -468,19 +467,7 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
-def _shifted_window(b, c, r, half, dx, dy):
-    """The window of side 2 half + 1 around pixel (c, r) shifted by (dx, dy), for bilinear sampling of ``b``: its
-    integer offset (ix, iy), fractions (fx, fy) (the same for every pixel of the window), and whether every
-    sample's 2 x 2 neighbourhood lies in ``b``."""
-    h, w = b.shape
-    ix = int(np.floor(dx))
-    iy = int(np.floor(dy))
-    inside = c - half + ix >= 0 and r - half + iy >= 0 and c + half + ix + 1 < w and r + half + iy + 1 < h
-    return ix, iy, dx - ix, dy - iy, inside
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
     """Per point, rows (Txx, Txy, Tyy, s^2) over its window of half-side ``halves[i]``: T the structure tensor of
     ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either
@@ -492,7 +479,7 @@ def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
         c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
         if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
             continue
-        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, disp[i, 0], disp[i, 1])
+        ix, iy, fx, fy, inside = shifted_window(b, c, r, half, disp[i, 0], disp[i, 1])
         if not inside:
             continue
         w00, w01 = np.float32((1.0 - fx) * (1.0 - fy)), np.float32(fx * (1.0 - fy))
@@ -537,398 +524,6 @@ def _covariances(stats: np.ndarray) -> np.ndarray:
     out[ok, 0, 0], out[ok, 1, 1] = k * tyy[ok], k * txx[ok]
     out[ok, 0, 1] = out[ok, 1, 0] = -k * txy[ok]
     return out
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _affine_kernel(a, b, gx, gy, points, disp, half, steps):
-    """Per point, the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p onto
-    ``b`` (``steps`` >= 2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0; fewer when a step
-    moves the window's corners by less than 1e-4 px): rows (delta_x, delta_y, G00, G01, G10, G11); ok False where
-    the window leaves an image or the 6 x 6 system is singular.
-
-    The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
-    first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
-    gradient products (``gx^2, gx gy, gy^2`` times ``1, ox, oy, ox^2, ox oy, oy^2``) row by row. The first step
-    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp.
-    Each row's sums are float32 (SIMD-wide; relative rounding ~1e-7 over a row of 63 pixels, 1e-8 of a
-    gradient of 0.01), the window's float64."""
-    h, w = a.shape
-    n = points.shape[0]
-    out = np.zeros((n, 6))
-    ok = np.zeros(n, np.bool_)
-    hess = np.zeros((6, 6))
-    rhs = np.zeros(6)
-    for i in range(n):
-        px, py = points[i, 0], points[i, 1]
-        c, r = int(np.round(px)), int(np.round(py))
-        if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
-            continue
-        dx, dy = disp[i, 0], disp[i, 1]
-        ix, iy, fx, fy, inside = _shifted_window(b, c, r, half, dx, dy)
-        if not inside:
-            continue
-        oxs = np.empty(2 * half + 1, np.float32)
-        for k in range(2 * half + 1):
-            oxs[k] = np.float32(c - half + k - px)
-        w00 = np.float32((1.0 - fx) * (1.0 - fy))
-        w01 = np.float32(fx * (1.0 - fy))
-        w10 = np.float32((1.0 - fx) * fy)
-        w11 = np.float32(fx * fy)
-        # sums of gx^2, gx gy, gy^2 (xx, xy, yy) times 1, ox, oy, ox^2, ox oy, oy^2 (0..5)
-        xx0 = xx1 = xx2 = xx3 = xx4 = xx5 = 0.0
-        xy0 = xy1 = xy2 = xy3 = xy4 = xy5 = 0.0
-        yy0 = yy1 = yy2 = yy3 = yy4 = yy5 = 0.0
-        g0 = g1 = g2 = g3 = g4 = g5 = 0.0  # sum J e
-        for y in range(r - half, r + half + 1):
-            oy = y - py
-            z = np.float32(0.0)
-            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = z
-            ex0 = ex1 = ey0 = ey1 = z
-            sy = y + iy
-            b0 = b[sy, c - half + ix:c + half + ix + 2]
-            b1 = b[sy + 1, c - half + ix:c + half + ix + 2]
-            ar = a[y, c - half:c + half + 1]
-            gxr = gx[y, c - half:c + half + 1]
-            gyr = gy[y, c - half:c + half + 1]
-            for k in range(2 * half + 1):
-                ox = oxs[k]
-                v = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11)
-                err = ar[k] - v
-                ax = gxr[k]
-                ay = gyr[k]
-                pxx, pxy, pyy, ox2 = ax * ax, ax * ay, ay * ay, ox * ox
-                rxx0 += pxx
-                rxx1 += pxx * ox
-                rxx2 += pxx * ox2
-                rxy0 += pxy
-                rxy1 += pxy * ox
-                rxy2 += pxy * ox2
-                ryy0 += pyy
-                ryy1 += pyy * ox
-                ryy2 += pyy * ox2
-                ex, ey = ax * err, ay * err
-                ex0 += ex
-                ex1 += ex * ox
-                ey0 += ey
-                ey1 += ey * ox
-            oy2 = oy * oy
-            xx0 += float(rxx0); xx1 += float(rxx1); xx2 += float(rxx0) * oy; xx3 += float(rxx2); xx4 += float(rxx1) * oy; xx5 += float(rxx0) * oy2  # noqa: E702
-            xy0 += float(rxy0); xy1 += float(rxy1); xy2 += float(rxy0) * oy; xy3 += float(rxy2); xy4 += float(rxy1) * oy; xy5 += float(rxy0) * oy2  # noqa: E702
-            yy0 += float(ryy0); yy1 += float(ryy1); yy2 += float(ryy0) * oy; yy3 += float(ryy2); yy4 += float(ryy1) * oy; yy5 += float(ryy0) * oy2  # noqa: E702
-            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-        hess[0, 0], hess[0, 1], hess[0, 2], hess[0, 3], hess[0, 4], hess[0, 5] = xx0, xy0, xx1, xx2, xy1, xy2
-        hess[1, 1], hess[1, 2], hess[1, 3], hess[1, 4], hess[1, 5] = yy0, xy1, xy2, yy1, yy2
-        hess[2, 2], hess[2, 3], hess[2, 4], hess[2, 5] = xx3, xx4, xy3, xy4
-        hess[3, 3], hess[3, 4], hess[3, 5] = xx5, xy4, xy5
-        hess[4, 4], hess[4, 5] = yy3, yy4
-        hess[5, 5] = yy5
-        for k in range(6):
-            for l in range(k):
-                hess[k, l] = hess[l, k]
-        scale = hess[0, 0] + hess[1, 1]
-        if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
-            continue
-        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-        q = np.linalg.solve(hess, rhs)  # delta_x, delta_y, G00, G01, G10, G11
-        # Later steps along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
-        for _ in range(steps - 1):
-            for cy in (r - half, r + half):
-                for cx in (c - half, c + half):
-                    qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
-                    qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
-                    if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
-                        inside = False
-            if not inside:
-                break
-            g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-            one = np.float32(1.0)
-            for y in range(r - half, r + half + 1):
-                oy = y - py
-                z = np.float32(0.0)
-                ex0 = ex1 = ey0 = ey1 = z
-                bx = dx + q[0] + q[3] * oy
-                by = y + dy + q[1] + q[5] * oy
-                ar = a[y, c - half:c + half + 1]
-                gxr = gx[y, c - half:c + half + 1]
-                gyr = gy[y, c - half:c + half + 1]
-                for k in range(2 * half + 1):
-                    ox = oxs[k]
-                    qx = c - half + k + bx + q[2] * ox
-                    qy = by + q[4] * ox
-                    x0 = min(int(qx), w - 2)
-                    y0 = min(int(qy), h - 2)
-                    sfx = np.float32(qx - x0)
-                    sfy = np.float32(qy - y0)
-                    v = ((b[y0, x0] * (one - sfx) + b[y0, x0 + 1] * sfx) * (one - sfy)
-                         + (b[y0 + 1, x0] * (one - sfx) + b[y0 + 1, x0 + 1] * sfx) * sfy)
-                    err = ar[k] - v
-                    ex = gxr[k] * err
-                    ey = gyr[k] * err
-                    ex0 += ex
-                    ex1 += ex * ox
-                    ey0 += ey
-                    ey1 += ey * ox
-                g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-            rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-            step = np.linalg.solve(hess, rhs)
-            q = q + step
-            if (abs(step[0]) + abs(step[1]) + half * (abs(step[2]) + abs(step[3]) + abs(step[4]) + abs(step[5]))
-                    < 1e-4):
-                break
-        if inside and np.all(np.isfinite(q)):
-            out[i] = q
-            ok[i] = True
-    return out, ok
-
-
-#: Exponents (i, j) of the monomials s^i t^j of :func:`_second_order_kernel`'s warp: 1, s, t, s^2, s t, t^2.
-_SECOND_ORDER_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
-#: Indices of the affine (1, s, t) and the second-order (s^2, s t, t^2) coefficients among its 12 (x terms, y terms).
-_AFFINE_COEFFS = np.array([0, 1, 2, 6, 7, 8])
-_CURVATURE_COEFFS = np.array([3, 4, 5, 9, 10, 11])
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _second_order_kernel(a, b, gx, gy, points, disp, half, steps):
-    """Per point, the second-order warp x -> x + d + sum_k (cx_k, cy_k) m_k(s, t) that registers the window of
-    ``a`` around p onto ``b``: m = (1, s, t, s^2, s t, t^2) of the window's normalised coordinates
-    (s, t) = (x - p) / half, each within [-1, 1] so that the 12 x 12 system is well scaled. Up to ``steps``
-    Gauss-Newton steps with the gradient of ``a`` (a fixed Hessian, as :func:`_affine_kernel`), from no change,
-    each after the first accelerated by a secant (Anderson, depth 1) combination with the step before, stopping
-    once a step moves no pixel by more than 1e-4 px.
-
-    Rows (n, 9): 0-1 the translation (delta_x, delta_y) of the centre; 2-5 the displacement gradient
-    (G00, G01, G10, G11) there, px/px as :func:`_affine_kernel`'s; 6-7 the translation of the affine model, the
-    second-order terms dropped (its least-squares solution at the same linearisation,
-    ``c_1 + H_11^-1 H_12 c_2``); 8 the Wald statistic of the six second-order terms, ``c_2^T (H^-1)_22^-1 c_2 / s^2``
-    with ``s^2`` the residual variance after the fit times ``(1 + r_x)(1 + r_y) / ((1 - r_x)(1 - r_y))``, r the
-    residual's correlation between horizontally and vertically neighbouring pixels (what interpolation and
-    texture leave is smooth: fewer independent samples than pixels; about 1 for camera noise). Large: the window's
-    displacement is curved. ok False where the system is singular (the correlation matrix of its 12 columns has a
-    determinant below 1e-12: no texture, or ridges all one way) or the warp could take the window beyond ``b``
-    (bounded by the sum of its coefficients' magnitudes). Sums along a row are float32 (SIMD-wide, as
-    :func:`_affine_kernel`'s), over the window float64."""
-    h, w = a.shape
-    n = points.shape[0]
-    out = np.zeros((n, 9))
-    ok = np.zeros(n, np.bool_)
-    side = 2 * half + 1
-    inv = 1.0 / half
-    hess = np.zeros((12, 12))
-    rhs = np.zeros(12)
-    mom = np.zeros((3, 5, 5))
-    row = np.zeros((3, 5))
-    res = np.zeros((side, side), np.float32)
-    ss = np.empty(side)
-    ss32 = np.empty(side, np.float32)
-    pw = np.empty((4, side), np.float32)  # s, s^2, s^3, s^4 of each column
-    for i in range(n):
-        px, py = points[i, 0], points[i, 1]
-        c, r = int(np.round(px)), int(np.round(py))
-        if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
-            continue
-        s0 = (c - half - px) * inv
-        t0 = (r - half - py) * inv
-        for k in range(side):
-            ss[k] = s0 + k * inv
-            ss32[k] = np.float32(ss[k])
-            pw[0, k] = ss32[k]
-            pw[1, k] = np.float32(ss[k] ** 2)
-            pw[2, k] = np.float32(ss[k] ** 3)
-            pw[3, k] = np.float32(ss[k] ** 4)
-        # moments sum P s^e t^f (e + f <= 4) of P = gx^2, gx gy, gy^2, row by row
-        mom[:] = 0.0
-        for y in range(r - half, r + half + 1):
-            t = t0 + (y - r + half) * inv
-            gxr = gx[y, c - half:c + half + 1]
-            gyr = gy[y, c - half:c + half + 1]
-            z = np.float32(0.0)
-            a0 = a1 = a2 = a3 = a4 = b0 = b1 = b2 = b3 = b4 = d0 = d1 = d2 = d3 = d4 = z
-            for k in range(side):
-                ax = gxr[k]
-                ay = gyr[k]
-                p0, p1, p2 = ax * ax, ax * ay, ay * ay
-                s1 = pw[0, k]
-                s2 = pw[1, k]
-                s3 = pw[2, k]
-                s4 = pw[3, k]
-                a0 += p0
-                a1 += p0 * s1
-                a2 += p0 * s2
-                a3 += p0 * s3
-                a4 += p0 * s4
-                b0 += p1
-                b1 += p1 * s1
-                b2 += p1 * s2
-                b3 += p1 * s3
-                b4 += p1 * s4
-                d0 += p2
-                d1 += p2 * s1
-                d2 += p2 * s2
-                d3 += p2 * s3
-                d4 += p2 * s4
-            row[0, 0], row[0, 1], row[0, 2], row[0, 3], row[0, 4] = a0, a1, a2, a3, a4
-            row[1, 0], row[1, 1], row[1, 2], row[1, 3], row[1, 4] = b0, b1, b2, b3, b4
-            row[2, 0], row[2, 1], row[2, 2], row[2, 3], row[2, 4] = d0, d1, d2, d3, d4
-            tp = 1.0
-            for f in range(5):
-                for e in range(5 - f):
-                    for m in range(3):
-                        mom[m, e, f] += row[m, e] * tp
-                tp *= t
-        for u in range(6):
-            for v in range(6):
-                e = _SECOND_ORDER_TERMS[u][0] + _SECOND_ORDER_TERMS[v][0]
-                f = _SECOND_ORDER_TERMS[u][1] + _SECOND_ORDER_TERMS[v][1]
-                hess[u, v] = mom[0, e, f]
-                hess[u, 6 + v] = mom[1, e, f]
-                hess[6 + u, v] = mom[1, e, f]
-                hess[6 + u, 6 + v] = mom[2, e, f]
-        if not hess[0, 0] + hess[6, 6] > 0.0:
-            continue
-        scale = np.sqrt(np.maximum(np.diag(hess), 1e-300))
-        if abs(np.linalg.det(hess / np.outer(scale, scale))) < 1e-12:
-            continue
-        q = np.zeros(12)
-        last_q = np.zeros(12)
-        last_step = np.zeros(12)
-        inside = True
-        taken = 0
-        dx, dy = disp[i, 0], disp[i, 1]
-        one = np.float32(1.0)
-        while True:
-            # The warp moves no sample of the window by more than the sum of |coefficients| beyond the centre's
-            # translation (|m_k| <= 1): the window stays inside b if that box does (checked once, not per pixel).
-            reach_x = abs(q[1]) + abs(q[2]) + abs(q[3]) + abs(q[4]) + abs(q[5])
-            reach_y = abs(q[7]) + abs(q[8]) + abs(q[9]) + abs(q[10]) + abs(q[11])
-            cx = c + dx + q[0]
-            cy = r + dy + q[6]
-            if not (cx - half - reach_x >= 0.0 and cy - half - reach_y >= 0.0
-                    and cx + half + reach_x < w - 1 and cy + half + reach_y < h - 1):
-                inside = False
-                break
-            if taken == steps:
-                break
-            # the right-hand side at the current warp (no stores in the pixel loop: it vectorises)
-            for k in range(12):
-                rhs[k] = 0.0
-            qx3, qy3 = q[3], q[9]
-            for y in range(r - half, r + half + 1):
-                t = t0 + (y - r + half) * inv
-                # along the row the sample is at (x + bx0 + bx1 s + qx3 s^2, by0 + by1 s + qy3 s^2)
-                bx0 = c - half + dx + q[0] + q[2] * t + q[5] * t * t
-                bx1 = q[1] + q[4] * t
-                by0 = y + dy + q[6] + q[8] * t + q[11] * t * t
-                by1 = q[7] + q[10] * t
-                ar = a[y, c - half:c + half + 1]
-                gxr = gx[y, c - half:c + half + 1]
-                gyr = gy[y, c - half:c + half + 1]
-                z = np.float32(0.0)
-                ex0 = ex1 = ex2 = ey0 = ey1 = ey2 = z
-                for k in range(side):
-                    sk = ss[k]
-                    qx = k + bx0 + (bx1 + qx3 * sk) * sk
-                    qy = by0 + (by1 + qy3 * sk) * sk
-                    x0 = min(int(qx), w - 2)
-                    y0 = min(int(qy), h - 2)
-                    fx = np.float32(qx - x0)
-                    fy = np.float32(qy - y0)
-                    v = ((b[y0, x0] * (one - fx) + b[y0, x0 + 1] * fx) * (one - fy)
-                         + (b[y0 + 1, x0] * (one - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
-                    err = ar[k] - v
-                    ex = gxr[k] * err
-                    ey = gyr[k] * err
-                    s32 = ss32[k]
-                    ex0 += ex
-                    ex1 += ex * s32
-                    ex2 += ex * s32 * s32
-                    ey0 += ey
-                    ey1 += ey * s32
-                    ey2 += ey * s32 * s32
-                tt = t * t
-                rhs[0] += float(ex0)
-                rhs[1] += float(ex1)
-                rhs[2] += float(ex0) * t
-                rhs[3] += float(ex2)
-                rhs[4] += float(ex1) * t
-                rhs[5] += float(ex0) * tt
-                rhs[6] += float(ey0)
-                rhs[7] += float(ey1)
-                rhs[8] += float(ey0) * t
-                rhs[9] += float(ey2)
-                rhs[10] += float(ey1) * t
-                rhs[11] += float(ey0) * tt
-            step = np.linalg.solve(hess, rhs)
-            moved = np.sum(np.abs(step))
-            if taken > 0:
-                # Anderson (secant) acceleration of the fixed-Hessian iteration, which contracts slowly
-                df = step - last_step
-                dd = np.dot(df, df)
-                gamma = np.dot(df, step) / dd if dd > 0.0 else 0.0
-                new_q = q + step - gamma * ((q - last_q) + df)
-            else:
-                new_q = q + step
-            last_q = q
-            last_step = step
-            q = new_q
-            taken += 1
-            # |m_k| <= 1 in the window: the sum bounds how far any pixel moved
-            if moved < 1e-4:
-                taken = steps  # one more bounds check, then the residual below
-        if not inside or not np.all(np.isfinite(q)):
-            continue
-        # the residual at the final warp, for its variance and its correlation between neighbouring pixels
-        sse = 0.0
-        qx3, qy3 = q[3], q[9]
-        for y in range(r - half, r + half + 1):
-            t = t0 + (y - r + half) * inv
-            bx0 = c - half + dx + q[0] + q[2] * t + q[5] * t * t
-            bx1 = q[1] + q[4] * t
-            by0 = y + dy + q[6] + q[8] * t + q[11] * t * t
-            by1 = q[7] + q[10] * t
-            for k in range(side):
-                sk = ss[k]
-                qx = k + bx0 + (bx1 + qx3 * sk) * sk
-                qy = by0 + (by1 + qy3 * sk) * sk
-                x0 = min(int(qx), w - 2)
-                y0 = min(int(qy), h - 2)
-                fx = np.float32(qx - x0)
-                fy = np.float32(qy - y0)
-                v = ((b[y0, x0] * (one - fx) + b[y0, x0 + 1] * fx) * (one - fy)
-                     + (b[y0 + 1, x0] * (one - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
-                res[y - r + half, k] = a[y, c - half + k] - v
-        sse = 0.0
-        lag_x = 0.0
-        lag_y = 0.0
-        for y in range(side):
-            z = np.float32(0.0)
-            e2 = lx = ly = z
-            for k in range(side):
-                e2 += res[y, k] * res[y, k]
-            for k in range(1, side):
-                lx += res[y, k] * res[y, k - 1]
-            if y > 0:
-                for k in range(side):
-                    ly += res[y, k] * res[y - 1, k]
-            sse += float(e2)
-            lag_x += float(lx)
-            lag_y += float(ly)
-        q1 = q[_AFFINE_COEFFS]
-        q2 = q[_CURVATURE_COEFFS]
-        h11 = hess[_AFFINE_COEFFS][:, _AFFINE_COEFFS]
-        h12 = hess[_AFFINE_COEFFS][:, _CURVATURE_COEFFS]
-        c22 = np.linalg.inv(hess)[_CURVATURE_COEFFS][:, _CURVATURE_COEFFS]
-        # residual variance, inflated by the residual's correlation between neighbouring pixels
-        rho_x = min(max(lag_x / sse, 0.0), 0.95) if sse > 0.0 else 0.0
-        rho_y = min(max(lag_y / sse, 0.0), 0.95) if sse > 0.0 else 0.0
-        var = sse / (side * side - 12) * (1.0 + rho_x) / (1.0 - rho_x) * (1.0 + rho_y) / (1.0 - rho_y)
-        affine = q1 + np.linalg.solve(h11, h12 @ q2)
-        out[i, 0], out[i, 1] = q[0], q[6]
-        out[i, 2], out[i, 3], out[i, 4], out[i, 5] = q[1] * inv, q[2] * inv, q[7] * inv, q[8] * inv
-        out[i, 6], out[i, 7] = affine[0], affine[3]
-        out[i, 8] = q2 @ np.linalg.solve(c22, q2) / var if var > 0.0 else np.inf
-        ok[i] = True
-    return out, ok
 
 
 @dataclass(frozen=True)

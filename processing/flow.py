@@ -44,7 +44,8 @@ from skinstretch.processing.global_motion import GlobalMotionEstimator
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
-from skinstretch.processing.tracking import MotionSample, SpanFrames
+from skinstretch.processing.span_registration import SpanFrames
+from skinstretch.processing.tracking import MotionSample
 
 
 @parameters
@@ -793,7 +794,7 @@ class SpanRefiner:
     """Refines spans one at a time, as consecutive fields arrive (a streaming analysis, or
     :meth:`DenseFlow.compute_spans`): the fields of frames k..k + s composed (:func:`compose_fields`), then
     registered from frame k to frame k + s directly. ``frame(j)`` gives frame j (the fields' frame numbers), each
-    prepared once (:class:`~skinstretch.processing.tracking.SpanFrames`)."""
+    prepared once (:class:`~skinstretch.processing.span_registration.SpanFrames`)."""
 
     def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
         self.flow = flow

@@ -18,11 +18,8 @@ extraction's accuracy divided by the square root of the track length.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
 
 import numba
 import numpy as np
@@ -134,72 +131,6 @@ class MotionSample:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
-
-
-class SpanFrames:
-    """Frames prepared once for the spans that use them, in increasing first frame (the features'
-    :class:`SpanRegistration` and the flow's ``SpanRefiner``): a frame is prepared as the second frame of a span,
-    reused as the first frame of later ones, and dropped once the spans have passed it. ``frame(j)`` gives frame j,
-    ``prepare`` turns it into what the registration takes."""
-
-    def __init__(self, frame: Callable[[int], np.ndarray], prepare: Callable[[np.ndarray], Any]) -> None:
-        self._frame = frame
-        self._prepare = prepare
-        self._prepared: dict[int, Any] = {}
-
-    def pair(self, k0: int, k1: int) -> tuple[Any, Any]:
-        """Frames ``k0`` and ``k1`` prepared; frames before ``k0`` are dropped (no later span starts before it)."""
-        for j in [j for j in self._prepared if j < k0]:
-            del self._prepared[j]
-        return self.get(k0), self.get(k1)
-
-    def get(self, j: int) -> Any:
-        if j not in self._prepared:
-            self._prepared[j] = self._prepare(self._frame(j))
-        return self._prepared[j]
-
-
-class SpanRegistration:
-    """The motion of tracked points over a longer span (the 11-frame strain), measured twice and averaged (beyond
-    the seed).
-
-    A span's chained motion (:meth:`Trajectories.motion`) sums its frame-to-frame displacements, and with them
-    their errors: random, and the part of each step's deformation bias that
-    :meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.deformation_bias` leaves, all one way
-    where the shear changes within a window. Registering the span's two frames directly
-    (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, an affine or, where the
-    displacement is curved, a second-order window started from the chained motion) has neither, but the noise of one
-    registration across a larger deformation. On real
-    and simulated prints the two err about equally and mostly independently (either one alone is worse than their
-    mean on some prints and fields), so their mean is kept; a point the direct registration cannot measure keeps
-    its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
-    increasing ``frame_a``).
-    """
-
-    def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray]) -> None:
-        self.refiner = refiner
-        self._frames = SpanFrames(frame, refiner.prepare)
-
-    def refine(self, sample: MotionSample) -> MotionSample:
-        """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the mean of the chained
-        one and the direct registration's."""
-        if len(sample) == 0:
-            return sample
-        return self._registered(sample, self._frames.pair(int(sample.frame_a), int(sample.frame_b)))
-
-    def refine_all(self, samples: Sequence[MotionSample], *, threads: int = 1) -> list[MotionSample]:
-        """:meth:`refine` of each of ``samples`` (in increasing ``frame_a``), in order; the registrations run on
-        ``threads`` threads (the kernel releases the GIL), the frames are prepared in this one."""
-        pairs = [self._frames.pair(int(s.frame_a), int(s.frame_b)) if len(s) else None for s in samples]
-        if threads <= 1 or len(samples) <= 1:
-            return [s if p is None else self._registered(s, p) for s, p in zip(samples, pairs)]
-        with ThreadPoolExecutor(min(int(threads), len(samples)), thread_name_prefix="span-registration") as pool:
-            return list(pool.map(lambda s, p: s if p is None else self._registered(s, p), samples, pairs))
-
-    def _registered(self, sample: MotionSample, pair: tuple[Any, Any]) -> MotionSample:
-        direct, ok = self.refiner.register_span(pair[0], pair[1], sample.points, sample.displacement)
-        disp = np.where(ok[:, None], 0.5 * (direct + sample.displacement), sample.displacement)
-        return MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, disp, sample.ids)
 
 
 @dataclass

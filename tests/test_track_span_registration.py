@@ -11,7 +11,8 @@ from scipy.special import erf
 from skinstretch.processing.displacement_refinement import SubpixelParams, SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.tracking import MotionSample, SpanRegistration
+from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.tracking import MotionSample
 
 CAL = Calibration(px_per_mm=62.0)
 H, W = 240, 260

@@ -72,7 +72,8 @@ from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_feature
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
-from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, SpanRegistration, Trajectories
+from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
 
