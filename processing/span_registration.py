@@ -37,7 +37,7 @@ class SpanFrames:
 
 
 class SpanRegistration:
-    """The motion of tracked points over a longer span (the 11-frame strain), measured twice and averaged (beyond
+    """The motion of tracked points over a longer span (the 11-frame strain), measured twice and combined (beyond
     the seed).
 
     A span's chained motion (:meth:`Trajectories.motion`) sums its frame-to-frame displacements, and with them
@@ -48,8 +48,10 @@ class SpanRegistration:
     displacement is curved, a second-order window started from the chained motion) has neither, but the noise of one
     registration across a larger deformation. On real
     and simulated prints the two err about equally and mostly independently (either one alone is worse than their
-    mean on some prints and fields), so their mean is kept; a point the direct registration cannot measure keeps
-    its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
+    mean on some prints and fields), so their mean is kept, except where the window's displacement is plainly
+    curved: there the chained frame-to-frame windows each smoothed the curvature, all one way, and the direct
+    registration's weight rises to 1 (:func:`direct_weight`, ``SubpixelParams.span_direct_full``). A point the
+    direct registration cannot measure keeps its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
     increasing ``frame_a``).
     """
 
@@ -58,8 +60,9 @@ class SpanRegistration:
         self._frames = SpanFrames(frame, refiner.prepare)
 
     def refine(self, sample: MotionSample) -> MotionSample:
-        """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the mean of the chained
-        one and the direct registration's."""
+        """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the chained one and
+        the direct registration's combined (their mean, or mostly the direct one where the displacement is
+        curved)."""
         if len(sample) == 0:
             return sample
         return self._registered(sample, self._frames.pair(int(sample.frame_a), int(sample.frame_b)))
@@ -74,6 +77,23 @@ class SpanRegistration:
             return list(pool.map(lambda s, p: s if p is None else self._registered(s, p), samples, pairs))
 
     def _registered(self, sample: MotionSample, pair: tuple[Any, Any]) -> MotionSample:
-        direct, ok = self.refiner.register_span(pair[0], pair[1], sample.points, sample.displacement)
-        disp = np.where(ok[:, None], 0.5 * (direct + sample.displacement), sample.displacement)
+        fit = self.refiner.register_span(pair[0], pair[1], sample.points, sample.displacement)
+        weight = direct_weight(fit.curvature, self.refiner.params.span_curvature_threshold,
+                               self.refiner.params.span_direct_full)[:, None]
+        disp = np.where(fit.ok[:, None], weight * fit.displacement + (1.0 - weight) * sample.displacement,
+                        sample.displacement)
         return MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, disp, sample.ids)
+
+
+def direct_weight(curvature: np.ndarray, threshold: float, full: float) -> np.ndarray:
+    """The weight of a span's direct registration against its chained motion, from the Wald statistic of the
+    window's curvature: 1/2 up to ``threshold``, rising linearly to 1 at ``full`` times it
+    (``SubpixelParams.span_direct_full``).
+
+    >>> direct_weight(np.array([0.0, 30.0, 135.0, 240.0, 1e9]), 30.0, 8.0).tolist()
+    [0.5, 0.5, 0.75, 1.0, 1.0]
+    """
+    curvature = np.asarray(curvature, dtype=np.float64)
+    if threshold <= 0.0:
+        return np.where(curvature > 0.0, 1.0, 0.5)
+    return 0.5 + 0.5 * np.clip((curvature / threshold - 1.0) / (full - 1.0), 0.0, 1.0)

@@ -1,5 +1,5 @@
-"""A longer span's motion registered directly between its two frames (``SubpixelRefiner.register_span``) and averaged
-with the chained motion (``SpanRegistration``): exact on a known affine deformation of several per cent, where a
+"""A longer span's motion registered directly between its two frames (``SubpixelRefiner.register_span``) and combined
+with the chained motion (``SpanRegistration``: their mean, the direct one where the window is plainly curved): exact on a known affine deformation of several per cent, where a
 translation-only window is biased, and on a band of localized strain, which an affine window smooths; points it
 cannot measure keep the chained motion; and the analysis uses it."""
 
@@ -11,7 +11,7 @@ from scipy.special import erf
 from skinstretch.processing.displacement_refinement import SubpixelParams, SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.span_registration import SpanRegistration, direct_weight
 from skinstretch.processing.tracking import MotionSample
 
 CAL = Calibration(px_per_mm=62.0)
@@ -52,7 +52,7 @@ def test_register_span_recovers_an_affine_deformation_a_translation_window_misre
     a, b, pts, truth = span_pair
     r = SubpixelRefiner(calibration=CAL)
     start = truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)  # chained motion, a few tenths off
-    d, ok = r.register_span(r.prepare(a), r.prepare(b), pts, start)
+    d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, start)
     assert ok.all()
     err = np.hypot(*(d - truth).T)
     assert err.max() < 0.03, err
@@ -61,11 +61,10 @@ def test_register_span_recovers_an_affine_deformation_a_translation_window_misre
     assert np.sqrt(np.mean(np.hypot(*(lk.displacement - truth).T) ** 2)) > 3 * np.sqrt(np.mean(err ** 2))
 
 
-def test_register_span_follows_a_band_of_localized_strain_that_an_affine_window_smooths():
+@pytest.fixture(scope="module")
+def band_pair():
     """A -8 % compression band across y (Gaussian profile, 0.56 mm at half height: a slip front's band over a span):
-    the displacement is curved across a 0.8 mm window. The second-order terms are kept where they are significant,
-    and the band is read within a few hundredths of a pixel; the affine model alone (a threshold no fit reaches) reads it
-    smoothed, a tenth of a pixel and more off at the band's edges."""
+    the displacement is curved across a 0.8 mm window. Frames, points, true displacement, a start 0.3 px off."""
     amp, sigma, y0 = -0.08, 15.0, 120.0
 
     def u_y(y):  # the integral of the strain amp * exp(-(y - y0)^2 / (2 sigma^2))
@@ -83,16 +82,41 @@ def test_register_span_follows_a_band_of_localized_strain_that_an_affine_window_
     b = np.clip(warped + rng.normal(0, 0.8, tex.shape), 0, 255).astype(np.uint8)
     pts = np.array([[x, y] for x in (80.0, 110.0, 140.0, 170.0) for y in np.arange(90.0, 151.0, 6.0)])
     truth = np.column_stack([np.zeros(len(pts)), u_y(pts[:, 1])])
-    start = truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)
+    return a, b, pts, truth, truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)
+
+
+def test_register_span_follows_a_band_of_localized_strain_that_an_affine_window_smooths(band_pair):
+    """The second-order terms are kept where they are significant, and the band is read within a few hundredths
+    of a pixel; the affine model alone (a threshold no fit reaches) reads it smoothed, a tenth of a pixel and more
+    off at the band's edges."""
+    a, b, pts, truth, start = band_pair
 
     def rms_error(threshold):
         r = SubpixelRefiner(calibration=CAL, params=SubpixelParams(span_curvature_threshold=threshold))
-        d, ok = r.register_span(r.prepare(a), r.prepare(b), pts, start)
+        d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, start)
         assert ok.all()
         return np.sqrt(np.mean(np.sum((d - truth) ** 2, axis=1)))
 
     selected, affine = rms_error(SubpixelParams().span_curvature_threshold), rms_error(1e12)
     assert selected < 0.04 and affine > 0.1, (selected, affine)
+
+
+def test_span_registration_trusts_the_direct_registration_where_the_band_curves(band_pair):
+    """A chain of frame-to-frame windows reads the band smoothed (here: 85 % of it); where the span's window is
+    plainly curved its direct registration gets the weight, and the combination errs far less than the mean."""
+    a, b, pts, truth, _ = band_pair
+    chained = 0.85 * truth
+    out = SpanRegistration(SubpixelRefiner(calibration=CAL), {0: a, 11: b}.__getitem__).refine(
+        MotionSample(0, 11, pts, chained, np.arange(len(pts))))
+    r = SubpixelRefiner(calibration=CAL)
+    fit = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
+    weight = direct_weight(fit.curvature, r.params.span_curvature_threshold, r.params.span_direct_full)
+    assert fit.ok.all() and weight.max() == 1.0 and weight.min() >= 0.5
+    np.testing.assert_allclose(out.displacement, weight[:, None] * fit.displacement + (1 - weight[:, None]) * chained,
+                               rtol=0, atol=1e-12)
+    rms = lambda d: np.sqrt(np.mean(np.sum((d - truth) ** 2, axis=1)))  # noqa: E731
+    assert rms(out.displacement) < 0.6 * rms(0.5 * (fit.displacement + chained)), (
+        rms(out.displacement), rms(0.5 * (fit.displacement + chained)))
 
 
 def test_register_span_keeps_the_start_where_it_cannot_measure(span_pair):
@@ -101,11 +125,11 @@ def test_register_span_keeps_the_start_where_it_cannot_measure(span_pair):
     edge = np.array([[5.0, 120.0], [130.0, 120.0]])  # the first window leaves the image
     start = _true(edge, (1.7, -0.6), np.array([[0.04, 0.02], [0.0, -0.02]]), (130.0, 120.0)) + 0.2
     flat = np.full_like(a, 200)  # a flat field: skin out of contact, no texture to register
-    d, ok = r.register_span(r.prepare(a), r.prepare(b), edge, start)
+    d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), edge, start)
     assert ok.tolist() == [False, True] and np.array_equal(d[0], start[0])
-    d, ok = r.register_span(r.prepare(flat), r.prepare(flat), pts[:3], truth[:3])
+    d, ok, _ = r.register_span(r.prepare(flat), r.prepare(flat), pts[:3], truth[:3])
     assert not ok.any() and np.array_equal(d, truth[:3]) and np.isfinite(d).all()
-    d, ok = r.register_span(a, b, np.zeros((0, 2)), np.zeros((0, 2)))
+    d, ok, _ = r.register_span(a, b, np.zeros((0, 2)), np.zeros((0, 2)))
     assert d.shape == (0, 2) and ok.shape == (0,)
     with pytest.raises(InvalidInputError, match="displacement has shape"):
         r.register_span(a, b, pts, truth[:2])
@@ -124,7 +148,7 @@ def test_span_registration_averages_the_direct_and_the_chained_motion(span_pair)
     chained = truth + np.where(np.arange(len(pts))[:, None] % 2 == 0, 0.2, -0.2)  # a chain's accumulated error
     out = reg.refine(MotionSample(0, 11, pts, chained, np.arange(len(pts))))
     r = SubpixelRefiner(calibration=CAL)
-    direct, ok = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
+    direct, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
     assert ok.all() and out.frame_a == 0 and out.frame_b == 11 and np.array_equal(out.ids, np.arange(len(pts)))
     np.testing.assert_allclose(out.displacement, 0.5 * (direct + chained), rtol=0, atol=1e-12)
     # the chained error is halved
