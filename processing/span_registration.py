@@ -88,12 +88,12 @@ class SpanRegistration:
 def direct_weight(curvature: np.ndarray, threshold: float, full: float) -> np.ndarray:
     """The weight of a span's direct registration against its chained motion, from the Wald statistic of the
     window's curvature: 1/2 up to ``threshold``, rising linearly to 1 at ``full`` times it
-    (``SubpixelParams.span_direct_full``).
+    (``SubpixelParams.span_direct_full``); a statistic that is not a number counts as no curvature.
 
-    >>> direct_weight(np.array([0.0, 30.0, 135.0, 240.0, 1e9]), 30.0, 8.0).tolist()
-    [0.5, 0.5, 0.75, 1.0, 1.0]
+    >>> direct_weight(np.array([0.0, 30.0, 135.0, 240.0, np.inf, np.nan]), 30.0, 8.0).tolist()
+    [0.5, 0.5, 0.75, 1.0, 1.0, 0.5]
     """
-    curvature = np.asarray(curvature, dtype=np.float64)
+    curvature = np.nan_to_num(np.asarray(curvature, dtype=np.float64), nan=0.0, posinf=np.inf)
     if threshold <= 0.0:
         return np.where(curvature > 0.0, 1.0, 0.5)
     return 0.5 + 0.5 * np.clip((curvature / threshold - 1.0) / (full - 1.0), 0.0, 1.0)
