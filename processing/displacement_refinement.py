@@ -111,8 +111,8 @@ class SubpixelParams:
 _MAX_FRAME_GRADIENT = 0.05
 #: Largest displacement gradient :meth:`SubpixelRefiner.register_span` accepts over a span (20 %: a failed fit).
 _MAX_SPAN_GRADIENT = 0.2
-#: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves no pixel of the window by
-#: more than 1e-4 px). With the first image's Hessian kept fixed the steps alone contract slowly (about 0.65 a step
+#: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves no pixel of the
+#: window by more than 1e-4 px). With the first image's Hessian kept fixed the steps alone contract slowly (about 0.65 a step
 #: on a real print's span); with the secant (Anderson) acceleration of
 #: :func:`~skinstretch.processing.warp_registration.second_order_kernel` 5 steps leave the translation within
 #: 0.001 px (RMS 0.00005 px) of 40 steps' (an 11-frame span of the slide on afis_p1_2, points started 0.2 px off),

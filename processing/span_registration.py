@@ -46,13 +46,13 @@ class SpanRegistration:
     where the shear changes within a window. Registering the span's two frames directly
     (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, an affine or, where the
     displacement is curved, a second-order window started from the chained motion) has neither, but the noise of one
-    registration across a larger deformation. On real
-    and simulated prints the two err about equally and mostly independently (either one alone is worse than their
-    mean on some prints and fields), so their mean is kept, except where the window's displacement is plainly
-    curved: there the chained frame-to-frame windows each smoothed the curvature, all one way, and the direct
-    registration's weight rises to 1 (:func:`direct_weight`, ``SubpixelParams.span_direct_full``). A point the
-    direct registration cannot measure keeps its chained motion. ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in
-    increasing ``frame_a``).
+    registration across a larger deformation. On real and simulated prints the two err about equally and mostly
+    independently (either one alone is worse than their mean on some prints and fields), so their mean is kept,
+    except where the window's displacement is plainly curved: there the chained frame-to-frame windows each
+    smoothed the curvature, all one way, and the direct registration's weight rises to 1 (:func:`direct_weight`,
+    ``SubpixelParams.span_direct_full``). A point the direct registration cannot measure keeps its chained motion.
+    ``frame(j)`` gives frame j, each prepared once (:class:`SpanFrames`: call :meth:`refine` in increasing
+    ``frame_a``).
     """
 
     def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray]) -> None:

@@ -1,7 +1,8 @@
-"""A longer span's motion registered directly between its two frames (``SubpixelRefiner.register_span``) and combined
-with the chained motion (``SpanRegistration``: their mean, the direct one where the window is plainly curved): exact on a known affine deformation of several per cent, where a
-translation-only window is biased, and on a band of localized strain, which an affine window smooths; points it
-cannot measure keep the chained motion; and the analysis uses it."""
+"""A longer span's motion registered directly between its two frames (``SubpixelRefiner.register_span``) and
+combined with the chained motion (``SpanRegistration``: their mean, the direct one where the window is plainly
+curved): exact on a known affine deformation of several per cent, where a translation-only window is biased, and on
+a band of localized strain, which an affine window smooths; points it cannot measure keep the chained motion; and
+the analysis uses it."""
 
 import cv2
 import numpy as np
