@@ -58,6 +58,7 @@ def glass_shading(
     contrast: float = 45.0,
     floor_fraction: float = 0.25,
     min_motion_ratio: float = 0.8,
+    direction_px: float | None = None,
 ) -> GlassShading:
     """Estimate the glass-fixed offset and gain of a sequence of uint8 frames (see the module doc).
 
@@ -76,6 +77,10 @@ def glass_shading(
     along_shape_px : float, optional
         Find the shape's direction from the sequence mean instead (the image axis along which it varies least)
         and smooth along it by this much, across it by ``smooth_px`` (a single value then).
+    direction_px : float, optional
+        Gaussian blur (px) of the sequence mean when finding the shape's direction (default ``along_shape_px``):
+        enough to hide the fingerprint, little enough to keep the shape's band; with a long ``along_shape_px``
+        the band itself would blur away and the direction be a guess.
     level, contrast : float
         Output grey level of the glass-fixed mean and output contrast of one standard deviation.
     floor_fraction : float
@@ -123,7 +128,10 @@ def glass_shading(
             )
         # A ruled surface's shading varies across the shape only: smooth much more along it (less of the
         # fingerprint left in the maps), whichever image axis that is.
-        coarse = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), float(along_shape_px))
+        blur = float(along_shape_px if direction_px is None else direction_px)
+        if not (np.isfinite(blur) and blur > 0):
+            raise InvalidInputError(f"direction_px must be positive, got {direction_px!r}")
+        coarse = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), blur)
         along_x = float(np.mean(np.abs(np.diff(coarse, axis=1)))) < float(np.mean(np.abs(np.diff(coarse, axis=0))))
         sx, sy = (along_shape_px, smooth_px) if along_x else (smooth_px, along_shape_px)
     mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))

@@ -176,6 +176,7 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
             use=np.flatnonzero(good),
             smooth_px=calibration.px(gs.smooth_mm),
             along_shape_px=calibration.px(gs.along_shape_mm),
+            direction_px=calibration.px(gs.direction_mm),
             min_motion_ratio=gs.min_motion,
         )
     except InsufficientDataError as exc:
@@ -185,8 +186,10 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
 
 def plain_glass(shading: Shading | None, surface: str | None) -> bool:
     """Whether the skin slides on plain glass as far as the motion measurement knows: a flat (or unknown) surface
-    and no glass-fixed shading removed. Only then is a longer span registered directly between its frames
-    (feature and flow methods) and does the flow's pair registration use its local prior
-    (:class:`~skinstretch.processing.flow.FlowParams` ``local_prior``): over a ridge or valley both would follow the
-    glass-fixed patterns the skin moves through."""
+    and no glass-fixed shading removed. Only then is a longer span of the feature method registered directly between
+    its frames and does the flow's pair registration use its local prior
+    (:class:`~skinstretch.processing.flow.FlowParams` ``local_prior``): over a ridge or valley both would follow
+    what is left of the glass-fixed patterns the skin moves through (features, seed 0: 11-frame edge strain 0.118 %
+    on ridgeL and 0.131 % on valleyL chained, 0.124 % and 0.117 % with the direct registration's mean: no clear
+    gain). The flow's span refinement works there too, with the pairs' own prior."""
     return shading is None and surface in (None, "", "flat")
