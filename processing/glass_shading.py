@@ -134,6 +134,10 @@ def glass_shading(
         coarse = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), blur)
         along_x = float(np.mean(np.abs(np.diff(coarse, axis=1)))) < float(np.mean(np.abs(np.diff(coarse, axis=0))))
         sx, sy = (along_shape_px, smooth_px) if along_x else (smooth_px, along_shape_px)
+    # How far the skin moved is judged on the temporal spread smoothed as little as the maps are across the shape:
+    # smoothing along the shape lowers the spread's median too, and would turn the judgement with it.
+    fine = min(sx, sy)
+    spread = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(fine), sigmaY=float(fine))
     mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     # Spatial contrast of the texture in the first frame (local std over ~ a ridge period).
@@ -143,7 +147,7 @@ def glass_shading(
     skin = spatial > 0.5 * float(np.percentile(spatial, 90))
     if not skin.any():
         raise InsufficientDataError("glass shading: no textured skin in the first frame")
-    ratio = float(np.median(std[skin]) / np.median(spatial[skin]))
+    ratio = float(np.median(spread[skin]) / np.median(spatial[skin]))
     if ratio < min_motion_ratio:
         raise InsufficientDataError(
             f"glass shading: the skin moved too little over the sequence (temporal/spatial contrast {ratio:.2f} "

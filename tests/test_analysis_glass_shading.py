@@ -90,17 +90,25 @@ def test_surface_kind_from_simulated_and_recorded_metadata():
         analysis_params({"glass_shading": {"smooth_mm": 0}})
 
 
-@pytest.mark.parametrize("scene,method,max_edge_11", [("ridgeL", "features", 0.0016), ("valleyL", "flow", 0.001)])
-def test_motion_over_a_ridge_or_valley_keeps_the_longer_spans(scene, method, max_edge_11):
+@pytest.mark.parametrize("scene,texture,method,max_edge_11,min_correlation", [
+    ("ridgeL", None, "features", 0.0016, 0.9),
+    ("valleyL", None, "flow", 0.001, 0.9),
+    ("valleyL", "afis_p2_1", "flow", 0.0015, 0.8),
+])
+def test_motion_over_a_ridge_or_valley_keeps_the_longer_spans(scene, texture, method, max_edge_11, min_correlation):
     """Over a shape the 11-frame strain was the first to suffer from what the shading step leaves of the print in
     its maps (a glass-fixed ghost pulls every step towards zero, the same way each time): smoothed along the shape by
     0.13 mm, ridgeL's features read it at 0.27 % RMS and valleyL's chained flow at 0.15 %; the maps now smoothed by
-    1 mm along the shape and the flow's spans refined against their own two frames, 0.12 % and 0.07 %."""
+    1 mm along the shape and the flow's spans refined against their own two frames, 0.12 % and 0.07 %. A real
+    print's 60 frames (motion ratio 1.09) were left uncorrected by the former gate (1.1), and the valley's profile
+    came out reversed (correlation -0.47, 11-frame strain 0.36 %); now 0.89 and 0.10 %."""
     from skinstretch.experiments.analysis import analyze_frames
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking
     from skinstretch.simulators.scene import load_scene, render_session
 
     sc = load_scene(scene)
+    if texture is not None:
+        sc = sc.with_texture(texture)
     s = render_session(sc, n_frames=60, seed=0)
     r = analyze_frames(s.frames, calibration=s.calibration, method=method, params=analysis_params(),
                        surface=sc.surface.kind)
@@ -108,4 +116,4 @@ def test_motion_over_a_ridge_or_valley_keeps_the_longer_spans(scene, method, max
     ev = evaluate_tracking(r, s.truth)
     assert ev["tracking"]["displacement_rmse_px"] < 0.04
     assert ev["strain"]["edge_rmse_11"] < max_edge_11
-    assert ev["profile"]["correlation"] > 0.9
+    assert ev["profile"]["correlation"] > min_correlation
