@@ -177,7 +177,7 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
             smooth_px=calibration.px(gs.smooth_mm),
             along_shape_px=calibration.px(gs.along_shape_mm),
             direction_px=calibration.px(gs.direction_mm),
-            min_motion_ratio=gs.min_motion,
+            min_motion_ratio=gs.min_motion_valley if surface == "valley" else gs.min_motion,
         )
     except InsufficientDataError as exc:
         return None, f"not applied: {exc}"

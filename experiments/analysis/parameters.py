@@ -77,7 +77,10 @@ class GlassShadingParams(_Stage):
     contrast) is left as it is (1.0: with the maps smoothed along the shape, clips from a ratio of 1.0 gained in
     every case tried, ridge and valley scenes with our print and real ones, 12-60 frames; 1.08-1.10 is typical of
     60 frames of a real print, which 1.1 left uncorrected, and a valley's profile then comes out reversed; below
-    0.9 a real print's ghost can cost a ridge more than its shading).
+    0.9 a real print's ghost can cost a ridge more than its shading). Over a valley the skin leaves the glass at
+    its bottom and the shading is much the stronger: left in, it reverses the profile whatever the clip, and
+    removing it gained on every valley clip tried from a ratio of 0.43 (12 frames) up, so there the gate is
+    ``min_motion_valley``.
     """
 
     enabled: bool | None = None
@@ -85,6 +88,7 @@ class GlassShadingParams(_Stage):
     along_shape_mm: float = Field(1.0, gt=0)
     direction_mm: float = Field(0.13, gt=0)
     min_motion: float = Field(1.0, ge=0)
+    min_motion_valley: float = Field(0.4, ge=0)
 
 
 class ExecutionParams(_Stage):

