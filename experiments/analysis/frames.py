@@ -191,5 +191,5 @@ def plain_glass(shading: Shading | None, surface: str | None) -> bool:
     (:class:`~skinstretch.processing.flow.FlowParams` ``local_prior``): over a ridge or valley both would follow
     what is left of the glass-fixed patterns the skin moves through (features, seed 0: 11-frame edge strain 0.118 %
     on ridgeL and 0.131 % on valleyL chained, 0.124 % and 0.117 % with the direct registration's mean: no clear
-    gain). The flow's span refinement works there too, with the pairs' own prior."""
+    gain). The flow's span refinement works there too once the shading is removed, with the pairs' own prior."""
     return shading is None and surface in (None, "", "flat")

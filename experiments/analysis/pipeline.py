@@ -308,12 +308,14 @@ def analyze(
             # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
             # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front), and over a
             # ridge or valley what the shading step leaves of the glass-fixed patterns, the same way at every step
-            # (ridgeL, valleyL: 11-frame edge strain 0.10-0.11 % chained, 0.07 % refined). The pairs' local prior
-            # stays off there (plain_glass): it lets that remainder into each field.
+            # (ridgeL, valleyL: 11-frame edge strain 0.10-0.11 % chained, 0.07 % refined). Not over a shape whose
+            # shading could not be removed (a clip too short): the refinement would follow the shading itself
+            # (ridgeL, 24 frames: 0.142 % chained, 0.191 % refined). The pairs' local prior stays off over a
+            # shape (plain_glass): it lets what the shading step leaves into each field.
             refiner = None
             on_glass = plain_glass(shading, surface)
             pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
-            if params.flow.refine_spans:
+            if params.flow.refine_spans and (on_glass or shading is not None):
                 from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
