@@ -71,10 +71,14 @@ class SpanRegistration:
         """:meth:`refine` of each of ``samples`` (in increasing ``frame_a``), in order; the registrations run on
         ``threads`` threads (the kernel releases the GIL), the frames are prepared in this one."""
         pairs = [self._frames.pair(int(s.frame_a), int(s.frame_b)) if len(s) else None for s in samples]
+
+        def one(sample: MotionSample, pair: tuple[Any, Any] | None) -> MotionSample:
+            return sample if pair is None else self._registered(sample, pair)
+
         if threads <= 1 or len(samples) <= 1:
-            return [s if p is None else self._registered(s, p) for s, p in zip(samples, pairs)]
+            return list(map(one, samples, pairs))
         with ThreadPoolExecutor(min(int(threads), len(samples)), thread_name_prefix="span-registration") as pool:
-            return list(pool.map(lambda s, p: s if p is None else self._registered(s, p), samples, pairs))
+            return list(pool.map(one, samples, pairs))
 
     def _registered(self, sample: MotionSample, pair: tuple[Any, Any]) -> MotionSample:
         fit = self.refiner.register_span(pair[0], pair[1], sample.points, sample.displacement)
