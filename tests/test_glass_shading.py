@@ -87,3 +87,31 @@ def test_statistics_of_an_array_a_list_and_a_chosen_subset_agree():
         glass_shading(frames, use=[0, N])
     with pytest.raises(InsufficientDataError, match="at least 2"):
         glass_shading(frames, use=[3])
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_the_shape_axis_is_found_when_the_print_ridges_run_along_the_slide(transpose):
+    """Ridges that run along the slide stay where they are while the skin moves: a clip's mean keeps them, and
+    their ghost varies across the image more steeply than the shape's band (the gradients of the mean, blurred,
+    took the ridges' direction for the shape's). The band is still found on its axis, whichever image axis that
+    is, so the maps are smoothed along it: the band's profile kept, the ridges gone."""
+    rng = np.random.default_rng(1)
+    n, size = 40, 240
+    y = np.arange(size, dtype=np.float32)[:, None]
+    x = np.arange(size, dtype=np.float32)[None, :]
+    band = 30 * np.exp(-0.5 * ((y - 120) / 40) ** 2) * np.ones((1, size), np.float32)
+    ridges = 30 * np.sin(2 * np.pi * (x / 60 + ((y - 120) / 100) ** 2))  # curving gently, mostly along y
+    moving = cv2.GaussianBlur(rng.normal(size=(size + 2 * n, size)).astype(np.float32), (0, 0), 2)
+    moving *= 12 / moving.std()
+    frames = []
+    for k in range(n):
+        f = 110 + band + ridges + moving[2 * n - 2 * k: 2 * n - 2 * k + size]
+        f = np.clip(f, 0, 255).round().astype(np.uint8)
+        frames.append(np.ascontiguousarray(f.T) if transpose else f)
+    g = glass_shading(frames, smooth_px=1.5, along_shape_px=60.0, min_motion_ratio=0.0)
+    offset = g.offset.T if transpose else g.offset
+    inner = offset[20:-20, 60:-60]
+    profile = inner.mean(axis=1)
+    expected = band[20:-20, 0] - band[20:-20, 0].mean() + profile.mean()
+    assert np.abs(profile - expected).max() < 3.0  # the band kept (30 grey levels high)
+    assert np.abs(inner - profile[:, None]).max() < 3.0  # the ridges (+-30) smoothed away along the band

@@ -176,7 +176,6 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
             use=np.flatnonzero(good),
             smooth_px=calibration.px(gs.smooth_mm),
             along_shape_px=calibration.px(gs.along_shape_mm),
-            direction_px=calibration.px(gs.direction_mm),
             min_motion_ratio=gs.min_motion_valley if surface == "valley" else gs.min_motion,
         )
     except InsufficientDataError as exc:

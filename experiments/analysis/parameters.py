@@ -73,8 +73,7 @@ class GlassShadingParams(_Stage):
     same way each time; at 0.13 mm the 11-frame edge strain of ridge and valley scenes read 0.21-0.27 % RMS with
     features and 0.15-0.17 % with the flow, at 1 mm 0.08-0.14 % (one clip 0.25 %) and 0.10-0.11 % (0.06-0.08 %
     with the flow's spans refined), 11 clips, seeds 0-2; the shape's band must then lie along an image axis within a
-    degree or so); ``direction_mm`` blurs the clip's mean
-    to find which image axis that is; a sequence whose skin moved less than ``min_motion`` (temporal over spatial
+    degree or so: the one whose profile holds more of the clip's mean); a sequence whose skin moved less than ``min_motion`` (temporal over spatial
     contrast) is left as it is (1.0: with the maps smoothed along the shape, clips from a ratio of 1.0 gained in
     every case tried, ridge and valley scenes with our print and real ones, 12-60 frames; 1.08-1.10 is typical of
     60 frames of a real print, which 1.1 left uncorrected, and a valley's profile then comes out reversed; below
@@ -87,7 +86,6 @@ class GlassShadingParams(_Stage):
     enabled: bool | None = None
     smooth_mm: float = Field(0.025, gt=0)
     along_shape_mm: float = Field(1.0, gt=0)
-    direction_mm: float = Field(0.13, gt=0)
     min_motion: float = Field(1.0, ge=0)
     min_motion_valley: float = Field(0.4, ge=0)
 
