@@ -8,10 +8,11 @@ is pulled towards zero where ``o`` and ``g`` vary, because part of what it sees 
 several times the per-frame change of stretch that the seed's Figure 94 looks for.
 
 When the skin has slid by several ridge periods over the sequence, every pixel has seen the texture at every
-phase, so the per-pixel temporal mean and standard deviation of the sequence estimate ``o + g mean(T)`` and
-``g std(T)``; :func:`remove_glass_shading` maps each frame to ``level + contrast (I - mean) / std``, which leaves
-the moving texture with the same contrast everywhere. This generalises the seed's illumination map (3.5,
-``255 / max_t I``: a gain only) to an offset and a gain. It needs the whole sequence, like the seed's map.
+phase, so the per-pixel temporal mean of the sequence estimates ``o + g mean(T)`` and the spread about it
+``g std(T)`` (both pooled over pixels that share the shading: a ridge's or valley's run along the shape);
+:func:`remove_glass_shading` maps each frame to ``level + contrast (I - mean) / std``, which leaves the moving
+texture with the same contrast everywhere. This generalises the seed's illumination map (3.5, ``255 / max_t I``: a
+gain only) to an offset and a gain. It needs the whole sequence, like the seed's map.
 
 If the skin did not move enough, the statistics would hold the texture itself and the mapping would erase it:
 :func:`glass_shading` checks that the temporal spread is comparable to the texture's spatial contrast and raises
@@ -134,8 +135,15 @@ def glass_shading(
     # smoothing along the shape lowers the spread's median too, and would turn the judgement with it.
     fine = min(sx, sy)
     spread = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(fine), sigmaY=float(fine))
+    # The gain comes from the spread of all the samples the smoothing pools (frames, and pixels along the shape,
+    # which share one offset and gain by the model) about their common mean, not from each pixel's own spread: a
+    # print's ridges that run along the slide barely change at a pixel as the skin moves, and the texture's
+    # variation along the shape then counts too. (28 ridge and valley clips, 12-60 frames, our print and eight
+    # real ones, both methods: 11-frame edge strain lower on 40 runs of 56, higher on 5 by at most 0.008 %;
+    # displacement lower on 40, higher on 6 by at most 0.0002 px; profile correlation unchanged on average.)
+    second = cv2.GaussianBlur((total_sq / n).astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
     mean = cv2.GaussianBlur(mean.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
-    std = cv2.GaussianBlur(std.astype(np.float32), (0, 0), sigmaX=float(sx), sigmaY=float(sy))
+    std = np.sqrt(np.maximum(second - mean * mean, 0.0)).astype(np.float32)
     # Spatial contrast of the texture in the first frame (local std over ~ a ridge period).
     f0 = first.astype(np.float32)
     m0 = cv2.blur(f0, (15, 15))
