@@ -189,9 +189,9 @@ def _block_measures(frame: np.ndarray, *, px_per_mm: float, params: TextureGateP
     if nby < 1 or nbx < 1:
         side = block * scale
         raise InvalidInputError(
-            f"frames of {frame.shape[1]}x{frame.shape[0]} px are too small to analyse: the texture check needs at least "
-            f"{side:.0f}x{side:.0f} px ({params.block_periods:g} ridge periods at {px_per_mm:g} px/mm; smaller than one "
-            "gate block)"
+            f"frames of {frame.shape[1]}x{frame.shape[0]} px are too small to analyse: the texture check needs at "
+            f"least {side:.0f}x{side:.0f} px ({params.block_periods:g} ridge periods at {px_per_mm:g} px/mm; smaller "
+            "than one gate block)"
         )
     # A difference of Gaussians sigma / 2 sigma peaks at frequency 0.153 / sigma: sigma = 0.153 period.
     s1 = 0.153 * period

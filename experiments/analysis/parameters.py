@@ -73,11 +73,12 @@ class GlassShadingParams(_Stage):
     same way each time; at 0.13 mm the 11-frame edge strain of ridge and valley scenes read 0.21-0.27 % RMS with
     features and 0.15-0.17 % with the flow, at 1 mm 0.08-0.14 % (one clip 0.25 %) and 0.10-0.11 % (0.06-0.08 %
     with the flow's spans refined), 11 clips, seeds 0-2; the shape's band must then lie along an image axis within a
-    degree or so: the one whose profile holds more of the clip's mean); a sequence whose skin moved less than ``min_motion`` (temporal over spatial
-    contrast) is left as it is (1.0: with the maps smoothed along the shape, clips from a ratio of 1.0 gained in
-    every case tried, ridge and valley scenes with our print and real ones, 12-60 frames; 1.08-1.10 is typical of
-    60 frames of a real print, which 1.1 left uncorrected, and a valley's profile then comes out reversed; below
-    0.9 a real print's ghost can cost a ridge more than its shading). Over a valley the skin leaves the glass at
+    degree or so: the one whose profile holds more of the clip's mean); a sequence whose skin moved less than
+    ``min_motion`` (temporal over spatial contrast) is left as it is (1.0: with the maps smoothed along the shape,
+    clips from a ratio of 1.0 gained in every case tried, ridge and valley scenes with our print and real ones, 12-60
+    frames; 1.08-1.10 is typical of 60 frames of a real print, which 1.1 left uncorrected, and a valley's profile
+    then comes out reversed; between 0.5 and 1.0 a real print's ghost cost a ridge more than its shading on some
+    clips and less on others, known gaps). Over a valley the skin leaves the glass at
     its bottom and the shading is much the stronger: left in, it reverses the profile whatever the clip, and
     removing it gained on every valley clip tried from a ratio of 0.43 (12 frames) up, so there the gate is
     ``min_motion_valley``.
