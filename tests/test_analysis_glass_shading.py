@@ -138,16 +138,19 @@ def test_a_short_clip_over_a_valley_is_corrected_and_its_profile_keeps_its_sign(
     assert ev["profile"]["compression_first"] == ev["profile"]["true_compression_first"]
 
 
-def test_the_flow_refines_no_span_over_a_shape_whose_shading_stayed():
+def test_the_flow_refines_no_span_over_a_shape_whose_shading_stayed(caplog):
     """24 frames over a ridge: the skin slid too little for the shading to be removed (motion ratio just under
     1.0), and a span refined against its own two frames would follow the shading itself (11-frame edge strain
-    0.19 % refined against 0.14 % chained)."""
+    0.19 % refined against 0.14 % chained). The analysis says that the shading stayed (log and summary)."""
     from skinstretch.experiments.analysis import analyze_frames
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking
     from skinstretch.simulators.scene import load_scene, render_session
 
     s = render_session(load_scene("ridgeL"), n_frames=24, seed=0)
     params = analysis_params({"tracking": {"min_length_frames": 12}})
-    r = analyze_frames(s.frames, calibration=s.calibration, method="flow", params=params, surface="ridge")
+    with caplog.at_level("WARNING"):
+        r = analyze_frames(s.frames, calibration=s.calibration, method="flow", params=params, surface="ridge")
     assert r.params["glass_shading_status"].startswith("not applied")
+    said = "the glass-fixed shading over the ridge was left in: the skin moved too little"
+    assert said in caplog.text and any(n.startswith(said) for n in r.summary["notes"])
     assert evaluate_tracking(r, s.truth)["strain"]["edge_rmse_11"] < 0.0016

@@ -265,6 +265,13 @@ def analyze(
             executor = stack.enter_context(make_executor(params.execution))
         t_start = time.perf_counter()
         shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
+        if shading is None and shading_status.startswith("not applied"):
+            # Said out loud: over a shape the shading left in biases the motion there (known gaps, short clips).
+            reason = shading_status.removeprefix("not applied: ").removeprefix("glass shading: ").split(";")[0]
+            notes = [*notes, f"the glass-fixed shading over the {surface} was left in: {reason}. The motion across "
+                     "the shape may read too small and its strain be biased; a longer slide over the shape lets the "
+                     "analysis remove it"]
+            log.warning("%s", notes[-1])
         reader = FrameReader(source, shading)
         t_shading = time.perf_counter() - t_start
         writer = stack.enter_context(ResultsWriter(results_path))
@@ -402,7 +409,7 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
               session_path: str, method: str, timing: dict, shading_status: str, flags: list[str],
               notes: list[str] = ()) -> dict[str, Any]:
     """The small JSON summary written next to the results (and into them); ``notes``: what the clip's length changed
-    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`)."""
+    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in."""
     f = writer.file
     out: dict[str, Any] = {
         "results": str(results_path) if results_path is not None else "(in memory)",
