@@ -57,8 +57,8 @@ class BatchRow:
     profile_axis: str = ""
     n_trajectories: int | None = None  # features method
     min_track_frames: int | None = None  # features method: the minimum trajectory length used
-    #: What the analysis said about the clip (a short clip's adapted minimum length, a span with no pair, a mesh
-    #: too sparse to map strain): one sentence each, joined by " | ".
+    #: What the analysis said about the clip (a short clip's adapted minimum length, a span with no pair, a shape's
+    #: glass-fixed shading left in, a mesh too sparse to map strain): one sentence each, joined by " | ".
     notes: str = ""
 
     def as_dict(self) -> dict[str, Any]:

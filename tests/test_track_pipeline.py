@@ -165,7 +165,10 @@ def test_a_short_clip_adapts_the_minimum_trajectory_length_and_says_so(session_f
     assert r.params["tracking"]["min_length_frames"] == 4 and r.summary["n_trajectories"] > 10
     # The default spans are 1 and 11 frames: an 8-frame session has no 11-frame pair, and says so (log and summary).
     assert "no strain over 11 frames" in caplog.text and "--span up to 7" in caplog.text
-    assert len(r.summary["notes"]) == 2 and "no strain over 11 frames" in r.summary["notes"][1]
+    notes = r.summary["notes"]
+    assert len(notes) == 3 and "no strain over 11 frames" in notes[1]
+    # 8 frames over a ridge are too few to remove its glass-fixed shading: said as well.
+    assert "shading over the ridge was left in" in notes[2] and "shading over the ridge was left in" in caplog.text
     assert r.strain[11].pairs.shape[0] == 0
 
 
