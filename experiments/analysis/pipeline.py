@@ -265,7 +265,7 @@ def analyze(
             executor = stack.enter_context(make_executor(params.execution))
         t_start = time.perf_counter()
         shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
-        if shading is None and shading_status.startswith("not applied"):
+        if shading is None and shading_status.startswith("not applied") and surface not in (None, "", "flat"):
             # Said out loud: over a shape the shading left in biases the motion there (known gaps, short clips).
             reason = shading_status.removeprefix("not applied: ").removeprefix("glass shading: ").split(";")[0]
             notes = [*notes, f"the glass-fixed shading over the {surface} was left in: {reason}. The motion across "
