@@ -78,10 +78,9 @@ class GlassShadingParams(_Stage):
     clips from a ratio of 1.0 gained in every case tried, ridge and valley scenes with our print and real ones, 12-60
     frames; 1.08-1.10 is typical of 60 frames of a real print, which 1.1 left uncorrected, and a valley's profile
     then comes out reversed; between 0.5 and 1.0 a real print's ghost cost a ridge more than its shading on some
-    clips and less on others, known gaps). Over a valley the skin leaves the glass at
-    its bottom and the shading is much the stronger: left in, it reverses the profile whatever the clip, and
-    removing it gained on every valley clip tried from a ratio of 0.43 (12 frames) up, so there the gate is
-    ``min_motion_valley``.
+    clips and less on others, known gaps). Over a valley the skin leaves the glass at its bottom and the shading is
+    much the stronger: left in, it reverses the profile whatever the clip, and removing it gained on every valley
+    clip tried from a ratio of 0.43 (12 frames) up, so there the gate is ``min_motion_valley``.
     """
 
     enabled: bool | None = None
