@@ -57,11 +57,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _CurrentStderrHandler(logging.StreamHandler):
+    """Writes each record to ``sys.stderr`` as it is when the record is emitted, like the standard library's
+    last-resort handler: a handler bound to the stream of the moment kept writing to it after a caller (a test's
+    capture, a notebook) had replaced and closed it ("I/O operation on closed file")."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):  # noqa: ANN201 - a text stream
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ and setStream assign it: always sys.stderr instead
+        pass
+
+
 def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
     """Log records of skinstretch to standard error: INFO by default, DEBUG with -v -v, WARNING with --quiet."""
     level = logging.WARNING if quiet else logging.DEBUG if verbose >= 2 else logging.INFO
     fmt = "%(levelname)s %(name)s: %(message)s" if verbose else "%(message)s"
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _CurrentStderrHandler()
     handler.setFormatter(logging.Formatter(fmt))
     log.handlers[:] = [handler]
     log.setLevel(level)

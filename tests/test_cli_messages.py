@@ -64,3 +64,20 @@ def test_an_os_error_nothing_caught_is_one_line_with_status_1(monkeypatch, capsy
     monkeypatch.setattr(analyze_command, "run", refused)
     assert main(["analyze", "s.h5", "-o", "out", "-q"]) == 1
     assert capsys.readouterr().err.strip().splitlines() == [f"skinstretch analyze: error: {line}"]
+
+
+def test_logging_follows_the_current_standard_error(monkeypatch):
+    """The CLI's log handler writes to sys.stderr as it is at each record, not to the stream it was set up with
+    (a test capture that is closed afterwards used to make every later record print "Logging error")."""
+    import io
+    import logging
+
+    from skinstretch.cli import configure_logging
+
+    first, second = io.StringIO(), io.StringIO()
+    monkeypatch.setattr("sys.stderr", first)
+    configure_logging()
+    first.close()
+    monkeypatch.setattr("sys.stderr", second)
+    logging.getLogger("skinstretch.test").warning("after the first stream closed")
+    assert second.getvalue() == "after the first stream closed\n"
