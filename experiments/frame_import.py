@@ -232,7 +232,7 @@ def import_frames(
     Parameters
     ----------
     source : path-like, glob pattern or list of paths
-        A video file, a TIFF file, a folder or pattern of PNG/TIFF images, or a list of images.
+        A video file, a TIFF file, a folder or pattern of PNG/TIFF/BMP/JPEG images, or a list of images.
     output : path-like
         Session file to write; an existing one is replaced only with ``overwrite``.
     px_per_mm, calibration : optional
@@ -272,6 +272,7 @@ def import_frames(
             "conversion": conversion,
             "crop": [crop.x, crop.y, crop.width, crop.height] if crop is not None else None,
         }
+        _say_if_lossy(reader)
         metadata: dict[str, Any] = {"source": source_record, "imported_by": f"skinstretch {__version__}",
                                     "imported_unix": time.time()}
         if surface:
@@ -303,6 +304,19 @@ def import_frames(
                         px_per_mm=cal.px_per_mm, px_per_mm_source=scale_source, conversion=conversion,
                         surface=metadata["surface"]["kind"], surface_source=metadata["surface"]["decided_by"],
                         seconds=seconds)
+
+
+def _say_if_lossy(reader: FrameReader) -> None:
+    """One line, before anything is written, when the file's compression changed (or may have changed) the pixels:
+    what is measured from such frames departs from what the camera's own frames give (the `import` bench)."""
+    if reader.lossy:
+        log.warning("%s: %s is lossy compression: the frames are not the camera's, and motion measured from them "
+                    "departs from a lossless recording's (docs/import-and-replay.md, Accuracy); keep lossless video "
+                    "(FFV1) or TIFF for measurement", reader.name, reader.compression)
+    elif reader.lossy is None:
+        log.info("%s: %s can be lossy or lossless and the file does not say which; if lossy, motion measured from "
+                 "the frames departs from a lossless recording's (docs/import-and-replay.md, Accuracy)",
+                 reader.name, reader.compression)
 
 
 def _checked_ridge_period(sample: np.ndarray | None, px_per_mm: float, where: str, scale_source: str) -> float | None:

@@ -133,7 +133,7 @@ def test_bad_sources(tmp_path):
         ReplayCamera(tmp_path).open()
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(FrameFileError, match="no PNG or TIFF images"):
+    with pytest.raises(FrameFileError, match="no images found"):
         ReplayCamera(empty, rate_hz=10.0).open()
     with ReplayCamera(tmp_path, rate_hz=10.0) as cam:
         with pytest.raises(InvalidInputError, match="is 4x4"):

@@ -233,6 +233,61 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
         assert agreement.max_px <= tolerance_px, agreement
 
 
+def test_a_lossy_copy_says_so_at_import_and_in_its_analysis(simulated_and_analysed, capsys):
+    """An MP4 at x264's usual quality is lossy: the import warns before writing, the session records it, and the
+    analysis's summary notes it (the batch table repeats it); the lossless copies above say nothing."""
+    import json
+
+    d, frames, fps, ppm, _ = simulated_and_analysed
+    source = write_video(d / "lossy.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=int(fps),
+                         options={"crf": "18"})
+    session = d / "lossy.h5"
+    assert main(["import", str(source), "-o", str(session), "--px-per-mm", str(ppm), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "lossy.mp4: h264 (High) is lossy compression: the frames are not the camera's" in err
+    with open_session(session) as s:
+        assert s.metadata["source"]["lossy"] is True and s.metadata["source"]["compression"] == "h264 (High)"
+    assert main(["analyze", str(session), "-o", str(d / "lossy"), "-q"]) == 0
+    notes = json.loads((d / "lossy" / "summary.json").read_text())["notes"]
+    assert any(n.startswith("the frames were imported from lossy compression (h264 (High))") for n in notes), notes
+    assert not json.loads((d / "original" / "summary.json").read_text())["notes"]
+
+
+def test_readers_tell_lossy_from_lossless_storage(tmp_path):
+    """FFmpeg's codec descriptors, the TIFF compression tag and the image format decide ``lossy``; H.264 in the
+    profile of x264's lossless mode may be either (None). Folders of BMP read exactly, of JPEG lossily."""
+    from skinstretch.drivers.frame_readers import open_frame_reader
+
+    frames = _frames(3, 32, 48)
+    cases = {
+        write_video(tmp_path / "ffv1.avi", frames): (False, "ffv1"),
+        write_video(tmp_path / "x264.mp4", frames, codec="libx264", pix_fmt="yuv420p", options={"crf": "18"}):
+            (True, "h264 (High)"),
+        write_video(tmp_path / "x264-lossless.mp4", frames, codec="libx264", pix_fmt="yuv420p", options={"crf": "0"}):
+            (None, "h264 (High 4:4:4 Predictive)"),
+        write_video(tmp_path / "mjpeg.avi", frames, codec="mjpeg", pix_fmt="yuvj420p"): (True, "mjpeg (Baseline)"),
+    }
+    tifffile.imwrite(tmp_path / "lzw.tif", frames, compression="lzw", photometric="minisblack")
+    tifffile.imwrite(tmp_path / "jpeg.tif", frames, compression="jpeg", photometric="minisblack")
+    cases[tmp_path / "lzw.tif"] = (False, "LZW")
+    cases[tmp_path / "jpeg.tif"] = (True, "JPEG")
+    for ext, lossy in (("bmp", False), ("jpg", True)):
+        folder = tmp_path / ext
+        folder.mkdir()
+        for k, f in enumerate(frames):
+            cv2.imwrite(str(folder / f"f{k}.{ext}"), f)
+        cases[folder] = (lossy, ext)
+    for path, (lossy, compression) in cases.items():
+        with open_frame_reader(path) as reader:
+            assert (reader.lossy, reader.compression) == (lossy, compression), path.name
+            assert reader.describe()["lossy"] is lossy
+            got = np.stack([f.image for f in reader.frames()])
+            if lossy is False:
+                np.testing.assert_array_equal(got, frames, err_msg=path.name)
+            else:
+                assert got.shape == frames.shape
+
+
 def test_a_calibration_goes_into_the_session_cut_to_the_crop(tmp_path):
     """--calibration CAL.json: the fitted skin mapping is stored; with --crop, the mapping of that window."""
     import json

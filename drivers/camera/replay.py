@@ -5,7 +5,7 @@ Sources (docs/import-and-replay.md):
 * a session file (``.h5``/``.hdf5``, see docs/session-format.md): recorded frame ids, device and host time stamps;
 * anything ``skinstretch import`` reads, through the same readers (:mod:`skinstretch.drivers.frame_readers`):
   a video file (AVI such as the seed's movies, MP4, MOV, MKV...), a TIFF stack (multi-page, OME, ImageJ), a
-  directory or glob pattern of PNG/TIFF images in natural order, or a list of image paths.
+  directory or glob pattern of PNG/TIFF/BMP/JPEG images in natural order, or a list of image paths.
 
 Frames come out at the recorded rate (``rate_hz=None``: the session's host time stamps, the rate the video or TIFF
 declares), at a chosen rate, or as fast as they are read (``rate_hz=math.inf``). Unlike a live camera a replay
@@ -99,7 +99,7 @@ class ReplayCamera(Camera):
     Parameters
     ----------
     source : path-like, glob pattern or sequence of paths
-        A session file (.h5/.hdf5), a directory of PNG/TIFF images, a glob pattern matching images,
+        A session file (.h5/.hdf5), a directory of PNG/TIFF/BMP/JPEG images, a glob pattern matching images,
         a list of image paths, a TIFF stack, or a video file.
     rate_hz : float, optional
         Replay rate in Hz; None replays at the recorded rate (session time stamps, the rate a video or TIFF

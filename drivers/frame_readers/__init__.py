@@ -30,8 +30,9 @@ _TIFF_SUFFIXES = {".tif", ".tiff"}
 
 
 def open_frame_reader(source: str | os.PathLike | Sequence[str | os.PathLike]) -> FrameReader:
-    """The reader for ``source``: a list of images, a folder or glob pattern of PNG/TIFF images, a TIFF file (a
-    stack, OME or ImageJ; one page is a one-frame stack), a single PNG, or anything else as a video.
+    """The reader for ``source``: a list of images, a folder or glob pattern of images (PNG, TIFF, BMP, JPEG), a TIFF
+    file (a stack, OME or ImageJ; one page is a one-frame stack), a single PNG, BMP or JPEG, or anything else as a
+    video.
 
     Raises :class:`FrameFileError` naming the source when it does not exist or cannot be read.
     """

@@ -99,8 +99,10 @@ class FrameReader(ABC):
 
     Attributes set by every reader: ``path``, ``shape`` (H, W), ``dtype`` (of the grey frames), ``n_frames``
     (None while unknown: a video whose container does not say), ``fps`` and ``px_per_mm`` (None when the file
-    does not declare them), ``colour`` (the file's pixels are colour: its frames are their luma by the grey rule).
-    Use as a context manager or call :meth:`close`.
+    does not declare them), ``colour`` (the file's pixels are colour: its frames are their luma by the grey rule),
+    ``lossy`` (the file's compression changed the pixels: True for a lossy codec such as H.264 or JPEG, False for
+    raw or lossless storage, None when the codec has both modes and the file does not say which) and
+    ``compression`` (the codec or compression, by name). Use as a context manager or call :meth:`close`.
     """
 
     #: What kind of file this reader reads, for messages and the session's record of its source.
@@ -114,6 +116,8 @@ class FrameReader(ABC):
         self.fps: float | None = None
         self.px_per_mm: float | None = None
         self.colour = False
+        self.lossy: bool | None = False
+        self.compression = "none"
         self._cursor: Iterator[SourceFrame] | None = None
         self._next_index = 0
 
@@ -150,6 +154,8 @@ class FrameReader(ABC):
             "height": self.shape[0],
             "dtype": str(self.dtype),
             "colour": self.colour,
+            "compression": self.compression,
+            "lossy": self.lossy,
             "fps_declared": self.fps,
             "px_per_mm_declared": self.px_per_mm,
         }

@@ -1,5 +1,6 @@
-"""A folder (or glob pattern, or list) of PNG/TIFF images, one frame each, in natural order (frame2 before frame10).
+"""A folder (or glob pattern, or list) of images, one frame each, in natural order (frame2 before frame10).
 
+PNG, TIFF and BMP keep the camera's pixels; JPEG does not (``lossy``), and a folder mixing them is lossy if any is.
 Images are read with OpenCV (8- or 16-bit, grey or colour); every image must have the size and type of the first.
 Natural order is natsort's path sort. An image folder declares neither a frame rate nor a pixel size.
 """
@@ -21,7 +22,9 @@ from skinstretch.drivers.frame_readers.base import FrameReader, SourceFrame, is_
 __all__ = ["IMAGE_SUFFIXES", "ImageFolder"]
 
 #: File name endings read as frames of a folder.
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
+#: Of those, the endings of lossy images.
+_LOSSY_SUFFIXES = (".jpg", ".jpeg")
 
 
 class ImageFolder(FrameReader):
@@ -30,7 +33,7 @@ class ImageFolder(FrameReader):
     Parameters
     ----------
     source : path-like, glob pattern, or sequence of paths
-        A directory (its PNG/TIFF files, in natural order), a pattern such as ``"run1/frame*.png"`` (natural order),
+        A directory (its PNG, TIFF, BMP and JPEG files, in natural order), a pattern such as ``"run1/frame*.png"`` (natural order),
         or a list of image files (taken in the order given).
     """
 
@@ -56,8 +59,11 @@ class ImageFolder(FrameReader):
             paths = natsorted(paths, alg=ns.PATH)
         super().__init__(where)
         if not paths:
-            raise FrameFileError(f"{where}: no PNG or TIFF images found ({', '.join(IMAGE_SUFFIXES)})")
+            raise FrameFileError(f"{where}: no images found ({', '.join(IMAGE_SUFFIXES)})")
         self.paths: list[Path] = paths
+        suffixes = sorted({p.suffix.lower().lstrip(".") for p in paths})
+        self.compression = "/".join(suffixes)
+        self.lossy = any(p.suffix.lower() in _LOSSY_SUFFIXES for p in paths)
         self.n_frames = len(paths)
         first = self._image(0)
         self.shape = first.shape
@@ -71,7 +77,7 @@ class ImageFolder(FrameReader):
         path = self.paths[k]
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
-            raise FrameFileError(f"{path}: cannot be read as an image (corrupt, or not PNG/TIFF)")
+            raise FrameFileError(f"{path}: cannot be read as an image (corrupt, or not an image OpenCV reads)")
         if k == 0:  # the file's first image says whether it is colour
             self.colour = is_colour(image)
         return to_grey(image, channel_order="bgr", where=str(path))

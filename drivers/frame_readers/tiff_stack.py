@@ -44,6 +44,11 @@ _LENGTH_MM = {
 #: Time units of OME metadata, in seconds.
 _TIME_S = {"s": 1.0, "ms": 1e-3, "µs": 1e-6, "us": 1e-6, "μs": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0}
 _IMAGE_AXES = set("YXS")
+#: TIFF compressions that change the pixels, and those that keep them (the rest, such as WebP, JPEG 2000 or JPEG XL,
+#: can be either: ``lossy`` None).
+_LOSSY = {"JPEG", "OJPEG", "ALT_JPEG", "JPEG_99", "JPEG_LOSSY", "JPEG_2000_LOSSY"}
+_LOSSLESS = {"NONE", "LZW", "ADOBE_DEFLATE", "DEFLATE", "PACKBITS", "ZSTD", "ZSTD_DEPRECATED", "LZMA", "PNG",
+             "CCITTRLE", "CCITTFAX3", "CCITTFAX4"}
 
 
 class _TifffileProblems(logging.Filter):
@@ -132,6 +137,9 @@ class TiffStack(FrameReader):
             self._frame_shape = tuple(n for a, n in zip(axes, shape) if a in _IMAGE_AXES)
             self._samples_first = [a for a in axes if a in _IMAGE_AXES][0] == "S"
         self._series = series
+        compression = series.keyframe.compression
+        self.compression = getattr(compression, "name", str(compression))
+        self.lossy = True if self.compression in _LOSSY else False if self.compression in _LOSSLESS else None
         self._read_metadata()
         first = self._image(0)
         self.shape = first.shape

@@ -40,6 +40,7 @@ class VideoFile(FrameReader):
         with self._open() as container:
             stream = container.streams.video[0]
             self.codec = stream.codec_context.name
+            self.compression, self.lossy = _compression(stream.codec_context)
             self.container_format = container.format.name
             fmt = stream.codec_context.format
             bits = max((c.bits for c in fmt.components), default=8) if fmt is not None else 8
@@ -99,6 +100,26 @@ class VideoFile(FrameReader):
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "container": self.container_format, "codec": self.codec,
                 "pixel_format": self.source_pixel_format}
+
+
+#: The H.264 profile x264's lossless mode writes (its transform bypass exists only there): any other profile is lossy.
+_H264_LOSSLESS_PROFILE = "High 4:4:4 Predictive"
+
+
+def _compression(context) -> tuple[str, bool | None]:
+    """(codec and profile by name, whether it is lossy) from FFmpeg's codec descriptor: a codec that is only lossless
+    (FFV1, raw, HuffYUV...) or only lossy (MJPEG, MPEG-4 part 2, VP9's usual mode...) says so; one with both modes
+    (H.264, HEVC, AV1) is lossy unless the stream can be in its lossless mode, which only H.264's profile reveals."""
+    profile = context.profile or ""
+    name = f"{context.name} ({profile})" if profile else context.name
+    codec = context.codec
+    if codec.lossless and not codec.lossy:
+        return name, False
+    if codec.lossy and not codec.lossless:
+        return name, True
+    if context.name == "h264" and profile and profile != _H264_LOSSLESS_PROFILE:
+        return name, True
+    return name, None
 
 
 def _reason(exc: BaseException) -> str:

@@ -239,9 +239,12 @@ def analyze(
     surface: str | None = None,
     progress: bool = False,
     overwrite: bool = False,
+    source_notes: Sequence[str] = (),
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
+    ``source_notes``: what the summary's ``notes`` should say about where the frames came from
+    (:func:`notes_on_source`).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -255,7 +258,7 @@ def analyze(
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
     n = len(source)
-    notes = clip_notes(params, n, method)
+    notes = [*source_notes, *clip_notes(params, n, method)]
     params = for_clip(params, n, method)
     image_shape = tuple(int(v) for v in source.shape)
     scales = PixelScales.of(calibration, params.strain)
@@ -454,6 +457,16 @@ def surface_kind(metadata: dict) -> str | None:
     return str(surface) if surface else None
 
 
+def notes_on_source(metadata: dict) -> list[str]:
+    """What a session's metadata says its frames lost before the analysis: imported from a lossy file
+    (:mod:`skinstretch.experiments.frame_import` records ``source.lossy``)."""
+    source = metadata.get("source")
+    if isinstance(source, dict) and source.get("lossy") is True:
+        return [f"the frames were imported from lossy compression ({source.get('compression') or 'unknown'}): the "
+                "motion measured departs from what the camera's own frames give (docs/import-and-replay.md, Accuracy)"]
+    return []
+
+
 #: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
 #: results stay in memory unless ``results_path`` is given.
 analyze_frames = analyze
@@ -485,12 +498,13 @@ def analyze_session(
             mapping = mapping_from_dict(json.loads(session.mapping_json))
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
+        notes = notes_on_source(session.metadata)
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress, overwrite=overwrite)
+                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):

@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "import",
-        help="import a video (AVI, MP4, MOV...), TIFF stack or folder of PNG/TIFF frames as a session file",
+        help="import a video (AVI, MP4, MOV...), TIFF stack or folder of PNG/TIFF/BMP/JPEG frames as a session file",
         description="Write a normal session file (status complete) from frames recorded elsewhere, so analyze, "
         "report and view read it like a recorded one. Colour becomes BT.601 luma; 16-bit and deeper frames are "
         "mapped linearly from the whole file's range onto 8 bits. Times come from the file (video time stamps, "
@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "metadata. See docs/import-and-replay.md.",
     )
     p.add_argument("source", help="video file, TIFF file (multi-page, OME, ImageJ), or a folder or glob pattern of "
-                                   "PNG/TIFF frames (natural order: frame2 before frame10)")
+                                   "PNG/TIFF/BMP/JPEG frames (natural order: frame2 before frame10)")
     p.add_argument("-o", "--output", type=Path, required=True, help="session file to write (.h5)")
     scale = p.add_mutually_exclusive_group()
     scale.add_argument("--px-per-mm", type=float, default=None, dest="px_per_mm", metavar="X",
