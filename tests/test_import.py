@@ -266,6 +266,8 @@ def test_readers_tell_lossy_from_lossless_storage(tmp_path):
         write_video(tmp_path / "x264-lossless.mp4", frames, codec="libx264", pix_fmt="yuv420p", options={"crf": "0"}):
             (None, "h264 (High 4:4:4 Predictive)"),
         write_video(tmp_path / "mjpeg.avi", frames, codec="mjpeg", pix_fmt="yuvj420p"): (True, "mjpeg (Baseline)"),
+        write_video(tmp_path / "vp9.webm", frames, codec="libvpx-vp9", pix_fmt="yuv420p", options={"lossless": "1"}):
+            (None, "vp9 (Profile 0)"),
     }
     tifffile.imwrite(tmp_path / "lzw.tif", frames, compression="lzw", photometric="minisblack")
     tifffile.imwrite(tmp_path / "jpeg.tif", frames, compression="jpeg", photometric="minisblack")

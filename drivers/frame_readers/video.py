@@ -104,18 +104,20 @@ class VideoFile(FrameReader):
 
 #: The H.264 profile x264's lossless mode writes (its transform bypass exists only there): any other profile is lossy.
 _H264_LOSSLESS_PROFILE = "High 4:4:4 Predictive"
+#: Codecs with a lossless mode that FFmpeg's descriptor does not mark (libvpx-vp9 ``-lossless 1``).
+_ALSO_LOSSLESS = {"vp9"}
 
 
 def _compression(context) -> tuple[str, bool | None]:
     """(codec and profile by name, whether it is lossy) from FFmpeg's codec descriptor: a codec that is only lossless
-    (FFV1, raw, HuffYUV...) or only lossy (MJPEG, MPEG-4 part 2, VP9's usual mode...) says so; one with both modes
-    (H.264, HEVC, AV1) is lossy unless the stream can be in its lossless mode, which only H.264's profile reveals."""
+    (FFV1, raw, HuffYUV...) or only lossy (MJPEG, MPEG-4 part 2, ProRes...) says so; one with both modes (H.264,
+    HEVC, AV1, VP9) is lossy unless the stream can be in its lossless mode, which only H.264's profile reveals."""
     profile = context.profile or ""
     name = f"{context.name} ({profile})" if profile else context.name
     codec = context.codec
     if codec.lossless and not codec.lossy:
         return name, False
-    if codec.lossy and not codec.lossless:
+    if codec.lossy and not codec.lossless and context.name not in _ALSO_LOSSLESS:
         return name, True
     if context.name == "h264" and profile and profile != _H264_LOSSLESS_PROFILE:
         return name, True
