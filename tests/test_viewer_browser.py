@@ -42,8 +42,9 @@ def served(tmp_path_factory, sim_session):
     s = sim_session
     path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
                          calibration=s.calibration, metadata={**s.metadata, "trial": "flat"}, truth=s.truth)
-    params = AnalysisParams(execution={"kind": "threads"}, tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3,
-                                                                      min_length_frames=10))
+    # A 20-frame span on a 20-frame clip: no pair, and a note in the summary that the page must show.
+    params = AnalysisParams(execution={"kind": "threads"}, strain={"spans": (1, 11, 20)},
+                            tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, min_length_frames=10))
     analyze_session(path, trial / "analysis", params=params)
     server = start_server(find_view_target(trial))
     yield server
@@ -131,6 +132,14 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
             assert f"(track {track})" in text and f"x {fx:.2f} px" in text, text
         else:
             assert f"track {track}: not measured in this frame" in text, text
+    # The analysis's notes on the whole clip stay in view; a span the clip cannot hold says so on every frame.
+    notes = page.locator("#analysis-notes")
+    assert notes.is_visible() and "no strain over 20 frames: the 20-frame session has no frame pair" in notes.inner_text()
+    page.select_option("#span", "20")
+    page.wait_for_function("S.span === 20 && document.getElementById('notes').textContent.includes('no strain over 20')")
+    assert "the 20-frame session has no pair that far apart" in page.locator("#notes").inner_text()
+    page.select_option("#span", "1")
+    page.wait_for_function("S.span === 1")
     page.screenshot(path=str(tmp_path / "viewer.png"))
     ms = [e["ms"] for e in page.evaluate("window.viewerStats.shown")]
     record_property("frame_display_ms_median", float(np.median(ms)))

@@ -321,6 +321,7 @@ class ResultsIndex:
     motion_axis: int
     has_tactile: bool
     window: dict[str, Any]
+    notes: list[str]  # what the analysis said about the whole clip (its summary's notes)
     _features: np.ndarray | None
     _features_by_frame: _PerFrame | None
     _feature_track: np.ndarray | None  # feature row -> track
@@ -345,6 +346,7 @@ class ResultsIndex:
             "motion_axis": self.motion_axis,
             "has_tactile": self.has_tactile,
             "window": self.window,
+            "notes": list(self.notes),
         }
 
     # -- one frame
@@ -363,6 +365,8 @@ class ResultsIndex:
         mesh = self._mesh(k, span)
         if mesh is None and k >= span:
             notes.append(f"no strain for frames {k - span}->{k} (see the results' pair status)")
+        elif mesh is None and span >= self.n_frames:
+            notes.append(f"no strain over {span} frames: the {self.n_frames}-frame session has no pair that far apart")
         elif mesh is None and k > 0:
             notes.append(f"strain over {span} frames starts at frame {span}")
         if self.method == "flow":
@@ -505,6 +509,7 @@ def load_results_index(path: Path) -> ResultsIndex:
     return ResultsIndex(
         path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
         strain_scale=scale, motion_axis=r.profile_axis_index, has_tactile=tactile is not None, window=dict(r.window),
+        notes=[str(n) for n in (r.summary.get("notes") or [])],
         _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
         _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
         _motion_by_pair=_PerFrame.build(r.motion["pair"], max(n - 1, 0)), _triangles=triangles,

@@ -68,6 +68,7 @@ async function loadInfo() {
   $("span").innerHTML = spans.map((s) => `<option value="${s}">${s}</option>`).join("");
   S.span = spans.includes(S.span) ? S.span : spans[0];
   $("span").value = String(S.span);
+  showAnalysisNotes(info.results ? info.results.notes : []);
   buildLegend();
   setStatus(info);
   S.follow = info.status === "recording" || info.follows_directory;
@@ -75,6 +76,24 @@ async function loadInfo() {
   $("slider").max = String(Math.max(0, S.n - 1));
   drawTactile(null);
   if (S.n > 0) await showFrame(S.follow ? S.n - 1 : Math.min(S.k, S.n - 1));
+}
+
+// What the analysis said about the whole clip (a short clip, a lossy source, a shape's shading left in), shown
+// above the frame for as long as the results are: a doubtful number should come with its caveat.
+function showAnalysisNotes(notes) {
+  const box = $("analysis-notes");
+  box.innerHTML = "";
+  box.hidden = !notes || notes.length === 0;
+  if (box.hidden) return;
+  const title = document.createElement("strong");
+  title.textContent = "Analysis notes";
+  const ul = document.createElement("ul");
+  for (const n of notes) {
+    const li = document.createElement("li");
+    li.textContent = n;
+    ul.appendChild(li);
+  }
+  box.append(title, ul);
 }
 
 function setStatus(st) {
