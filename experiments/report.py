@@ -351,6 +351,10 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
             summary.append(Quantity(f"edge length change p5 / p95, span {span}",
                                     (np.percentile(e, [5, 95]) * 100).tolist() if e.size else "none", "%"))
         parts.append("<h3>Analysis</h3>" + _quantity_table(summary))
+        notes = r.summary.get("notes") or []
+        if notes:  # what the analysis said about the whole clip: the caveats of every number below
+            parts.append('<div class="warn"><strong>Analysis notes</strong><ul>'
+                         + "".join(f"<li>{_esc(n)}</li>" for n in notes) + "</ul></div>")
         parts.append(_guard("measurements over 1 frame", lambda: _measurement_panel(r, session, 1)))
         span_long = max(r.strain) if r.strain else 11
         parts.append(_guard(f"measurements over {span_long} frames",

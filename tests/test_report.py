@@ -4,7 +4,9 @@ file)."""
 
 from __future__ import annotations
 
+import json
 import re
+from html import escape as html_escape
 
 import numpy as np
 import pytest
@@ -48,6 +50,12 @@ def test_report_of_an_analysis_output_has_units_and_the_viewer_command(analysed)
         assert um == pytest.approx(px / s.calibration.px_per_mm * 1000, rel=0.01)
     assert re.search(r"strain: edge strain RMSE, span 1 [0-9.e-]+ %", text)
     assert html.count("data:image/png;base64") >= 3
+    # the analysis's caveats come with its numbers (a 14-frame slide over a ridge leaves the shading in)
+    notes = json.loads((out / "summary.json").read_text())["notes"]
+    assert any("glass-fixed shading over the ridge was left in" in n for n in notes)
+    for n in notes:
+        assert _text(f"<li>{html_escape(n)}</li>").strip() in text
+    assert "Analysis notes" in text
 
 
 def test_report_of_a_session_file_without_analysis(analysed, tmp_path):
