@@ -248,6 +248,7 @@ def test_a_lossy_copy_says_so_at_import_and_in_its_analysis(simulated_and_analys
     with open_session(session) as s:
         assert s.metadata["source"]["lossy"] is True and s.metadata["source"]["compression"] == "h264 (High)"
     assert main(["analyze", str(session), "-o", str(d / "lossy"), "-q"]) == 0
+    assert "the frames were imported from lossy compression (h264 (High))" in capsys.readouterr().err
     notes = json.loads((d / "lossy" / "summary.json").read_text())["notes"]
     assert any(n.startswith("the frames were imported from lossy compression (h264 (High))") for n in notes), notes
     assert not json.loads((d / "original" / "summary.json").read_text())["notes"]

@@ -258,6 +258,8 @@ def analyze(
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
     n = len(source)
+    for note in source_notes:
+        log.warning("%s", note)
     notes = [*source_notes, *clip_notes(params, n, method)]
     params = for_clip(params, n, method)
     image_shape = tuple(int(v) for v in source.shape)
