@@ -11,7 +11,7 @@ from skinstretch.processing.feature_table import make_features
 from skinstretch.processing.global_motion import local_gradients
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.stretch import triangulation_strain, triangulation_strains
-from skinstretch.processing.tracking import FeatureTracker, MotionSample, TrackingParams
+from skinstretch.processing.tracking import FeatureTracker, MotionSample, TrackingParams, step_consistency
 from tests.test_track_support import affine_field, render
 
 CAL = Calibration(px_per_mm=62.0)
@@ -139,3 +139,22 @@ def test_local_gradients_at_some_points_are_those_rows_of_all():
     at = np.array([3, 17, 39])
     np.testing.assert_array_equal(local_gradients(p, d, at=at), local_gradients(p, d)[at])
     assert local_gradients(p, d, at=np.zeros(0, np.int64)).shape == (0, 2, 2)
+
+
+
+def test_a_step_by_registration_alone_is_held_to_the_frames_spread():
+    """A step measured by registration alone that departs from its neighbours by less than the absolute bound but
+    far outside the frame's spread of such departures is let go (at a valley's bottom a window locks onto what the
+    shading step leaves and drifts 0.3-0.5 px a frame); where the skin stretches fast every step departs from its
+    neighbours' median and the spread grows with it: nothing is let go."""
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(0, 300, 40), rng.uniform(0, 200, 40)])
+    valid = np.ones(40, bool)
+    # 0.05 % a frame and a 0.3 px stray step; 0.8 % a frame (deviations from the neighbours' median up to 0.45 px)
+    for exx, outlier in ((0.0005, (0.25, 0.2)), (0.008, (0.0, 0.0))):
+        disp = np.column_stack([0.5 + exx * (pts[:, 0] - 150), np.full(40, 0.1)]) + rng.normal(0, 0.005, (40, 2))
+        disp[0] += outlier
+        close, alone = step_consistency(pts, disp, valid, max_deviation_px=0.5, bridge_spreads=10.0)
+        assert close.all()  # the absolute bound lets every step through
+        assert alone[1:].all() and alone[0] == (outlier == (0.0, 0.0)), exx
+        assert step_consistency(pts, disp, valid, max_deviation_px=0.5, bridge_spreads=None)[1].all()
