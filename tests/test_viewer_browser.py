@@ -134,9 +134,11 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
             assert f"track {track}: not measured in this frame" in text, text
     # The analysis's notes on the whole clip stay in view; a span the clip cannot hold says so on every frame.
     notes = page.locator("#analysis-notes")
-    assert notes.is_visible() and "no strain over 20 frames: the 20-frame session has no frame pair" in notes.inner_text()
+    assert notes.is_visible()
+    assert "no strain over 20 frames: the 20-frame session has no frame pair" in notes.inner_text()
     page.select_option("#span", "20")
-    page.wait_for_function("S.span === 20 && document.getElementById('notes').textContent.includes('no strain over 20')")
+    page.wait_for_function(
+        "S.span === 20 && document.getElementById('notes').textContent.includes('no strain over 20')")
     assert "the 20-frame session has no pair that far apart" in page.locator("#notes").inner_text()
     page.select_option("#span", "1")
     page.wait_for_function("S.span === 1")

@@ -33,8 +33,8 @@ class ImageFolder(FrameReader):
     Parameters
     ----------
     source : path-like, glob pattern, or sequence of paths
-        A directory (its PNG, TIFF, BMP and JPEG files, in natural order), a pattern such as ``"run1/frame*.png"`` (natural order),
-        or a list of image files (taken in the order given).
+        A directory (its PNG, TIFF, BMP and JPEG files, in natural order), a pattern such as
+        ``"run1/frame*.png"`` (natural order), or a list of image files (taken in the order given).
     """
 
     kind = "image folder"
