@@ -69,7 +69,8 @@ class TrackingParams:
         lock onto what the glass-shading step leaves and go 0.3-0.5 px astray a frame, under the absolute bound
         (``max_local_deviation_mm``: 0.84 px at 105 px/mm) but 6-14 spreads out, and its trajectory then drifts
         by pixels (valleyS, 60 frames, seed 1: 11-frame edge strain 0.235 -> 0.117 %); the good bridged steps of 10
-        clips (our print and real ones, six fields) stayed within 8.3 spreads. None: the absolute bound alone.
+        clips (our print and real ones; slide, stretch, slip front, ridge, valley) stayed within 8.3 spreads. None:
+        the absolute bound alone.
     max_bridge_frames : int or None
         With sub-pixel refinement: a tracked point whose feature is not found again is followed by registration
         alone (bridged) for at most this many frames (None: as long as its registration holds, i.e. while it stays
