@@ -90,6 +90,12 @@ class TrackingParams:
     fusion_model_sigma_mm : float
         How far a point's true motion may depart from its neighbours' local affine in one frame (a stick-slip or
         slip band): the neighbours' prediction is never trusted more closely (0.0002 mm = 0.012 px).
+    keyframe_interval_frames : int or None
+        With sub-pixel refinement, in the analysis: every this many frames each trajectory is registered directly
+        from a reference key frame and its chained drift corrected (:mod:`skinstretch.processing.
+        trajectory_anchoring`). None: chained positions only.
+    keyframe_reference_frames : int
+        How many frames a reference key frame serves before the last key frame replaces it.
     """
 
     search_radius_mm: float = Field(0.3, gt=0)
@@ -103,6 +109,8 @@ class TrackingParams:
     merge_radius_mm: float = Field(0.1, gt=0)
     fusion_radius_mm: float | None = Field(1.5, gt=0)
     fusion_model_sigma_mm: float = Field(0.0002, gt=0)
+    keyframe_interval_frames: int | None = Field(5, ge=2)
+    keyframe_reference_frames: int = Field(40, ge=2)
 
 
 def join_overlap_frames(params: TrackingParams) -> int:

@@ -176,13 +176,17 @@ def simulated_and_analysed(tmp_path_factory):
     return d, frames, fps, ppm, read_results(d / "original")
 
 
-@pytest.mark.parametrize("kind,tolerance_px", [("avi", 0.01), ("tiff", 0.01), ("png", 0.01), ("mp4", 0.05)])
+@pytest.mark.parametrize("kind,tolerance_px",
+                         [("avi", 0.01), ("tiff", 0.01), ("png", 0.01), ("mp4", 0.05), ("mp4-crf12", 0.05)])
 def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, kind, tolerance_px):
     """Issue 17, done when: AVI (FFV1), TIFF stack and PNG folder within 0.01 px, MP4 (H.264) within 0.05 px.
 
-    The MP4 is x264's lossless mode: its only loss is the grey-to-limited-range-YUV rounding (1 grey level). At
-    crf 12 (visually lossless, 7x smaller) the mean stays 0.04 px but the worst position moves 0.26 px; the
-    import bench prints the whole sweep. The MP4's worst position may exceed 0.05 px on a trajectory followed
+    The first MP4 is x264's lossless mode: its only loss is the grey-to-limited-range-YUV rounding (1 grey level).
+    The second is lossy, x264 at crf 12 (visually lossless, 7x smaller): its trajectories stay within 0.05 px of
+    the original's on average, though single positions move by up to 0.3 px with the codec's per-frame error; the
+    import bench prints the whole sweep (and a ridge's copy, whose chained trajectories drift most without the
+    key frames: docs/import-and-replay.md).
+    The lossless MP4's worst position may exceed 0.05 px on a trajectory followed
     mostly by registration (a point whose feature is found in few frames): its absolute position is the mean of
     those few detections, and the rounding that makes one more or one fewer of them moves it by ~0.05 px
     (relative motion unchanged); 99 % of its positions stay within 0.05 px and every one within 0.1 px.
@@ -194,9 +198,9 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
     args = ["--px-per-mm", str(ppm)]
     if kind == "avi":
         source = write_video(d / "copy.avi", frames, rate=int(fps))
-    elif kind == "mp4":
-        source = write_video(d / "copy.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=int(fps),
-                             options={"crf": "0"})
+    elif kind.startswith("mp4"):
+        source = write_video(d / f"{kind}.mp4", frames, codec="libx264", pix_fmt="yuv420p", rate=int(fps),
+                             options={"crf": "12" if kind.endswith("crf12") else "0"})
     elif kind == "tiff":  # the rate and the pixel size from its ImageJ metadata
         source = d / "copy.tif"
         tifffile.imwrite(source, frames, imagej=True, resolution=(ppm / 1000, ppm / 1000),
@@ -221,13 +225,15 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
     source = SessionSource(target.session)
     try:
         assert source.status() == "complete" and source.n_frames() == len(frames)
-        if kind != "mp4":
+        if not kind.startswith("mp4"):
             np.testing.assert_array_equal(source.frame(7), frames[7])
     finally:
         source.close()
     agreement = trajectory_agreement(vars(original.trajectories.dense()), vars(read_results(d / kind).trajectories.dense()))
     assert agreement.reference_tracks > 50 and agreement.paired_fraction >= 0.98
-    if kind == "mp4":
+    if kind == "mp4-crf12":
+        assert agreement.mean_px <= tolerance_px, agreement
+    elif kind == "mp4":
         assert agreement.p99_px <= tolerance_px and agreement.max_px <= 2 * tolerance_px, agreement
     else:
         assert agreement.max_px <= tolerance_px, agreement

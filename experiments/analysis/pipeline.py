@@ -73,6 +73,7 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring
 from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
@@ -302,6 +303,14 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
+            # The trajectories' chained drift is corrected at key frames (KeyframeAnchoring) where the skin slides on
+            # plain glass. Not over a ridge or valley, even with its shading removed: the direct registrations follow
+            # what the shading step leaves (real prints, 60 frames: 11-frame edge strain 0.199 -> 0.219 % mean).
+            every = params.tracking.keyframe_interval_frames
+            if params.subpixel is not None and every is not None and plain_glass(shading, surface):
+                refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
+                store.anchor(KeyframeAnchoring(refiner, reader, interval=every,
+                                               reference_span=params.tracking.keyframe_reference_frames))
             # A longer span is also registered directly between its two frames (SpanRegistration). Not over a
             # ridge or valley, as for the flow: it would follow the glass-fixed patterns the skin moves through.
             span_registration = None

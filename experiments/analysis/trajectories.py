@@ -9,12 +9,16 @@ in two passes, holding only a few numbers per track and per linked run:
    row's position relative to the start of its linked run (the running sum of its measured displacements) is
    computed and the row written to a scratch file; each run keeps the sum of its rows' offsets from their extracted
    positions (rows bridged by registration, without one, do not count), each track its length;
-2. at the end, the scratch rows are read back a block of frames at a time: tracks shorter than the minimum length
-   dropped, the kept ones numbered in order, each run anchored to the mean of its extracted positions and, if asked,
-   smoothed (:func:`~skinstretch.processing.trajectory_smoothing.smooth_positions` over the block and its margins).
+2. if asked (:meth:`TrajectoryStore.anchor`), the kept runs' positions at every key frame are read back and their
+   chained drift measured against a direct registration
+   (:class:`~skinstretch.processing.trajectory_anchoring.KeyframeAnchoring`);
+3. at the end, the scratch rows are read back a block of frames at a time: tracks shorter than the minimum length
+   dropped, the kept ones numbered in order, each run anchored to the mean of its extracted positions (its drift
+   corrected first, when measured) and, if asked, smoothed
+   (:func:`~skinstretch.processing.trajectory_smoothing.smooth_positions` over the block and its margins).
 
-The numbers are those of ``finish`` to the bit: the same operations in the same order on each track (the tests
-check it). Hand-written: no library chains per-track running sums out of core.
+Without key frames the numbers are those of ``finish`` to the bit: the same operations in the same order on each
+track (the tests check it). Hand-written: no library chains per-track running sums out of core.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TRAJECTORY_DTYPE, TrackedFrame, TrackingParams
+from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring, KeyframeCorrections
 from skinstretch.processing.trajectory_smoothing import smooth_positions
 
 __all__ = ["TrajectoryStore", "TrajectoryBlock", "BLOCK_FRAMES"]
@@ -104,6 +109,8 @@ class TrajectoryStore:
                                 cy=np.float64, sx=np.float64, sy=np.float64, runs=np.int32, group=np.int64)
         # per run: sums of (extracted - relative) positions, rows
         self._groups = _Columns(sum_x=np.float64, sum_y=np.float64, rows=np.int64)
+        self._corrections: KeyframeCorrections | None = None  # key-frame drift corrections, when measured
+        self._recentre = np.zeros((0, 2))  # per run: mean correction over its extracted rows
 
     # -- first pass
     def add(self, frames: Sequence[TrackedFrame]) -> None:
@@ -168,6 +175,36 @@ class TrajectoryStore:
         return {"kind": tr.kind[:n][keep], "n_frames": tr.length[:n][keep], "first_frame": tr.first[:n][keep],
                 "last_frame": tr.last[:n][keep]}
 
+    def _offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per run: the mean of its extracted positions less its chained ones (its anchor), x and y."""
+        gr = self._groups
+        return gr.sum_x[: gr.size] / gr.rows[: gr.size], gr.sum_y[: gr.size] / gr.rows[: gr.size]
+
+    def anchor(self, anchoring: KeyframeAnchoring) -> None:
+        """Measure the kept runs' drift at every key frame (``anchoring.interval``) and correct it in
+        :meth:`blocks`: each run's positions gain the interpolated correction and lose its mean over the run's
+        extracted rows, so the run stays anchored to its extracted positions."""
+        n = self.n_frames
+        if self._next_frame != n:
+            raise InsufficientDataError(f"{self._next_frame} of {n} frames were stored: the trajectories are not done")
+        self._file.flush()
+        keep = self.kept
+        off_x, off_y = self._offsets()
+        for k in range(0, n, anchoring.interval):
+            s = self._read(k, k + 1)
+            s = s[keep[s["track"]]]
+            anchoring.add(k, s["group"], np.column_stack([s["lx"] + off_x[s["group"]], s["ly"] + off_y[s["group"]]]))
+        corrections = anchoring.corrections()
+        gr = self._groups
+        total = np.zeros((gr.size, 2))
+        for b0 in range(0, n, BLOCK_FRAMES):
+            s = self._read(b0, min(n, b0 + BLOCK_FRAMES))
+            s = s[keep[s["track"]] & np.isfinite(s["raw_x"])]
+            c = corrections.at(s["group"], s["frame"])
+            np.add.at(total, s["group"], c)
+        self._corrections = corrections
+        self._recentre = total / np.maximum(gr.rows[: gr.size], 1)[:, None]
+
     def blocks(self, block_frames: int | None = None) -> Iterator[TrajectoryBlock]:
         """The final trajectory rows, ``block_frames`` frames at a time (None: :data:`BLOCK_FRAMES`), in frame order
         (every frame stored first)."""
@@ -178,9 +215,9 @@ class TrajectoryStore:
         self._file.flush()
         keep = self.kept
         new_id = np.cumsum(keep) - 1
-        gr = self._groups
-        off_x = gr.sum_x[: gr.size] / gr.rows[: gr.size]
-        off_y = gr.sum_y[: gr.size] / gr.rows[: gr.size]
+        off_x, off_y = self._offsets()
+        if self._corrections is not None:
+            off_x, off_y = off_x - self._recentre[:, 0], off_y - self._recentre[:, 1]
         radius = self.smoothing_radius if n >= 2 else 0
         for b0 in range(0, n, block_frames):
             b1 = min(n, b0 + block_frames)
@@ -188,6 +225,9 @@ class TrajectoryStore:
             s = self._read(lo, hi)
             s = s[keep[s["track"]]]
             x, y = s["lx"] + off_x[s["group"]], s["ly"] + off_y[s["group"]]
+            if self._corrections is not None:
+                c = self._corrections.at(s["group"], s["frame"])
+                x, y = x + c[:, 0], y + c[:, 1]
             if radius > 0:
                 x, y = self._smooth(s, x, y, lo, hi)
             inner = (s["frame"] >= b0) & (s["frame"] < b1)

@@ -1,0 +1,141 @@
+"""Trajectories anchored to key frames (``KeyframeAnchoring``): a chain of steps that all err the same way drifts;
+a direct registration from a reference key frame measures that drift, and the corrections, spread between key
+frames, take it out. The analysis uses it wherever the skin slides on glass or a shape's shading was removed."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring, KeyframeCorrections
+
+CAL = Calibration(px_per_mm=62.0)
+H, W = 200, 240
+STEP = np.array([0.23, -0.11])  # true motion per frame, px
+DRIFT = np.array([0.02, 0.015])  # what every chained step adds to it, px (a lossy copy's bias)
+
+
+def _frames(n):
+    """A blotchy texture moving by STEP a frame (quintic splines: OpenCV's warps round shifts to 1/32 px), 0.8 grey
+    of noise."""
+    rng = np.random.default_rng(4)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (H, W)).astype(np.float32), (0, 0), 2.5)
+    tex = (tex - tex.mean()) * (60 / tex.std()) + 128
+    out = []
+    for k in range(n):
+        moved = ndimage.shift(tex, (STEP[1] * k, STEP[0] * k), order=5, mode="reflect")
+        out.append(np.clip(moved + rng.normal(0, 0.8, tex.shape), 0, 255).astype(np.uint8))
+    return out
+
+
+def test_key_frames_take_out_the_drift_of_a_chain_that_errs_one_way():
+    n, every = 21, 5
+    frames = _frames(n)
+    p0 = np.array([[x, y] for x in (70.0, 100.5, 130.2, 160.0) for y in (60.0, 95.5, 130.0)])
+    m = p0.shape[0]
+    late = np.arange(m, m + 3)  # three more runs that start at frame 10
+    p10 = p0[:3] + 10 * STEP + np.array([3.0, 4.0])
+    anchoring = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), frames.__getitem__, interval=every,
+                                  reference_span=40)
+    chained = {}
+    for k in range(0, n, every):
+        xy = p0 + k * (STEP + DRIFT)
+        group = np.arange(m)
+        if k >= 10:
+            xy = np.vstack([xy, p10 + (k - 10) * (STEP + DRIFT)])
+            group = np.r_[group, late]
+        chained[k] = xy
+        anchoring.add(k, group, xy)
+    c = anchoring.corrections()
+    for k in range(n):  # every frame, key frame or not
+        xy = p0 + k * (STEP + DRIFT)
+        fixed = xy + c.at(np.arange(m), np.full(m, k))
+        true = p0 + k * STEP
+        assert np.abs(fixed - true).max() < 0.015, (k, np.abs(fixed - true).max())
+        # uncorrected, frame 20 is 0.5 px off
+    assert np.abs(chained[20][:m] - (p0 + 20 * STEP)).max() > 0.35
+    # A run's first key frame is its reference: no correction there, and its drift is measured from it.
+    assert np.allclose(c.at(late, np.full(3, 10)), 0.0)
+    late_20 = chained[20][m:] + c.at(late, np.full(3, 20))
+    assert np.abs(late_20 - (p10 + 10 * STEP)).max() < 0.015
+
+
+def test_a_point_the_registration_cannot_measure_keeps_its_chained_positions():
+    frames = _frames(11)
+    p = np.array([[3.0, 100.0], [120.0, 100.0]])  # the first one's window leaves the image
+    anchoring = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), frames.__getitem__, interval=5, reference_span=40)
+    for k in (0, 5, 10):
+        anchoring.add(k, np.array([0, 1]), p + k * (STEP + DRIFT))
+    c = anchoring.corrections()
+    assert np.allclose(c.at(np.array([0, 0]), np.array([5, 10])), 0.0)
+    assert np.all(np.isfinite(c.dx)) and np.abs(c.at(np.array([1]), np.array([10]))[0] + 10 * DRIFT).max() < 0.015
+
+
+def test_a_black_key_frame_is_chained_over_and_the_next_is_registered_past_it():
+    frames = _frames(21)
+    frames[10] = np.zeros_like(frames[10])
+    p = np.array([[x, 100.0] for x in (80.0, 120.0, 160.0)])
+    anchoring = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), frames.__getitem__, interval=5, reference_span=40)
+    raw = {}
+    for k in (0, 5, 10, 15, 20):
+        anchoring.add(k, np.arange(3), p + k * (STEP + DRIFT))
+        raw[k] = anchoring._rows[-1][2]
+    assert np.allclose(raw[10], raw[5])  # nothing to register against: chained on from key frame 5
+    for k in (15, 20):
+        assert np.abs(raw[k] + k * DRIFT).max() < 0.015, k
+
+
+def test_corrections_are_linear_between_key_frames_and_held_beyond():
+    c = KeyframeCorrections(group=np.array([0, 0, 1]), frame=np.array([0, 10, 5]), dx=np.array([0.0, 1.0, 2.0]),
+                            dy=np.array([0.0, -1.0, 0.5]))
+    got = c.at(np.array([0, 0, 0, 1, 1, 7]), np.array([5, 12, 0, 0, 9, 3]))
+    assert got.tolist() == [[0.5, -0.5], [1.0, -1.0], [0.0, 0.0], [2.0, 0.5], [2.0, 0.5], [0.0, 0.0]]
+
+
+def test_key_frames_must_come_in_order_and_make_sense():
+    r = SubpixelRefiner(calibration=CAL)
+    with pytest.raises(InvalidInputError, match="interval >= 2"):
+        KeyframeAnchoring(r, lambda k: None, interval=1, reference_span=40)
+    with pytest.raises(InvalidInputError, match="reference span >= it"):
+        KeyframeAnchoring(r, lambda k: None, interval=10, reference_span=5)
+    a = KeyframeAnchoring(r, lambda k: np.zeros((50, 50), np.uint8), interval=5, reference_span=20)
+    with pytest.raises(InvalidInputError, match="increasing multiples of 5"):
+        a.add(3, np.array([0]), np.array([[10.0, 10.0]]))
+
+
+def test_the_feature_analysis_anchors_its_trajectories(sim_session):
+    """flatL, 20 frames: the positions' drift against the truth from each trajectory's start is smaller with key
+    frames than without, frame-to-frame motion as good."""
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.evaluation.tracking import evaluate_tracking
+    from skinstretch.experiments.evaluation.trajectories import evaluate_trajectories
+
+    s = sim_session
+    out = {}
+    for every in (5, None):
+        r = analyze_frames(s.frames, calibration=s.calibration, method="features", surface="flat",
+                           params=analysis_params({"tracking": {"keyframe_interval_frames": every}}))
+        out[every] = (evaluate_trajectories(r, s.truth), evaluate_tracking(r, s.truth))
+    on, off = out[5], out[None]
+    assert on[0]["drift_rmse_px"] < off[0]["drift_rmse_px"]
+    assert on[1]["tracking"]["displacement_rmse_px"] < 1.05 * off[1]["tracking"]["displacement_rmse_px"]
+
+
+def test_the_analysis_anchors_on_plain_glass_only(sim_session, monkeypatch):
+    """Over a ridge or valley the direct registrations would follow what the glass-shading step leaves of the
+    glass-fixed patterns (as a span's direct registration would): the trajectories stay chained there."""
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.analysis.trajectories import TrajectoryStore
+
+    calls = []
+    original = TrajectoryStore.anchor
+    monkeypatch.setattr(TrajectoryStore, "anchor", lambda self, a: calls.append(a.interval) or original(self, a))
+    s = sim_session
+    analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="flat")
+    assert calls == [5]
+    calls.clear()
+    analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="ridge")
+    assert calls == []
