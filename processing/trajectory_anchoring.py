@@ -35,8 +35,18 @@ import numpy as np
 
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.global_motion import local_predictions
 
-__all__ = ["KeyframeAnchoring", "KeyframeCorrections"]
+__all__ = ["KeyframeAnchoring", "KeyframeCorrections", "MAX_CORRECTION_SPREADS", "MIN_CORRECTION_DEPARTURE_PX"]
+
+#: A key frame's correction further than this many robust spreads from its neighbours' median is replaced by that
+#: median (:func:`_like_neighbours`). Good corrections reach 5-7 spreads among ~160 points a frame (flatL); one
+#: window sliding along its ridges reached 4.4-13.6 (0.2-0.8 px): replacing a good one by its neighbours' median
+#: costs it little, keeping a bad one moves its trajectory by as much.
+MAX_CORRECTION_SPREADS = 4.0
+#: ... and further than this from it, px: below a span registration's own noise (0.06-0.08 px RMS on flatL), a
+#: departure is never worth replacing (where the drift is the same everywhere the spread is near 0).
+MIN_CORRECTION_DEPARTURE_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -139,6 +149,9 @@ class KeyframeAnchoring:
             fit = self.refiner.register_span(self._image(int(r)), self._image(k), origin, guess[sel] - origin)
             fitted[sel] = np.where(fit.ok[:, None], origin + fit.displacement, guess[sel])
             failed[sel] = ~fit.ok
+        for r in np.unique(refs):  # drift accumulates from the reference: compared among the runs that share it
+            sel = np.flatnonzero(refs == r)
+            fitted[sel] = _like_neighbours(chained[cont][sel], fitted[sel], ~failed[sel])
         anchored[cont] = fitted
         self._rows.append((group, k, anchored - chained))
         # References: a new run's is this frame, an aged one moves to this frame; after a failed registration (this
@@ -174,6 +187,24 @@ class KeyframeAnchoring:
         order = np.lexsort((frame, group))
         group, frame, c = group[order], frame[order], c[order]
         return KeyframeCorrections(group, frame, *_smoothed(group, c).T.copy())
+
+
+def _like_neighbours(chained: np.ndarray, anchored: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``anchored`` with each registered point's correction (``anchored - chained``, ``ok`` points) that departs from
+    the median of its 7 nearest registered neighbours' by more than :data:`MAX_CORRECTION_SPREADS` robust spreads
+    (1.4826 x the median departure) and more than :data:`MIN_CORRECTION_DEPARTURE_PX` replaced by that median. The
+    drift is smooth across the skin; a window whose parallel ridges leave its motion along them ill-determined can
+    slide along them by tenths of a pixel."""
+    if int(ok.sum()) < 8:
+        return anchored
+    c = anchored - chained
+    med = local_predictions(chained, chained[ok], c[ok], neighbours=7)
+    deviation = np.hypot(*(c - med).T)
+    bound = max(MAX_CORRECTION_SPREADS * 1.4826 * float(np.median(deviation[ok])), MIN_CORRECTION_DEPARTURE_PX)
+    out = ok & (deviation > bound)
+    fixed = anchored.copy()
+    fixed[out] = chained[out] + med[out]
+    return fixed
 
 
 def _smoothed(group: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -139,3 +139,22 @@ def test_the_analysis_anchors_on_plain_glass_only(sim_session, monkeypatch):
     calls.clear()
     analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="ridge")
     assert calls == []
+
+
+def test_a_correction_unlike_its_neighbours_takes_their_median():
+    """A window sliding along its ridges gives one point a correction tenths of a pixel off the smooth drift around
+    it: replaced by its neighbours' median; corrections within the spread, and a drift the same everywhere, stay."""
+    from skinstretch.processing.trajectory_anchoring import _like_neighbours
+
+    rng = np.random.default_rng(2)
+    chained = np.array([[x, y] for x in np.arange(0.0, 300.0, 30.0) for y in np.arange(0.0, 150.0, 30.0)])
+    drift = np.column_stack([0.1 + chained[:, 0] / 3000, np.full(len(chained), -0.05)])  # smooth across the skin
+    c = drift + rng.normal(0, 0.01, drift.shape)
+    c[17] += [0.3, 0.2]
+    ok = np.ones(len(chained), bool)
+    fixed = _like_neighbours(chained, chained + c, ok) - chained
+    assert np.abs(fixed[17] - drift[17]).max() < 0.04
+    others = np.arange(len(chained)) != 17
+    np.testing.assert_allclose(fixed[others], c[others])
+    same = np.tile([0.2, -0.1], (len(chained), 1))
+    np.testing.assert_allclose(_like_neighbours(chained, chained + same, ok) - chained, same)
