@@ -256,13 +256,17 @@ class TextureRun:
     frames_per_s: float
     too_sparse: bool
     profile_correlation: float = float("nan")  # of the stretch profile with the truth's (NaN on a flat surface)
+    drift_median_px: float = float("nan")  # trajectories against the truth from their start (NaN for flow)
 
 
 def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, params=None) -> dict[str, TextureRun]:
     """Render one clip of ``spec`` with the print ``texture``, analyse it with both methods and score each."""
     from skinstretch.experiments.analysis import analysis_params, analyze_frames  # noqa: PLC0415
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking  # noqa: PLC0415
-    from skinstretch.experiments.evaluation.trajectories import truth_fraction_kept  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.trajectories import (  # noqa: PLC0415
+        evaluate_trajectories,
+        truth_fraction_kept,
+    )
     from skinstretch.simulators.scene import load_scene, render_session  # noqa: PLC0415
 
     scene = load_scene(spec.scene).with_texture(texture)
@@ -275,6 +279,7 @@ def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, p
         ev = evaluate_tracking(r, rendered.truth)
         density = r.density
         fk = truth_fraction_kept(r, rendered.truth) if method == "features" else None
+        drift = evaluate_trajectories(r, rendered.truth) if method == "features" else None
         nan = float("nan")
         out[method] = TextureRun(
             seed=seed,
@@ -288,6 +293,7 @@ def run_texture_clip(spec: TextureScene, texture: str, seed: int, *, executor, p
             frames_per_s=float(r.timing["frames_per_s"]),
             too_sparse=bool(density.too_sparse),
             profile_correlation=float(ev["profile"].get("correlation", nan)),
+            drift_median_px=nan if drift is None else float(drift["drift_median_px"]),
         )
     return out
 
@@ -310,6 +316,7 @@ def texture_rows(spec: TextureScene, texture: str, method: str, runs: list[Textu
     return [
         spec.field, spec.scene, texture, method, len(runs), spec.frames,
         mean(disp), worst(disp), 100 * mean(e1), 100 * worst(e1), 100 * mean(e11), 100 * worst(e11),
+        mean(col("drift_median_px")), worst(col("drift_median_px")),
         mean(col("features_per_frame")), mean(frac), worst(frac, low=True), mean(frac_truth),
         worst(frac_truth, low=True), mean(col("mesh_edge_mm")), statistics.median(r.frames_per_s for r in runs),
         sum(r.too_sparse for r in runs), worst(col("profile_correlation"), low=True), bool(met),
@@ -346,8 +353,9 @@ def texture_tables(options: BenchOptions, seeds) -> list[BenchTable]:
               f"{seeds[-1]}), the analysis' defaults, scored as `skinstretch evaluate` scores",
         columns=[
             "field", "scene", "print", "method", "seeds", "frames", "disp RMSE px mean", "worst", "edge 1 % mean",
-            "worst", "edge 11 % mean", "worst", "features/frame", "kept (report) mean", "worst", "kept (truth) mean",
-            "worst", "mesh edge mm", "frames/s", "too sparse", "profile corr worst", "met",
+            "worst", "edge 11 % mean", "worst", "drift med px mean", "worst", "features/frame", "kept (report) mean",
+            "worst", "kept (truth) mean", "worst", "mesh edge mm", "frames/s", "too sparse", "profile corr worst",
+            "met",
         ],  # fmt: skip
         rows=rows,
         notes=[
@@ -362,6 +370,8 @@ def texture_tables(options: BenchOptions, seeds) -> list[BenchTable]:
             "with the truth's (`skinstretch evaluate`; none on a flat surface, whose true profile has no pattern).",
             "disp RMSE: consecutive frames, px; edge RMSE: edge-length change over 1 and 11 frames, % (strain x 100); "
             "mean and worst over the seeds.",
+            "drift med: the median distance of a trajectory's positions from where the truth moves its first one "
+            "(`skinstretch evaluate`, trajectories.drift_median_px; features only), mean and worst over the seeds.",
             "kept: of the features whose skin point stays in view for the minimum trajectory length (30 frames), "
             "the fraction in a kept trajectory; (report) is the analysis' summary, following skin points through its "
             "own measured motion; (truth) follows them through the exact field, in view where feature recall is "
