@@ -35,18 +35,17 @@ import numpy as np
 
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.global_motion import local_predictions
 
-__all__ = ["KeyframeAnchoring", "KeyframeCorrections", "MAX_CORRECTION_SPREADS", "MIN_CORRECTION_DEPARTURE_PX"]
+__all__ = ["KeyframeAnchoring", "KeyframeCorrections", "MAX_CORRECTION_STEP_SPREADS", "MIN_CORRECTION_STEP_PX"]
 
-#: A key frame's correction further than this many robust spreads from its neighbours' median is replaced by that
-#: median (:func:`_like_neighbours`). Good corrections reach 5-7 spreads among ~160 points a frame (flatL); one
-#: window sliding along its ridges reached 4.4-13.6 (0.2-0.8 px): replacing a good one by its neighbours' median
-#: costs it little, keeping a bad one moves its trajectory by as much.
-MAX_CORRECTION_SPREADS = 4.0
-#: ... and further than this from it, px: below a span registration's own noise (0.06-0.08 px RMS on flatL), a
-#: departure is never worth replacing (where the drift is the same everywhere the spread is near 0).
-MIN_CORRECTION_DEPARTURE_PX = 0.05
+#: A key frame's registration that moves a point by more than this many robust spreads (1.4826 x the median over
+#: the points sharing its reference) from its chained guess is not taken: the point is chained on. Between key
+#: frames the drift changes little; a window whose parallel ridges leave its motion along them ill-determined can
+#: slide along them. On flatL (40 frames, ~165 points a key frame) good steps reached 7.0 spreads, such a slide 8.2-15.6
+#: (0.33-0.54 px); a good step not taken is taken up at the next key frame, a bad one taken moves its trajectory.
+MAX_CORRECTION_STEP_SPREADS = 8.0
+#: ... and by more than this, px: where the drift is the same everywhere the spread is near 0.
+MIN_CORRECTION_STEP_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -149,9 +148,8 @@ class KeyframeAnchoring:
             fit = self.refiner.register_span(self._image(int(r)), self._image(k), origin, guess[sel] - origin)
             fitted[sel] = np.where(fit.ok[:, None], origin + fit.displacement, guess[sel])
             failed[sel] = ~fit.ok
-        for r in np.unique(refs):  # drift accumulates from the reference: compared among the runs that share it
-            sel = np.flatnonzero(refs == r)
-            fitted[sel] = _like_neighbours(chained[cont][sel], fitted[sel], ~failed[sel])
+            jumped = _jumped(fitted[sel] - guess[sel], fit.ok)
+            fitted[sel[jumped]] = guess[sel[jumped]]
         anchored[cont] = fitted
         self._rows.append((group, k, anchored - chained))
         # References: a new run's is this frame, an aged one moves to this frame; after a failed registration (this
@@ -189,22 +187,14 @@ class KeyframeAnchoring:
         return KeyframeCorrections(group, frame, *_smoothed(group, c).T.copy())
 
 
-def _like_neighbours(chained: np.ndarray, anchored: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """``anchored`` with each registered point's correction (``anchored - chained``, ``ok`` points) that departs from
-    the median of its 7 nearest registered neighbours' by more than :data:`MAX_CORRECTION_SPREADS` robust spreads
-    (1.4826 x the median departure) and more than :data:`MIN_CORRECTION_DEPARTURE_PX` replaced by that median. The
-    drift is smooth across the skin; a window whose parallel ridges leave its motion along them ill-determined can
-    slide along them by tenths of a pixel."""
+def _jumped(step: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Which registered points (``ok``) moved from their chained guesses by ``step`` (n, 2) px more than
+    :data:`MAX_CORRECTION_STEP_SPREADS` robust spreads of the others and :data:`MIN_CORRECTION_STEP_PX`."""
+    size = np.hypot(*step.T)
     if int(ok.sum()) < 8:
-        return anchored
-    c = anchored - chained
-    med = local_predictions(chained, chained[ok], c[ok], neighbours=7)
-    deviation = np.hypot(*(c - med).T)
-    bound = max(MAX_CORRECTION_SPREADS * 1.4826 * float(np.median(deviation[ok])), MIN_CORRECTION_DEPARTURE_PX)
-    out = ok & (deviation > bound)
-    fixed = anchored.copy()
-    fixed[out] = chained[out] + med[out]
-    return fixed
+        return np.zeros(size.shape, bool)
+    bound = max(MAX_CORRECTION_STEP_SPREADS * 1.4826 * float(np.median(size[ok])), MIN_CORRECTION_STEP_PX)
+    return ok & (size > bound)
 
 
 def _smoothed(group: np.ndarray, c: np.ndarray) -> np.ndarray:
