@@ -204,9 +204,10 @@ def _smoothed(group: np.ndarray, c: np.ndarray) -> np.ndarray:
     nearest (a steady drift is kept, the registrations' noise averaged): at an inner key frame the mean of it and
     its two neighbours, at a run's last the three-point line's end (5 c[j] + 2 c[j-1] - c[j-2]) / 6, a run of two
     key frames as measured; a run's first key frame, its reference, keeps 0."""
-    prev1 = np.r_[False, group[1:] == group[:-1]]
-    next1 = np.r_[group[1:] == group[:-1], False]
-    prev2 = np.r_[False, False, group[2:] == group[:-2]]
+    n = group.size
+    prev1, next1, prev2 = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+    prev1[1:] = next1[:-1] = group[1:] == group[:-1]
+    prev2[2:] = group[2:] == group[:-2]
     out = c.copy()
     i = np.flatnonzero(prev1 & next1)
     out[i] = (c[i - 1] + c[i] + c[i + 1]) / 3.0

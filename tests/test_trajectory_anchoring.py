@@ -95,6 +95,18 @@ def test_corrections_are_linear_between_key_frames_and_held_beyond():
     assert got.tolist() == [[0.5, -0.5], [1.0, -1.0], [0.0, 0.0], [2.0, 0.5], [2.0, 0.5], [0.0, 0.0]]
 
 
+def test_a_session_with_one_key_frame_or_none_has_no_corrections():
+    """Too short a clip (or no kept trajectory) gives no correction, and the positions stay chained."""
+    a = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), _frames(1).__getitem__, interval=5, reference_span=40)
+    assert a.corrections().group.size == 0
+    a.add(0, np.array([3]), np.array([[50.0, 60.0]]))
+    c = a.corrections()
+    assert c.group.tolist() == [3] and c.dx.tolist() == [0.0] and c.at(np.array([3, 4]), np.array([2, 2])).tolist() == [
+        [0.0, 0.0], [0.0, 0.0]]
+    a.add(5, np.zeros(0, np.int64), np.zeros((0, 2)))  # no run present at a key frame
+    assert a.corrections().group.size == 1
+
+
 def test_key_frames_must_come_in_order_and_make_sense():
     r = SubpixelRefiner(calibration=CAL)
     with pytest.raises(InvalidInputError, match="interval >= 2"):
