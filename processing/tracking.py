@@ -95,7 +95,7 @@ class TrackingParams:
         from a reference key frame and its chained drift corrected (:mod:`skinstretch.processing.
         trajectory_anchoring`). None: chained positions only.
     keyframe_reference_frames : int
-        How many frames a reference key frame serves before the last key frame replaces it.
+        How many frames a reference key frame serves before the key frame reached replaces it.
     """
 
     search_radius_mm: float = Field(0.3, gt=0)

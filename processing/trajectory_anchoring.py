@@ -176,8 +176,8 @@ class KeyframeAnchoring:
         return self._prepared[j]
 
     def corrections(self) -> KeyframeCorrections:
-        """The corrections of every run at its key frames, each the mean of its own and its run's neighbouring key
-        frames' (the registrations' noise, not the drift, averaged); a run's first key frame keeps 0."""
+        """The corrections of every run at its key frames, smoothed along the run (:func:`_smoothed`: the
+        registrations' noise averaged, a steady drift kept); a run's first key frame keeps 0."""
         if not self._rows:
             z = np.zeros(0)
             return KeyframeCorrections(z.astype(np.int64), z.astype(np.int64), z, z)
