@@ -303,20 +303,19 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
-            # The trajectories' chained drift is corrected at key frames (KeyframeAnchoring) where the skin slides on
-            # plain glass. Not over a ridge or valley, even with its shading removed: the direct registrations follow
-            # what the shading step leaves (real prints, 60 frames: 11-frame edge strain 0.199 -> 0.219 % mean).
-            every = params.tracking.keyframe_interval_frames
-            if params.subpixel is not None and every is not None and plain_glass(shading, surface):
-                refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
-                store.anchor(KeyframeAnchoring(refiner, reader, interval=every,
-                                               reference_span=params.tracking.keyframe_reference_frames))
-            # A longer span is also registered directly between its two frames (SpanRegistration). Not over a
-            # ridge or valley, as for the flow: it would follow the glass-fixed patterns the skin moves through.
+            # Where the skin slides on plain glass, the trajectories' chained drift is corrected at key frames
+            # (KeyframeAnchoring) and a longer span is also registered directly between its two frames
+            # (SpanRegistration). Not over a ridge or valley, even with its shading removed: the direct
+            # registrations follow what the shading step leaves of the glass-fixed patterns the skin moves through
+            # (key frames on real prints, 60 frames: 11-frame edge strain 0.199 -> 0.219 % mean).
             span_registration = None
             if params.subpixel is not None and plain_glass(shading, surface):
-                span_registration = SpanRegistration(SubpixelRefiner(calibration=calibration, params=params.subpixel),
-                                                     reader)
+                refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
+                every = params.tracking.keyframe_interval_frames
+                if every is not None:
+                    store.anchor(KeyframeAnchoring(refiner, reader, interval=every,
+                                                   reference_span=params.tracking.keyframe_reference_frames))
+                span_registration = SpanRegistration(refiner, reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
                                      px_per_mm=calibration.px_per_mm, span_registration=span_registration,
                                      threads=1 if params.execution.kind == "serial" else params.execution.workers)
