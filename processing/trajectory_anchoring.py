@@ -14,15 +14,19 @@ A reference serves for ``reference_span`` frames (then the key frame reached bec
 registration from it fails (a black or saturated frame, a window that leaves the view or the contact): then the
 key frame before, at its anchored position, serves, and the failed key frame is chained on from it.
 
-The analysis anchors on plain glass only: over a ridge or valley the direct registrations follow what the
-glass-shading step leaves of the glass-fixed patterns, as a span's would (real prints, 60 frames: 11-frame edge
-strain 0.199 -> 0.219 % mean). On plain glass (the four flat fields of the ``accuracy`` real-print table, our
-print with seeds 0-2 and six real prints, 36 clips of 60 frames; our harness, scored by that table's code):
-drift of our print's trajectories against the truth 0.147 -> 0.083 px RMS (mean of 12 clips), 11-frame edge
-strain 0.108 -> 0.101 % mean and 0.157 -> 0.144 % worst (better on 34 clips), displacement 0.0314 -> 0.0309 px
-mean (better on every clip). A registration that jumps from its chained guess (:data:`MAX_CORRECTION_STEP_SPREADS`)
-is not taken; replacing an outlying correction by its neighbours' median instead cost accuracy where the strain
-varies (stretch on print 101_2: 0.138 -> 0.153 %).
+On plain glass the corrections follow the drift closely (a line over 3 key frames). Over a ridge or valley whose
+glass-fixed shading was removed, each registration also carries what that step leaves of the glass-fixed patterns,
+and with 3 key frames real prints' strain got worse (11-frame edge strain 0.199 -> 0.219 % mean); a line over 9
+key frames, a reference's span, averages it (0.199 -> 0.192 %). Where a shape's shading stayed in (the skin slid
+too little), the registrations would follow the shading itself: chained. Measured over the clips of the ``accuracy``
+real-print table (our print with seeds 0-2 and six real prints, 60 frames; our harness, scored by that table's
+code). The four flat fields, 36 clips: drift of our print's trajectories against the truth 0.147 -> 0.083 px RMS
+(mean of 12 clips), 11-frame edge strain 0.108 -> 0.101 % mean and 0.157 -> 0.144 % worst (better on 34 clips),
+displacement 0.0314 -> 0.0309 px mean (better on every clip). The ridge and valley, 18 clips: drift 0.114 -> 0.071
+px (our print), 11-frame edge strain 0.174 -> 0.165 % mean (better on 15 clips, none worse by 0.001 %). A
+registration that jumps from its chained guess (:data:`MAX_CORRECTION_STEP_SPREADS`) is not taken; replacing an
+outlying correction by its neighbours' median instead cost accuracy where the strain varies (stretch on print
+101_2: 0.138 -> 0.153 %).
 
 Hand-written: no library anchors feature trajectories to key frames (OpenCV's and scikit-image's trackers chain).
 """
@@ -38,7 +42,14 @@ import numpy as np
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
 
-__all__ = ["KeyframeAnchoring", "KeyframeCorrections", "MAX_CORRECTION_STEP_SPREADS", "MIN_CORRECTION_STEP_PX"]
+__all__ = [
+    "GLASS_SMOOTHING_KEY_FRAMES",
+    "KeyframeAnchoring",
+    "KeyframeCorrections",
+    "MAX_CORRECTION_STEP_SPREADS",
+    "MIN_CORRECTION_STEP_PX",
+    "SHAPE_SMOOTHING_KEY_FRAMES",
+]
 
 #: A key frame's registration that moves a point by more than this many robust spreads (1.4826 x the median over
 #: the points sharing its reference) from its chained guess is not taken: the point is chained on. Between key
@@ -48,6 +59,13 @@ __all__ = ["KeyframeAnchoring", "KeyframeCorrections", "MAX_CORRECTION_STEP_SPRE
 MAX_CORRECTION_STEP_SPREADS = 8.0
 #: ... and by more than this, px: where the drift is the same everywhere the spread is near 0.
 MIN_CORRECTION_STEP_PX = 0.05
+#: The key frames a correction's line is fitted to on plain glass: the drift followed closely (3 against 7 on the
+#: four flat fields, 36 clips: 11-frame edge strain 0.100 against 0.102 % mean; module docstring).
+GLASS_SMOOTHING_KEY_FRAMES = 3
+#: ... and over a ridge or valley, where each registration also carries what the glass-shading step leaves of the
+#: glass-fixed patterns: a line over a reference's span (18 clips: 11-frame edge strain 0.165 % mean against 0.186
+#: with 3 key frames, 0.174 chained).
+SHAPE_SMOOTHING_KEY_FRAMES = 9
 
 
 @dataclass(frozen=True)
@@ -96,13 +114,14 @@ class KeyframeAnchoring:
     a time; only the key frames still some run's reference are kept)."""
 
     def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray], *, interval: int,
-                 reference_span: int) -> None:
-        if int(interval) < 2 or int(reference_span) < int(interval):
-            raise InvalidInputError(f"key frames need an interval >= 2 and a reference span >= it, got {interval} "
-                                    f"and {reference_span}")
+                 reference_span: int, smoothing: int = GLASS_SMOOTHING_KEY_FRAMES) -> None:
+        if int(interval) < 2 or int(reference_span) < int(interval) or int(smoothing) < 2:
+            raise InvalidInputError(f"key frames need an interval >= 2, a reference span >= it and a smoothing of "
+                                    f">= 2 key frames, got {interval}, {reference_span} and {smoothing}")
         self.refiner = refiner
         self.interval = int(interval)
         self.reference_span = int(reference_span)
+        self.smoothing = int(smoothing)
         self._frame = frame
         self._prepared: dict[int, Any] = {}
         # per run: reference frame, anchored position there, last key frame seen and chained / anchored there
@@ -176,8 +195,9 @@ class KeyframeAnchoring:
         return self._prepared[j]
 
     def corrections(self) -> KeyframeCorrections:
-        """The corrections of every run at its key frames, smoothed along the run (:func:`_smoothed`: the
-        registrations' noise averaged, a steady drift kept); a run's first key frame keeps 0."""
+        """The corrections of every run at its key frames, smoothed along the run (:func:`_line_fits` over
+        ``smoothing`` key frames: the registrations' noise averaged, a steady drift kept); a run's first key frame
+        keeps 0."""
         if not self._rows:
             z = np.zeros(0)
             return KeyframeCorrections(z.astype(np.int64), z.astype(np.int64), z, z)
@@ -186,7 +206,9 @@ class KeyframeAnchoring:
         c = np.concatenate([d for _, _, d in self._rows])
         order = np.lexsort((frame, group))
         group, frame, c = group[order], frame[order], c[order]
-        return KeyframeCorrections(group, frame, *_smoothed(group, c).T.copy())
+        smoothed = _line_fits(group, c, self.smoothing)
+        smoothed[np.r_[True, group[1:] != group[:-1]]] = 0.0  # a run's first key frame is its reference
+        return KeyframeCorrections(group, frame, *smoothed.T.copy())
 
 
 def _jumped(step: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -199,19 +221,31 @@ def _jumped(step: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return ok & (size > bound)
 
 
-def _smoothed(group: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Each run's key-frame corrections (rows sorted by run, then frame) smoothed by a line fitted to the three
-    nearest (a steady drift is kept, the registrations' noise averaged): at an inner key frame the mean of it and
-    its two neighbours, at a run's last the three-point line's end (5 c[j] + 2 c[j-1] - c[j-2]) / 6, a run of two
-    key frames as measured; a run's first key frame, its reference, keeps 0."""
+def _line_fits(group: np.ndarray, c: np.ndarray, window: int) -> np.ndarray:
+    """Each key frame's correction (rows of ``c`` sorted by run, then frame) from a line fitted to the ``window``
+    nearest key frames of its run: centred on it inside the run, shifted inside at the run's ends (the line's end
+    there), the whole run where it is shorter (a run of two as measured). A steady drift is kept, the
+    registrations' noise averaged; with 3 key frames: an inner one's mean with its two neighbours, a run's last
+    (5 c[j] + 2 c[j-1] - c[j-2]) / 6. Prefix sums over the rows: every fit at once."""
     n = group.size
-    prev1, next1, prev2 = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
-    prev1[1:] = next1[:-1] = group[1:] == group[:-1]
-    prev2[2:] = group[2:] == group[:-2]
-    out = c.copy()
-    i = np.flatnonzero(prev1 & next1)
-    out[i] = (c[i - 1] + c[i] + c[i + 1]) / 3.0
-    i = np.flatnonzero(prev2 & ~next1)
-    out[i] = (5.0 * c[i] + 2.0 * c[i - 1] - c[i - 2]) / 6.0
-    out[~prev1] = 0.0
-    return out
+    start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    length = np.diff(np.r_[start, n])
+    run_start = np.repeat(start, length)
+    run_len = np.repeat(length, length)
+    j = np.arange(n) - run_start  # index inside the run
+    w = np.minimum(window, run_len)
+    lo = np.clip(j - window // 2, 0, run_len - w)
+    t = j.astype(np.float64)
+    a, b = run_start + lo, run_start + lo + w
+
+    def window_sum(v: np.ndarray) -> np.ndarray:
+        p = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(v, axis=0)])
+        return p[b] - p[a]
+
+    s0, s1, s2 = w.astype(np.float64), window_sum(t), window_sum(t * t)
+    sc, stc = window_sum(c), window_sum(t[:, None] * c)
+    mean_t = s1 / s0
+    sxx = s2 - s1 * mean_t
+    flat = sxx <= 1e-9  # a window of one key frame
+    slope = np.where(flat[:, None], 0.0, (stc - mean_t[:, None] * sc) / np.where(flat, 1.0, sxx)[:, None])
+    return sc / s0[:, None] + slope * (t - mean_t)[:, None]

@@ -136,21 +136,37 @@ def test_the_feature_analysis_anchors_its_trajectories(sim_session):
     assert on[1]["tracking"]["displacement_rmse_px"] < 1.05 * off[1]["tracking"]["displacement_rmse_px"]
 
 
-def test_the_analysis_anchors_on_plain_glass_only(sim_session, monkeypatch):
-    """Over a ridge or valley the direct registrations would follow what the glass-shading step leaves of the
-    glass-fixed patterns (as a span's direct registration would): the trajectories stay chained there."""
+def test_the_analysis_anchors_where_the_shading_is_known(sim_session, monkeypatch):
+    """On plain glass the corrections follow the drift over 3 key frames; over a ridge whose glass-fixed shading was
+    removed, each registration also carries what that step leaves, and a line over 9 key frames (a reference's
+    span) is fitted instead; the drift against the truth is smaller than chained there too. Over a ridge whose
+    shading stayed (the skin slid too little) the registrations would follow the shading itself: chained."""
     from skinstretch.experiments.analysis import analysis_params, analyze_frames
     from skinstretch.experiments.analysis.trajectories import TrajectoryStore
+    from skinstretch.experiments.evaluation.trajectories import evaluate_trajectories
+    from skinstretch.simulators.scene import load_scene, render_session
 
     calls = []
     original = TrajectoryStore.anchor
-    monkeypatch.setattr(TrajectoryStore, "anchor", lambda self, a: calls.append(a.interval) or original(self, a))
+    monkeypatch.setattr(TrajectoryStore, "anchor", lambda self, a: calls.append(a.smoothing) or original(self, a))
     s = sim_session
     analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="flat")
-    assert calls == [5]
+    assert calls == [3]
     calls.clear()
-    analyze_frames(s.frames, calibration=s.calibration, method="features", params=analysis_params(), surface="ridge")
-    assert calls == []
+    ridge = render_session(load_scene("ridgeL"), n_frames=40, seed=1)
+    drift = {}
+    for every in (5, None):
+        r = analyze_frames(ridge.frames, calibration=ridge.calibration, method="features", surface="ridge",
+                           params=analysis_params({"tracking": {"keyframe_interval_frames": every}}))
+        assert r.params["glass_shading_status"].startswith("applied")
+        drift[every] = evaluate_trajectories(r, ridge.truth)["drift_rmse_px"]
+    assert calls == [9]  # with key frames only
+    assert drift[5] < drift[None]
+    calls.clear()
+    short = render_session(load_scene("ridgeL"), n_frames=24, seed=0)
+    r = analyze_frames(short.frames, calibration=short.calibration, method="features", surface="ridge",
+                       params=analysis_params({"tracking": {"min_length_frames": 12}}))
+    assert r.params["glass_shading_status"].startswith("not applied") and calls == []
 
 
 def test_a_registration_that_jumps_from_the_chained_guess_is_not_taken():

@@ -73,7 +73,11 @@ from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.span_registration import SpanRegistration
-from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring
+from skinstretch.processing.trajectory_anchoring import (
+    GLASS_SMOOTHING_KEY_FRAMES,
+    SHAPE_SMOOTHING_KEY_FRAMES,
+    KeyframeAnchoring,
+)
 from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
@@ -303,19 +307,21 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
-            # Where the skin slides on plain glass, the trajectories' chained drift is corrected at key frames
-            # (KeyframeAnchoring) and a longer span is also registered directly between its two frames
-            # (SpanRegistration). Not over a ridge or valley, even with its shading removed: the direct
-            # registrations follow what the shading step leaves of the glass-fixed patterns the skin moves through
-            # (key frames on real prints, 60 frames: 11-frame edge strain 0.199 -> 0.219 % mean).
+            # The trajectories' chained drift is corrected at key frames (KeyframeAnchoring) on plain glass and
+            # over a ridge or valley whose shading was removed, there by a line over more key frames: each direct
+            # registration also carries what the shading step leaves of the glass-fixed patterns. A longer span is
+            # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
             span_registration = None
-            if params.subpixel is not None and plain_glass(shading, surface):
+            on_glass = plain_glass(shading, surface)
+            if params.subpixel is not None and (on_glass or shading is not None):
                 refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
                 every = params.tracking.keyframe_interval_frames
                 if every is not None:
-                    store.anchor(KeyframeAnchoring(refiner, reader, interval=every,
-                                                   reference_span=params.tracking.keyframe_reference_frames))
-                span_registration = SpanRegistration(refiner, reader)
+                    store.anchor(KeyframeAnchoring(
+                        refiner, reader, interval=every, reference_span=params.tracking.keyframe_reference_frames,
+                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES))
+                if on_glass:
+                    span_registration = SpanRegistration(refiner, reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
                                      px_per_mm=calibration.px_per_mm, span_registration=span_registration,
                                      threads=1 if params.execution.kind == "serial" else params.execution.workers)
