@@ -340,6 +340,21 @@ class SubpixelRefiner:
         return _covariances(_window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement),
                                                       halves))
 
+    def span_residual_variance(self, prev_image, curr_image, points: np.ndarray,
+                               displacement: np.ndarray) -> np.ndarray:
+        """The residual variance (grey levels^2) of the :meth:`register_span` window around each point when
+        ``curr_image`` is read at ``points + displacement`` (translation only, bilinear): how well that
+        displacement explains the window, to compare two candidates for it. NaN where the window leaves an
+        image."""
+        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
+        b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        displacement = _displacement_rows(displacement, points, "displacement")
+        if points.shape[0] == 0:
+            return np.zeros(0)
+        halves = np.full(points.shape[0], self._span_half, np.int64)
+        return _window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement), halves)[:, 3]
+
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                          fallback: np.ndarray | None = None) -> np.ndarray:
         """The skin's displacement gradient at each point, measured in the images: an affine Lucas-Kanade

@@ -169,6 +169,43 @@ def test_the_analysis_anchors_where_the_shading_is_known(sim_session, monkeypatc
     assert r.params["glass_shading_status"].startswith("not applied") and calls == []
 
 
+class _SlidingRefiner(SubpixelRefiner):
+    """A refiner whose span registration of point ``slide`` lands 0.5 px along x from where the texture is (a
+    window sliding along its ridges)."""
+
+    slide = 3
+
+    def register_span(self, prev_image, curr_image, points, displacement):
+        fit = super().register_span(prev_image, curr_image, points, displacement)
+        d = fit.displacement.copy()
+        if len(d) > self.slide:
+            d[self.slide, 0] += 0.5
+        return fit._replace(displacement=d)
+
+
+@pytest.mark.parametrize("astray", ["chain", "registration"])
+def test_a_jump_is_taken_where_the_chain_went_astray_and_not_where_the_registration_did(astray):
+    """12 points, one of them off by 0.5 px at key frame 5: where its chained steps read short (a codec's copy),
+    the registration fits its window far better than the chained guess and is taken; where the registration slid,
+    the chained guess fits better and the point is chained on."""
+    frames = _frames(6)
+    p0 = np.array([[x, y] for x in (70.0, 100.5, 130.2, 160.0) for y in (60.0, 95.5, 130.0)])
+    chained = p0 + 5 * STEP
+    refiner = SubpixelRefiner(calibration=CAL)
+    if astray == "chain":
+        chained[3, 0] -= 0.5
+    else:
+        refiner = _SlidingRefiner(calibration=CAL)
+    anchoring = KeyframeAnchoring(refiner, frames.__getitem__, interval=5, reference_span=40)
+    anchoring.add(0, np.arange(12), p0)
+    anchoring.add(5, np.arange(12), chained)
+    raw = anchoring._rows[-1][2]
+    fixed = chained + raw
+    assert np.abs(fixed - (p0 + 5 * STEP)).max() < 0.02
+    if astray == "registration":
+        assert np.allclose(raw[3], 0.0)
+
+
 def test_a_registration_that_jumps_from_the_chained_guess_is_not_taken():
     """Between key frames the drift changes little: a point whose registration moves it tenths of a pixel from its
     chained guess (a window sliding along its ridges) is chained on; the others' steps, and a step the same
