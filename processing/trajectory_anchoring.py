@@ -211,10 +211,10 @@ class KeyframeAnchoring:
         """The corrections of every run at its key frames, smoothed along the run (:func:`_line_fits` over
         ``smoothing`` key frames: the registrations' noise averaged, a steady drift kept); a run's first key frame
         keeps 0."""
-        if not self._rows:
+        group = np.concatenate([np.zeros(0, np.int64)] + [g for g, _, _ in self._rows])
+        if group.size == 0:  # no key frame, or no run present at any
             z = np.zeros(0)
-            return KeyframeCorrections(z.astype(np.int64), z.astype(np.int64), z, z)
-        group = np.concatenate([g for g, _, _ in self._rows])
+            return KeyframeCorrections(group, group.copy(), z, z)
         frame = np.concatenate([np.full(g.size, k, np.int64) for g, k, _ in self._rows])
         c = np.concatenate([d for _, _, d in self._rows])
         order = np.lexsort((frame, group))

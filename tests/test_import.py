@@ -184,7 +184,7 @@ def test_imported_copies_give_the_original_trajectories(simulated_and_analysed, 
     The first MP4 is x264's lossless mode: its only loss is the grey-to-limited-range-YUV rounding (1 grey level).
     The second is lossy, x264 at crf 12 (visually lossless, 7x smaller): its trajectories stay within 0.05 px of
     the original's on average, though single positions move by up to 0.3 px with the codec's per-frame error; the
-    import bench prints the whole sweep (and a ridge's copy, whose trajectories stay chained and drift further:
+    import bench prints the whole sweep (and a ridge's copy, 0.047 px at seed 0; a valley's reach 0.055 px:
     docs/import-and-replay.md).
     The lossless MP4's worst position may exceed 0.05 px on a trajectory followed
     mostly by registration (a point whose feature is found in few frames): its absolute position is the mean of

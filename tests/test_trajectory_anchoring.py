@@ -99,6 +99,9 @@ def test_a_session_with_one_key_frame_or_none_has_no_corrections():
     """Too short a clip (or no kept trajectory) gives no correction, and the positions stay chained."""
     a = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), _frames(1).__getitem__, interval=5, reference_span=40)
     assert a.corrections().group.size == 0
+    a.add(0, np.zeros(0, np.int64), np.zeros((0, 2)))  # key frames with no run present
+    assert a.corrections().group.size == 0
+    a = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), _frames(1).__getitem__, interval=5, reference_span=40)
     a.add(0, np.array([3]), np.array([[50.0, 60.0]]))
     c = a.corrections()
     assert c.group.tolist() == [3] and c.dx.tolist() == [0.0] and c.at(np.array([3, 4]), np.array([2, 2])).tolist() == [
@@ -221,3 +224,22 @@ def test_a_registration_that_jumps_from_the_chained_guess_is_not_taken():
     assert np.flatnonzero(_jumped(step, ok)).tolist() == [17]
     assert not _jumped(np.tile([0.4, 0.1], (40, 1)), ok).any()
     assert not _jumped(step[:7], ok[:7]).any()  # too few to judge
+
+
+@pytest.mark.parametrize("window", [3, 9])
+def test_the_corrections_line_keeps_a_steady_drift_and_averages_noise(window):
+    """A run's corrections along a straight line come back exactly whatever the window (a steady drift is kept);
+    over 3 key frames an inner one is its mean with its neighbours' and the last the three-point line's end; noise
+    is averaged, more over 9 key frames than over 3."""
+    from skinstretch.processing.trajectory_anchoring import _line_fits
+
+    group = np.repeat([4, 7, 9], [12, 2, 1])
+    line = np.column_stack([0.03 * np.arange(group.size), -0.01 * np.arange(group.size)])
+    assert np.allclose(_line_fits(group, line, window), line)
+    noise = np.random.default_rng(1).normal(0.0, 0.05, (group.size, 2))
+    fit = _line_fits(group, noise, window)
+    if window == 3:
+        assert np.allclose(fit[5], noise[4:7].mean(axis=0))
+        assert np.allclose(fit[11], (5 * noise[11] + 2 * noise[10] - noise[9]) / 6)
+    assert np.allclose(fit[12:14], noise[12:14]) and np.allclose(fit[14], noise[14])  # two key frames, one
+    assert np.std(fit[:12]) < (0.6 if window == 3 else 0.45) * 0.05  # the noise's 0.05 px
