@@ -111,6 +111,9 @@ class SubpixelParams:
 _MAX_FRAME_GRADIENT = 0.05
 #: Largest displacement gradient :meth:`SubpixelRefiner.register_span` accepts over a span (20 %: a failed fit).
 _MAX_SPAN_GRADIENT = 0.2
+#: A smaller window of :meth:`SubpixelRefiner.register_span` near the image edge keeps this much room in the second
+#: image, px, for the warp's own reach beyond its start.
+_SPAN_WARP_MARGIN_PX = 2
 #: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves no pixel of the
 #: window by more than 1e-4 px). With the first image's Hessian kept fixed the steps alone contract slowly (about 0.65 a step
 #: on a real print's span); with the secant (Anderson) acceleration of
@@ -382,8 +385,8 @@ class SubpixelRefiner:
         out[ok] = g[ok]
         return out
 
-    def register_span(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def register_span(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray, *,
+                      min_window_mm: float | None = None) -> SpanFit:
         """The displacement of ``points`` from ``prev_image`` to a frame several frames later, ``curr_image``,
         registered directly: a second-order Lucas-Kanade registration (Gauss-Newton, up to
         :data:`SPAN_REGISTRATION_STEPS` steps) of the ``span_window_mm`` window around each point, started from
@@ -395,7 +398,9 @@ class SubpixelRefiner:
         displacement is that of the window's centre. Returns a :class:`SpanFit`: ``displacement`` as given where
         not ok (the window leaves an image, overlaps skin out of contact as :meth:`refine` judges it, the fit is
         singular, or it moves the point by more than ``max_correction_mm``), the Wald statistic of the curvature
-        (0 where not ok)."""
+        (0 where not ok). With ``min_window_mm``, a point whose window would leave an image is registered with the
+        largest window around it that stays inside both, if at least that wide (noisier: for callers that average
+        it, as the key frames' line does)."""
         prev_nc = prev_image.no_contact_integral if isinstance(prev_image, PreparedImage) else None
         curr_nc = curr_image.no_contact_integral if isinstance(curr_image, PreparedImage) else None
         a, gx, gy, b = _registration_pair(prev_image, curr_image)
@@ -403,18 +408,30 @@ class SubpixelRefiner:
         init = _displacement_rows(displacement, points, "displacement")
         if points.shape[0] == 0:
             return SpanFit(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
-        half = self._span_half
-        fit, ok = second_order_kernel(a, b, gx, gy, points, init, half, SPAN_REGISTRATION_STEPS)
-        curved = fit[:, 8] > self.params.span_curvature_threshold
-        delta = np.where(curved[:, None], fit[:, 0:2], fit[:, 6:8])
-        d = init + delta
-        ok &= np.all(np.isfinite(d), axis=1) & (np.hypot(*delta.T) <= self._max_corr)
-        ok &= np.all(np.abs(fit[:, 2:6]) <= _MAX_SPAN_GRADIENT, axis=1)
+        halves = np.full(points.shape[0], self._span_half, np.int64)
+        if min_window_mm is not None:
+            h, w = a.shape
+            room = np.full(points.shape[0], np.iinfo(np.int64).max)
+            for where, margin in ((points, 0), (points + init, _SPAN_WARP_MARGIN_PX)):
+                c = np.rint(np.nan_to_num(where, nan=-1e6)).clip(-1e6, 1e6).astype(np.int64)
+                room = np.minimum(room, np.minimum.reduce([c[:, 0], c[:, 1], w - 1 - c[:, 0], h - 1 - c[:, 1]]) - margin)
+            smallest = self.calibration.odd_px(min_window_mm, minimum=7) // 2
+            halves = np.where(room < halves, np.where(room >= smallest, room, halves), halves)
+        d, ok, curvature = init.copy(), np.zeros(points.shape[0], bool), np.zeros(points.shape[0])
         limit = self.params.max_no_contact_fraction
-        for integral, where in ((prev_nc, points), (curr_nc, points + init)):
-            if integral is not None:
-                ok &= _window_fraction(integral, where, half) <= limit
-        return SpanFit(np.where(ok[:, None], d, init), ok, np.where(ok, fit[:, 8], 0.0))
+        for half in np.unique(halves):
+            sel = np.flatnonzero(halves == half)
+            fit, ok_h = second_order_kernel(a, b, gx, gy, points[sel], init[sel], int(half), SPAN_REGISTRATION_STEPS)
+            curved = fit[:, 8] > self.params.span_curvature_threshold
+            delta = np.where(curved[:, None], fit[:, 0:2], fit[:, 6:8])
+            d_h = init[sel] + delta
+            ok_h &= np.all(np.isfinite(d_h), axis=1) & (np.hypot(*delta.T) <= self._max_corr)
+            ok_h &= np.all(np.abs(fit[:, 2:6]) <= _MAX_SPAN_GRADIENT, axis=1)
+            for integral, where in ((prev_nc, points[sel]), (curr_nc, points[sel] + init[sel])):
+                if integral is not None:
+                    ok_h &= _window_fraction(integral, where, int(half)) <= limit
+            d[sel[ok_h]], ok[sel], curvature[sel[ok_h]] = d_h[ok_h], ok_h, fit[ok_h, 8]
+        return SpanFit(d, ok, curvature)
 
     def deformation_bias(self, prev_image, points: np.ndarray, gradient: np.ndarray,
                          window_px: np.ndarray | None = None) -> np.ndarray:

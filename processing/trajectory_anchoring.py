@@ -43,6 +43,7 @@ from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
+    "EDGE_WINDOW_MM",
     "GLASS_SMOOTHING_KEY_FRAMES",
     "KeyframeAnchoring",
     "KeyframeCorrections",
@@ -74,6 +75,10 @@ GLASS_SMOOTHING_KEY_FRAMES = 3
 #: glass-fixed patterns: a line over a reference's span (18 clips: 11-frame edge strain 0.164 % mean against 0.186
 #: with 3 key frames, 0.174 chained).
 SHAPE_SMOOTHING_KEY_FRAMES = 9
+#: Near the image edge, where the span window (0.8 mm) would leave it, a point is registered with the largest window
+#: that fits, if at least this wide, mm: else it could only be chained (a point 20 px from the edge drifted 0.7 px
+#: in 40 frames over valleyL, 2.7 px in a crf-12 copy).
+EDGE_WINDOW_MM = 0.4
 
 
 @dataclass(frozen=True)
@@ -174,7 +179,8 @@ class KeyframeAnchoring:
         for r in np.unique(refs):
             sel = np.flatnonzero(refs == r)
             origin = self._ref_xy[g[sel]]
-            fit = self.refiner.register_span(self._image(int(r)), self._image(k), origin, guess[sel] - origin)
+            fit = self.refiner.register_span(self._image(int(r)), self._image(k), origin, guess[sel] - origin,
+                                             min_window_mm=EDGE_WINDOW_MM)
             fitted[sel] = np.where(fit.ok[:, None], origin + fit.displacement, guess[sel])
             failed[sel] = ~fit.ok
             jumped = np.flatnonzero(_jumped(fitted[sel] - guess[sel], fit.ok))

@@ -178,8 +178,8 @@ class _SlidingRefiner(SubpixelRefiner):
 
     slide = 3
 
-    def register_span(self, prev_image, curr_image, points, displacement):
-        fit = super().register_span(prev_image, curr_image, points, displacement)
+    def register_span(self, prev_image, curr_image, points, displacement, **kwargs):
+        fit = super().register_span(prev_image, curr_image, points, displacement, **kwargs)
         d = fit.displacement.copy()
         if len(d) > self.slide:
             d[self.slide, 0] += 0.5
@@ -243,3 +243,19 @@ def test_the_corrections_line_keeps_a_steady_drift_and_averages_noise(window):
         assert np.allclose(fit[11], (5 * noise[11] + 2 * noise[10] - noise[9]) / 6)
     assert np.allclose(fit[12:14], noise[12:14]) and np.allclose(fit[14], noise[14])  # two key frames, one
     assert np.std(fit[:12]) < (0.6 if window == 3 else 0.45) * 0.05  # the noise's 0.05 px
+
+
+def test_a_point_near_the_edge_is_registered_with_a_smaller_window():
+    """18 px from the image edge the 0.8 mm span window (51 px) leaves the image: unregistered as a span's point,
+    registered with the largest window that fits (at least 0.4 mm) as a key frame's, at the true displacement."""
+    frames = _frames(6)
+    refiner = SubpixelRefiner(calibration=CAL)
+    prev, curr = refiner.prepare(frames[0]), refiner.prepare(frames[5])
+    points = np.array([[18.0, 100.0], [120.0, 18.5], [120.0, 100.0], [5.0, 100.0]])
+    guess = np.tile(5 * STEP + [0.1, -0.1], (4, 1))
+    plain = refiner.register_span(prev, curr, points, guess)
+    assert plain.ok.tolist() == [False, False, True, False]
+    near = refiner.register_span(prev, curr, points, guess, min_window_mm=0.4)
+    assert near.ok.tolist() == [True, True, True, False]  # 5 px from the edge: no window of 0.4 mm fits
+    assert np.abs(near.displacement[:3] - 5 * STEP).max() < 0.02
+    assert np.array_equal(near.displacement[2], plain.displacement[2]) and np.array_equal(near.displacement[3], guess[3])
