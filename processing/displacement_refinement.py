@@ -414,7 +414,8 @@ class SubpixelRefiner:
             room = np.full(points.shape[0], np.iinfo(np.int64).max)
             for where, margin in ((points, 0), (points + init, _SPAN_WARP_MARGIN_PX)):
                 c = np.rint(np.nan_to_num(where, nan=-1e6)).clip(-1e6, 1e6).astype(np.int64)
-                room = np.minimum(room, np.minimum.reduce([c[:, 0], c[:, 1], w - 1 - c[:, 0], h - 1 - c[:, 1]]) - margin)
+                edge = np.minimum.reduce([c[:, 0], c[:, 1], w - 1 - c[:, 0], h - 1 - c[:, 1]])
+                room = np.minimum(room, edge - margin)
             smallest = self.calibration.odd_px(min_window_mm, minimum=7) // 2
             halves = np.where(room < halves, np.where(room >= smallest, room, halves), halves)
         d, ok, curvature = init.copy(), np.zeros(points.shape[0], bool), np.zeros(points.shape[0])
