@@ -333,15 +333,20 @@ class SubpixelRefiner:
         variance of its window after registration (image noise and what the translation leaves), ``T`` the
         window's structure tensor. Parallel ridges make it long along them (the aperture problem). NaN where the
         window leaves an image or T is singular. ``window_px``: as :meth:`deformation_bias`."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        return _covariances(self._window_statistics(prev_image, curr_image, points, displacement,
+                                                    self._window_halves(window_px, points.shape[0])))
+
+    def _window_statistics(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
+                           halves: np.ndarray) -> np.ndarray:
+        """:func:`_window_statistics_kernel`'s rows (Txx, Txy, Tyy, s^2) for ``points`` (n, 2) read at
+        ``points + displacement`` in the second image."""
         a, gx, gy = _image_and_gradient(prev_image, "prev_image")
         b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
-        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         displacement = _displacement_rows(displacement, points, "displacement")
-        halves = self._window_halves(window_px, points.shape[0])
         if points.shape[0] == 0:
-            return np.zeros((0, 2, 2))
-        return _covariances(_window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement),
-                                                      halves))
+            return np.zeros((0, 4))
+        return _window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement), halves)
 
     def span_residual_variance(self, prev_image, curr_image, points: np.ndarray,
                                displacement: np.ndarray) -> np.ndarray:
@@ -349,14 +354,9 @@ class SubpixelRefiner:
         ``curr_image`` is read at ``points + displacement`` (translation only, bilinear): how well that
         displacement explains the window, to compare two candidates for it. NaN where the window leaves an
         image."""
-        a, gx, gy = _image_and_gradient(prev_image, "prev_image")
-        b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-        displacement = _displacement_rows(displacement, points, "displacement")
-        if points.shape[0] == 0:
-            return np.zeros(0)
         halves = np.full(points.shape[0], self._span_half, np.int64)
-        return _window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement), halves)[:, 3]
+        return self._window_statistics(prev_image, curr_image, points, displacement, halves)[:, 3]
 
     def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                          fallback: np.ndarray | None = None) -> np.ndarray:
@@ -416,8 +416,8 @@ class SubpixelRefiner:
                 c = np.rint(np.nan_to_num(where, nan=-1e6)).clip(-1e6, 1e6).astype(np.int64)
                 edge = np.minimum.reduce([c[:, 0], c[:, 1], w - 1 - c[:, 0], h - 1 - c[:, 1]])
                 room = np.minimum(room, edge - margin)
-            smallest = self.calibration.odd_px(min_window_mm, minimum=7) // 2
-            halves = np.where(room < halves, np.where(room >= smallest, room, halves), halves)
+            shrink = (room < halves) & (room >= self.calibration.odd_px(min_window_mm, minimum=7) // 2)
+            halves[shrink] = room[shrink]
         d, ok, curvature = init.copy(), np.zeros(points.shape[0], bool), np.zeros(points.shape[0])
         limit = self.params.max_no_contact_fraction
         for half in np.unique(halves):

@@ -181,15 +181,16 @@ class KeyframeAnchoring:
         for r in np.unique(refs):
             sel = np.flatnonzero(refs == r)
             origin = self._ref_xy[g[sel]]
-            fit = self.refiner.register_span(self._image(int(r)), self._image(k), origin, guess[sel] - origin,
+            reference, current = self._image(int(r)), self._image(k)
+            fit = self.refiner.register_span(reference, current, origin, guess[sel] - origin,
                                              min_window_mm=EDGE_WINDOW_MM)
             fitted[sel] = np.where(fit.ok[:, None], origin + fit.displacement, guess[sel])
             failed[sel] = ~fit.ok
             jumped = np.flatnonzero(_jumped(fitted[sel] - guess[sel], fit.ok))
             if jumped.size:  # kept where the registration explains the key frame clearly better than the chain
-                pre, cur, at = self._image(int(r)), self._image(k), origin[jumped]
-                chain = self.refiner.span_residual_variance(pre, cur, at, guess[sel[jumped]] - at)
-                registered = self.refiner.span_residual_variance(pre, cur, at, fitted[sel[jumped]] - at)
+                at = origin[jumped]
+                chain = self.refiner.span_residual_variance(reference, current, at, guess[sel[jumped]] - at)
+                registered = self.refiner.span_residual_variance(reference, current, at, fitted[sel[jumped]] - at)
                 jumped = jumped[~(chain >= MIN_JUMP_RESIDUAL_RATIO * registered)]
                 fitted[sel[jumped]] = guess[sel[jumped]]
         anchored[cont] = fitted
