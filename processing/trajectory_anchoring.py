@@ -6,7 +6,8 @@ sum of their errors: a 40-frame trajectory ends 0.09 px from the skin point it s
 where every step errs a little the same way it drifts further (in a copy compressed by a video codec, consecutive
 frames share the codec's motion-compensated coding: a ridgeL copy at H.264 crf 12 ends 0.77 px off). What digital
 image correlation does against this, incremental correlation against a reference frame that is replaced when it
-has aged, is done here at key frames: every ``interval`` frames, each point of a linked run is registered directly
+has aged, is done here at key frames: every ``interval`` frames and at the sequence's last frame (else the frames
+after the last multiple of the interval keep their chained drift), each point of a linked run is registered directly
 from its reference key frame (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.
 register_span`, started from the chained motion); the difference from the chained position is the drift,
 smoothed over neighbouring key frames (their registrations' noise) and spread linearly over the frames between.
@@ -147,6 +148,7 @@ class KeyframeAnchoring:
         self._last_anchored = np.zeros((0, 2))
         self._rows: list[tuple[np.ndarray, int, np.ndarray]] = []  # (groups, frame, raw corrections)
         self._previous = -1
+        self._final = False
 
     def _grow(self, n: int) -> None:
         have = self._ref.size
@@ -158,19 +160,21 @@ class KeyframeAnchoring:
         for name in ("_ref_xy", "_last_chained", "_last_anchored"):
             setattr(self, name, np.concatenate([getattr(self, name), np.zeros((n - have, 2))]))
 
-    def add(self, k: int, group: np.ndarray, chained: np.ndarray) -> None:
-        """Key frame ``k``: the runs present (``group``, distinct ids >= 0) and their chained positions (n, 2) px."""
+    def add(self, k: int, group: np.ndarray, chained: np.ndarray, *, final: bool = False) -> None:
+        """Key frame ``k``: the runs present (``group``, distinct ids >= 0) and their chained positions (n, 2) px.
+        ``final``: the sequence's last frame, a key frame whatever its number (the drift after the last multiple of
+        the interval is corrected too); no key frame follows it."""
         k = int(k)
-        if k % self.interval or k <= self._previous:
-            raise InvalidInputError(f"key frames come in increasing multiples of {self.interval}: got {k} after "
-                                    f"{self._previous}")
-        self._previous = k
+        if self._final or k <= self._previous or (k % self.interval and not final):
+            raise InvalidInputError(f"key frames come in increasing multiples of {self.interval}, then the last "
+                                    f"frame: got {k} after {self._previous}")
+        previous, self._previous, self._final = self._previous, k, bool(final)
         group = np.asarray(group, dtype=np.int64)
         chained = np.asarray(chained, dtype=np.float64).reshape(-1, 2)
         if group.size:
             self._grow(int(group.max()) + 1)
         # A run seen at the previous key frame continues; any other starts here, with this frame as reference.
-        cont = self._last[group] == k - self.interval
+        cont = (self._last[group] == previous) & (previous >= 0)
         start = ~cont
         anchored = chained.copy()
         g = group[cont]
@@ -202,7 +206,7 @@ class KeyframeAnchoring:
         self._ref[group[here]] = k
         self._ref_xy[group[here]] = anchored[here]
         back = np.flatnonzero(cont)[failed]
-        self._ref[group[back]] = k - self.interval
+        self._ref[group[back]] = previous
         self._ref_xy[group[back]] = self._last_anchored[group[back]]
         self._last[group] = k
         self._last_chained[group] = chained
@@ -228,7 +232,7 @@ class KeyframeAnchoring:
         c = np.concatenate([d for _, _, d in self._rows])
         order = np.lexsort((frame, group))
         group, frame, c = group[order], frame[order], c[order]
-        smoothed = _line_fits(group, c, self.smoothing)
+        smoothed = _line_fits(group, frame / self.interval, c, self.smoothing)
         smoothed[np.r_[True, group[1:] != group[:-1]]] = 0.0  # a run's first key frame is its reference
         return KeyframeCorrections(group, frame, *smoothed.T.copy())
 
@@ -243,12 +247,12 @@ def _jumped(step: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return ok & (size > bound)
 
 
-def _line_fits(group: np.ndarray, c: np.ndarray, window: int) -> np.ndarray:
-    """Each key frame's correction (rows of ``c`` sorted by run, then frame) from a line fitted to the ``window``
-    nearest key frames of its run: centred on it inside the run, shifted inside at the run's ends (the line's end
-    there), the whole run where it is shorter (a run of two as measured). A steady drift is kept, the
-    registrations' noise averaged; with 3 key frames: an inner one's mean with its two neighbours, a run's last
-    (5 c[j] + 2 c[j-1] - c[j-2]) / 6. Prefix sums over the rows: every fit at once."""
+def _line_fits(group: np.ndarray, time: np.ndarray, c: np.ndarray, window: int) -> np.ndarray:
+    """Each key frame's correction (rows of ``c`` sorted by run, then ``time``, in intervals) from a line in time
+    fitted to the ``window`` nearest key frames of its run: centred on it inside the run, shifted inside at the
+    run's ends (the line's end there), the whole run where it is shorter (a run of two as measured). A steady drift
+    is kept, the registrations' noise averaged; with 3 evenly spaced key frames: an inner one's mean with its two
+    neighbours, a run's last (5 c[j] + 2 c[j-1] - c[j-2]) / 6. Prefix sums over the rows: every fit at once."""
     n = group.size
     start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
     length = np.diff(np.r_[start, n])
@@ -257,7 +261,7 @@ def _line_fits(group: np.ndarray, c: np.ndarray, window: int) -> np.ndarray:
     j = np.arange(n) - run_start  # index inside the run
     w = np.minimum(window, run_len)
     lo = np.clip(j - window // 2, 0, run_len - w)
-    t = j.astype(np.float64)
+    t = np.asarray(time, dtype=np.float64) - time[run_start]  # from the run's first: the prefix sums stay small
     a, b = run_start + lo, run_start + lo + w
 
     def window_sum(v: np.ndarray) -> np.ndarray:

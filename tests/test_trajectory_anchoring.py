@@ -32,7 +32,9 @@ def _frames(n):
 
 
 def test_key_frames_take_out_the_drift_of_a_chain_that_errs_one_way():
-    n, every = 21, 5
+    """Key frames 0, 5, .., 20 and the clip's last frame, 23: the drift is taken out at every frame, the last ones
+    too."""
+    n, every = 24, 5
     frames = _frames(n)
     p0 = np.array([[x, y] for x in (70.0, 100.5, 130.2, 160.0) for y in (60.0, 95.5, 130.0)])
     m = p0.shape[0]
@@ -41,22 +43,23 @@ def test_key_frames_take_out_the_drift_of_a_chain_that_errs_one_way():
     anchoring = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), frames.__getitem__, interval=every,
                                   reference_span=40)
     chained = {}
-    for k in range(0, n, every):
+    for k in [*range(0, n, every), n - 1]:
         xy = p0 + k * (STEP + DRIFT)
         group = np.arange(m)
         if k >= 10:
             xy = np.vstack([xy, p10 + (k - 10) * (STEP + DRIFT)])
             group = np.r_[group, late]
         chained[k] = xy
-        anchoring.add(k, group, xy)
+        anchoring.add(k, group, xy, final=k == n - 1)
     c = anchoring.corrections()
     for k in range(n):  # every frame, key frame or not
         xy = p0 + k * (STEP + DRIFT)
         fixed = xy + c.at(np.arange(m), np.full(m, k))
         true = p0 + k * STEP
         assert np.abs(fixed - true).max() < 0.015, (k, np.abs(fixed - true).max())
-        # uncorrected, frame 20 is 0.5 px off
-    assert np.abs(chained[20][:m] - (p0 + 20 * STEP)).max() > 0.35
+        # uncorrected, frame 23 is 0.5 px off
+    assert np.abs(chained[23][:m] - (p0 + 23 * STEP)).max() > 0.35
+    assert c.frame.max() == 23
     # A run's first key frame is its reference: no correction there, and its drift is measured from it.
     assert np.allclose(c.at(late, np.full(3, 10)), 0.0)
     late_20 = chained[20][m:] + c.at(late, np.full(3, 20))
@@ -117,8 +120,12 @@ def test_key_frames_must_come_in_order_and_make_sense():
     with pytest.raises(InvalidInputError, match="reference span >= it"):
         KeyframeAnchoring(r, lambda k: None, interval=10, reference_span=5)
     a = KeyframeAnchoring(r, lambda k: np.zeros((50, 50), np.uint8), interval=5, reference_span=20)
-    with pytest.raises(InvalidInputError, match="increasing multiples of 5"):
+    with pytest.raises(InvalidInputError, match="increasing multiples of 5, then the last frame"):
         a.add(3, np.array([0]), np.array([[10.0, 10.0]]))
+    a.add(0, np.array([0]), np.array([[10.0, 10.0]]))
+    a.add(3, np.array([0]), np.array([[10.0, 10.0]]), final=True)
+    with pytest.raises(InvalidInputError, match="got 5 after 3"):  # nothing after the last frame
+        a.add(5, np.array([0]), np.array([[10.0, 10.0]]))
 
 
 def test_the_feature_analysis_anchors_its_trajectories(sim_session):
@@ -234,10 +241,12 @@ def test_the_corrections_line_keeps_a_steady_drift_and_averages_noise(window):
     from skinstretch.processing.trajectory_anchoring import _line_fits
 
     group = np.repeat([4, 7, 9], [12, 2, 1])
-    line = np.column_stack([0.03 * np.arange(group.size), -0.01 * np.arange(group.size)])
-    assert np.allclose(_line_fits(group, line, window), line)
+    time = np.arange(group.size) + np.r_[np.zeros(11), -0.4, np.zeros(3)]  # the first run's last key frame: the clip's
+    line = np.column_stack([0.03 * time, -0.01 * time])                     # last frame, 0.4 of an interval early
+    assert np.allclose(_line_fits(group, time, line, window), line)
+    time = np.arange(group.size, dtype=float)
     noise = np.random.default_rng(1).normal(0.0, 0.05, (group.size, 2))
-    fit = _line_fits(group, noise, window)
+    fit = _line_fits(group, time, noise, window)
     if window == 3:
         assert np.allclose(fit[5], noise[4:7].mean(axis=0))
         assert np.allclose(fit[11], (5 * noise[11] + 2 * noise[10] - noise[9]) / 6)
@@ -258,4 +267,5 @@ def test_a_point_near_the_edge_is_registered_with_a_smaller_window():
     near = refiner.register_span(prev, curr, points, guess, min_window_mm=0.4)
     assert near.ok.tolist() == [True, True, True, False]  # 5 px from the edge: no window of 0.4 mm fits
     assert np.abs(near.displacement[:3] - 5 * STEP).max() < 0.02
-    assert np.array_equal(near.displacement[2], plain.displacement[2]) and np.array_equal(near.displacement[3], guess[3])
+    assert np.array_equal(near.displacement[2], plain.displacement[2])
+    assert np.array_equal(near.displacement[3], guess[3])

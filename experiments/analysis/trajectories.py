@@ -181,8 +181,8 @@ class TrajectoryStore:
         return gr.sum_x[: gr.size] / gr.rows[: gr.size], gr.sum_y[: gr.size] / gr.rows[: gr.size]
 
     def anchor(self, anchoring: KeyframeAnchoring) -> None:
-        """Measure the kept runs' drift at every key frame (``anchoring.interval``) and correct it in
-        :meth:`blocks`: each run's positions gain the interpolated correction and lose its mean over the run's
+        """Measure the kept runs' drift at every key frame (``anchoring.interval``, and the last frame) and correct
+        it in :meth:`blocks`: each run's positions gain the interpolated correction and lose its mean over the run's
         extracted rows, so the run stays anchored to its extracted positions."""
         n = self.n_frames
         if self._next_frame != n:
@@ -190,10 +190,12 @@ class TrajectoryStore:
         self._file.flush()
         keep = self.kept
         off_x, off_y = self._offsets()
-        for k in range(0, n, anchoring.interval):
+        keys = list(range(0, n, anchoring.interval))
+        for k in keys + ([n - 1] if n > 1 and keys[-1] != n - 1 else []):
             s = self._read(k, k + 1)
             s = s[keep[s["track"]]]
-            anchoring.add(k, s["group"], np.column_stack([s["lx"] + off_x[s["group"]], s["ly"] + off_y[s["group"]]]))
+            anchoring.add(k, s["group"], np.column_stack([s["lx"] + off_x[s["group"]], s["ly"] + off_y[s["group"]]]),
+                          final=k == n - 1)
         corrections = anchoring.corrections()
         gr = self._groups
         total = np.zeros((gr.size, 2))
