@@ -128,19 +128,25 @@ def test_key_frames_must_come_in_order_and_make_sense():
         a.add(5, np.array([0]), np.array([[10.0, 10.0]]))
 
 
-def test_the_feature_analysis_anchors_its_trajectories(sim_session):
-    """flatL, 20 frames: the positions' drift against the truth from each trajectory's start is smaller with key
-    frames than without, frame-to-frame motion as good."""
+def test_the_feature_analysis_anchors_its_trajectories(sim_session, monkeypatch):
+    """flatL: the positions' drift against the truth from each trajectory's start is smaller with key frames than
+    without, frame-to-frame motion as good; the key frames are every 5th frame and the last."""
     from skinstretch.experiments.analysis import analysis_params, analyze_frames
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking
     from skinstretch.experiments.evaluation.trajectories import evaluate_trajectories
 
+    keys = []
+    original = KeyframeAnchoring.add
+    monkeypatch.setattr(KeyframeAnchoring, "add", lambda self, k, *a, final=False: keys.append((k, final)) or
+                        original(self, k, *a, final=final))
     s = sim_session
     out = {}
     for every in (5, None):
         r = analyze_frames(s.frames, calibration=s.calibration, method="features", surface="flat",
                            params=analysis_params({"tracking": {"keyframe_interval_frames": every}}))
         out[every] = (evaluate_trajectories(r, s.truth), evaluate_tracking(r, s.truth))
+    n = len(s.frames)
+    assert n % 5 != 1 and keys == [(k, False) for k in range(0, n, 5)] + [(n - 1, True)]
     on, off = out[5], out[None]
     assert on[0]["drift_rmse_px"] < off[0]["drift_rmse_px"]
     assert on[1]["tracking"]["displacement_rmse_px"] < 1.05 * off[1]["tracking"]["displacement_rmse_px"]
