@@ -20,6 +20,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -78,34 +79,57 @@ def _copies(d: Path, frames, fps: float, ppm: float):
         yield f"MP4 H.264 crf {crf}" + (f" tune {tune}" if tune else ""), path, {"px_per_mm": ppm}
 
 
-def _agreement_table(options: BenchOptions) -> BenchTable:
+@dataclass(frozen=True)
+class _Original:
+    """A simulated session, its frames and its analysis's trajectories (the reference every copy is held to)."""
+
+    frames: np.ndarray
+    fps: float
+    px_per_mm: float
+    reference: dict
+
+
+def _original(d: Path, scene: str, seed: int) -> _Original:
     from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
     from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
-    from skinstretch.experiments.evaluation.trajectory_agreement import trajectory_agreement  # noqa: PLC0415
-    from skinstretch.experiments.frame_import import import_frames  # noqa: PLC0415
     from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
     from skinstretch.simulators.scene import simulate_to_file  # noqa: PLC0415
+
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    path = simulate_to_file(scene, d / "original.h5", n_frames=_FRAMES, seed=seed)
+    with open_session(path) as s:
+        frames, fps, ppm = s.read_frames(), s.camera_mode.fps, s.calibration.px_per_mm
+    analyze_session(path, d / "original-analysis")
+    return _Original(frames, fps, ppm, vars(read_results(d / "original-analysis").trajectories.dense()))
+
+
+def _agreement(original: _Original, session: Path, out: Path):
+    """The imported ``session`` analysed into ``out``, its trajectories against the original's."""
+    from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
+    from skinstretch.experiments.evaluation.trajectory_agreement import trajectory_agreement  # noqa: PLC0415
+    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
+
+    analyze_session(session, out)
+    return trajectory_agreement(original.reference, vars(read_results(out).trajectories.dense()))
+
+
+def _agreement_table(options: BenchOptions) -> BenchTable:
+    from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
+    from skinstretch.experiments.frame_import import import_frames  # noqa: PLC0415
 
     rows = []
     for scene in options.scenes or ("flatL", "ridgeL"):
         d = options.workdir / "import" / scene
-        shutil.rmtree(d, ignore_errors=True)
-        d.mkdir(parents=True)
-        original = simulate_to_file(scene, d / "original.h5", n_frames=_FRAMES, seed=0)
-        with open_session(original) as s:
-            frames, fps, ppm = s.read_frames(), s.camera_mode.fps, s.calibration.px_per_mm
-        analyze_session(original, d / "original-analysis")
-        reference = vars(read_results(d / "original-analysis").trajectories.dense())
-        for k, (label, source, kwargs) in enumerate(_copies(d, frames, fps, ppm)):
+        o = _original(d, scene, 0)
+        for k, (label, source, kwargs) in enumerate(_copies(d, o.frames, o.fps, o.px_per_mm)):
             size = sum(p.stat().st_size for p in ([source] if source.is_file() else source.iterdir()))
             t0 = time.perf_counter()
             result = import_frames(source, d / f"imported-{k}.h5", **kwargs)  # the surface read from the frames
             seconds = time.perf_counter() - t0
             with open_session(result.path) as s:
-                change = int(np.abs(s.read_frames().astype(np.int16) - frames).max())
-            out = d / f"imported-{k}-analysis"
-            analyze_session(result.path, out)
-            a = trajectory_agreement(reference, vars(read_results(out).trajectories.dense()))
+                change = int(np.abs(s.read_frames().astype(np.int16) - o.frames).max())
+            a = _agreement(o, result.path, d / f"imported-{k}-analysis")
             rows.append((scene, label, result.surface or "not read", result.n_frames / seconds, size / 1e6, change,
                          a.paired_fraction, a.mean_px, a.p99_px, a.max_px))
     return BenchTable(
@@ -122,12 +146,7 @@ def _agreement_table(options: BenchOptions) -> BenchTable:
 
 def _seeds_table(options: BenchOptions) -> BenchTable:
     """The MP4 target over several seeds: each scene's crf-12 copy against its original's analysis."""
-    from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
-    from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
-    from skinstretch.experiments.evaluation.trajectory_agreement import trajectory_agreement  # noqa: PLC0415
     from skinstretch.experiments.frame_import import import_frames  # noqa: PLC0415
-    from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
-    from skinstretch.simulators.scene import simulate_to_file  # noqa: PLC0415
 
     seeds = range(3 if options.quick else 5)
     rows = []
@@ -135,18 +154,11 @@ def _seeds_table(options: BenchOptions) -> BenchTable:
         means, p99s = [], []
         for seed in seeds:
             d = options.workdir / "import" / f"{scene}-seed{seed}"
-            shutil.rmtree(d, ignore_errors=True)
-            d.mkdir(parents=True)
-            original = simulate_to_file(scene, d / "original.h5", n_frames=_FRAMES, seed=seed)
-            with open_session(original) as s:
-                frames, fps, ppm = s.read_frames(), s.camera_mode.fps, s.calibration.px_per_mm
-            analyze_session(original, d / "original-analysis")
-            copy = write_video(d / "copy-crf12.mp4", frames, codec="libx264", pix_fmt="yuv420p",
-                               rate=int(round(fps)), options={"crf": "12"})
-            imported = import_frames(copy, d / "imported.h5", px_per_mm=ppm)
-            analyze_session(imported.path, d / "imported-analysis")
-            a = trajectory_agreement(vars(read_results(d / "original-analysis").trajectories.dense()),
-                                     vars(read_results(d / "imported-analysis").trajectories.dense()))
+            o = _original(d, scene, seed)
+            copy = write_video(d / "copy-crf12.mp4", o.frames, codec="libx264", pix_fmt="yuv420p",
+                               rate=int(round(o.fps)), options={"crf": "12"})
+            a = _agreement(o, import_frames(copy, d / "imported.h5", px_per_mm=o.px_per_mm).path,
+                           d / "imported-analysis")
             means.append(a.mean_px)
             p99s.append(a.p99_px)
             shutil.rmtree(d, ignore_errors=True)
