@@ -22,10 +22,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from skinstretch.experiments.bench import BenchOptions, BenchTable
+
+if TYPE_CHECKING:
+    from skinstretch.experiments.evaluation.trajectory_agreement import TrajectoryAgreement
 
 SECTION = "import"
 DESCRIPTION = "import of AVI/MP4/TIFF/PNG copies of a simulated session: trajectories vs the original; memory of a 2 GB video"
@@ -90,6 +94,7 @@ class _Original:
 
 
 def _original(d: Path, scene: str, seed: int) -> _Original:
+    """Scene ``scene`` simulated with ``seed`` into a fresh ``d``, and analysed."""
     from skinstretch.drivers.session_file import open_session  # noqa: PLC0415
     from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
     from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
@@ -104,7 +109,7 @@ def _original(d: Path, scene: str, seed: int) -> _Original:
     return _Original(frames, fps, ppm, vars(read_results(d / "original-analysis").trajectories.dense()))
 
 
-def _agreement(original: _Original, session: Path, out: Path):
+def _agreement(original: _Original, session: Path, out: Path) -> TrajectoryAgreement:
     """The imported ``session`` analysed into ``out``, its trajectories against the original's."""
     from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
     from skinstretch.experiments.evaluation.trajectory_agreement import trajectory_agreement  # noqa: PLC0415
