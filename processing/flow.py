@@ -66,8 +66,9 @@ class FlowParams:
         its border under a large shift plus 2 % strain.
     window_px : int or None
         The window side in pixels (odd, >= 7), overriding ``window_mm`` when given (None: from ``window_mm``).
-    pyramid_levels : int
-        Pyramid levels above full resolution for the first registration.
+    pyramid_levels : int or None
+        Pyramid levels above full resolution for the first registration; None: as many as keep a ridge period at
+        least 6 px long on the top level (:meth:`Calibration.resolvable_halvings`: 2 at 62 px/mm, 0 at 20 px/mm).
     min_contrast : float
         Minimum local grey-level standard deviation for a node to count as in contact (FTIR: no contact = no
         ridges = flat bright image).
@@ -119,7 +120,7 @@ class FlowParams:
     grid_step_mm: float = Field(0.2, gt=0)
     window_mm: float = Field(0.8, gt=0)
     window_px: int | None = Field(None, ge=7)
-    pyramid_levels: int = Field(2, ge=0, le=5)
+    pyramid_levels: int | None = Field(None, ge=0, le=5)
     min_contrast: float = Field(8.0, ge=0)
     smoothness: float = Field(1.5, ge=0)
     refine_iterations: int = Field(3, ge=1)
@@ -282,7 +283,11 @@ class DenseFlow:
         self._win = window_px(self.params, calibration)
         # The grid is never coarser than a quarter of the window (0.2 mm for the default 0.8 mm window).
         self._step = max(2, min(calibration.px_int(self.params.grid_step_mm), int(round(self._win / 4))))
-        self._estimator = GlobalMotionEstimator()
+        # Coarse levels and the global estimate keep the ridges resolvable at any pixel scale (aliased ridges lock
+        # the affine start onto a wrong ridge: a print at 20 px/mm moved by tens of pixels).
+        self._levels = (calibration.resolvable_halvings(5) if self.params.pyramid_levels is None
+                        else int(self.params.pyramid_levels))
+        self._estimator = GlobalMotionEstimator(downsample=calibration.resolvable_reduction(2))
 
     @property
     def window_px(self) -> int:
@@ -456,7 +461,7 @@ class DenseFlow:
             # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
             norm = local_normalize(image, sigma_px=self.calibration.px(self.params.normalize_sigma_mm))
         pyramid = [norm.astype(np.float32)]
-        for _ in range(int(self.params.pyramid_levels)):
+        for _ in range(self._levels):
             pyramid.append(cv2.pyrDown(pyramid[-1]))
         return _Prepared(image, pyramid, nodes)
 
@@ -484,7 +489,7 @@ class DenseFlow:
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
                              shift, 0, "no contact", ("no contact", ""))
         pa, pb = fa.pyramid, fb.pyramid
-        top = int(self.params.pyramid_levels)
+        top = self._levels
         affine = None if initial is not None else _affine_init(pa[top], pb[top], shift / 2.0**top)
         if initial is not None:
             # Start from the given field; its invalid nodes from the affine fitted to its valid ones.
