@@ -66,6 +66,7 @@ class PairStatus(IntEnum):
     TOO_FEW_POINTS = 2  # fewer than 3 distinct matched points
     COLLINEAR = 3  # the matched points are collinear
     NO_USABLE_TRIANGLE = 4  # every triangle too thin or too long
+    DOUBTED = 5  # measured, but a self-check failed (the reason says which): not a number to trust
 
     @property
     def key(self) -> str:
@@ -76,16 +77,18 @@ PAIR_DTYPE = np.dtype(
     [("frame_a", np.int32), ("frame_b", np.int32), ("n_points", np.int32), ("status", np.int8), ("reason", "S96")]
 )
 MOTION_DTYPE = np.dtype(
-    [("pair", np.int32), ("id", np.int64), ("x", np.float64), ("y", np.float64), ("dx", np.float64), ("dy", np.float64)]
+    [("pair", np.int32), ("id", np.int64), ("x", np.float64), ("y", np.float64), ("dx", np.float64), ("dy", np.float64),
+     ("sigma", np.float64), ("match", np.float64)]
 )
 EDGE_DTYPE = np.dtype(
     [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("xa", np.float64), ("ya", np.float64),
-     ("xb", np.float64), ("yb", np.float64), ("length", np.float64), ("change", np.float64)]
+     ("xb", np.float64), ("yb", np.float64), ("length", np.float64), ("change", np.float64),
+     ("change_sigma", np.float64)]
 )
 TRIANGLE_DTYPE = np.dtype(
     [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("id_c", np.int64), ("x0", np.float64),
      ("y0", np.float64), ("x1", np.float64), ("y1", np.float64), ("x2", np.float64), ("y2", np.float64),
-     ("area", np.float64), ("change", np.float64), ("flipped", np.bool_)]
+     ("area", np.float64), ("change", np.float64), ("flipped", np.bool_), ("change_sigma", np.float64)]
 )
 #: One row per kept trajectory.
 TRACK_DTYPE = np.dtype([("track", np.int64), ("kind", np.int8), ("n_frames", np.int32), ("first_frame", np.int32),
@@ -109,8 +112,11 @@ RESULTS_DATASETS: dict[str, DatasetInfo] = {
     "frame_flags": DatasetInfo(TEXT, ("frame",), "empty, or why a frame gave nothing (all_black, saturated, "
                                                  "no_finger, no contact)"),
     "motion_pairs": _PAIRS,
-    "motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX), ("row",),
-                          "every displacement measured between consecutive frames: point in frame a, to frame b"),
+    "motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX, sigma=PX, match=ONE), ("row",),
+                          "every displacement measured between consecutive frames: point in frame a, to frame b, "
+                          "its predicted standard error per axis (inf, no bound, where its windows do not match or "
+                          "do not fit in the image) and its windows' match after the motion (1 identical, 0 "
+                          "unrelated or no window)"),
     "fingertip/displacement": DatasetInfo(PX, ("pair", "component"), "mean displacement per consecutive pair; 0 "
                                           "where not valid", _DXY),
     "fingertip/n_points": DatasetInfo(ONE, ("pair",), "displacements averaged"),
@@ -144,12 +150,15 @@ RESULTS_DATASETS: dict[str, DatasetInfo] = {
     "flow/valid": DatasetInfo(ONE, ("pair", "grid_y", "grid_x"), "node in contact and registered (bool)"),
     "strain/span_<s>/pairs": _PAIRS,
     "strain/span_<s>/edges": DatasetInfo(
-        _table_units(pair=ONE, id_a=ONE, id_b=ONE, xa=PX, ya=PX, xb=PX, yb=PX, length=PX, change=ONE), ("row",),
-        "Delaunay edges of every pair: endpoints in frame a, length, change L_b/L_a - 1 (a fraction)"),
+        _table_units(pair=ONE, id_a=ONE, id_b=ONE, xa=PX, ya=PX, xb=PX, yb=PX, length=PX, change=ONE,
+                     change_sigma=ONE), ("row",),
+        "Delaunay edges of every pair: endpoints in frame a, length, change L_b/L_a - 1 (a fraction) and its "
+        "standard error (inf where an endpoint's is)"),
     "strain/span_<s>/triangles": DatasetInfo(
         _table_units(pair=ONE, id_a=ONE, id_b=ONE, id_c=ONE, x0=PX, y0=PX, x1=PX, y1=PX, x2=PX, y2=PX, area=PX2,
-                     change=ONE, flipped=ONE), ("row",),
-        "Delaunay triangles of every pair: corners in frame a, area, change A_b/A_a - 1 (a fraction), flipped"),
+                     change=ONE, flipped=ONE, change_sigma=ONE), ("row",),
+        "Delaunay triangles of every pair: corners in frame a, area, change A_b/A_a - 1 (a fraction), flipped, "
+        "the change's standard error (inf where a corner's is)"),
 }
 
 

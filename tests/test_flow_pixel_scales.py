@@ -2,44 +2,26 @@
 white or black background: its coarse levels keep the ridges resolvable (a 20 px/mm print was read tens of pixels
 wrong when the pyramid halved the 8.5 px ridge period twice)."""
 
-import cv2
 import numpy as np
 import pytest
 
 from skinstretch.processing.flow import DenseFlow
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.simulators.prints import print_path
+from tests.print_clips import print_frame, print_image, true_x
 
 SHAPE = (240, 320)
-NATIVE_PX_PER_MM = 500 / 25.4
-
-
-def _frame(print_image, px_per_mm, background, *, shift_x, stretch, rng):
-    """The print resampled to ``px_per_mm`` and centred, its skin moved by ``shift_x`` px and stretched along x by
-    ``stretch`` about the frame's centre; 2 grey levels of noise."""
-    h, w = SHAPE
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    scale = px_per_mm / NATIVE_PX_PER_MM
-    qx = (xx - w / 2 - shift_x) / (1 + stretch)
-    qy = yy - h / 2
-    ph, pw = print_image.shape
-    mx = (qx / scale + pw / 2).astype(np.float32)
-    my = (qy / scale + ph / 2).astype(np.float32)
-    img = cv2.remap(print_image, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=background)
-    return np.clip(np.round(img + rng.normal(0, 2, img.shape)), 0, 255).astype(np.uint8)
 
 
 @pytest.mark.parametrize("px_per_mm", [15.0, 19.7, 40.0, 100.0])
 @pytest.mark.parametrize("background", [255.0, 0.0])
 def test_flow_on_a_real_print_at_any_scale_and_background(px_per_mm, background):
-    image = cv2.imread(str(print_path("afis_p1_2")), cv2.IMREAD_GRAYSCALE).astype(np.float32)
-    rng = np.random.default_rng(4)
-    a = _frame(image, px_per_mm, background, shift_x=0.0, stretch=0.0, rng=rng)
-    b = _frame(image, px_per_mm, background, shift_x=0.5, stretch=0.0005, rng=rng)
+    shape = SHAPE if px_per_mm < 62 else (484, 640)  # at 100 px/mm a 320 px frame holds 2 mm² of print: too little
+    image = print_image()
+    a, b = (print_frame(image, k, px_per_mm=px_per_mm, background=background, shape=shape) for k in (0, 1))
     flow = DenseFlow(calibration=Calibration(px_per_mm=px_per_mm)).compute(a, b)
     assert flow.status == "ok" and flow.valid.sum() > 50
     X, _ = np.meshgrid(flow.grid_x, flow.grid_y)
-    true_dx = 0.5 + 0.0005 * (X - SHAPE[1] / 2)
+    true_dx = true_x(X, 1, width=shape[1], slide_px=0.5, stretch=0.0005) - X
     err = np.hypot(flow.displacement[..., 0] - true_dx, flow.displacement[..., 1])[flow.valid]
     assert np.sqrt(np.mean(err**2)) < 0.05
 

@@ -72,7 +72,7 @@ from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_feature
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
-from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.span_registration import SampleUncertainty, SpanFrames, SpanRegistration
 from skinstretch.processing.trajectory_anchoring import (
     GLASS_SMOOTHING_KEY_FRAMES,
     SHAPE_SMOOTHING_KEY_FRAMES,
@@ -84,6 +84,9 @@ __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface
 
 log = logging.getLogger(__name__)
 
+#: A displacement whose median predicted standard error exceeds this (px) is warned about: beyond the accuracy the
+#: measurement is for (the bench's displacement target).
+MEANINGFUL_SIGMA_PX = 0.05
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
 #: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
@@ -105,6 +108,8 @@ class _StrainTables:
         self.ok: dict[int, int] = {int(s): 0 for s in spans}
         self.edge_change = {int(s): stack.enter_context(StreamedPercentiles(scratch_dir=writer.scratch_dir))
                             for s in spans}
+        self.change_sigma = {int(s): _SigmaSpread(writer, stack) for s in spans}
+        self.doubted = {int(s): _Doubts() for s in spans}
 
     def add(self, span: int, sample: MotionSample) -> None:
         buf = self.buffers[span]
@@ -140,6 +145,8 @@ class _StrainTables:
         self.writer.file[g].attrs["span"] = span
         self.ok[span] += int(np.sum(s.pairs["status"] == PairStatus.OK))
         self.edge_change[span].add(s.edges["change"])
+        self.change_sigma[span].add(s.edges["change_sigma"])
+        self.doubted[span].add(s.pairs)
 
     def finish(self) -> None:
         for span in self.buffers:
@@ -154,13 +161,57 @@ class _StrainTables:
                 self.writer.file[g].attrs["span"] = span
 
 
+class _SigmaSpread:
+    """The standard errors of a table, streamed: median and 95th percentile of the finite ones, and how many are
+    infinite (no bound: windows that do not match after the motion, or no window)."""
+
+    def __init__(self, writer: ResultsWriter, stack: ExitStack) -> None:
+        self.values = stack.enter_context(StreamedPercentiles(scratch_dir=writer.scratch_dir))
+        self.unbounded = 0
+
+    def add(self, sigma: np.ndarray) -> None:
+        self.values.add(sigma[np.isfinite(sigma)])
+        self.unbounded += int(np.count_nonzero(np.isposinf(sigma)))
+
+    def to_dict(self) -> dict[str, float] | None:
+        if not self.values.count:
+            return None
+        median, p95 = self.values.percentiles([50, 95])
+        return {"median": median, "p95": p95, "unbounded": self.unbounded}
+
+
+class _Doubts:
+    """The pairs a self-check doubted (PairStatus.DOUBTED): how many, and the first one's frames and reason."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: tuple[int, int, str] | None = None
+
+    def add(self, pairs: np.ndarray) -> None:
+        doubted = pairs[pairs["status"] == PairStatus.DOUBTED]
+        if doubted.size and self.first is None:
+            p = doubted[0]
+            self.first = (int(p["frame_a"]), int(p["frame_b"]), p["reason"].decode(errors="replace"))
+        self.count += int(doubted.size)
+
+    def describe(self, total: int, what: str) -> str | None:
+        """One warning line, or None when no pair was doubted."""
+        if not self.count or self.first is None:
+            return None
+        a, b, reason = self.first
+        return (f"{self.count} of {total} {what} failed a self-check and are not reported as ok (first: frames "
+                f"{a}-{b}: {reason})")
+
+
 class _MotionTable:
     """The consecutive pairs' motion, written a batch of pairs at a time."""
 
-    def __init__(self, writer: ResultsWriter) -> None:
+    def __init__(self, writer: ResultsWriter, stack: ExitStack) -> None:
         self.writer = writer
         self.block: list[MotionSample] = []
         self.written = 0
+        self.sigma = _SigmaSpread(writer, stack)
+        self.doubted = _Doubts()
 
     def add(self, sample: MotionSample) -> None:
         self.block.append(sample)
@@ -172,6 +223,8 @@ class _MotionTable:
             pairs, rows = motion_rows(self.block, first_pair=self.written)
             self.writer.append("motion_pairs", pairs)
             self.writer.append("motion", rows)
+            self.sigma.add(rows["sigma"])
+            self.doubted.add(pairs)
             self.written += len(self.block)
             self.block = []
 
@@ -186,11 +239,14 @@ def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
 
 def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
                              motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float,
-                             span_registration: SpanRegistration | None = None, threads: int = 1) -> None:
+                             span_registration: SpanRegistration | None = None, threads: int = 1,
+                             uncertainty: SampleUncertainty | None = None) -> None:
     """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
     them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built. With
     ``span_registration``, a longer span's chained motion is refined by registering its two frames (in image
-    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads."""
+    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads; ``uncertainty``
+    gives every point of every span its predicted standard error."""
+    measured = uncertainty if uncertainty is not None else (lambda sample: sample)
     longest = max(spans)
     kinds = store.kinds
     carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need (image pixels)
@@ -208,7 +264,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
         for k0 in range(first, last + 1, SPAN_REGISTRATION_BATCH):
             longer = []  # (span, chained motion) of this batch of pairs, registered together
             for k in range(k0, min(last + 1, k0 + SPAN_REGISTRATION_BATCH)):
-                s = rectified_sample(tr.motion(k, k + 1), mapping, px_per_mm)
+                s = rectified_sample(measured(tr.motion(k, k + 1)), mapping, px_per_mm)
                 motion.add(s)
                 for span in spans:
                     if span == 1:
@@ -219,7 +275,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
                 refined = span_registration.refine_all([c for _, c in longer], threads=threads)
                 longer = [(span, r) for (span, _), r in zip(longer, refined)]
             for span, chained in longer:
-                strain.add(span, rectified_sample(chained, mapping, px_per_mm))
+                strain.add(span, rectified_sample(measured(chained), mapping, px_per_mm))
         first = max(first, last + 1)
         carry = tr.rows[tr.rows["frame"] >= first]
     motion.flush()
@@ -287,7 +343,7 @@ def analyze(
         writer = stack.enter_context(ResultsWriter(results_path))
         flags = [""] * n
         strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
-        motion = _MotionTable(writer)
+        motion = _MotionTable(writer, stack)
 
         if method == "features":
             n_features = 0
@@ -313,18 +369,20 @@ def analyze(
             # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
             span_registration = None
             on_glass = plain_glass(shading, surface)
+            refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
+            frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
             if params.subpixel is not None and (on_glass or shading is not None):
-                refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
                 every = params.tracking.keyframe_interval_frames
                 if every is not None:
                     store.anchor(KeyframeAnchoring(
                         refiner, reader, interval=every, reference_span=params.tracking.keyframe_reference_frames,
                         smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES))
                 if on_glass:
-                    span_registration = SpanRegistration(refiner, reader)
+                    span_registration = SpanRegistration(refiner, reader, frames=frames)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
                                      px_per_mm=calibration.px_per_mm, span_registration=span_registration,
-                                     threads=1 if params.execution.kind == "serial" else params.execution.workers)
+                                     threads=1 if params.execution.kind == "serial" else params.execution.workers,
+                                     uncertainty=SampleUncertainty(refiner, frames))
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
             timing, parallel = dict(m.timing), m.parallel
@@ -396,7 +454,10 @@ def analyze(
         }
         writer.file.attrs.update(attrs)
         summary = summarize(writer, d, strain, n_frames=n, results_path=results_path, session_path=session_path,
-                            method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes)
+                            method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes,
+                            motion=motion)
+        for warning in summary["warnings"][1 if summary["density"].get("too_sparse") else 0:]:
+            log.warning("%s", warning)  # (the density's was logged where it was found)
         attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
         return writer.finish(attrs)
 
@@ -424,11 +485,28 @@ def _append_movie(w: ResultsWriter, movie: TactileMovie) -> None:
     w.append_array("tactile_movie/stretch_change", movie.stretch_change)
 
 
+def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str, Any],
+              density: dict[str, Any]) -> list[str]:
+    """The lines a user must read before trusting the numbers: a mesh too sparse to map strain (logged where it is
+    found), pairs a self-check doubted, and a predicted error beyond what the measurement is for (the bench's
+    displacement target)."""
+    out = [density.get("warning") if density.get("too_sparse") else None,
+           motion.doubted.describe(motion.written, "consecutive frame pairs")]
+    out += [strain.doubted[span].describe(strain.done[span], f"{span}-frame spans")
+            for span in strain.buffers if span > 1]
+    disp = uncertainty.get("displacement_sigma_px")
+    if disp is not None and not disp["median"] <= MEANINGFUL_SIGMA_PX:
+        out.append(f"the displacements' predicted error is {disp['median']:.3g} px (median standard error), above "
+                   f"{MEANINGFUL_SIGMA_PX} px: the frames' texture or noise limit this measurement")
+    return [w for w in out if w]
+
+
 def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
               session_path: str, method: str, timing: dict, shading_status: str, flags: list[str],
-              notes: list[str] = ()) -> dict[str, Any]:
+              notes: list[str] = (), motion: _MotionTable | None = None) -> dict[str, Any]:
     """The small JSON summary written next to the results (and into them); ``notes``: what the clip's length changed
-    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in."""
+    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in; ``warnings``:
+    what a user must read before trusting the numbers (self-checks failed, a large predicted error)."""
     f = writer.file
     out: dict[str, Any] = {
         "results": str(results_path) if results_path is not None else "(in memory)",
@@ -453,15 +531,22 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
     out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
                                   spans=list(strain.buffers), max_edge_px=strain.max_edge_px,
                                   window=out["min_track_frames"]).to_dict()
+    uncertainty: dict[str, Any] = {}
+    if motion is not None:
+        uncertainty["displacement_sigma_px"] = motion.sigma.to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
         changes = strain.edge_change[span]
         out[f"strain_span_{span}"] = {
             "pairs": int(g["pairs"].shape[0]),
             "pairs_ok": strain.ok[span],
+            "pairs_doubted": strain.doubted[span].count,
             "edges": int(g["edges"].shape[0]),
             "edge_change_p5_p95": changes.percentiles([5, 95]) if changes.count else None,
         }
+        uncertainty[f"edge_change_sigma_span_{span}"] = strain.change_sigma[span].to_dict()
+    out["uncertainty"] = uncertainty
+    out["warnings"] = _warnings(motion, strain, uncertainty, out["density"]) if motion is not None else []
     return out
 
 
