@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from skinstretch.experiments.provenance import software_versions
 from skinstretch.drivers.session_file import open_session
 from skinstretch.processing.errors import SkinstretchError
 from skinstretch.experiments.figures import chapter6 as fig6
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Quantity", "TrialEntry", "build_report", "collect_trials", "evaluation_quantities", "report_trials",
            "trial_figures", "viewer_command"]
@@ -112,11 +115,16 @@ def _img(fig, caption: str) -> str:
 
 
 def _guard(what: str, fn: Callable[[], str]) -> str:
-    """Run one report part; a failure becomes a visible note naming the part and the reason."""
+    """Run one report part; one that cannot be drawn (nothing to show) becomes a visible note naming the part and
+    why; a fault of ours is logged with its traceback and named as such, never shown as the figure."""
     try:
         return fn()
-    except (SkinstretchError, ValueError, KeyError, IndexError, OSError) as exc:
-        return f'<p class="warn">{_esc(what)}: not available ({_esc(type(exc).__name__)}: {_esc(exc)})</p>'
+    except (SkinstretchError, ValueError, KeyError) as exc:
+        reason = str(exc).strip("'")  # a KeyError quotes its text
+        return f'<p class="warn">{_esc(what)}: not shown: {_esc(reason)}</p>'
+    except (IndexError, OSError):
+        log.exception("report part %r could not be drawn", what)
+        return f'<p class="warn">{_esc(what)}: not shown: it could not be drawn (the log has the details)</p>'
 
 
 _CSS = """
@@ -258,7 +266,7 @@ def _triangulated_pairs(r, span: int):
         raise KeyError(f"no strain at span {span}")
     ok = np.nonzero(s.ok)[0]
     if ok.size == 0:
-        raise ValueError(f"no frame pair at span {span} gave a triangulation")
+        raise ValueError(f"no frame pair at span {span} gave a triangulation the self-checks trust")
     return s, ok
 
 
@@ -350,6 +358,17 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
             e = st.edges["change"]
             summary.append(Quantity(f"edge length change p5 / p95, span {span}",
                                     (np.percentile(e, [5, 95]) * 100).tolist() if e.size else "none", "%"))
+        for name, spread in (r.summary.get("uncertainty") or {}).items():
+            if spread:  # each measurement's predicted standard error (median / 95th percentile)
+                percent = name.startswith("edge_change")
+                summary.append(Quantity(name.replace("_", " ") + " (median / p95)",
+                                        [spread["median"] * (100 if percent else 1),
+                                         spread["p95"] * (100 if percent else 1)], "%" if percent else "px"))
+        warnings = r.summary.get("warnings") or []
+        info["warnings"] = list(warnings)
+        if warnings:  # the self-checks that failed: read before any number below
+            parts.append('<div class="warn"><strong>Warnings</strong><ul>'
+                         + "".join(f"<li>{_esc(w)}</li>" for w in warnings) + "</ul></div>")
         parts.append("<h3>Analysis</h3>" + _quantity_table(summary))
         notes = r.summary.get("notes") or []
         if notes:  # what the analysis said about the whole clip: the caveats of every number below
@@ -485,6 +504,10 @@ def build_report(
             rows, ["trial", *(label for _, label in _SUMMARY_KEYS)]))
     overview = [(i["name"], i.get("surface", "?"), i.get("scene", ""), "yes" if "results" in i else "no") for i in infos]
     body.insert(0, "<h2>Trials</h2>" + _table(overview, ["trial", "surface", "scene", "analysed"]))
+    warned = [(i["name"], w) for i in infos for w in i.get("warnings", ())]
+    if warned:  # at the top: a number a self-check doubts is never read as ok
+        body.insert(0, '<div class="warn"><h2>Warnings</h2><ul>'
+                    + "".join(f"<li>{_esc(n)}: {_esc(w)}</li>" for n, w in warned) + "</ul></div>")
     movies = [i for i in infos if "movie" in i]
     if movies:
         pick = next((i for i in movies if i.get("surface") == "ridge"), movies[0])

@@ -116,6 +116,7 @@ class FrameOverlays:
     strain_scale: float  # fraction; the colour scale runs from -strain_scale to +strain_scale
     notes: list[str] = field(default_factory=list)
     arrow_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # track (or grid node) per arrow
+    arrow_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))  # predicted standard error per arrow, px
     exposure_time: float | None = None  # host time stamp (s, Unix) of the frame (live view latency)
     analysed_time: float | None = None
     _json: bytes | None = field(default=None, init=False, repr=False, compare=False)
@@ -154,6 +155,7 @@ class FrameOverlays:
             "matches": _round(self.matches, 2),
             "arrows": _round(self.arrows, 3),
             "arrow_ids": _ints(self.arrow_ids),
+            "arrow_sigma": _round(np.nan_to_num(self.arrow_sigma, nan=-1.0, posinf=1e9), 4),  # -1 none, 1e9 inf
             "tails": [_round(t, 1) for t in self.tails],
             "mesh": mesh,
             "outline": _round(self.outline, 1),
@@ -322,6 +324,7 @@ class ResultsIndex:
     has_tactile: bool
     window: dict[str, Any]
     notes: list[str]  # what the analysis said about the whole clip (its summary's notes)
+    warnings: list[str]  # the summary's warnings: self-checks that failed, a large predicted error
     _features: np.ndarray | None
     _features_by_frame: _PerFrame | None
     _feature_track: np.ndarray | None  # feature row -> track
@@ -347,6 +350,7 @@ class ResultsIndex:
             "has_tactile": self.has_tactile,
             "window": self.window,
             "notes": list(self.notes),
+            "warnings": list(self.warnings),
         }
 
     # -- one frame
@@ -359,7 +363,7 @@ class ResultsIndex:
                                   strain_scale=self.strain_scale.get(span, 0.02))
         features = self._frame_features(k)
         matches, tails = self._matches_and_tails(k)
-        arrows, arrow_ids = self._arrows(k)
+        arrows, arrow_ids, arrow_sigma = self._arrows(k)
         if k == 0:
             notes.append("frame 0: no previous frame, so no matches, displacements or strain")
         mesh = self._mesh(k, span)
@@ -381,7 +385,7 @@ class ResultsIndex:
             tactile_reset=tm[1][k] if tm is not None else None,
             tactile_clipped=tm[2][k] if tm is not None else None,
             truth=truth_marks(truth, k), strain_scale=self.strain_scale.get(span, 0.02), notes=notes,
-            arrow_ids=arrow_ids,
+            arrow_ids=arrow_ids, arrow_sigma=arrow_sigma,
         )
 
     def _frame_features(self, k: int) -> FeatureMarks:
@@ -414,12 +418,13 @@ class ResultsIndex:
                     tails.append(np.column_stack([xs[ok, j], ys[ok, j]]))
         return matches, tails
 
-    def _arrows(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def _arrows(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if k == 0:
-            return np.zeros((0, 4)), np.zeros(0, np.int64)
+            return np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0)
         m = self._motion[self._motion_by_pair.rows(k - 1)]
         xy = np.column_stack([m["x"] + m["dx"], m["y"] + m["dy"], m["dx"], m["dy"]]).astype(np.float64)
-        return xy, m["id"].astype(np.int64)
+        sigma = m["sigma"] if "sigma" in (m.dtype.names or ()) else np.full(m.shape[0], np.nan)
+        return xy, m["id"].astype(np.int64), np.asarray(sigma, np.float64)
 
     def _mesh(self, k: int, span: int) -> Mesh | None:
         if span not in self._triangles or k < span:
@@ -510,6 +515,7 @@ def load_results_index(path: Path) -> ResultsIndex:
         path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
         strain_scale=scale, motion_axis=r.profile_axis_index, has_tactile=tactile is not None, window=dict(r.window),
         notes=[str(n) for n in (r.summary.get("notes") or [])],
+        warnings=[str(w) for w in (r.summary.get("warnings") or [])],
         _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
         _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
         _motion_by_pair=_PerFrame.build(r.motion["pair"], max(n - 1, 0)), _triangles=triangles,

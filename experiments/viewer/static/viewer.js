@@ -22,7 +22,7 @@ const S = {
   info: null, sid: 0, n: 0, k: 0, span: 1, scale: 1, playing: false, follow: false,
   overlays: new Map(), images: new Map(), current: null, pinned: null, hover: null,
   on: { features: true, matches: false, tails: true, mesh: true, arrows: false, outline: true, window: true },
-  busy: false, pendingFrame: null, direction: 1,
+  busy: false, pendingFrame: null, direction: 1, maxSigma: 0,
 };
 // Measurements the browser tests and the live bench read: per shown frame, how long it took and, for a live
 // frame, its exposure time (host clock, s) and when it was on screen (same clock: Date.now()).
@@ -69,6 +69,7 @@ async function loadInfo() {
   S.span = spans.includes(S.span) ? S.span : spans[0];
   $("span").value = String(S.span);
   showAnalysisNotes(info.results ? info.results.notes : []);
+  showAnalysisWarnings(info.results ? info.results.warnings : []);
   buildLegend();
   setStatus(info);
   S.follow = info.status === "recording" || info.follows_directory;
@@ -94,6 +95,29 @@ function showAnalysisNotes(notes) {
     ul.appendChild(li);
   }
   box.append(title, ul);
+}
+
+// The self-checks that failed (pairs not reported as ok, a large predicted error): above the frame, in red.
+function showAnalysisWarnings(warnings) {
+  const box = $("analysis-warnings");
+  box.innerHTML = "";
+  box.hidden = !warnings || warnings.length === 0;
+  if (box.hidden) return;
+  const title = document.createElement("strong");
+  title.textContent = "Warnings";
+  const ul = document.createElement("ul");
+  for (const w of warnings) {
+    const li = document.createElement("li");
+    li.textContent = w;
+    ul.appendChild(li);
+  }
+  box.append(title, ul);
+}
+
+// An arrow is drawn when its predicted standard error is known and within the chosen limit (none: every arrow).
+function arrowShown(ov, i) {
+  const s = ov.arrow_sigma ? ov.arrow_sigma[i] : -1;
+  return !(S.maxSigma > 0) || (s >= 0 && s <= S.maxSigma);
 }
 
 function setStatus(st) {
@@ -242,7 +266,9 @@ function draw() {
     ctx.strokeStyle = "#7CFC00"; ctx.lineWidth = 1.4 * lw;
     ctx.beginPath();
     // From the feature onwards, in the direction it moved (its tail lies behind it: the two do not overlap).
-    for (const [x, y, dx, dy] of ov.arrows) arrow(x, y, x + ARROW_GAIN * dx, y + ARROW_GAIN * dy, 4 * lw);
+    ov.arrows.forEach(([x, y, dx, dy], i) => {
+      if (arrowShown(ov, i)) arrow(x, y, x + ARROW_GAIN * dx, y + ARROW_GAIN * dy, 4 * lw);
+    });
     ctx.stroke();
   }
   if (S.on.features) {
@@ -452,7 +478,12 @@ function updateReadout() {
     lines.push(`  x ${f.x[i].toFixed(2)} px, y ${f.y[i].toFixed(2)} px; quality ${f.quality[i].toFixed(2)}`);
     const a = ov.arrow_ids.indexOf(f.track[i]);
     const meas = a >= 0 ? ov.arrows[a] : null;
-    if (meas) lines.push(`  displacement from the previous frame: dx ${meas[2].toFixed(3)}, dy ${meas[3].toFixed(3)} px`);
+    if (meas) {
+      const sg = ov.arrow_sigma ? ov.arrow_sigma[a] : -1;
+      const sigma = sg < 0 ? "not estimated" : sg >= 1e9 ? "unbounded (its windows do not match)" : `${sg.toFixed(3)} px`;
+      lines.push(`  displacement from the previous frame: dx ${meas[2].toFixed(3)}, dy ${meas[3].toFixed(3)} px; ` +
+        `standard error ${sigma}`);
+    }
     if (ov.truth) {
       const t = ov.truth, r2 = (0.1 * mm) ** 2;
       let tb = -1, td = r2;
@@ -525,6 +556,7 @@ $("next").addEventListener("click", () => step(1));
 $("slider").addEventListener("input", (e) => { setPlaying(false); setFollow(false); showFrame(Number(e.target.value)); });
 $("follow").addEventListener("change", (e) => setFollow(e.target.checked));
 $("span").addEventListener("change", (e) => { S.span = Number(e.target.value); showFrame(S.k); });
+$("max-sigma").addEventListener("input", (e) => { S.maxSigma = Number(e.target.value) || 0; if (S.current) draw(); });
 view.addEventListener("mousemove", (ev) => {
   const [x, y] = canvasPoint(ev);
   S.hover = hitTest(x, y);
