@@ -27,9 +27,13 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from skinstretch.experiments.bench import BenchOptions, BenchTable
 from skinstretch.simulators.moved_print import ClipConditions, PrintMotion, TravellingBand
+
+if TYPE_CHECKING:
+    from skinstretch.experiments.evaluation.field_scores import FieldScores
 
 SECTION = "conditions"
 DESCRIPTION = ("a real print moved by a known field at 15-100 px/mm, on any background, through import and analyze "
@@ -112,7 +116,7 @@ class ConditionRow:
     condition: str
     method: str
     surface: str | None
-    scores: object  # FieldScores
+    scores: FieldScores
     cpu_ms_per_frame: float
     verdict: str
 
@@ -177,6 +181,7 @@ def analyse_and_score(c: Condition, imported, clip, method: str, directory: Path
     import psutil  # noqa: PLC0415
 
     from skinstretch.experiments.analysis import analysis_params, analyze_session, make_executor  # noqa: PLC0415
+    from skinstretch.experiments.analysis.executor import WorkerProcesses  # noqa: PLC0415
     from skinstretch.experiments.evaluation.field_scores import score_results, verdict  # noqa: PLC0415
 
     params = analysis_params({})
@@ -185,7 +190,7 @@ def analyse_and_score(c: Condition, imported, clip, method: str, directory: Path
         c0 = time.process_time()
         analyze_session(imported.path, out, method=method, params=params, executor=executor, overwrite=True)
         cpu = time.process_time() - c0
-        for pid in getattr(executor, "pids", list)():  # the worker processes', before they end
+        for pid in executor.pids() if isinstance(executor, WorkerProcesses) else ():  # the workers', before they end
             try:
                 t = psutil.Process(pid).cpu_times()
                 cpu += t.user + t.system
