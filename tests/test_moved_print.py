@@ -118,3 +118,19 @@ def test_the_scorer_measures_errors_and_the_coverage_of_the_reported_interval():
 ])
 def test_the_verdict_follows_the_issue(disp, strain, flagged, expected):
     assert verdict(disp, strain, flagged=flagged) == expected
+
+
+def test_the_conditions_section_is_registered_and_lists_its_rows(capsys):
+    from skinstretch.experiments.bench import conditions
+    from skinstretch.experiments.commands.bench import available_sections
+
+    assert available_sections()["conditions"] is conditions
+    names = [c.name for c in conditions.CONDITIONS]
+    assert len(set(names)) == len(names) and 0 < sum(c.quick for c in conditions.CONDITIONS) < len(names)
+    assert {c.clip.px_per_mm for c in conditions.CONDITIONS} >= {15.0, 20.0, 30.0, 40.0, 62.0, 100.0}
+    assert {c.clip.background for c in conditions.CONDITIONS} == {"white", "black", "grey"}
+    assert {c.container for c in conditions.CONDITIONS} == set(conditions.CONTAINERS)
+    assert conditions.main(["--list"]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == "base 30 px/mm  (quick)"
+    with pytest.raises(KeyError, match="no condition 'nope'"):
+        conditions.condition("nope")
