@@ -28,8 +28,8 @@ from scipy.special import erf
 
 from skinstretch.processing.errors import InvalidInputError
 
-__all__ = ["TravellingBand", "PrintMotion", "ExactField", "ClipConditions", "PrintClip", "MovingPicture", "render_print_clip",
-           "BACKGROUND_LEVELS", "PRINT_DPI_PX_PER_MM"]
+__all__ = ["TravellingBand", "PrintMotion", "ExactField", "ClipConditions", "PrintClip", "MovingPicture",
+           "render_print_clip", "BACKGROUND_LEVELS", "PRINT_DPI_PX_PER_MM"]
 
 #: Pixel scale of the shipped 500-dpi prints.
 PRINT_DPI_PX_PER_MM = 500.0 / 25.4
@@ -70,8 +70,8 @@ class ExactField:
         self.centre = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
         self.px_per_mm = float(px_per_mm)
         b = motion.band
-        if b is not None and not (b.sigma_mm > 0 and abs(b.peak_strain) < 1):
-            raise InvalidInputError(f"band must have sigma_mm > 0 and |peak_strain| < 1, got {b}")
+        if b is not None and not (b.sigma_mm > 0 and abs(b.peak_strain) < 0.5):
+            raise InvalidInputError(f"band must have sigma_mm > 0 and |peak_strain| < 0.5, got {b}")
 
     def _matrix(self, k: float) -> np.ndarray:
         m = self.motion
@@ -84,7 +84,8 @@ class ExactField:
         b = self.motion.band
         if b is None:
             return None
-        return b.peak_strain, b.sigma_mm * self.px_per_mm, self.centre[0] + (b.start_mm + k * b.speed_mm) * self.px_per_mm
+        at = self.centre[0] + (b.start_mm + k * b.speed_mm) * self.px_per_mm
+        return b.peak_strain, b.sigma_mm * self.px_per_mm, at
 
     @staticmethod
     def _band_shift(x: np.ndarray, peak: float, sigma: float, at: float) -> np.ndarray:
@@ -110,12 +111,13 @@ class ExactField:
         return p
 
     def _undo_band(self, y: np.ndarray, now, then) -> np.ndarray:
-        """The x solving x + shift_now(x) - shift_then(x) = y (Newton; the map's slope is within 1 +- 2 |peak|)."""
+        """The x solving x + shift_now(x) - shift_then(x) = y (Newton; the map's slope is within 1 +- |peak|)."""
         peak, sigma, _ = now
         x = y.copy()
         for _ in range(100):
             f = x + self._band_shift(x, *now) - self._band_shift(x, *then) - y
-            slope = 1.0 + peak * (np.exp(-0.5 * ((x - now[2]) / sigma) ** 2) - np.exp(-0.5 * ((x - then[2]) / sigma) ** 2))
+            slope = 1.0 + peak * (np.exp(-0.5 * ((x - now[2]) / sigma) ** 2)
+                                  - np.exp(-0.5 * ((x - then[2]) / sigma) ** 2))
             step = f / slope
             x -= step
             if np.max(np.abs(step), initial=0.0) < _NEWTON_TOL_PX:
