@@ -20,13 +20,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
+from pydantic import Field
 from scipy import ndimage as ndi
 from scipy.special import erf
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.validated_dataclass import (FiniteFloat, NonNegativeFloat, NonNegativeInt, PositiveFloat,
+                                                        PositiveInt, Probability, validated_dataclass)
 
 __all__ = ["TravellingBand", "PrintMotion", "ExactField", "ClipConditions", "PrintClip", "MovingPicture",
            "render_print_clip", "BACKGROUND_LEVELS", "PRINT_DPI_PX_PER_MM"]
@@ -39,26 +43,26 @@ _MID, _HALF_SWING = 128.0, 100.0  # full contrast: ridges 28, valleys 228 (or th
 _NEWTON_TOL_PX = 1e-10
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class TravellingBand:
     """A band of stretch along x, Gaussian across (``sigma_mm``), ``peak_strain`` at its centre (a fraction), centred
     ``start_mm`` right of the frame's centre in frame 0 and moving ``speed_mm`` a frame along x."""
 
-    peak_strain: float
-    sigma_mm: float
-    start_mm: float
-    speed_mm: float
+    peak_strain: Annotated[float, Field(gt=-0.5, lt=0.5)]  # the inverse's Newton steps converge
+    sigma_mm: PositiveFloat
+    start_mm: FiniteFloat
+    speed_mm: FiniteFloat
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class PrintMotion:
     """What moves the print, per frame: slide (px), stretch along x and y and shear (fractions), rotation (rad,
     counter-clockwise on the image), and an optional travelling band."""
 
-    slide_px: tuple[float, float] = (0.0, 0.0)
-    stretch: tuple[float, float] = (0.0, 0.0)
-    shear: float = 0.0
-    rotation_rad: float = 0.0
+    slide_px: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    stretch: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    shear: FiniteFloat = 0.0
+    rotation_rad: FiniteFloat = 0.0
     band: TravellingBand | None = None
 
 
@@ -69,9 +73,6 @@ class ExactField:
         self.motion = motion
         self.centre = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
         self.px_per_mm = float(px_per_mm)
-        b = motion.band
-        if b is not None and not (b.sigma_mm > 0 and abs(b.peak_strain) < 0.5):
-            raise InvalidInputError(f"band must have sigma_mm > 0 and |peak_strain| < 0.5, got {b}")
 
     def _matrix(self, k: float) -> np.ndarray:
         m = self.motion
@@ -140,7 +141,7 @@ class ExactField:
         return np.hypot(*((pb + db) - (pa + da)).T) / np.hypot(*(pb - pa).T) - 1.0
 
 
-@dataclass(frozen=True)
+@validated_dataclass
 class ClipConditions:
     """How the moved print is imaged.
 
@@ -167,24 +168,16 @@ class ClipConditions:
     """
 
     print_name: str = "afis_p1_2"
-    px_per_mm: float = 30.0
-    background: str = "white"
+    px_per_mm: PositiveFloat = 30.0
+    background: Literal["white", "black", "grey"] = "white"
     bright_ridges: bool = False
-    contrast: float = 1.0
-    vignetting: float = 0.0
-    blur_px: float = 0.0
-    noise_grey: float = 2.0
-    shape: tuple[int, int] = (484, 640)
-    n_frames: int = 40
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.background not in BACKGROUND_LEVELS:
-            raise InvalidInputError(f"background must be one of {sorted(BACKGROUND_LEVELS)}, got {self.background!r}")
-        if not (0 < self.contrast <= 1 and 0 <= self.vignetting < 1 and self.blur_px >= 0 and self.noise_grey >= 0):
-            raise InvalidInputError(f"contrast in (0, 1], vignetting in [0, 1), blur and noise >= 0, got {self}")
-        if not (self.px_per_mm > 0 and self.n_frames >= 2):
-            raise InvalidInputError(f"px_per_mm must be > 0 and n_frames >= 2, got {self.px_per_mm}, {self.n_frames}")
+    contrast: Annotated[float, Field(gt=0, le=1)] = 1.0
+    vignetting: Probability = 0.0
+    blur_px: NonNegativeFloat = 0.0
+    noise_grey: NonNegativeFloat = 2.0
+    shape: tuple[PositiveInt, PositiveInt] = (484, 640)
+    n_frames: Annotated[int, Field(ge=2)] = 40
+    seed: NonNegativeInt = 0
 
 
 @dataclass(frozen=True)
