@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skinstretch.experiments.results_file import (
-    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
+    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TENSOR_COLUMNS, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
 )
 from skinstretch.processing.display_mapping import TactileMovie, TactileMovieBuilder
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
@@ -26,6 +26,7 @@ from skinstretch.processing.stretch import (
     COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, StretchProfile, horizontal_stretch_profile, mean_profile,
     triangulation_strains,
 )
+from skinstretch.processing.strain_tensor import triangle_strain_tensors
 from skinstretch.processing.tracking import MotionSample
 
 __all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "stretch_profile", "sliding_axis",
@@ -77,6 +78,11 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     for j in range(3):
         tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
     tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
+    corners_a = b.points[b.triangles]  # (T, 3, 2)
+    tensors = triangle_strain_tensors(corners_a, corners_a + b.displacement[b.triangles])
+    for name in TENSOR_COLUMNS:
+        tris[name] = getattr(tensors, name)
+    tris["tensor_status"] = tensors.status
     return SpanStrain(span, pairs, edges, tris)
 
 
