@@ -12,6 +12,7 @@ A frame where the fit is refused (too few or collinear points) keeps its row, wi
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from dataclasses import asdict, dataclass, fields
@@ -24,7 +25,7 @@ from skinstretch.experiments.results_file import Results, read_results
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.strain_tensor import local_affine_fit
 
-__all__ = ["GaugeRow", "ExtensometerRow", "GaugeSeries", "probe", "DEFAULT_RADIUS_MM"]
+__all__ = ["GaugeRow", "ExtensometerRow", "GaugeSeries", "probe", "reference_position", "DEFAULT_RADIUS_MM"]
 
 #: The gauge's reach when none is given: about 3 feature spacings, or 3 flow grid steps at the default scale.
 DEFAULT_RADIUS_MM = 1.0
@@ -88,14 +89,19 @@ class GaugeSeries:
 
         return pd.DataFrame([asdict(r) for r in self.rows], columns=self.columns())
 
+    def csv_text(self) -> str:
+        """The rows as CSV: a header of column names (units in docs/viewer.md, "Virtual gauge"), a row a frame."""
+        out = io.StringIO(newline="")
+        w = csv.writer(out, lineterminator="\n")
+        w.writerow(self.columns())
+        for r in self.rows:
+            w.writerow([_cell(v) for v in asdict(r).values()])
+        return out.getvalue()
+
     def to_csv(self, path: str | os.PathLike) -> Path:
-        """Write the rows as CSV (a header of column names; units in docs/viewer.md, "Virtual gauge")."""
+        """Write :meth:`csv_text` to ``path``."""
         path = Path(path)
-        with path.open("w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(self.columns())
-            for r in self.rows:
-                w.writerow([_cell(v) for v in asdict(r).values()])
+        path.write_text(self.csv_text(), encoding="utf-8")
         return path
 
     def to_json(self) -> dict:
@@ -163,6 +169,20 @@ def probe(results: Results | str | os.PathLike, *, at, to=None, radius_mm: float
         rows.append(_gauge_row(k, p1, fits[0]) if p2 is None else _extensometer_row(k, p1, p2, *fits))
     return GaugeSeries("gauge" if p2 is None else "extensometer", p1, p2, radius, r.px_per_mm, c.reference_frame,
                        rows)
+
+
+def reference_position(results: Results, xy, *, frame: int, radius_mm: float | None = None) -> tuple[float, float]:
+    """Where the skin point seen at ``xy`` (px) in ``frame`` was in the reference frame (the viewer places a gauge
+    on the frame shown): the inverse local affine fit of the cumulative motion around it; ``xy`` itself on the
+    reference frame, or where no fit can be made."""
+    p = _point(xy, "xy")
+    c = results.cumulative
+    s = c.sample(frame) if c is not None and frame != c.reference_frame else None
+    if s is None or len(s) == 0:
+        return p
+    radius = (DEFAULT_RADIUS_MM if radius_mm is None else float(radius_mm)) * results.px_per_mm
+    fit = local_affine_fit(s.points + s.displacement, s.points, center=p, radius_px=radius)
+    return (float(fit.position_b[0]), float(fit.position_b[1])) if fit.ok else p
 
 
 def _failed_row(k: int, p1, p2, reason: str):
