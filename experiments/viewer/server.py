@@ -184,7 +184,8 @@ class ViewerState:
         with self._lock:
             base: dict[str, Any] = {
                 "sid": self.sid,
-                "follows_directory": self.target.follows_directory,
+                "follows_directory": self.target.follows_directory and self._chosen is None,
+                "study_available": self.target.follows_directory,
                 "kinds": {str(k): v.replace("_", " ") for k, v in KIND_NAMES.items()},
                 "results_error": self._results_error,
                 **self.snapshot(),

@@ -84,7 +84,7 @@ async function loadInfo() {
   $("map-quantity").innerHTML = quantities.map((q) => `<option value="${q}">${q}</option>`).join("");
   S.quantity = quantities.includes(S.quantity) ? S.quantity : quantities[0];
   $("map-quantity").value = S.quantity;
-  $("study-link").hidden = !info.follows_directory;
+  $("study-link").hidden = !info.study_available;
   for (const id of ["tool-gauge", "tool-extensometer"]) $(id).disabled = !cumulative;
   clearGauge();
   S.span = spans.includes(S.span) ? S.span : spans[0];
@@ -721,7 +721,7 @@ function drawGaugePlot() {
   let lo = 0, hi = 0;
   for (const [name] of series) cols[name].forEach((v, i) => { if (cols.ok[i] && v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); } });
   if (hi - lo < 1e-4) { hi += 5e-5; lo -= 5e-5; }
-  const L = 44, R = 8, T = 8, B = 30, w = c.width - L - R, h = c.height - T - B;
+  const L = 56, R = 8, T = 8, B = 30, w = c.width - L - R, h = c.height - T - B;
   const X = (i) => L + (n > 1 ? (i / (n - 1)) * w : 0), Y = (v) => T + (1 - (v - lo) / (hi - lo)) * h;
   p.clearRect(0, 0, c.width, c.height);
   p.strokeStyle = "#999"; p.lineWidth = 1; p.strokeRect(L, T, w, h);
