@@ -43,7 +43,8 @@ from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Traj
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
-    "TRACK_DTYPE", "TENSOR_COLUMNS", "SpanStrain", "CumulativeStrain", "TactileMovieTable", "FlowResults", "MeshDensity", "Results", "ResultsWriter",
+    "TRACK_DTYPE", "TENSOR_COLUMNS", "SpanStrain", "CumulativeStrain", "TactileMovieTable", "FlowResults",
+    "MeshDensity", "Results", "ResultsWriter",
     "read_results", "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info", "RESULTS_FILE", "SUMMARY_FILE",
     "held_results", "check_results_dir", "refuse_held_results",
 ]

@@ -10,7 +10,10 @@
    file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive; the
    feature method's trajectories are stored as the tracker is done with each frame and built at the end, a block
    of frames at a time (:mod:`.trajectories`), and the motion follows from them;
-4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
+4. the motion and strain of every frame relative to the reference frame (the first with measured points) follow
+   (:mod:`.cumulative`): from the stored trajectories, or, for the flow, from each field composed onto the
+   reference one and registered from the reference frame directly as the fields arrive;
+5. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
    back (:mod:`.derive`), the movie written a block of frames at a time, and the file is closed as ``results.h5``
    (``docs/results-format.md``).
 
@@ -65,7 +68,8 @@ from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter, check_results_dir,
+    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
+    check_results_dir,
 )
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InvalidInputError

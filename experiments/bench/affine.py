@@ -135,7 +135,8 @@ def gauge_errors(results, clip: AffineClip, *, radius_mm: float = 1.5, length_mm
     truth = true_tensor(clip.gradient(0, int(last.frame)))
     tensor_err = max(abs(getattr(last, c) - truth[c]) for c in _COMPONENTS)
     e = probe(results, at=tuple(at - half), to=tuple(at + half), radius_mm=radius_mm)
-    lb = np.linalg.norm(clip.position(int(e.rows[-1].frame), at + half) - clip.position(int(e.rows[-1].frame), at - half))
+    last_e = int(e.rows[-1].frame)
+    lb = np.linalg.norm(clip.position(last_e, at + half) - clip.position(last_e, at - half))
     strain_err = abs(e.rows[-1].length_change - (lb / np.linalg.norm(2 * half) - 1.0))
     return tensor_err, strain_err, last.n_points
 

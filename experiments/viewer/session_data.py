@@ -603,7 +603,8 @@ def load_results_index(path: Path) -> ResultsIndex:
                    np.asarray(r.tactile_clipped, bool))
     return ResultsIndex(
         path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
-        strain_scale=scale, map_scales=map_scales, motion_axis=r.profile_axis_index, has_tactile=tactile is not None, window=dict(r.window),
+        strain_scale=scale, map_scales=map_scales, motion_axis=r.profile_axis_index, has_tactile=tactile is not None,
+        window=dict(r.window),
         notes=[str(n) for n in (r.summary.get("notes") or [])],
         _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
         _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
