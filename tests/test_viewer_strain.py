@@ -7,7 +7,9 @@ import csv
 
 import pytest
 
-from skinstretch.experiments.viewer.browser import browser_unavailable_reason, launch_chromium
+from skinstretch.experiments.viewer.browser import browser_unavailable_reason
+from tests.test_viewer_browser import _overlay_pixels as _pixels
+from tests.test_viewer_browser import browser  # noqa: F401 - the module's Chromium, a fixture
 
 REASON = browser_unavailable_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no browser can be driven here: {REASON}")
@@ -44,16 +46,6 @@ def served(datadir):
     server.stop()
 
 
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = launch_chromium(p)
-        yield b
-        b.close()
-
-
 @pytest.fixture()
 def page(browser, served):
     page = browser.new_page(viewport={"width": 1400, "height": 1100}, accept_downloads=True)
@@ -65,12 +57,6 @@ def page(browser, served):
     page.problems = problems
     yield page
     page.close()
-
-
-def _pixels(page) -> int:
-    return page.evaluate("""() => { const c = document.getElementById('view');
-        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
-        let s = 0; for (let i = 0; i < d.length; i += 4) s += d[i] + 2 * d[i + 1] + 3 * d[i + 2]; return s; }""")
 
 
 def _screen(page, x: float, y: float) -> tuple[float, float]:
