@@ -814,6 +814,21 @@ class SpanRefiner:
         return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
 
 
+class ReferenceRefiner(SpanRefiner):
+    """DIC's reference frame: the field from a reference frame to frame k, composed with the consecutive field
+    k -> k + 1 and registered from the reference frame to k + 1 directly (:meth:`advance`), so the steps' biases do
+    not add up as a chain's do. Only the reference frame stays prepared between calls."""
+
+    def advance(self, reference: FlowField, field: FlowField) -> FlowField:
+        """The field from ``reference.frame_a`` to ``field.frame_b`` (``field.frame_a`` is ``reference.frame_b``)."""
+        if int(field.frame_a) != int(reference.frame_b):
+            raise InvalidInputError(f"field {field.frame_a}->{field.frame_b} does not follow the reference field "
+                                    f"{reference.frame_a}->{reference.frame_b}")
+        out = self.refine([reference, field])
+        self._frames.keep_only(int(reference.frame_a))
+        return out
+
+
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     """The displacement from the first field's frame to the last field's second frame on the first field's grid,
     following each node's skin point through the fields in turn (bilinear, :meth:`FlowField.sample`); a node

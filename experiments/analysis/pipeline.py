@@ -349,9 +349,10 @@ def analyze(
             on_glass = plain_glass(shading, surface)
             pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
             if params.flow.refine_spans and (on_glass or shading is not None):
-                from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
+                from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
+                reference_refiner = ReferenceRefiner(refiner.flow, reader)
 
             def on_field(f) -> None:
                 if not recent:  # the first field
@@ -367,7 +368,7 @@ def analyze(
                     # Cumulative (DIC's reference frame): the reference field composed with this one, registered
                     # from the reference frame to frame b directly; chaining alone adds up each step's bias.
                     if reference[0] is not None:
-                        reference[0] = refiner.refine([reference[0], f])
+                        reference[0] = reference_refiner.advance(reference[0], f)
                     elif int(f.valid[::stride, ::stride].sum()) >= 3:
                         reference[0] = f
                     if reference[0] is not None:
