@@ -29,12 +29,15 @@ __all__ = ["GaugeRow", "ExtensometerRow", "GaugeSeries", "probe", "reference_pos
 
 #: The gauge's reach when none is given: about 3 feature spacings, or 3 flow grid steps at the default scale.
 DEFAULT_RADIUS_MM = 1.0
+#: Points a gauge fits at least: one more than an affine map needs, so its residual gives its uncertainty.
+MIN_GAUGE_POINTS = 4
 
 
 @dataclass(frozen=True)
 class GaugeRow:
     """One frame of a gauge: where the point is (px), its displacement since the reference frame (px), the
-    cumulative strain tensor there (fractions; angle of e1 in degrees), the points fitted."""
+    cumulative strain tensor there (fractions; angle of e1 in degrees) with the standard errors of its components
+    and the RMS residual of the fit (px), the points fitted."""
 
     frame: int
     x: float
@@ -47,6 +50,10 @@ class GaugeRow:
     e1: float
     e2: float
     angle_deg: float
+    exx_sigma: float
+    eyy_sigma: float
+    exy_sigma: float
+    residual_px: float
     n_points: int
     ok: bool
     reason: str = ""
@@ -54,7 +61,8 @@ class GaugeRow:
 
 @dataclass(frozen=True)
 class ExtensometerRow:
-    """One frame of an extensometer: both ends (px), the length between them (px) and ``L / L_0 - 1``."""
+    """One frame of an extensometer: both ends (px), the length between them (px), ``L / L_0 - 1`` and its standard
+    error (from the two ends' position errors: each end's fit residual over the square root of its points)."""
 
     frame: int
     x1: float
@@ -63,6 +71,7 @@ class ExtensometerRow:
     y2: float
     length_px: float
     length_change: float
+    length_change_sigma: float
     n_points: int  # the fewer of the two ends' fitted points
     ok: bool
     reason: str = ""
@@ -165,7 +174,8 @@ def probe(results: Results | str | os.PathLike, *, at, to=None, radius_mm: float
             rows.append(_failed_row(k, p1, p2, why))
             continue
         pb = s.points + s.displacement
-        fits = [local_affine_fit(s.points, pb, center=p, radius_px=radius) for p in (p1, p2) if p is not None]
+        fits = [local_affine_fit(s.points, pb, center=p, radius_px=radius, min_points=MIN_GAUGE_POINTS)
+                for p in (p1, p2) if p is not None]
         rows.append(_gauge_row(k, p1, fits[0]) if p2 is None else _extensometer_row(k, p1, p2, *fits))
     return GaugeSeries("gauge" if p2 is None else "extensometer", p1, p2, radius, r.px_per_mm, c.reference_frame,
                        rows)
@@ -187,15 +197,17 @@ def reference_position(results: Results, xy, *, frame: int, radius_mm: float | N
 
 def _failed_row(k: int, p1, p2, reason: str):
     if p2 is None:
-        return GaugeRow(k, math.nan, math.nan, math.nan, math.nan, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, False, reason)
-    return ExtensometerRow(k, math.nan, math.nan, math.nan, math.nan, math.nan, 0.0, 0, False, reason)
+        return GaugeRow(k, math.nan, math.nan, math.nan, math.nan, *([0.0] * 10), 0, False, reason)
+    return ExtensometerRow(k, math.nan, math.nan, math.nan, math.nan, math.nan, 0.0, 0.0, 0, False, reason)
 
 
 def _gauge_row(k: int, p1, fit) -> GaugeRow:
     t = fit.strain
     x, y = (float(v) for v in fit.position_b)
+    sxx, syy, sxy = fit.strain_sigma
     return GaugeRow(k, x, y, x - p1[0], y - p1[1], float(t.exx), float(t.eyy), float(t.exy), float(t.e1),
-                    float(t.e2), float(t.angle_deg), fit.n_points, fit.ok, fit.reason)
+                    float(t.e2), float(t.angle_deg), sxx, syy, sxy, fit.residual_rms_px, fit.n_points, fit.ok,
+                    fit.reason)
 
 
 def _extensometer_row(k: int, p1, p2, f1, f2) -> ExtensometerRow:
@@ -204,6 +216,9 @@ def _extensometer_row(k: int, p1, p2, f1, f2) -> ExtensometerRow:
     a, b = f1.position_b, f2.position_b
     length = float(np.hypot(*(b - a)))
     change = length / length0 - 1.0 if ok and length0 > 0 else 0.0
+    # Each end's position error: its fit's residual over sqrt(points) (the centre of a least-squares fit).
+    sigma = math.hypot(f1.residual_rms_px / math.sqrt(max(f1.n_points, 1)),
+                       f2.residual_rms_px / math.sqrt(max(f2.n_points, 1))) / length0 if ok and length0 > 0 else 0.0
     reason = "; ".join(f"{end}: {f.reason}" for end, f in (("at", f1), ("to", f2)) if not f.ok)
     return ExtensometerRow(k, float(a[0]), float(a[1]), float(b[0]), float(b[1]), length if ok else math.nan, change,
-                           min(f1.n_points, f2.n_points), ok, reason)
+                           sigma, min(f1.n_points, f2.n_points), ok, reason)

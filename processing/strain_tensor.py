@@ -14,7 +14,7 @@ non-finite corners, too few or collinear gauge points) carries a status code and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -111,8 +111,10 @@ def triangle_strain_tensors(corners_a: np.ndarray, corners_b: np.ndarray, *, min
 class LocalAffine:
     """The least-squares affine map ``p_b = F (p_a - center) + position_b`` of the points near ``center``.
 
-    ``ok`` False (with ``reason``) when fewer than 3 points were in reach or they were (nearly) collinear; ``F`` is
-    then the identity and ``position_b`` the centre."""
+    ``ok`` False (with ``reason``) when too few points were in reach or they were (nearly) collinear; ``F`` is
+    then the identity and ``position_b`` the centre. ``residual_rms_px``: RMS of the fit's residuals (per
+    coordinate, over the 2n - 6 degrees of freedom); ``F_sigma``: the standard error of each entry of ``F`` under
+    independent residuals of that size (0 for an exact fit of 3 points, which leaves no residual to judge by)."""
 
     F: np.ndarray  # (2, 2)
     center: np.ndarray  # (2,) x, y px in frame a
@@ -120,6 +122,14 @@ class LocalAffine:
     n_points: int
     ok: bool
     reason: str = ""
+    residual_rms_px: float = 0.0
+    F_sigma: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+
+    @property
+    def strain_sigma(self) -> tuple[float, float, float]:
+        """Standard errors of ``exx``, ``eyy``, ``exy`` to first order (small strain: ``E ~ (F + F^T) / 2 - I``)."""
+        s = self.F_sigma
+        return float(s[0, 0]), float(s[1, 1]), float(0.5 * np.hypot(s[0, 1], s[1, 0]))
 
     @property
     def strain(self) -> StrainTensors:
@@ -162,4 +172,8 @@ def local_affine_fit(points_a: np.ndarray, points_b: np.ndarray, *, center, radi
         return LocalAffine(np.eye(2), c, c.copy(), n, False, f"the {n} points within {radius_px:.1f} px are "
                                                               "(nearly) collinear")
     F = np.linalg.solve(cov, xa.T @ xb).T  # xb ~ xa F^T
-    return LocalAffine(F, c, mb + F @ (c - ma), n, True)
+    dof = 2 * n - 6
+    rms = float(np.sqrt(np.sum((xb - xa @ F.T) ** 2) / dof)) if dof > 0 else 0.0
+    # Var(F[i, j]) = rms^2 [cov^-1]_jj: each row of F is a least-squares fit of one coordinate.
+    sigma = np.broadcast_to(rms * np.sqrt(np.diag(np.linalg.inv(cov))), (2, 2)).copy()
+    return LocalAffine(F, c, mb + F @ (c - ma), n, True, residual_rms_px=rms, F_sigma=sigma)

@@ -66,6 +66,10 @@ def test_local_affine_fit_recovers_the_map_and_refuses_too_few_or_collinear_poin
     assert fit.ok and fit.n_points > 10
     np.testing.assert_allclose(fit.F, F, atol=1e-12)
     np.testing.assert_allclose(fit.position_b, (np.array([40.0, 60.0]) - 50) @ F.T + 50 + [3.0, -1.0], atol=1e-9)
+    assert fit.residual_rms_px < 1e-9 and np.all(fit.F_sigma < 1e-9)  # exact: no residual
+    noisy = local_affine_fit(pa, pb + rng.normal(0, 0.05, pb.shape), center=(40.0, 60.0), radius_px=15.0)
+    assert 0.03 < noisy.residual_rms_px < 0.07 and np.all(noisy.F_sigma > 0)
+    assert np.all(np.abs(noisy.F - F) < 5 * noisy.F_sigma)
     few = local_affine_fit(pa, pb, center=(40.0, 60.0), radius_px=0.5)
     assert not few.ok and "need 3" in few.reason and float(few.strain.exx) == 0.0
     line = np.column_stack([np.arange(10.0), np.arange(10.0)])
@@ -111,6 +115,13 @@ def test_the_gauge_follows_the_cumulative_strain_within_0_1_percent(affine_resul
     assert tensor_err < 1e-3 and extensometer_err < 1e-3
     truth = true_tensor(clip.gradient(0, 9))
     assert truth["exx"] > 0.01  # the strain measured is ten times the bar
+    from skinstretch.experiments.probe import probe
+
+    last = probe(results[method], at=tuple(clip.center), radius_mm=1.5).rows[-1]
+    for c in ("exx", "eyy", "exy"):  # the gauge's standard errors are of the size of its errors
+        sigma = getattr(last, f"{c}_sigma")
+        assert 0 < sigma < 1e-3 and abs(getattr(last, c) - truth[c]) < 4 * sigma + 1e-5, (c, sigma)
+    assert 0 < last.residual_px < 0.1
 
 
 def test_the_tensor_columns_have_units_and_come_with_the_dataframe(affine_results):

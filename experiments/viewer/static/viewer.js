@@ -749,10 +749,11 @@ function drawGaugePlot() {
   if (!cols.ok[k]) note = `frame ${k}: ${cols.reason[k] || "not measured"}`;
   else if (g.kind === "gauge") {
     note = `frame ${k}: at x ${cols.x[k].toFixed(1)}, y ${cols.y[k].toFixed(1)} px, moved ${cols.dx[k].toFixed(2)}, ${cols.dy[k].toFixed(2)} px` +
-      ` since frame ${g.reference_frame}; exx ${pct(cols.exx[k], 3)}, eyy ${pct(cols.eyy[k], 3)}, exy ${pct(cols.exy[k], 3)}, ` +
+      ` since frame ${g.reference_frame}; exx ${pct(cols.exx[k], 3)} ± ${(100 * cols.exx_sigma[k]).toFixed(3)}, ` +
+      `eyy ${pct(cols.eyy[k], 3)} ± ${(100 * cols.eyy_sigma[k]).toFixed(3)}, exy ${pct(cols.exy[k], 3)} ± ${(100 * cols.exy_sigma[k]).toFixed(3)}, ` +
       `e1 ${pct(cols.e1[k], 3)}, e2 ${pct(cols.e2[k], 3)} (${cols.n_points[k]} points within ${(g.radius_px / mm).toFixed(2)} mm)`;
   } else {
-    note = `frame ${k}: length ${cols.length_px[k].toFixed(2)} px (${(cols.length_px[k] / mm).toFixed(3)} mm), change ${pct(cols.length_change[k], 3)} since frame ${g.reference_frame}`;
+    note = `frame ${k}: length ${cols.length_px[k].toFixed(2)} px (${(cols.length_px[k] / mm).toFixed(3)} mm), change ${pct(cols.length_change[k], 3)} ± ${(100 * cols.length_change_sigma[k]).toFixed(3)} % since frame ${g.reference_frame}`;
   }
   setText("gauge-title", g.kind === "gauge" ? `Gauge at (${g.at[0].toFixed(1)}, ${g.at[1].toFixed(1)}) px of frame ${g.reference_frame}` :
     `Extensometer (${g.at[0].toFixed(1)}, ${g.at[1].toFixed(1)}) to (${g.to[0].toFixed(1)}, ${g.to[1].toFixed(1)}) px of frame ${g.reference_frame}`);
