@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
 
 import pytest
 
@@ -11,25 +12,18 @@ from skinstretch.cli import main
 
 
 @pytest.fixture(scope="module")
-def datadir(tmp_path_factory, sim_session):
-    """DATADIR/s01/study/000-flat-r1 (features, analysed), 001-ridge-r1 (flow, analysed), 002-flat-r2 (not)."""
+def datadir(tmp_path_factory, analysed_study, sim_session):
+    """The analysed study (000-flat-r1 features, 001-ridge-r1 flow) and a trial not analysed, 002-flat-r2."""
     from skinstretch.drivers.session_file import write_session
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_session
-    from skinstretch.processing.tracking import TrackingParams
 
     root = tmp_path_factory.mktemp("data")
+    shutil.copytree(analysed_study, root, dirs_exist_ok=True)
     s = sim_session
-    for name, surface, method in (("000-flat-r1", "flat", "features"), ("001-ridge-r1", "ridge", "flow"),
-                                  ("002-flat-r2", "flat", None)):
-        trial = root / "s01" / "study" / name
-        trial.mkdir(parents=True)
-        md = {**s.metadata, "trial": name, "subject": {"id": "s01"}, "protocol": "demo", "surface": {"kind": surface}}
-        path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
-                             calibration=s.calibration, metadata=md)
-        if method is not None:
-            params = AnalysisParams(execution={"kind": "threads"}, strain={"spans": (1, 5)},
-                                    tracking=TrackingParams(min_length_frames=10))
-            analyze_session(path, trial / "analysis", method=method, params=params)
+    trial = root / "s01" / "study" / "002-flat-r2"
+    trial.mkdir(parents=True)
+    md = {**s.metadata, "trial": "002-flat-r2", "subject": {"id": "s01"}, "protocol": "demo", "surface": {"kind": "flat"}}
+    write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
+                  calibration=s.calibration, metadata=md)
     return root
 
 

@@ -1,5 +1,5 @@
 """The viewer's strain maps, gauge, exports and study overview (issue 40) in headless Chromium, on a data directory
-of two analysed trials (features and flow)."""
+of two analysed trials (features and flow: the ``analysed_study`` fixture)."""
 
 from __future__ import annotations
 
@@ -16,32 +16,11 @@ pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no browser can be d
 
 
 @pytest.fixture(scope="module")
-def datadir(tmp_path_factory, sim_session):
-    """DATADIR/s01/study/{000-flat-r1 (features), 001-ridge-r1 (flow)}, each with its analysis."""
-    from skinstretch.drivers.session_file import write_session
-    from skinstretch.experiments.analysis import AnalysisParams, analyze_session
-    from skinstretch.processing.tracking import TrackingParams
-
-    root = tmp_path_factory.mktemp("study")
-    s = sim_session
-    for name, surface, method in (("000-flat-r1", "flat", "features"), ("001-ridge-r1", "ridge", "flow")):
-        trial = root / "s01" / "study" / name
-        trial.mkdir(parents=True)
-        md = {**s.metadata, "trial": name, "subject": {"id": "s01"}, "protocol": "demo", "surface": {"kind": surface}}
-        path = write_session(trial / "session.h5", s.frames, timestamps=s.timestamps, camera_mode=s.camera_mode,
-                             calibration=s.calibration, metadata=md)
-        params = AnalysisParams(execution={"kind": "threads"}, strain={"spans": (1, 5)},
-                                tracking=TrackingParams(min_length_frames=10))
-        analyze_session(path, trial / "analysis", method=method, params=params)
-    return root
-
-
-@pytest.fixture(scope="module")
-def served(datadir):
+def served(analysed_study):
     from skinstretch.experiments.viewer.server import start_server
     from skinstretch.experiments.viewer.session_data import find_view_target
 
-    server = start_server(find_view_target(datadir), live=False)
+    server = start_server(find_view_target(analysed_study), live=False)
     yield server
     server.stop()
 
