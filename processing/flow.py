@@ -815,18 +815,24 @@ class SpanRefiner:
 
 
 class ReferenceRefiner(SpanRefiner):
-    """DIC's reference frame: the field from a reference frame to frame k, composed with the consecutive field
-    k -> k + 1 and registered from the reference frame to k + 1 directly (:meth:`advance`), so the steps' biases do
-    not add up as a chain's do. Only the reference frame stays prepared between calls."""
+    """DIC's reference frame: the field from a reference frame to frame k composed with the field k -> k + 1 and
+    registered from the reference frame to k + 1 directly (:meth:`advance`): the steps' biases do not add up as a
+    chain's do. Only the reference frame stays prepared between calls."""
 
-    def advance(self, reference: FlowField, field: FlowField) -> FlowField:
-        """The field from ``reference.frame_a`` to ``field.frame_b`` (``field.frame_a`` is ``reference.frame_b``)."""
-        if int(field.frame_a) != int(reference.frame_b):
-            raise InvalidInputError(f"field {field.frame_a}->{field.frame_b} does not follow the reference field "
-                                    f"{reference.frame_a}->{reference.frame_b}")
-        out = self.refine([reference, field])
+    def advance(self, reference: FlowField, field: FlowField) -> tuple[FlowField, FlowField]:
+        """(the estimate to carry on, what was measured) from ``reference.frame_a`` to ``field.frame_b``, which
+        follows ``reference.frame_b``. A node not measured at frame b (a refused or occluded frame) keeps its last
+        displacement in the estimate, to be registered again at the next frame; a field with no valid node (a
+        frame the flow refused) is taken as no motion, for the registration to find it."""
+        if not field.valid.any():
+            field = FlowField(field.frame_a, field.frame_b, field.grid_x, field.grid_y,
+                              np.zeros_like(field.displacement), np.ones_like(field.valid), np.zeros(2), 0)
+        measured = self.refine([reference, field])
         self._frames.keep_only(int(reference.frame_a))
-        return out
+        keep = measured.valid | reference.valid
+        disp = np.where(measured.valid[..., None], measured.displacement, reference.displacement)
+        return FlowField(reference.frame_a, field.frame_b, reference.grid_x, reference.grid_y,
+                         np.where(keep[..., None], disp, np.nan), keep, measured.global_shift, 0), measured
 
 
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:

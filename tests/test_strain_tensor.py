@@ -166,3 +166,26 @@ def test_probe_in_python_gives_a_dataframe(affine_results):
     series = ss.probe(results["features"].path.parent, at=tuple(clip.center), radius_mm=1.5)
     df = series.to_dataframe()
     assert list(df.columns[:3]) == ["frame", "x", "y"] and len(df) == 10 and df["ok"].all()
+
+
+def test_the_flows_cumulative_strain_carries_on_across_a_refused_frame():
+    """A black frame mid-clip: the flow refuses it, and the skin points are registered from the reference frame
+    again after it (the gauge has no value on that frame only)."""
+    from skinstretch.experiments.analysis import analysis_params, analyze_frames
+    from skinstretch.experiments.probe import probe
+    from skinstretch.processing.pixel_scale import Calibration
+
+    clip = affine_clip(n_frames=10, seed=4)
+    frames = clip.frames.copy()
+    frames[5] = 0
+    r = analyze_frames(frames, calibration=Calibration(px_per_mm=PX_PER_MM), method="flow",
+                       params=analysis_params({"strain": {"spans": [1]}, "execution": {"kind": "serial"}}))
+    assert r.frame_flags[5] == "all_black"
+    c = r.cumulative
+    assert c.pairs["frame_b"].tolist() == [1, 2, 3, 4, 6, 7, 8, 9]
+    assert len(set(c.pairs["n_points"].tolist())) == 1  # no skin point lost
+    e = triangle_errors(c.triangles, c.pairs, clip)
+    assert e.pairs == 8 and e.max < 5e-4, e.worst
+    rows = probe(r, at=tuple(clip.center), radius_mm=1.5).rows
+    assert [row.ok for row in rows] == [True] * 5 + [False] + [True] * 4
+    assert "no motion measured" in rows[5].reason

@@ -367,12 +367,13 @@ def analyze(
                 if refiner is not None:
                     # Cumulative (DIC's reference frame): the reference field composed with this one, registered
                     # from the reference frame to frame b directly; chaining alone adds up each step's bias.
+                    measured = None
                     if reference[0] is not None:
-                        reference[0] = reference_refiner.advance(reference[0], f)
+                        reference[0], measured = reference_refiner.advance(reference[0], f)
                     elif int(f.valid[::stride, ::stride].sum()) >= 3:
-                        reference[0] = f
-                    if reference[0] is not None:
-                        cumulative.add(rectified_sample(reference[0].motion(stride=stride), mapping,
+                        reference[0] = measured = f
+                    if measured is not None and measured.valid.any():  # else a frame refused: no row
+                        cumulative.add(rectified_sample(measured.motion(stride=stride), mapping,
                                                         calibration.px_per_mm))
                 for span in spans:
                     if len(recent) >= span:
