@@ -21,7 +21,7 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
 4. Nodes out of contact (a flat window), whose window leaves the second image, or whose residual is far above
    the median (and above a floor, for noise-free images) are flagged invalid, never silently kept.
 
-Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
+Strain comes from the grid (:func:`skinstretch.processing.flow_fields.grid_strain`: finite differences) or from
 :func:`skinstretch.processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
 """
 
@@ -835,6 +835,27 @@ class SpanRefiner:
         return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
 
 
+class ReferenceRefiner(SpanRefiner):
+    """DIC's reference frame: the field from a reference frame to frame k composed with the field k -> k + 1 and
+    registered from the reference frame to k + 1 directly (:meth:`advance`): the steps' biases do not add up as a
+    chain's do. Only the reference frame stays prepared between calls."""
+
+    def advance(self, reference: FlowField, field: FlowField) -> tuple[FlowField, FlowField]:
+        """(the estimate to carry on, what was measured) from ``reference.frame_a`` to ``field.frame_b``, which
+        follows ``reference.frame_b``. A node not measured at frame b (a refused or occluded frame) keeps its last
+        displacement in the estimate, to be registered again at the next frame; a field with no valid node (a
+        frame the flow refused) is taken as no motion, for the registration to find it."""
+        if not field.valid.any():
+            field = FlowField(field.frame_a, field.frame_b, field.grid_x, field.grid_y,
+                              np.zeros_like(field.displacement), np.ones_like(field.valid), np.zeros(2), 0)
+        measured = self.refine([reference, field])
+        self._frames.keep_only(int(reference.frame_a))
+        keep = measured.valid | reference.valid
+        disp = np.where(measured.valid[..., None], measured.displacement, reference.displacement)
+        return FlowField(reference.frame_a, field.frame_b, reference.grid_x, reference.grid_y,
+                         np.where(keep[..., None], disp, np.nan), keep, measured.global_shift, 0), measured
+
+
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     """The displacement from the first field's frame to the last field's second frame on the first field's grid,
     following each node's skin point through the fields in turn (bilinear, :meth:`FlowField.sample`); a node
@@ -856,39 +877,6 @@ def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     shift = sum((np.asarray(f.global_shift, dtype=np.float64) for f in fields), np.zeros(2))
     return FlowField(first.frame_a, fields[-1].frame_b, first.grid_x, first.grid_y, disp, valid, shift,
                      int((~valid).sum() - (~first.valid).sum()), "ok" if valid.any() else "no node followed through")
-
-
-def grid_strain(field: FlowField) -> tuple[np.ndarray, np.ndarray]:
-    """Small-strain tensor (exx, eyy, exy) of a flow field by central differences on its grid.
-
-    Returns ``(strain (GY, GX, 3), ok (GY, GX))``; strain is NaN exactly where ``ok`` is False (a node or one of
-    its four neighbours invalid, or on the border).
-    """
-    d = field.displacement
-    v = field.valid
-    sx = field.grid_x[1] - field.grid_x[0]
-    sy = field.grid_y[1] - field.grid_y[0]
-    out = np.full(d.shape[:2] + (3,), np.nan)
-    ok = np.zeros(v.shape, bool)
-    ok[1:-1, 1:-1] = v[1:-1, 1:-1] & v[1:-1, 2:] & v[1:-1, :-2] & v[2:, 1:-1] & v[:-2, 1:-1]
-    dudx = (d[1:-1, 2:, 0] - d[1:-1, :-2, 0]) / (2 * sx)
-    dvdy = (d[2:, 1:-1, 1] - d[:-2, 1:-1, 1]) / (2 * sy)
-    dudy = (d[2:, 1:-1, 0] - d[:-2, 1:-1, 0]) / (2 * sy)
-    dvdx = (d[1:-1, 2:, 1] - d[1:-1, :-2, 1]) / (2 * sx)
-    inner = np.stack([dudx, dvdy, 0.5 * (dudy + dvdx)], axis=-1)
-    sub = out[1:-1, 1:-1]
-    sub[ok[1:-1, 1:-1]] = inner[ok[1:-1, 1:-1]]
-    return out, ok
-
-
-def sample_dense_flow(flow: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a dense (H, W, 2) flow (e.g. from OpenCV) at ``points`` (n, 2) x, y px."""
-    flow = np.asarray(flow, dtype=np.float32)
-    if flow.ndim != 3 or flow.shape[2] != 2:
-        raise InvalidInputError(f"flow must have shape (H, W, 2), got {flow.shape}")
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    coords = np.vstack([p[:, 1], p[:, 0]])
-    return np.stack([map_coordinates(flow[..., i], coords, order=1, mode="nearest") for i in range(2)], axis=1)
 
 
 def _gray(image: np.ndarray, name: str) -> np.ndarray:

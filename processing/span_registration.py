@@ -35,6 +35,11 @@ class SpanFrames:
             del self._prepared[j]
         return self.get(k0), self.get(k1)
 
+    def keep_only(self, j: int) -> None:
+        """Drop every prepared frame but ``j`` (spans that all start at ``j``: a reference frame)."""
+        for k in [k for k in self._prepared if k != j]:
+            del self._prepared[k]
+
     def get(self, j: int) -> Any:
         if j not in self._prepared:
             self._prepared[j] = self._prepare(self._frame(j))

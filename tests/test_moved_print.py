@@ -77,7 +77,9 @@ def _results(errors_px: float, sigma: float | None, edge_error: float):
     x, and one 2-frame span whose edges read ``edge_error`` too much change."""
     field = ExactField(PrintMotion(slide_px=(0.5, 0.25), stretch=(0.001, 0.0)), shape=SHAPE, px_per_mm=30.0)
     pts = np.array([[10.0, 10.0], [50.0, 12.0], [30.0, 40.0], [70.0, 50.0]])
-    motion_dtype = MOTION_DTYPE if sigma is None else np.dtype(MOTION_DTYPE.descr + [("sigma", "<f8")])
+    base = [(n, MOTION_DTYPE[n]) for n in ("pair", "id", "x", "y", "dx", "dy")]  # as written before uncertainties
+    motion_dtype = np.dtype(base if sigma is None else base + [("sigma", "<f8")])
+    edge_dtype = np.dtype([(n, EDGE_DTYPE[n]) for n in EDGE_DTYPE.names if n != "change_sigma"])
     rows = []
     for pair in (0, 1):
         d, _ = field.between(pts, pair, pair + 1)
@@ -86,7 +88,7 @@ def _results(errors_px: float, sigma: float | None, edge_error: float):
     pairs = np.array([(0, 1, 4, 0, b""), (1, 2, 4, 0, b"")], PAIR_DTYPE)
     span_pairs = np.array([(0, 2, 4, 0, b"")], PAIR_DTYPE)
     true = field.edge_change(pts[:2], pts[1:3], 0, 2)
-    edges = np.array([(0, 0, 1, *pts[i], *pts[i + 1], 1.0, true[i] + edge_error) for i in range(2)], EDGE_DTYPE)
+    edges = np.array([(0, 0, 1, *pts[i], *pts[i + 1], 1.0, true[i] + edge_error) for i in range(2)], edge_dtype)
     r = SimpleNamespace(motion=np.array(rows, motion_dtype), motion_pairs=pairs,
                         strain={2: SimpleNamespace(pairs=span_pairs, edges=edges)})
     return r, field

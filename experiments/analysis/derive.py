@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skinstretch.experiments.results_file import (
-    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
+    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TENSOR_COLUMNS, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
 )
 from skinstretch.processing.display_mapping import TactileMovie, TactileMovieBuilder
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
@@ -28,6 +28,7 @@ from skinstretch.processing.stretch import (
     COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, StretchProfile, horizontal_stretch_profile, mean_profile,
     triangulation_strains,
 )
+from skinstretch.processing.strain_tensor import triangle_strain_tensors
 from skinstretch.processing.tracking import MotionSample
 
 __all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "stretch_profile", "sliding_axis",
@@ -75,10 +76,10 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
         typical = float(np.median(np.abs(change))) if change.size else 0.0
         if smp.doubt:
             status[i], reasons[i] = PairStatus.DOUBTED, smp.doubt
-        elif typical > MAX_STRAIN_PER_FRAME * span:
+        elif typical > MAX_STRAIN_PER_FRAME * (frames := int(b.frame_b[i] - b.frame_a[i])):
             status[i], reasons[i] = PairStatus.DOUBTED, (
-                f"strain no skin makes in {span} frame{'s' if span > 1 else ''} (median |edge change| "
-                f"{100 * typical:.1f} % > {100 * MAX_STRAIN_PER_FRAME * span:.0f} %)")
+                f"strain no skin makes in {frames} frame{'s' if frames > 1 else ''} (median |edge change| "
+                f"{100 * typical:.1f} % > {100 * MAX_STRAIN_PER_FRAME * frames:.0f} %)")
     pairs = pair_rows(b.frame_a, b.frame_b, b.n_points, status, reasons)
     where = np.arange(first_pair, first_pair + n, dtype=np.int64)
     # The edge and triangle tables are filled field by field over the batch's flat arrays.
@@ -98,6 +99,11 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
         tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
     tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
     tris["change_sigma"] = area_change_sigma(b.points[b.triangles], sigma[b.triangles], b.area)
+    corners_a = b.points[b.triangles]  # (T, 3, 2)
+    tensors = triangle_strain_tensors(corners_a, corners_a + b.displacement[b.triangles])
+    for name in TENSOR_COLUMNS:
+        tris[name] = getattr(tensors, name)
+    tris["tensor_status"] = tensors.status
     return SpanStrain(span, pairs, edges, tris)
 
 

@@ -10,7 +10,10 @@
    file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive; the
    feature method's trajectories are stored as the tracker is done with each frame and built at the end, a block
    of frames at a time (:mod:`.trajectories`), and the motion follows from them;
-4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
+4. the motion and strain of every frame relative to the reference frame (the first with measured points) follow
+   (:mod:`.cumulative`): from the stored trajectories, or, for the flow, from each field composed onto the
+   reference one and registered from the reference frame directly as the fields arrive;
+5. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
    back (:mod:`.derive`), the movie written a block of frames at a time, and the file is closed as ``results.h5``
    (``docs/results-format.md``).
 
@@ -41,6 +44,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
 )
+from skinstretch.experiments.analysis.cumulative import feature_cumulative_samples, flow_cumulative_samples
 from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import (
@@ -64,7 +68,8 @@ from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter, check_results_dir,
+    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
+    check_results_dir,
 )
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InvalidInputError
@@ -344,6 +349,7 @@ def analyze(
         flags = [""] * n
         strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
         motion = _MotionTable(writer, stack)
+        cumulative = _CumulativeTable(writer, scales)
 
         if method == "features":
             n_features = 0
@@ -397,12 +403,14 @@ def analyze(
             # (ridgeL, 24 frames: 0.142 % chained, 0.191 % refined). The pairs' local prior stays off over a
             # shape (plain_glass): it lets what the shading step leaves into each field.
             refiner = None
+            reference: list = [None]  # the field from the reference frame to the newest frame (with a refiner)
             on_glass = plain_glass(shading, surface)
             pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
             if params.flow.refine_spans and (on_glass or shading is not None):
-                from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
+                from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
+                reference_refiner = ReferenceRefiner(refiner.flow, reader)
 
             def on_field(f) -> None:
                 if not recent:  # the first field
@@ -414,6 +422,17 @@ def analyze(
                     flags[k] = refused or flags[k]                              # reason
                 recent.append(f)
                 motion.add(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
+                if refiner is not None:
+                    # Cumulative (DIC's reference frame): the reference field composed with this one, registered
+                    # from the reference frame to frame b directly; chaining alone adds up each step's bias.
+                    measured = None
+                    if reference[0] is not None:
+                        reference[0], measured = reference_refiner.advance(reference[0], f)
+                    elif int(f.valid[::stride, ::stride].sum()) >= 3:
+                        reference[0] = measured = f
+                    if measured is not None and measured.valid.any():  # else a frame refused: no row
+                        cumulative.add(rectified_sample(measured.motion(stride=stride), mapping,
+                                                        calibration.px_per_mm))
                 for span in spans:
                     if len(recent) >= span:
                         steps = list(recent)[len(recent) - span:]
@@ -427,6 +446,16 @@ def analyze(
             timing, parallel = dict(m.timing), m.parallel
         t0 = time.perf_counter()
         strain.finish()
+        if method == "features":
+            for sample in feature_cumulative_samples(writer.file, n_frames=n):
+                cumulative.add(sample)
+        elif not cumulative.written and not cumulative.batch:  # no refiner: the stored fields chained
+            for sample in flow_cumulative_samples(writer.file, stride=params.strain.flow_stride, mapping=mapping,
+                                                  px_per_mm=calibration.px_per_mm):
+                cumulative.add(sample)
+        cumulative.finish()
+        timing["cumulative_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         samples = writer.samples()
         d = derive(samples, n_frames=n, image_shape=image_shape, scales=scales)
         _write_derived(writer, d, flags)
@@ -460,6 +489,43 @@ def analyze(
             log.warning("%s", warning)  # (the density's was logged where it was found)
         attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
         return writer.finish(attrs)
+
+
+class _CumulativeTable:
+    """The motion and strain of every frame relative to the reference frame (:mod:`.cumulative`), written a batch
+    of frames at a time; empty tables (reference_frame -1) when no frame had 3 measured points."""
+
+    def __init__(self, writer: ResultsWriter, scales: PixelScales) -> None:
+        self.writer, self.scales = writer, scales
+        self.batch: list[MotionSample] = []
+        self.written = 0
+        self.reference = -1
+
+    def add(self, sample: MotionSample) -> None:
+        self.reference = int(sample.frame_a)
+        self.batch.append(sample)
+        if len(self.batch) == STRAIN_BATCH_PAIRS:
+            self._flush()
+
+    def _flush(self) -> None:
+        w, batch = self.writer, self.batch
+        s = span_strain(batch, span=0, max_edge_px=self.scales.max_edge_px, first_pair=self.written,
+                        min_spacing_px=self.scales.min_spacing_px)
+        w.append("cumulative/pairs", s.pairs)
+        w.append("cumulative/motion", motion_rows(batch, first_pair=self.written)[1])
+        w.append("cumulative/edges", s.edges)
+        w.append("cumulative/triangles", s.triangles)
+        self.written += len(batch)
+        self.batch = []
+
+    def finish(self) -> None:
+        if self.batch:
+            self._flush()
+        if self.written == 0:
+            for name, dtype in (("pairs", PAIR_DTYPE), ("motion", MOTION_DTYPE), ("edges", EDGE_DTYPE),
+                                ("triangles", TRIANGLE_DTYPE)):
+                self.writer.append(f"cumulative/{name}", np.zeros(0, dtype))
+        self.writer.file["cumulative"].attrs["reference_frame"] = self.reference
 
 
 def _write_derived(w: ResultsWriter, d: Derived, flags: list[str]) -> None:
