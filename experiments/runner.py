@@ -304,6 +304,7 @@ class _ForcePump(threading.Thread):
         self.recorder = recorder
         self.stop_event = threading.Event()
         self.error: str | None = None
+        self.samples = 0
 
     def run(self) -> None:
         try:
@@ -311,6 +312,7 @@ class _ForcePump(threading.Thread):
                 t, data = self.source.read_block(timeout_s=0.2)
                 if len(t):
                     self.recorder.put_samples("force", t, data)
+                    self.samples += len(t)
         except SkinstretchError as exc:
             self.error = f"force sensor: {type(exc).__name__}: {exc}"
         except OSError as exc:
@@ -429,6 +431,11 @@ def record_trial(
                 devices.force.end()
             except (SkinstretchError, OSError):
                 pass
+            # a sensor that fell silent near the end, or never spoke: the trial has no force, so it failed
+            if failure is None and pump.error:
+                failure = pump.error
+            elif failure is None and pump.samples == 0:
+                failure = f"force sensor: {devices.force.description} delivered no sample during the trial"
         if camera is not None:
             try:
                 camera.stop()
