@@ -297,7 +297,8 @@ class NetFTSensor(ForceSensor):
     ) -> None:
         super().__init__(queue_size=queue_size)
         if not (isinstance(silence_timeout_s, (int, float)) and 0 < silence_timeout_s < math.inf):
-            raise InvalidInputError(f"silence_timeout_s must be a positive number of seconds, got {silence_timeout_s!r}")
+            raise InvalidInputError(f"silence_timeout_s must be a positive number of seconds, "
+                                    f"got {silence_timeout_s!r}")
         self._silence_timeout = float(silence_timeout_s)
         self._last_heard = time.monotonic()
         if not isinstance(host, str) or not host:
