@@ -39,6 +39,7 @@ from skinstretch import __version__
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.frame_readers import FrameReader, SourceFrame, open_frame_reader
 from skinstretch.drivers.session_file import SessionWriter, replacing_file, write_metadata
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError, Remedy
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.surface_detection import ContrastAccumulator, SurfaceEvidence
@@ -254,7 +255,8 @@ def import_frames(
         A bad option, or a rate or pixel scale the file does not declare and the caller did not give.
     """
     t_start = time.perf_counter()
-    output = Path(output)
+    # before the source is read: an output that cannot be written is named (not the hidden file written first)
+    output = check_output_file(output, overwrite=overwrite, remedy=REPLACE_IT)
     with open_frame_reader(source) as reader:
         if crop is not None:
             crop.check(reader.shape, reader.name)

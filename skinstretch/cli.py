@@ -102,9 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         log.error("skinstretch %s: error: %s", args.command, " ".join(text.split()))
         log.debug("where it happened", exc_info=True)
         rc = 1
-    except KeyboardInterrupt:
-        log.error("skinstretch %s: interrupted", args.command)
-        rc = 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a signal a command turned into one (SIGTERM: 143)
+        log.error("skinstretch %s: interrupted%s", args.command, f" ({exc.args[0]})" if exc.args else "")
+        rc = getattr(exc, "exit_status", 130)
     _exit_now_if_hdf5_cannot_shut_down(rc)
     return rc
 
