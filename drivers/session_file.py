@@ -862,6 +862,26 @@ class Session:
     def timestamps(self) -> np.ndarray:
         return self._read(lambda: self._ts[: self.n_frames])
 
+    def timestamp_faults(self) -> list[str]:
+        """What is wrong with the frames' host time stamps, one sentence each (none for a sound file): values
+        that are not finite, and steps back in time. The analysis works in frames, but rates, durations and the
+        alignment with force and display streams are read from these times, so a reader is told."""
+        ts = self.timestamps
+        out = []
+        bad = ~np.isfinite(ts)
+        if bad.any():
+            first = int(np.argmax(bad))
+            out.append(f"{int(bad.sum())} of the {ts.size} frame time stamps are not finite (the first: frame "
+                       f"{first}, {ts[first]}): rates and durations from them are meaningless")
+        good = np.flatnonzero(~bad)
+        back = np.flatnonzero(np.diff(ts[good]) < 0)
+        if back.size:
+            k = int(good[back[0] + 1])
+            out.append(f"the frame time stamps go back in time {back.size} time(s) (the first: frame {k}, "
+                       f"{ts[k]:.6f} s after {ts[int(good[back[0]])]:.6f} s): rates and durations from them are "
+                       "meaningless")
+        return out
+
     def timestamp(self, index: int) -> float:
         """The host time stamp of frame ``index`` (s), without reading the others."""
         return float(self._read(lambda: self._ts[index]))

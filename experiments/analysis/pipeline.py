@@ -521,7 +521,7 @@ def _analyze_session_held(session_path, outdir, *, method, params, executor, pro
             mapping = mapping_from_dict(json.loads(session.mapping_json))
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
-        notes = notes_on_source(session.metadata)
+        notes = notes_on_source(session.metadata) + session.timestamp_faults()
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
