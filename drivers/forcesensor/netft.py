@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from skinstretch.drivers.forcesensor.base import ForceSample, ForceSensor
-from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError
+from skinstretch.drivers.errors import DeviceError, ProtocolError
 from skinstretch.processing.errors import InvalidInputError
 
 __all__ = [
@@ -265,9 +265,10 @@ class NetFTSensor(ForceSensor):
     queue_size : int
         Samples held between the receive thread and :meth:`read`.
     silence_timeout_s : float
-        A stream that brings no datagram for this long (from the start request on) fails with
-        DeviceTimeoutError: a box that never answers (behind a firewall dropping its datagrams, at a wrong
-        address that sends no ICMP refusal) is a fault, not a sensor reading nothing.
+        A stream that brings no datagram for this long (from the start request on) fails with DeviceError (not
+        the DeviceTimeoutError of a :meth:`read` that found nothing yet, which callers retry): a box that never
+        answers (behind a firewall dropping its datagrams, at a wrong address that sends no ICMP refusal) is a
+        fault, not a sensor reading nothing.
 
     Examples
     --------
@@ -372,7 +373,7 @@ class NetFTSensor(ForceSensor):
         except socket.timeout:
             silent = time.monotonic() - self._last_heard
             if silent > self._silence_timeout:
-                raise DeviceTimeoutError(
+                raise DeviceError(
                     f"{self!r}: no data for {silent:.1f} s ({self.stats.received} samples received since the start "
                     "request): the box does not answer (address, firewall, cable?)") from None
             return []
