@@ -39,8 +39,8 @@ from typing import Any, Callable, Sequence
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StopRequested", "check_stop", "end_pool_now", "stop_deferred", "stop_pending", "guard_process_tree", "die_with_parent", "stop_on_signals",
-           "stop_reason", "worker_pool"]
+__all__ = ["StopRequested", "check_stop", "die_with_parent", "end_pool_now", "guard_process_tree", "stop_deferred",
+           "stop_on_signals", "stop_pending", "stop_reason", "stopped_by_signal", "worker_pool"]
 
 _PR_SET_PDEATHSIG = 1
 #: How often a worker that cannot count on the parent-death signal checks that its owner is alive (s).
@@ -193,6 +193,13 @@ def stop_reason(exc: BaseException) -> str:
 
 
 _STOP_SIGNAL: list[int] = []  # the signal that asked this process to stop (stop_on_signals), if one did
+_STOPPED: list[int] = []  # every signal stop_on_signals handled in this process (kept after the block)
+
+
+def stopped_by_signal() -> bool:
+    """Whether a signal handled by :func:`stop_on_signals` asked this process to stop (the command line then
+    ends it without the interpreter's slow teardown, once the command has closed what it wrote)."""
+    return bool(_STOPPED)
 
 
 @contextlib.contextmanager
@@ -204,6 +211,7 @@ def stop_on_signals(signums: Sequence[int] = (signal.SIGTERM, signal.SIGHUP, sig
     handlers before are restored at the end."""
 
     def handler(signum: int, frame) -> None:
+        _STOPPED.append(signum)
         if _STOP_SIGNAL:
             log.warning("%s received again while stopping: ignored", signal.Signals(signum).name)
             return

@@ -158,11 +158,14 @@ def _sigkill(work: Path) -> _Row:
     resume = _cli("record", str(proto), "-o", str(work / "killed"), "--resume", "--no-movie")
     done = {d.get("run_start"): d for name, d in read_events(sdir / "events.jsonl") if name == "stop"}
     aborted = any(d.get("exit_status") == "abort" for d in done.values())
+    # --resume records the rest and, since issue 41, counts the aborted trial: status 1, "1 in an earlier run"
+    counted = "1 of 3 trials failed (1 in an earlier run)" in resume.stderr
     return _Row("SIGKILL of record", "mid-trial 2 of 3, analysis of trial 1 running", gone_s,
-                f"{n} frames readable, {lost:.3f} s lost; --resume: trial marked aborted, the rest recorded",
+                f"{n} frames readable, {lost:.3f} s lost; --resume: trial marked aborted (and counted), the rest "
+                "recorded",
                 "twin died with record (hardware: firmware watchdog, 50 ms)",
                 f"-9; --resume {resume.returncode}",
-                left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 0)
+                left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 1 and counted)
 
 
 def replay_rig(work: Path, *, rate_hz: float | None = None) -> Path:
