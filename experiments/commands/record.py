@@ -3,7 +3,8 @@
 Exit status 0 only when every trial was recorded and every analysis done; otherwise 1, and the last line says how
 many of how many trials and analyses failed, and why the run stopped early if it did (a full disk). Problems found
 before anything is recorded (bad protocol, unwritable output, a protocol that cannot fit on the disk) are one
-line and status 2.
+line and status 2. SIGTERM, SIGHUP or Ctrl-C close the trial being recorded as aborted and end the command with
+128 + the signal (143, 129, 130), its last line saying so (docs/reliability.md, "Stopped by a signal").
 """
 
 from __future__ import annotations
