@@ -989,7 +989,9 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
     """Open a session file for reading, or raise SessionFileError saying why it cannot be read.
 
     ``swmr=True`` reads a file a recorder is still writing. A file already open in this process (by any path) is
-    served from the same HDF5 handle (see :class:`Session`), whatever ``swmr`` says.
+    served from the same HDF5 handle (see :class:`Session`), whatever ``swmr`` says. The file is read without
+    HDF5's file lock (:func:`open_hdf5_for_reading`): while a Session is open, open the same file with h5py in this
+    process with ``locking=False`` too (HDF5 refuses one file opened with two locking flags in one process).
     """
     path = Path(path)
     if not path.exists():
