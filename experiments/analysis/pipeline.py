@@ -71,7 +71,7 @@ from skinstretch.experiments.results_file import (
     EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
     check_results_dir,
 )
-from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file, hold_output_dir
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
@@ -652,7 +652,14 @@ def analyze_session(
     """Analyse one session file into ``outdir`` (created): ``results.h5`` and ``summary.json``; returns the results.
 
     Frames are read from the file as they are measured, so a session of any length fits in memory. An ``outdir``
-    that holds results already is refused (before anything is analysed) unless ``overwrite``."""
+    that holds results already is refused (before anything is analysed) unless ``overwrite``, and so is one
+    another analysis is writing into (:func:`~skinstretch.experiments.output_paths.hold_output_dir`)."""
+    with hold_output_dir(outdir, holder=f"an analysis of {Path(session_path).name}"):
+        return _analyze_session_held(session_path, outdir, method=method, params=params, executor=executor,
+                                     progress=progress, overwrite=overwrite)
+
+
+def _analyze_session_held(session_path, outdir, *, method, params, executor, progress, overwrite) -> Results:
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     session_path, outdir = Path(session_path), Path(outdir)
@@ -665,7 +672,7 @@ def analyze_session(
             mapping = mapping_from_dict(json.loads(session.mapping_json))
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
-        notes = notes_on_source(session.metadata)
+        notes = notes_on_source(session.metadata) + session.timestamp_faults()
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:

@@ -97,7 +97,6 @@ class ViewerState:
         self._status = "waiting"
         self._n_frames = 0
         self._results_error = ""
-        self._reopened = False
         self._chosen: Path | None = None  # a trial opened from the study overview (then not following the newest)
         if target.session is not None:
             self._switch(target.session, target.results)
@@ -112,7 +111,6 @@ class ViewerState:
             self._close_current()
             self.source = SessionSource(session)
             self.sid += 1
-            self._reopened = False
             self._results_error = ""
             self.results = self._load_results(results)
             log.info("viewer: showing %s", session)
@@ -143,10 +141,8 @@ class ViewerState:
             status = self.source.status()
             if status == "recording" and self.results is None and self.live and self.analyzer is None:
                 self.analyzer = LiveAnalyzer(self.source).start()
-            if status != "recording" and not self._reopened:
-                self._reopened = True
-                if self._status == "recording":
-                    self.source.reopen_if_closed()  # a truth is attached to a simulated recording after it ends
+            if status != "recording" and self.source.reopen_if_changed():  # closed, then its truth attached
+                status = self.source.status()
             self._status = status
             if self.results is None and not self._results_error:
                 found = _results_beside(self.source.path)

@@ -7,7 +7,9 @@ Everything the viewer needs from ``results.h5`` goes through :func:`load_results
 example trajectories stored as a long table), this file is the one to adapt.
 
 A session still being recorded is read in SWMR mode through :class:`SessionSource`; it has no results yet, and
-its overlays come from the live analysis (:mod:`skinstretch.experiments.viewer.live_analysis`) instead.
+its overlays come from the live analysis (:mod:`skinstretch.experiments.viewer.live_analysis`) instead. Every file
+is opened as :func:`~skinstretch.drivers.session_file.open_session` opens it for ``analyze`` (refused in one line
+when truncated or corrupt) and without a file lock, so the viewer never makes the recorder's writes fail.
 
 Coordinates are image pixels, x = column, y = row; strains are fractions (the page shows %).
 """
@@ -16,16 +18,16 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 import orjson
 
 from skinstretch.drivers.errors import SessionFileError
-from skinstretch.drivers.session_file import Session, open_session
+from skinstretch.drivers.session_file import Session, held_for_writing, open_hdf5_for_reading, open_session
 from skinstretch.experiments.results_file import read_results
 
 log = logging.getLogger(__name__)
@@ -243,9 +245,14 @@ class SessionSource:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
-        self._session: Session = open_session(self.path, swmr=True)
+        self._session: Session = open_session(self.path)
+        self._opened_as = self._on_disk()
         self._truth = None
         self._truth_loaded = False
+
+    def _on_disk(self) -> tuple[int, int]:
+        st = self.path.stat()
+        return st.st_mtime_ns, st.st_size
 
     @property
     def session(self) -> Session:
@@ -269,7 +276,8 @@ class SessionSource:
             return self._session.timestamp(index)
 
     def truth(self):
-        """The simulated session's truth, or None (read once: a recording gets its truth after it is closed)."""
+        """The simulated session's truth, or None (a recording gets its truth after it is closed: see
+        :meth:`reopen_if_changed`)."""
         if not self._truth_loaded:
             with self._lock:
                 if self._session.has_truth:
@@ -279,12 +287,27 @@ class SessionSource:
                     self._truth_loaded = True
         return self._truth
 
-    def reopen_if_closed(self) -> None:
-        """Re-open the file once its recorder closed it: a truth attached afterwards becomes visible."""
+    def reopen_if_changed(self, *, wait_s: float = 2.0) -> bool:
+        """Open the file again when it changed on disk since it was opened (its recorder closed it, a ground truth
+        was attached), so that what was written is seen; True when it did. Not while another program holds it
+        open for writing (it would refuse the reader): False, and the caller asks again later. A writer that
+        takes it between that check and the opening is waited for up to ``wait_s``."""
+        if self._on_disk() == self._opened_as or held_for_writing(self.path):
+            return False
         with self._lock:
             self._session.close()
-            self._session = open_session(self.path, swmr=True)
-            self._truth_loaded = False
+            deadline = time.monotonic() + wait_s
+            while True:
+                try:
+                    self._session = open_session(self.path)
+                    break
+                except SessionFileError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.05)
+            self._opened_as = self._on_disk()
+            self._truth, self._truth_loaded = None, False
+        return True
 
     def describe(self) -> dict[str, Any]:
         s = self._session
@@ -651,15 +674,8 @@ class ViewTarget:
 
 
 def _h5_format(path: Path) -> str:
-    try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as f:
-            fmt = f.attrs.get("format", "")
-    except OSError:
-        try:
-            with h5py.File(path, "r") as f:
-                fmt = f.attrs.get("format", "")
-        except OSError as exc:
-            raise SessionFileError(f"{path}: HDF5 file cannot be opened ({exc})") from None
+    with open_hdf5_for_reading(path) as f:  # refused in one line, as analyze refuses it
+        fmt = f.attrs.get("format", "")
     return fmt.decode() if isinstance(fmt, bytes) else str(fmt)
 
 
@@ -669,7 +685,7 @@ def _results_beside(session: Path) -> Path | None:
 
 
 def _session_of_results(results: Path) -> Path:
-    with h5py.File(results, "r") as f:
+    with open_hdf5_for_reading(results) as f:
         raw = f.attrs.get("session_path", "")
     sp = Path(raw.decode() if isinstance(raw, bytes) else str(raw))
     if not sp.exists():
