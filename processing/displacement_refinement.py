@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.measurement_uncertainty import RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
@@ -92,6 +92,9 @@ class SubpixelParams:
         scene 0.110 / 0.099 / 0.097 / 0.100 %, a stretch twice the scene's 0.149 / 0.123 / 0.120 / 0.119 %, the
         reversal 0.095 / 0.091 / 0.088 / 0.088 %; a plain slide, where most of what the test calls curved is
         noise, 0.074 / 0.084 / 0.079 / 0.076 %.
+    model_sigma_px : float
+        The error a window's residual does not show (px per axis), added in quadrature to each predicted standard
+        error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
     """
 
     window_mm: float = Field(0.6, gt=0)
@@ -106,6 +109,7 @@ class SubpixelParams:
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
     span_direct_full: float = Field(8.0, gt=1)
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
 
 #: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
@@ -346,7 +350,7 @@ class SubpixelRefiner:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         txx, txy, tyy, s2, texture = self._window_statistics(prev_image, curr_image, points, displacement,
                                                              self._window_halves(None, points.shape[0])).T
-        return registration_check(txx, txy, tyy, s2, texture)
+        return registration_check(txx, txy, tyy, s2, texture, model_sigma_px=self.params.model_sigma_px)
 
     def _window_statistics(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                            halves: np.ndarray) -> np.ndarray:

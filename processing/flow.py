@@ -41,7 +41,7 @@ from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.flow_kernels import membrane_edge_weights, sor, sor_tensor, warp_maps, window_moments
 from skinstretch.processing.global_motion import GlobalMotionEstimator
-from skinstretch.processing.measurement_uncertainty import MIN_MATCH, RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
@@ -116,6 +116,9 @@ class FlowParams:
         its own two frames (:class:`SpanRefiner`, on a flat surface). False: the composition alone, about twice as
         fast on a flat surface, but a slip front's 11-frame edge strain errs several times more (see
         :meth:`DenseFlow.compute_spans`).
+    model_sigma_px : float
+        The error a window's residual does not show (px per axis), added in quadrature to each node's predicted
+        standard error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
     """
 
     grid_step_mm: float = Field(0.2, gt=0)
@@ -136,6 +139,7 @@ class FlowParams:
     local_prior: bool = True
     texture_gate: bool = True
     refine_spans: bool = True
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
     @field_validator("window_px")
     @classmethod
@@ -782,7 +786,8 @@ class _LinearSystem:
         if self._texture is None:
             mean = self._window_sums(self.a_pad) / n
             self._texture = np.maximum(self._window_sums(self.a_pad * self.a_pad) / n - mean * mean, 0.0)
-        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture)
+        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
+                                  model_sigma_px=self.flow.params.model_sigma_px)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""

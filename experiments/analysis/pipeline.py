@@ -74,6 +74,7 @@ from skinstretch.experiments.results_file import (
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file, hold_output_dir
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
@@ -92,6 +93,8 @@ log = logging.getLogger(__name__)
 #: A displacement whose median predicted standard error exceeds this (px) is warned about: beyond the accuracy the
 #: measurement is for (the bench's displacement target).
 MEANINGFUL_SIGMA_PX = 0.05
+#: The same for the longest span's edge strain (a fraction): the bench's 11-frame edge-strain target.
+MEANINGFUL_EDGE_SIGMA = 0.002
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
 #: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
@@ -306,11 +309,13 @@ def analyze(
     progress: bool = False,
     overwrite: bool = False,
     source_notes: Sequence[str] = (),
+    lossy_source: bool = False,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
-    (:func:`notes_on_source`).
+    (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
+    predicted standard errors then include (:func:`for_lossy_source`).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -328,6 +333,9 @@ def analyze(
         log.warning("%s", note)
     notes = [*source_notes, *clip_notes(params, n, method)]
     params = for_clip(params, n, method)
+    if lossy_source:
+        params, note = for_lossy_source(params)
+        notes += [note] if note else []
     image_shape = tuple(int(v) for v in source.shape)
     scales = PixelScales.of(calibration, params.strain)
     spans = [int(s) for s in params.strain.spans]
@@ -555,7 +563,7 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
               density: dict[str, Any]) -> list[str]:
     """The lines a user must read before trusting the numbers: a mesh too sparse to map strain (logged where it is
     found), pairs a self-check doubted, and a predicted error beyond what the measurement is for (the bench's
-    displacement target)."""
+    displacement and edge-strain targets)."""
     out = [density.get("warning") if density.get("too_sparse") else None,
            motion.doubted.describe(motion.written, "consecutive frame pairs")]
     out += [strain.doubted[span].describe(strain.done[span], f"{span}-frame spans")
@@ -564,6 +572,12 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
     if disp is not None and not disp["median"] <= MEANINGFUL_SIGMA_PX:
         out.append(f"the displacements' predicted error is {disp['median']:.3g} px (median standard error), above "
                    f"{MEANINGFUL_SIGMA_PX} px: the frames' texture or noise limit this measurement")
+    span = max(strain.buffers)
+    edges = uncertainty.get(f"edge_change_sigma_span_{span}")
+    if edges is not None and not edges["median"] <= MEANINGFUL_EDGE_SIGMA:
+        out.append(f"the {span}-frame edge strain's predicted error is {100 * edges['median']:.2g} % (median "
+                   f"standard error), above {100 * MEANINGFUL_EDGE_SIGMA:.1f} %: the points are too few, too close "
+                   "or too uncertain for strain at this scale")
     return [w for w in out if w]
 
 
@@ -624,14 +638,37 @@ def surface_kind(metadata: dict) -> str | None:
     return str(surface) if surface else None
 
 
-def notes_on_source(metadata: dict) -> list[str]:
-    """What a session's metadata says its frames lost before the analysis: imported from a lossy file
-    (:mod:`skinstretch.experiments.frame_import` records ``source.lossy``)."""
+def source_is_lossy(metadata: dict) -> bool:
+    """The session's frames were imported from a lossy file (:mod:`skinstretch.experiments.frame_import` records
+    ``source.lossy``)."""
     source = metadata.get("source")
-    if isinstance(source, dict) and source.get("lossy") is True:
-        return [f"the frames were imported from lossy compression ({source.get('compression') or 'unknown'}): the "
-                "motion measured departs from what the camera's own frames give (docs/import-and-replay.md, Accuracy)"]
+    return isinstance(source, dict) and source.get("lossy") is True
+
+
+def notes_on_source(metadata: dict) -> list[str]:
+    """What a session's metadata says its frames lost before the analysis: imported from a lossy file."""
+    if source_is_lossy(metadata):
+        return [f"the frames were imported from lossy compression ({metadata['source'].get('compression') or 'unknown'}"
+                "): the motion measured departs from what the camera's own frames give (docs/import-and-replay.md, "
+                "Accuracy)"]
     return []
+
+
+def for_lossy_source(params: AnalysisParams) -> tuple[AnalysisParams, str]:
+    """``params`` whose predicted errors include a lossy codec's (``model_sigma_px`` of the flow and the sub-pixel
+    stages raised to :data:`LOSSY_MODEL_SIGMA_PX` where left at the default), and the note that says so ("" when the
+    user set them)."""
+    changed = {}
+    for stage in ("flow", "subpixel"):
+        p = getattr(params, stage)
+        if p is not None and p.model_sigma_px == MODEL_SIGMA_PX:
+            changed[stage] = dataclasses.replace(p, model_sigma_px=LOSSY_MODEL_SIGMA_PX)
+    if not changed:
+        return params, ""
+    return params.model_copy(update=changed), (
+        f"the predicted errors include {LOSSY_MODEL_SIGMA_PX} px per axis for the lossy compression ("
+        + ", ".join(f"{stage}.model_sigma_px" for stage in changed) + f" {LOSSY_MODEL_SIGMA_PX} instead of "
+        f"{MODEL_SIGMA_PX}; set them to choose)")
 
 
 #: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
@@ -673,12 +710,13 @@ def _analyze_session_held(session_path, outdir, *, method, params, executor, pro
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
         notes = notes_on_source(session.metadata) + session.timestamp_faults()
+        lossy = source_is_lossy(session.metadata)
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes)
+                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes, lossy_source=lossy)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):
