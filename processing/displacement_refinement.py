@@ -141,7 +141,7 @@ def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
     f = np.asarray(image, dtype=np.float32)
     mean = _smooth(f, sigma_px)
     d = f - mean
-    std = np.sqrt(_smooth(d * d, sigma_px)) + 2.0
+    std = np.sqrt(np.maximum(_smooth(d * d, sigma_px), 0.0)) + 2.0  # box filters round a flat patch to -1e-7
     return np.clip(128.0 + 40.0 * d / std, 0, 255).astype(np.uint8)
 
 
