@@ -33,6 +33,7 @@ from skinstretch.experiments.bench import BenchOptions, BenchTable
 from skinstretch.simulators.moved_print import ClipConditions, PrintMotion, TravellingBand
 
 if TYPE_CHECKING:
+    from skinstretch.experiments.analysis import AnalysisParams
     from skinstretch.experiments.evaluation.field_scores import FieldScores
 
 SECTION = "conditions"
@@ -176,15 +177,17 @@ def imported_session(c: Condition, directory: Path):
     return result, clip
 
 
-def analyse_and_score(c: Condition, imported, clip, method: str, directory: Path) -> ConditionRow:
-    """``skinstretch analyze SESSION --method METHOD`` (default parameters) into ``directory/METHOD``, scored."""
+def analyse_and_score(c: Condition, imported, clip, method: str, directory: Path, *,
+                      params: AnalysisParams | None = None) -> ConditionRow:
+    """``skinstretch analyze SESSION --method METHOD`` (default parameters, or ``params``) into
+    ``directory/METHOD``, scored."""
     import psutil  # noqa: PLC0415
 
     from skinstretch.experiments.analysis import analysis_params, analyze_session, make_executor  # noqa: PLC0415
     from skinstretch.experiments.analysis.executor import WorkerProcesses  # noqa: PLC0415
     from skinstretch.experiments.evaluation.field_scores import score_results, verdict  # noqa: PLC0415
 
-    params = analysis_params({})
+    params = analysis_params({}) if params is None else params
     out = directory / method
     with make_executor(params.execution) as executor:
         c0 = time.process_time()
