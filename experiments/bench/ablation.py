@@ -17,7 +17,7 @@ import math
 import shutil
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -102,14 +102,24 @@ class Run:
     edge_rmse_11_pct: float
 
 
+@dataclass(frozen=True)
+class ClipScore:
+    """One analysis of a clip: its CPU seconds, the clip's frames, and its errors against the truth."""
+
+    cpu_s: float
+    n_frames: int
+    displacement_rmse_px: float
+    edge_rmse_11_pct: float
+
+
 @dataclass
 class _Clip:
     """A clip to analyse: its name, whether it is over a ridge or valley, and how to analyse and score it."""
 
     name: str
     shaped: bool
-    analyse: Any  # (method, params) -> (cpu_s, n_frames, disp_rmse_px, edge_rmse_11_pct)
-    cleanup: Any = field(default=lambda: None)
+    analyse: Callable[[str, Any], ClipScore]  # (method, AnalysisParams)
+    cleanup: Callable[[], None] = field(default=lambda: None)
 
 
 def _scene_clip(scene_name: str, n_frames: int, seed: int) -> _Clip:
@@ -126,7 +136,7 @@ def _scene_clip(scene_name: str, n_frames: int, seed: int) -> _Clip:
         r = analyze_frames(s.frames, calibration=s.calibration, method=method, params=params, surface=surface)
         cpu = time.process_time() - c0
         ev = evaluate_tracking(r, s.truth)
-        return cpu, n_frames, ev["tracking"]["displacement_rmse_px"], 100.0 * ev["strain"]["edge_rmse_11"]
+        return ClipScore(cpu, n_frames, ev["tracking"]["displacement_rmse_px"], 100.0 * ev["strain"]["edge_rmse_11"])
 
     return _Clip(f"{scene_name} seed {seed}", surface not in (None, "", "flat"), analyse)
 
@@ -141,8 +151,8 @@ def _condition_clip(name: str, workdir) -> _Clip:
     def analyse(method: str, params):
         row = conditions.analyse_and_score(c, imported, clip, method, directory, params=params)
         s = row.scores
-        return (row.cpu_ms_per_frame * imported.n_frames / 1000.0, imported.n_frames, s.displacement_rmse_px,
-                s.edge_rmse_pct.get(11, math.nan))
+        return ClipScore(row.cpu_ms_per_frame * imported.n_frames / 1000.0, imported.n_frames,
+                         s.displacement_rmse_px, s.edge_rmse_pct.get(11, math.nan))
 
     return _Clip(f"conditions: {name}", False, analyse, lambda: shutil.rmtree(directory, ignore_errors=True))
 
@@ -170,11 +180,13 @@ def run(options: BenchOptions) -> list[BenchTable]:
             for stage in (None, *(s for s in STAGES if s.method == method)):
                 if stage is not None and stage.shaped_only and not clip.shaped:
                     continue
-                cpu, n, disp, edge = clip.analyse(method, stage_params(stage))
+                score = clip.analyse(method, stage_params(stage))
                 runs.append(Run(clip.name, clip.shaped, method, None if stage is None else stage.name,
-                                1000.0 * cpu / n, float(disp), float(edge)))
+                                1000.0 * score.cpu_s / score.n_frames, float(score.displacement_rmse_px),
+                                float(score.edge_rmse_11_pct)))
                 log.info("%s %s off=%s: %.1f ms/frame, disp %.4f px, edge11 %.3f %%", clip.name, method,
-                         runs[-1].stage, runs[-1].cpu_ms_per_frame, disp, edge)
+                         runs[-1].stage, runs[-1].cpu_ms_per_frame, runs[-1].displacement_rmse_px,
+                         runs[-1].edge_rmse_11_pct)
         clip.cleanup()
     return [_stage_table(runs, scenes, condition_names), _run_table(runs)]
 
