@@ -52,12 +52,13 @@ class TrackingParams:
         Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30 here; the analysis uses half
         of a clip shorter than 30 frames instead (:func:`min_length_for_clip`) and says so.
     smoothing_radius_frames : int
-        Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
+        Half-width R of the Gaussian smoothing kernel of eq. 5.3 (the seed's Figure 53 uses diameter 3 -> R = 1);
+        0 = none, the default: sub-pixel refinement and key-frame anchoring leave little jitter to smooth.
     smoothing_sigma_frames : float
         Standard deviation of that kernel (seed Figure 53: 1).
     max_gap_frames : int
         A feature lost for at most this many frames is re-linked to its trajectory (0 = the seed's behaviour:
-        "no attempt is made to keep track of features through discontinuities").
+        "no attempt is made to keep track of features through discontinuities"; default 3).
     max_local_deviation_mm : float
         With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
         refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
@@ -100,12 +101,12 @@ class TrackingParams:
 
     search_radius_mm: float = Field(0.3, gt=0)
     min_length_frames: int | None = Field(None, ge=1)
-    smoothing_radius_frames: int = Field(1, ge=0)
+    smoothing_radius_frames: int = Field(0, ge=0)
     smoothing_sigma_frames: float = Field(1.0, gt=0)
-    max_gap_frames: int = Field(0, ge=0)
+    max_gap_frames: int = Field(3, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
     max_bridge_deviation_spreads: float | None = Field(10.0, gt=0)
-    max_bridge_frames: int | None = Field(0, ge=0)
+    max_bridge_frames: int | None = Field(None, ge=0)
     merge_radius_mm: float = Field(0.1, gt=0)
     fusion_radius_mm: float | None = Field(1.5, gt=0)
     fusion_model_sigma_mm: float = Field(0.0002, gt=0)

@@ -82,8 +82,6 @@ def options_from_args(args: argparse.Namespace) -> dict:
         raise InvalidInputError("give --flow-scale (mm) or --flow-scale-px (pixels), not both")
     if (args.flow_scale is not None or args.flow_scale_px is not None) and args.method != "flow":
         raise InvalidInputError("--flow-scale and --flow-scale-px set the flow method's window: add --method flow")
-    if args.min_track is not None and args.min_track < 1:
-        raise InvalidInputError(f"--min-track must be >= 1, got {args.min_track}")
     options: dict = {"strain": {"spans": parse_spans(args.span)}}
     if args.min_track is not None:
         options["tracking"] = {"min_length_frames": args.min_track}
