@@ -19,7 +19,7 @@ from skinstretch.processing.errors import InsufficientDataError
 from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, min_length_for_clip
 from skinstretch.processing.trajectory_anchoring import GLASS_SMOOTHING_KEY_FRAMES, SHAPE_SMOOTHING_KEY_FRAMES
 
-__all__ = ["AnalysisPlan", "Override", "plan_analysis", "refuse_unfit_clip", "clip_notes", "on_plain_glass",
+__all__ = ["AnalysisPlan", "Override", "plan_analysis", "plan_rows", "refuse_unfit_clip", "clip_notes", "on_plain_glass",
            "wants_glass_shading", "shading_min_motion"]
 
 log = logging.getLogger(__name__)
@@ -183,3 +183,27 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
                         plain_glass=glass, params=used, keyframe_smoothing_key_frames=smoothing,
                         span_registration=span_registration, span_refiner=span_refiner,
                         overrides=tuple(overrides), notes=tuple(notes))
+
+
+def plan_rows(plan: dict[str, Any]) -> list[tuple[str, str]]:
+    """The plan recorded in a summary (:meth:`AnalysisPlan.to_dict`) as (what, value) rows for a person: the report's
+    table and the viewer's panel. Empty for results written before the plan was recorded."""
+    if not plan:
+        return []
+
+    def on(value: Any) -> str:
+        return "on" if value else "off"
+
+    rows = [("method", str(plan.get("method"))), ("frames", str(plan.get("n_frames"))),
+            ("surface", str(plan.get("surface") or "unknown")), ("glass shading", str(plan.get("glass_shading"))),
+            ("plain glass", "yes" if plan.get("plain_glass") else "no")]
+    if plan.get("method") == "features":
+        smoothing = plan.get("keyframe_smoothing_key_frames")
+        rows += [("key-frame anchoring", f"on, smoothed over {smoothing} key frames" if smoothing else "off"),
+                 ("span registration", on(plan.get("span_registration"))),
+                 ("minimum trajectory length", f"{plan.get('min_track_frames')} frames")]
+    else:
+        rows += [("span refiner", on(plan.get("span_refiner"))), ("local prior", on(plan.get("local_prior")))]
+    for o in plan.get("overrides") or []:
+        rows.append((f"override: {o['parameter']}", f"asked {o['asked']!r}, used {o['used']!r}: {o['reason']}"))
+    return rows
