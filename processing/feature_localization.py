@@ -94,23 +94,17 @@ def refine_pores(
 
     Parameters
     ----------
-    image : (H, W) float32
-        The smoothed frame.
-    threshold : (H, W) float32
-        The binarization threshold map (scaled local average).
+    image, threshold : (H, W) float32
+        The smoothed frame; the binarization threshold map (scaled local average).
     x, y : (P,) float
         Initial positions (pixels).
     radius_px : float or (P,) float
-        Disc radius per pore: a little more than the blob's radius, so that the window does not reach the
-        neighbouring valleys (they are bright too and would pull the centre).
+        Disc radius per pore: a little more than the blob's, short of the neighbouring (bright) valleys.
     iterations : int
         Re-centring iterations.
-    Returns
-    -------
-    x, y : (P,) float64
-        Refined positions; unchanged where refinement failed.
-    refined : (P,) bool
-        Whether each position was refined (False: no excess intensity, or the centre drifted out of the disc).
+
+    Returns ``x, y`` ((P,) float64, unchanged where refinement failed) and ``refined`` ((P,) bool: False where there
+    was no excess intensity, or the centre drifted out of the disc).
 
     Examples
     --------
@@ -346,18 +340,11 @@ def locate_forks(
         The frame minus the binarization threshold (valleys > 0).
     x, y : (M,) float
         The skeleton's forks.
-    reach_px : float
-        Search radius around each start.
-    max_radius_px : float
-        Largest disc radius looked for: the outline is collected within ``reach_px + max_radius_px``.
+    reach_px, max_radius_px : float
+        Search radius around each start; largest disc radius looked for (the outline within their sum is used).
 
-    Returns
-    -------
-    x, y : (M,) float64
-        The centres (unchanged where none was found).
-    radius : (M,) float64
-        The disc radii (NaN where none was found).
-    found : (M,) bool
+    Returns ``x, y`` ((M,) float64, the centres; unchanged where none was found), ``radius`` ((M,) float64, NaN where
+    none was found) and ``found`` ((M,) bool).
     """
     img, _, x, y = _check(excess, excess, x, y, reach_px)
     if not (np.isfinite(max_radius_px) and max_radius_px > 0):

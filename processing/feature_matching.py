@@ -61,10 +61,7 @@ def match_features(
     search_radius_mm : float
         Radius of the circular search window around each expected position.
 
-    Returns
-    -------
-    Matches
-        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
+    Returns :class:`Matches`: one-to-one pairs, finalised in decreasing eq. 5.1 confidence.
 
     Examples
     --------
