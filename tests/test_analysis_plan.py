@@ -96,3 +96,16 @@ def test_the_summary_holds_the_plan(analysed_study):
         r = read_results(trial / "results.h5")
         assert r.plan == summary["plan"]
         assert r.params["flow"]["local_prior"] is glass  # the parameters recorded are the ones used
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--min-track", "0"], "--min-track: Input should be greater than or equal to 1"),
+    (["--span", "0,11"], "--span: Value error, spans must be positive frame counts, got [0, 11]"),
+])
+def test_the_command_line_delegates_to_the_parameters(tmp_path, capsys, flags, message):
+    """The flags' ranges are the parameters' (one validation path): refused in one line, exit status 2."""
+    from skinstretch.cli import main
+
+    assert main(["analyze", str(tmp_path / "none.h5"), "-o", str(tmp_path / "out"), *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(message) and "\n" not in err
