@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.measurement_uncertainty import RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
@@ -31,10 +31,9 @@ class SubpixelParams:
 
     Parameters
     ----------
-    window_mm : float
-        Side of the square registration window (mm; 0.6: about 1.4 ridge periods either side of the feature).
-    max_correction_mm : float
-        Largest change the refinement may make to the matched displacement (mm); beyond it the match is kept, flagged.
+    window_mm, max_correction_mm : float
+        Side of the square registration window (mm; about 1.4 ridge periods either side of the feature); largest
+        change the refinement may make to the matched displacement (mm; beyond it the match is kept, flagged).
     pyramid_levels, normalize_sigma_mm : int, float or None
         Pyramid levels above full resolution of the registration (0: the match starts it within a pixel or two);
         scale of the local contrast normalisation of both images (:func:`local_normalize`; None: raw images).
@@ -45,13 +44,14 @@ class SubpixelParams:
         window) exceeds ``target_precision_mm``.
     gradient_window_mm : float or None
         Window of :meth:`SubpixelRefiner.window_gradients` (mm); None: the gradient from the neighbours only.
-    span_window_mm : float
-        Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with (second-order warp).
-    span_curvature_threshold : float
-        Wald statistic of the six second-order terms above which the second-order fit is kept (0: always).
+    span_window_mm, span_curvature_threshold : float
+        Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
+        six second-order terms above which its second-order fit is kept (0: always).
     span_direct_full : float
         Multiple of that threshold at which :class:`~skinstretch.processing.span_registration.SpanRegistration`
         keeps a span's direct registration alone (its weight rises from 1/2 at the threshold).
+    model_sigma_px : float
+        The error a window's residual does not show (px per axis), added in quadrature to each predicted error.
     """
 
     window_mm: float = Field(0.6, gt=0)
@@ -66,6 +66,7 @@ class SubpixelParams:
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
     span_direct_full: float = Field(8.0, gt=1)
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
 
 #: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
@@ -97,7 +98,7 @@ def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
     f = np.asarray(image, dtype=np.float32)
     mean = _smooth(f, sigma_px)
     d = f - mean
-    std = np.sqrt(_smooth(d * d, sigma_px)) + 2.0
+    std = np.sqrt(np.maximum(_smooth(d * d, sigma_px), 0.0)) + 2.0  # box filters round a flat patch to -1e-7
     return np.clip(128.0 + 40.0 * d / std, 0, 255).astype(np.uint8)
 
 
@@ -306,7 +307,7 @@ class SubpixelRefiner:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         txx, txy, tyy, s2, texture = self._window_statistics(prev_image, curr_image, points, displacement,
                                                              self._window_halves(None, points.shape[0])).T
-        return registration_check(txx, txy, tyy, s2, texture)
+        return registration_check(txx, txy, tyy, s2, texture, model_sigma_px=self.params.model_sigma_px)
 
     def _window_statistics(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                            halves: np.ndarray) -> np.ndarray:

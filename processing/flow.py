@@ -41,7 +41,7 @@ from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.flow_kernels import membrane_edge_weights, sor, sor_tensor, warp_maps, window_moments
 from skinstretch.processing.global_motion import GlobalMotionEstimator
-from skinstretch.processing.measurement_uncertainty import MIN_MATCH, RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
@@ -55,11 +55,9 @@ class FlowParams:
 
     Parameters
     ----------
-    grid_step_mm : float
-        Largest spacing of the measurement grid (mm); never coarser than a quarter of the window.
-    window_mm, window_px : float, int or None
-        Side of the registration window (mm, about two ridge periods: the resolution knob, ``bench --only star``);
-        in pixels (odd, >= 7) when ``window_px`` is given.
+    grid_step_mm, window_mm, window_px : float, float, int or None
+        Largest grid spacing (mm; at most a quarter of the window); side of the registration window (mm, about two
+        ridge periods: the resolution knob, ``bench --only star``), in pixels (odd, >= 7) when ``window_px`` given.
     pyramid_levels : int or None
         Pyramid levels of the first registration; None: as many as keep a ridge period >= 6 px on the top level.
     min_contrast, smoothness, sor_omega : float
@@ -67,8 +65,9 @@ class FlowParams:
         data weight); SOR over-relaxation factor in (0, 2).
     refine_iterations, solver_sweeps, prior_refits : int
         Gauss-Newton iterations per level; SOR sweeps per iteration; affine prior re-fits per iteration.
-    max_residual_ratio, residual_floor : float
-        A node whose residual exceeds this multiple of the median, and this absolute floor (grey levels), is invalid.
+    max_residual_ratio, residual_floor, model_sigma_px : float
+        A node whose residual exceeds this multiple of the median, and this floor (grey levels), is invalid; the
+        error a residual does not show (px per axis), added in quadrature to each node's predicted standard error.
     clg_levels, normalize_sigma_mm : int, float or None
         Pyramid levels on which the coupled registration also runs after the affine start (0: full resolution only);
         local contrast normalisation scale (mm; :func:`..displacement_refinement.local_normalize`).
@@ -96,6 +95,7 @@ class FlowParams:
     local_prior: bool = True
     texture_gate: bool = True
     refine_spans: bool = True
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
     @field_validator("window_px")
     @classmethod
@@ -742,7 +742,8 @@ class _LinearSystem:
         if self._texture is None:
             mean = self._window_sums(self.a_pad) / n
             self._texture = np.maximum(self._window_sums(self.a_pad * self.a_pad) / n - mean * mean, 0.0)
-        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture)
+        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
+                                  model_sigma_px=self.flow.params.model_sigma_px)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""

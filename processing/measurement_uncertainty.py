@@ -14,7 +14,8 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["larger_axis_sigma", "window_match", "registration_check", "RegistrationCheck", "edge_change_sigma",
-           "area_change_sigma", "MIN_MATCH", "MODEL_SIGMA_PX", "RADIUS_95_2D", "RADIUS_95_1D"]
+           "area_change_sigma", "MIN_MATCH", "MODEL_SIGMA_PX", "LOSSY_MODEL_SIGMA_PX", "RADIUS_95_2D",
+           "RADIUS_95_1D"]
 
 #: A registration whose windows match worse than this after the measured motion failed (``window_match``: 1 for
 #: identical windows, 0 for unrelated ones of the same texture): its error is unbounded, its sigma infinite.
@@ -22,6 +23,9 @@ MIN_MATCH = 0.8
 #: The error a window's residual does not show (px per axis, added in quadrature): the bilinear sampling's bias
 #: and what stays of a registration's systematic error; the bench's coverage of the 95 % interval checks it.
 MODEL_SIGMA_PX = 0.01
+#: The same for frames from lossy video: the codec's error follows the motion from frame to frame, and a window's
+#: residual shows little of it (``skinstretch bench --only conditions``, MP4 rows).
+LOSSY_MODEL_SIGMA_PX = 0.03
 
 #: A 2-D error vector with a standard error ``sigma`` per axis lies within this many ``sigma`` of the truth 95 %
 #: of the time (chi-square, 2 degrees of freedom).
@@ -84,8 +88,10 @@ class RegistrationCheck(NamedTuple):
     match: np.ndarray
 
 
-def registration_check(txx, txy, tyy, residual_variance, texture_variance) -> RegistrationCheck:
-    """:class:`RegistrationCheck` from a window's gradient products, residual variance and texture variance."""
+def registration_check(txx, txy, tyy, residual_variance, texture_variance, *,
+                       model_sigma_px: float = MODEL_SIGMA_PX) -> RegistrationCheck:
+    """:class:`RegistrationCheck` from a window's gradient products, residual variance and texture variance (the
+    sigma with ``model_sigma_px`` added in quadrature)."""
     match = np.nan_to_num(window_match(residual_variance, texture_variance), nan=0.0)
-    sigma = np.hypot(larger_axis_sigma(txx, txy, tyy, residual_variance), MODEL_SIGMA_PX)
+    sigma = np.hypot(larger_axis_sigma(txx, txy, tyy, residual_variance), model_sigma_px)
     return RegistrationCheck(np.where((match < MIN_MATCH) | np.isnan(sigma), np.inf, sigma), match)

@@ -103,7 +103,7 @@ class SpanRegistration:
 
 class SampleUncertainty:
     """Each point's predicted standard error (``MotionSample.sigma``, px) of a measured sample, from the
-    registration window around it in the sample's two frames (``SubpixelRefiner.displacement_sigma``): what a
+    registration window around it in the sample's two frames (``SubpixelRefiner.registration_check``): what a
     window registration of that displacement would leave as residual, over the window's texture. ``frames``: the
     prepared frames, shared with :class:`SpanRegistration` (call in increasing ``frame_a``)."""
 

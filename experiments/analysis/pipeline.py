@@ -81,6 +81,8 @@ log = logging.getLogger(__name__)
 #: A displacement whose median predicted standard error exceeds this (px) is warned about: beyond the accuracy the
 #: measurement is for (the bench's displacement target).
 MEANINGFUL_SIGMA_PX = 0.05
+#: The same for the longest span's edge strain (a fraction): the bench's 11-frame edge-strain target.
+MEANINGFUL_EDGE_SIGMA = 0.002
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
 #: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
@@ -295,11 +297,13 @@ def analyze(
     progress: bool = False,
     overwrite: bool = False,
     source_notes: Sequence[str] = (),
+    lossy_source: bool = False,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
-    (:func:`notes_on_source`).
+    (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
+    predicted standard errors then include (the plan's).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) enters the
@@ -326,7 +330,7 @@ def analyze(
         t_start = time.perf_counter()
         shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
         plan = plan_analysis(params, method=method, n_frames=n, surface=surface, shading_removed=shading is not None,
-                             shading_status=shading_status)
+                             shading_status=shading_status, lossy_source=lossy_source)
         params = plan.params
         notes = [*source_notes, *plan.notes]
         reader = FrameReader(source, shading)
@@ -532,7 +536,7 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
               density: dict[str, Any]) -> list[str]:
     """The lines a user must read before trusting the numbers: a mesh too sparse to map strain (logged where it is
     found), pairs a self-check doubted, and a predicted error beyond what the measurement is for (the bench's
-    displacement target)."""
+    displacement and edge-strain targets)."""
     out = [density.get("warning") if density.get("too_sparse") else None,
            motion.doubted.describe(motion.written, "consecutive frame pairs")]
     out += [strain.doubted[span].describe(strain.done[span], f"{span}-frame spans")
@@ -541,6 +545,12 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
     if disp is not None and not disp["median"] <= MEANINGFUL_SIGMA_PX:
         out.append(f"the displacements' predicted error is {disp['median']:.3g} px (median standard error), above "
                    f"{MEANINGFUL_SIGMA_PX} px: the frames' texture or noise limit this measurement")
+    span = max(strain.buffers)
+    edges = uncertainty.get(f"edge_change_sigma_span_{span}")
+    if edges is not None and not edges["median"] <= MEANINGFUL_EDGE_SIGMA:
+        out.append(f"the {span}-frame edge strain's predicted error is {100 * edges['median']:.2g} % (median "
+                   f"standard error), above {100 * MEANINGFUL_EDGE_SIGMA:.1f} %: the points are too few, too close "
+                   "or too uncertain for strain at this scale")
     return [w for w in out if w]
 
 
@@ -604,14 +614,21 @@ def surface_kind(metadata: dict) -> str | None:
     return str(surface) if surface else None
 
 
-def notes_on_source(metadata: dict) -> list[str]:
-    """What a session's metadata says its frames lost before the analysis: imported from a lossy file
-    (:mod:`skinstretch.experiments.frame_import` records ``source.lossy``)."""
+def source_is_lossy(metadata: dict) -> bool:
+    """The session's frames were imported from a lossy file (:mod:`skinstretch.experiments.frame_import` records
+    ``source.lossy``)."""
     source = metadata.get("source")
-    if isinstance(source, dict) and source.get("lossy") is True:
-        return [f"the frames were imported from lossy compression ({source.get('compression') or 'unknown'}): the "
-                "motion measured departs from what the camera's own frames give (docs/import-and-replay.md, Accuracy)"]
+    return isinstance(source, dict) and source.get("lossy") is True
+
+
+def notes_on_source(metadata: dict) -> list[str]:
+    """What a session's metadata says its frames lost before the analysis: imported from a lossy file."""
+    if source_is_lossy(metadata):
+        return [f"the frames were imported from lossy compression ({metadata['source'].get('compression') or 'unknown'}"
+                "): the motion measured departs from what the camera's own frames give (docs/import-and-replay.md, "
+                "Accuracy)"]
     return []
+
 
 
 #: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
@@ -653,12 +670,13 @@ def _analyze_session_held(session_path, outdir, *, method, params, executor, pro
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
         notes = notes_on_source(session.metadata) + session.timestamp_faults()
+        lossy = source_is_lossy(session.metadata)
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes)
+                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes, lossy_source=lossy)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):

@@ -16,11 +16,12 @@ from typing import Any
 
 from skinstretch.experiments.analysis.parameters import AnalysisParams, GlassShadingParams
 from skinstretch.processing.errors import InsufficientDataError
+from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
 from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, min_length_for_clip
 from skinstretch.processing.trajectory_anchoring import GLASS_SMOOTHING_KEY_FRAMES, SHAPE_SMOOTHING_KEY_FRAMES
 
-__all__ = ["AnalysisPlan", "Override", "plan_analysis", "plan_rows", "refuse_unfit_clip", "clip_notes", "on_plain_glass",
-           "wants_glass_shading", "shading_min_motion"]
+__all__ = ["AnalysisPlan", "Override", "plan_analysis", "plan_rows", "refuse_unfit_clip", "clip_notes",
+           "on_plain_glass", "wants_glass_shading", "shading_min_motion"]
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +184,19 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
                         plain_glass=glass, params=used, keyframe_smoothing_key_frames=smoothing,
                         span_registration=span_registration, span_refiner=span_refiner,
                         overrides=tuple(overrides), notes=tuple(notes))
+
+
+def _for_lossy_source(params: AnalysisParams) -> tuple[AnalysisParams, list[Override]]:
+    """``params`` whose predicted errors include a lossy codec's: ``model_sigma_px`` of the flow and the sub-pixel
+    stages raised to :data:`LOSSY_MODEL_SIGMA_PX` where left at the default (a value the user set is kept)."""
+    changed, overrides = {}, []
+    for stage in ("flow", "subpixel"):
+        p = getattr(params, stage)
+        if p is not None and p.model_sigma_px == MODEL_SIGMA_PX:
+            changed[stage] = dataclasses.replace(p, model_sigma_px=LOSSY_MODEL_SIGMA_PX)
+            overrides.append(Override(f"{stage}.model_sigma_px", MODEL_SIGMA_PX, LOSSY_MODEL_SIGMA_PX,
+                                      "frames imported from lossy compression"))
+    return (params.model_copy(update=changed) if changed else params), overrides
 
 
 def plan_rows(plan: dict[str, Any]) -> list[tuple[str, str]]:

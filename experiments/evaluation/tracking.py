@@ -288,7 +288,7 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
         },
         "strain": {},
         "uncertainty": {"displacement_coverage_95": coverage_95(derr, dsigma, RADIUS_95_2D),
-                        "displacement_sigma_median_px": float(np.nanmedian(dsigma)) if np.isfinite(dsigma).any()
+                        "displacement_sigma_median_px": float(np.median(dsigma[np.isfinite(dsigma)])) if np.isfinite(dsigma).any()
                         else math.nan},
     }
     for span in sorted(r.strain):

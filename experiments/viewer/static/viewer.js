@@ -89,8 +89,8 @@ async function loadInfo() {
   clearGauge();
   S.span = spans.includes(S.span) ? S.span : spans[0];
   $("span").value = String(S.span);
-  showAnalysisNotes(info.results ? info.results.notes : []);
-  showAnalysisWarnings(info.results ? info.results.warnings : []);
+  showAnalysisList("analysis-warnings", "Warnings", info.results ? info.results.warnings : []);
+  showAnalysisList("analysis-notes", "Analysis notes", info.results ? info.results.notes : []);
   showAnalysisPlan(info.results ? info.results.plan : []);
   buildLegend();
   setStatus(info);
@@ -101,36 +101,19 @@ async function loadInfo() {
   if (S.n > 0) await showFrame(S.follow ? S.n - 1 : Math.min(S.k, S.n - 1));
 }
 
-// What the analysis said about the whole clip (a short clip, a lossy source, a shape's shading left in), shown
-// above the frame for as long as the results are: a doubtful number should come with its caveat.
-function showAnalysisNotes(notes) {
-  const box = $("analysis-notes");
+// Above the frame for as long as the results are shown, so a doubtful number comes with its caveat: the
+// analysis' warnings (self-checks that failed, in red) and notes (a short clip, a lossy source, a shape's shading).
+function showAnalysisList(id, heading, items) {
+  const box = $(id);
   box.innerHTML = "";
-  box.hidden = !notes || notes.length === 0;
+  box.hidden = !items || items.length === 0;
   if (box.hidden) return;
   const title = document.createElement("strong");
-  title.textContent = "Analysis notes";
+  title.textContent = heading;
   const ul = document.createElement("ul");
-  for (const n of notes) {
+  for (const n of items) {
     const li = document.createElement("li");
     li.textContent = n;
-    ul.appendChild(li);
-  }
-  box.append(title, ul);
-}
-
-// The self-checks that failed (pairs not reported as ok, a large predicted error): above the frame, in red.
-function showAnalysisWarnings(warnings) {
-  const box = $("analysis-warnings");
-  box.innerHTML = "";
-  box.hidden = !warnings || warnings.length === 0;
-  if (box.hidden) return;
-  const title = document.createElement("strong");
-  title.textContent = "Warnings";
-  const ul = document.createElement("ul");
-  for (const w of warnings) {
-    const li = document.createElement("li");
-    li.textContent = w;
     ul.appendChild(li);
   }
   box.append(title, ul);
