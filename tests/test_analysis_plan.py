@@ -109,3 +109,17 @@ def test_the_command_line_delegates_to_the_parameters(tmp_path, capsys, flags, m
     assert main(["analyze", str(tmp_path / "none.h5"), "-o", str(tmp_path / "out"), *flags]) == 2
     err = capsys.readouterr().err.strip()
     assert err.endswith(message) and "\n" not in err
+
+
+def test_a_lossy_source_raises_the_model_error_left_at_its_default():
+    from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
+
+    plan = plan_analysis(analysis_params({}), method="features", n_frames=60, lossy_source=True)
+    assert {o.parameter: (o.asked, o.used) for o in plan.overrides} == {
+        "flow.model_sigma_px": (MODEL_SIGMA_PX, LOSSY_MODEL_SIGMA_PX),
+        "subpixel.model_sigma_px": (MODEL_SIGMA_PX, LOSSY_MODEL_SIGMA_PX)}
+    assert plan.params.subpixel.model_sigma_px == LOSSY_MODEL_SIGMA_PX
+    assert any("lossy compression" in n for n in plan.notes)
+    kept = plan_analysis(analysis_params({"flow": {"model_sigma_px": 0.02}, "subpixel": {"model_sigma_px": 0.02}}),
+                         method="flow", n_frames=60, lossy_source=True)  # the user's values are kept
+    assert kept.overrides == () and kept.params.flow.model_sigma_px == 0.02 and kept.notes == ()

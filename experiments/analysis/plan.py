@@ -131,19 +131,28 @@ def clip_notes(params: AnalysisParams, n_frames: int, method: str) -> list[str]:
 
 
 def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface: str | None = None,
-                  shading_removed: bool = False, shading_status: str = "off") -> AnalysisPlan:
+                  shading_removed: bool = False, shading_status: str = "off",
+                  lossy_source: bool = False) -> AnalysisPlan:
     """The plan of one analysis (see :class:`AnalysisPlan`); ``shading_removed``/``shading_status``: the outcome of
-    the glass-shading step (:func:`~skinstretch.experiments.analysis.frames.estimate_shading`). Refuses a clip the
-    parameters cannot fit (:func:`refuse_unfit_clip`); the notes and overrides are logged as warnings."""
+    the glass-shading step (:func:`~skinstretch.experiments.analysis.frames.estimate_shading`); ``lossy_source``:
+    frames through lossy video compression, whose error the predicted errors then include. Refuses a clip the
+    parameters cannot fit (:func:`refuse_unfit_clip`); notes are logged as warnings, overrides as information."""
     refuse_unfit_clip(params, n_frames, method)
     notes = clip_notes(params, n_frames, method)
+    overrides: list[Override] = []
+    if lossy_source:
+        params, lossy = _for_lossy_source(params)
+        overrides += lossy
+        if lossy:
+            notes.append(f"the predicted errors include {LOSSY_MODEL_SIGMA_PX} px per axis for the lossy compression ("
+                         + ", ".join(o.parameter for o in lossy) + f" {LOSSY_MODEL_SIGMA_PX} instead of "
+                         f"{MODEL_SIGMA_PX}; set them to choose)")
     if not shading_removed and shading_status.startswith("not applied") and surface not in (None, "", "flat"):
         # Said out loud: over a shape the shading left in biases the motion there (known gaps, short clips).
         reason = shading_status.removeprefix("not applied: ").removeprefix("glass shading: ").split(";")[0]
         notes.append(f"the glass-fixed shading over the {surface} was left in: {reason}. The motion across the shape "
                      "may read too small and its strain be biased; a longer slide over the shape lets the analysis "
                      "remove it")
-    overrides: list[Override] = []
     glass = on_plain_glass(shading_removed, surface)
     tracking, flow = params.tracking, params.flow
     where = f"over a {surface}" if surface not in (None, "", "flat") else "with glass shading removed"
