@@ -2,9 +2,10 @@
 
 Each stage keeps its own model: extraction, tracking, sub-pixel refinement, flow and display mapping are the
 processing layer's parameter classes (:mod:`skinstretch.processing.parameters`); strain/profile, glass shading and
-execution are defined here. Unknown fields and out-of-range values are refused where the parameters enter: on the
-command line, in a protocol's ``analysis.options`` when the protocol loads (with file, line and field), or when a
-Python user builds them. Everything is in mm, degrees, frames and grey levels; the analysis converts to pixels once.
+execution are defined here. These models are the one validation: unknown fields and out-of-range values are
+refused where the parameters enter (the command line and a protocol's ``analysis.options`` delegate to them, the
+latter with file, line and field), and a stage's own defaults are the analysis' defaults. Everything is in mm,
+degrees, frames and grey levels; the analysis converts to pixels once.
 """
 
 from __future__ import annotations
@@ -62,20 +63,11 @@ class GlassShadingParams(_Stage):
     (:mod:`skinstretch.processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias
     every motion estimate towards zero there).
 
-    ``enabled``: True / False, or None for "when the session's surface is not flat" (its metadata ``surface``).
-    ``smooth_mm`` smooths the per-pixel maps across the shape and ``along_shape_mm`` along it (1 mm: what a clip
-    leaves of the print in the maps is a glass-fixed ghost that pulls every step of the motion towards zero, the
-    same way each time; at 0.13 mm the 11-frame edge strain of ridge and valley scenes read 0.21-0.27 % RMS with
-    features and 0.15-0.17 % with the flow, at 1 mm 0.08-0.14 % (one clip 0.25 %) and 0.10-0.11 % (0.06-0.08 %
-    with the flow's spans refined), 11 clips, seeds 0-2; the shape's band must then lie along an image axis within a
-    degree or so: the one whose profile holds more of the clip's mean); a sequence whose skin moved less than
-    ``min_motion`` (temporal over spatial contrast) is left as it is (1.0: with the maps smoothed along the shape,
-    clips from a ratio of 1.0 gained in every case tried, ridge and valley scenes with our print and real ones, 12-60
-    frames; 1.08-1.10 is typical of 60 frames of a real print, which 1.1 left uncorrected, and a valley's profile
-    then comes out reversed; between 0.5 and 1.0 a real print's ghost cost a ridge more than its shading on some
-    clips and less on others, known gaps). Over a valley the skin leaves the glass at its bottom and the shading is
-    much the stronger: left in, it reverses the profile whatever the clip, and removing it gained on every valley
-    clip tried from a ratio of 0.43 (12 frames) up, so there the gate is ``min_motion_valley``.
+    ``enabled``: True / False, or None for "when the session's surface is not flat" (resolved by the analysis plan).
+    ``smooth_mm`` smooths the per-pixel maps across the shape and ``along_shape_mm`` along it (the shape's band must
+    then lie along an image axis within a degree or so); a sequence whose skin moved less than ``min_motion``
+    (temporal over spatial contrast) is left as it is, and over a valley less than ``min_motion_valley`` (its shading
+    is much the stronger: left in, it reverses the profile). The clips behind these values: docs/tuning-log.md.
     """
 
     enabled: bool | None = None
