@@ -311,15 +311,16 @@ def analyze(
             # over a ridge or valley whose shading was removed, there by a line over more key frames: each direct
             # registration also carries what the shading step leaves of the glass-fixed patterns. A longer span is
             # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
-            span_registration = None
+            span_registration = anchoring = None
             on_glass = plain_glass(shading, surface)
             if params.subpixel is not None and (on_glass or shading is not None):
                 refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
                 every = params.tracking.keyframe_interval_frames
                 if every is not None:
-                    store.anchor(KeyframeAnchoring(
+                    anchoring = KeyframeAnchoring(
                         refiner, reader, interval=every, reference_span=params.tracking.keyframe_reference_frames,
-                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES))
+                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES)
+                    store.anchor(anchoring)
                 if on_glass:
                     span_registration = SpanRegistration(refiner, reader)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
@@ -327,6 +328,9 @@ def analyze(
                                      threads=1 if params.execution.kind == "serial" else params.execution.workers)
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
+            # the stages' own shares of it (the bench's stages table)
+            m.timing["keyframes_s"] = anchoring.seconds if anchoring is not None else 0.0
+            m.timing["span_registration_s"] = span_registration.seconds if span_registration is not None else 0.0
             timing, parallel = dict(m.timing), m.parallel
         else:
             recent: deque = deque(maxlen=max(spans))
@@ -367,6 +371,7 @@ def analyze(
                              on_field=on_field, progress=progress)
             motion.flush()
             timing, parallel = dict(m.timing), m.parallel
+            timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
         t0 = time.perf_counter()
         strain.finish()
         samples = writer.samples()
