@@ -862,6 +862,26 @@ class Session:
     def timestamps(self) -> np.ndarray:
         return self._read(lambda: self._ts[: self.n_frames])
 
+    def timestamp_faults(self) -> list[str]:
+        """What is wrong with the frames' host time stamps, one sentence each (none for a sound file): values
+        that are not finite, and steps back in time. The analysis works in frames, but rates, durations and the
+        alignment with force and display streams are read from these times, so a reader is told."""
+        ts = self.timestamps
+        out = []
+        bad = ~np.isfinite(ts)
+        if bad.any():
+            first = int(np.argmax(bad))
+            out.append(f"{int(bad.sum())} of the {ts.size} frame time stamps are not finite (the first: frame "
+                       f"{first}, {ts[first]}): rates and durations from them are meaningless")
+        good = np.flatnonzero(~bad)
+        back = np.flatnonzero(np.diff(ts[good]) < 0)
+        if back.size:
+            k = int(good[back[0] + 1])
+            out.append(f"the frame time stamps go back in time {back.size} time(s) (the first: frame {k}, "
+                       f"{ts[k]:.6f} s after {ts[int(good[back[0]])]:.6f} s): rates and durations from them are "
+                       "meaningless")
+        return out
+
     def timestamp(self, index: int) -> float:
         """The host time stamp of frame ``index`` (s), without reading the others."""
         return float(self._read(lambda: self._ts[index]))
@@ -969,7 +989,9 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
     """Open a session file for reading, or raise SessionFileError saying why it cannot be read.
 
     ``swmr=True`` reads a file a recorder is still writing. A file already open in this process (by any path) is
-    served from the same HDF5 handle (see :class:`Session`), whatever ``swmr`` says.
+    served from the same HDF5 handle (see :class:`Session`), whatever ``swmr`` says. The file is read without
+    HDF5's file lock (:func:`open_hdf5_for_reading`): while a Session is open, open the same file with h5py in this
+    process with ``locking=False`` too (HDF5 refuses one file opened with two locking flags in one process).
     """
     path = Path(path)
     if not path.exists():
@@ -994,18 +1016,78 @@ def open_session(path: str | os.PathLike, *, swmr: bool = False) -> Session:
         raise
 
 
-def _open_shared(path: Path, key: tuple[int, int], *, swmr: bool) -> _SharedHandle:
-    try:
-        f = h5py.File(path, "r", swmr=True, libver="latest") if swmr else h5py.File(path, "r")
-    except OSError as exc:
-        if swmr or "already open for write" not in str(exc):
-            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})") from None
+#: Superblock versions 2 and 3 (``libver="latest"``, every session and results file): where the file consistency
+#: flags and the end-of-file address are (HDF5 file format specification, "Version 2 Superblock").
+_SUPERBLOCK_FLAGS_AT = 11
+_FLAG_OPEN_FOR_WRITE, _FLAG_OPEN_FOR_SWMR_WRITE = 0x1, 0x4
+
+
+def _superblock(path: Path) -> tuple[int, int] | None:
+    """(file consistency flags, end-of-file address) of a version 2 or 3 superblock at the start of ``path``;
+    None for another version or a file too short to hold one."""
+    with open(path, "rb") as fh:
+        head = fh.read(48)
+    if len(head) < 12 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] not in (2, 3):
+        return None
+    offsets = head[9]
+    at = 12 + 2 * offsets  # signature, version, sizes, flags, base address, superblock extension address
+    if offsets not in (2, 4, 8) or len(head) < at + offsets:
+        return None
+    return head[_SUPERBLOCK_FLAGS_AT], int.from_bytes(head[at:at + offsets], "little")
+
+
+def held_for_writing(path: str | os.PathLike) -> bool:
+    """Whether a program has ``path`` open for writing now (or was killed while it had): the flag HDF5 sets in
+    the superblock while a writer holds the file. False for a file without such a superblock."""
+    sb = _superblock(Path(path))
+    return sb is not None and bool(sb[0] & (_FLAG_OPEN_FOR_WRITE | _FLAG_OPEN_FOR_SWMR_WRITE))
+
+
+def open_hdf5_for_reading(path: str | os.PathLike, *, swmr: bool = False) -> h5py.File:
+    """``path`` opened read-only by a reader that can never make a writer fail; SessionFileError saying why not.
+
+    * No file lock: HDF5 takes a shared lock by default, and a writer opening the file meanwhile then fails with
+      errno 11 (the ground truth attached after a recording was lost so while the live viewer had it open).
+    * A closed file is opened whole (HDF5 then refuses a truncated or corrupt one at once); a file a writer holds
+      (or a killed one left so) is opened in SWMR mode, as is any with ``swmr=True``, after checking it is not
+      shorter than its superblock says: an SWMR reader does not check, and retries its reads past the end for
+      minutes (``view`` on a truncated copy hung so).
+    """
+    path = Path(path)
+
+    def refused(exc: BaseException) -> SessionFileError:
+        return SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc})")
+
+    def unlocked(**kwargs) -> h5py.File:
+        try:
+            return h5py.File(path, "r", locking=False, **kwargs)
+        except (OSError, RuntimeError) as exc:
+            if "locking flag values don't match" not in str(exc):
+                raise
+            # this process writes the file itself (with HDF5's lock): its own reader shares that handle
+            return h5py.File(path, "r", **kwargs)
+
+    if not swmr:
+        try:
+            return unlocked()
+        except (OSError, RuntimeError) as exc:
+            if "already open for write" not in str(exc):
+                raise refused(exc) from None
         # A SWMR writer that is still running, or was killed, leaves the file marked open for writing; an SWMR
         # reader opens it all the same and sees everything flushed (the session then reads as incomplete).
-        try:
-            f = h5py.File(path, "r", swmr=True, libver="latest")
-        except OSError as exc2:
-            raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt ({exc2})") from None
+    sb = _superblock(path)
+    size = path.stat().st_size
+    if sb is not None and size < sb[1]:
+        raise SessionFileError(f"{path}: HDF5 file cannot be opened, truncated or corrupt (it ends at byte {size} "
+                               f"of the {sb[1]} its superblock declares)")
+    try:
+        return unlocked(swmr=True, libver="latest")
+    except (OSError, RuntimeError) as exc:
+        raise refused(exc) from None
+
+
+def _open_shared(path: Path, key: tuple[int, int], *, swmr: bool) -> _SharedHandle:
+    f = open_hdf5_for_reading(path, swmr=swmr)
     try:
         fmt = f.attrs.get("format")
         if isinstance(fmt, bytes):

@@ -39,6 +39,7 @@ from skinstretch import __version__
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.frame_readers import FrameReader, SourceFrame, open_frame_reader
 from skinstretch.drivers.session_file import SessionWriter, replacing_file, write_metadata
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError, Remedy
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.surface_detection import ContrastAccumulator, SurfaceEvidence
@@ -54,7 +55,9 @@ log = logging.getLogger(__name__)
 
 #: Camera-mode name of an imported session (its size and rate are the file's).
 IMPORTED_MODE_NAME = "imported"
-_BATCH = 16  # frames per write: one resize of each dataset per batch, a few MB in memory
+_BATCH = 16  # frames per write at most: one resize of each dataset per batch
+_BATCH_BYTES = 24 << 20  # and at most this much (large frames: 4000x3000 ones go two by two)
+_PERIOD_WINDOW = 1024  # px: the part of the middle frame whose ridge period is checked (8 mm at 128 px/mm)
 _SURFACE_FRAMES = 240  # frames of a long file the surface detection averages (evenly spread)
 
 
@@ -254,7 +257,8 @@ def import_frames(
         A bad option, or a rate or pixel scale the file does not declare and the caller did not give.
     """
     t_start = time.perf_counter()
-    output = Path(output)
+    # before the source is read: an output that cannot be written is named (not the hidden file written first)
+    output = check_output_file(output, overwrite=overwrite, remedy=REPLACE_IT)
     with open_frame_reader(source) as reader:
         if crop is not None:
             crop.check(reader.shape, reader.name)
@@ -325,7 +329,10 @@ def _checked_ridge_period(sample: np.ndarray | None, px_per_mm: float, where: st
     as frames the analysis refuses as out of focus or without texture."""
     if sample is None or min(sample.shape) < 32:
         return None
-    period = ridge_period_mm(sample, px_per_mm=px_per_mm)
+    # the middle of a large frame tells as well: a whole 4000x3000 one took 0.7 GB, the import's peak memory
+    h, w = sample.shape
+    cut = sample[max(0, h // 2 - _PERIOD_WINDOW // 2):][:_PERIOD_WINDOW, max(0, w // 2 - _PERIOD_WINDOW // 2):]
+    period = ridge_period_mm(cut[:, :_PERIOD_WINDOW], px_per_mm=px_per_mm)
     if not np.isfinite(period):
         return None
     lo, hi = PLAUSIBLE_RIDGE_PERIOD_MM
@@ -380,7 +387,7 @@ def _write_frames(writer: SessionWriter, frames, *, crop: Crop | None, depth: _D
             batch.append(image)
             batch_t.append(t)
             times.append(t)
-            if len(batch) >= _BATCH:
+            if len(batch) >= min(_BATCH, max(1, _BATCH_BYTES // image.nbytes)):
                 flush()
             bar.update(1)
         flush()

@@ -8,7 +8,9 @@ Every command that writes uses these two checks first (``record``, ``play``, ``s
 * :func:`check_output_dir` for a directory that will receive files (created later by the caller);
 * :func:`check_output_file` for a new file: an existing one is refused, naming the argument that replaces it
   (:data:`REPLACE_IT`: ``--overwrite``) where the caller allows that (docs/experiments.md, "Outputs that exist
-  already").
+  already");
+* :func:`hold_output_dir` while writing into a directory that only one writer may use at a time (an analysis'
+  OUTDIR): a second writer is refused at once, naming the first.
 
 Both test for real: a throw-away file is created and removed in the nearest existing directory, because
 permission bits do not tell (root ignores them, a read-only mount or a full disk does not show in them). Nothing
@@ -23,14 +25,24 @@ skinstretch.experiments.output_paths.OutputPathError: /proc/version: exists alre
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
+import logging
 import os
+import socket
 import tempfile
+import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 from skinstretch.processing.errors import ConfigError, Remedy
 
-__all__ = ["OutputPathError", "REPLACE_IT", "check_output_dir", "check_output_file", "os_error_line"]
+__all__ = ["OutputDirBusyError", "OutputPathError", "REPLACE_IT", "check_output_dir", "check_output_file",
+           "hold_output_dir", "os_error_line"]
+
+log = logging.getLogger(__name__)
 
 #: The remedy of an output that exists already, for a writer that may replace it: ``overwrite=True`` in Python,
 #: ``--overwrite`` on the command line (docs/experiments.md, "Outputs that exist already").
@@ -134,3 +146,56 @@ def check_output_file(path: str | os.PathLike, *, overwrite: bool = False, remed
         raise OutputPathError(f"{base}: is a file, not a directory (on the way to {path})")
     _probe_writable(base, path)
     return path
+
+
+#: The lock file a writer holds in its output directory (:func:`hold_output_dir`); removed when it is done.
+LOCK_FILE = ".skinstretch-lock"
+
+
+class OutputDirBusyError(OutputPathError):
+    """Another program is writing into this output directory now; the message names the directory and it."""
+
+
+@contextmanager
+def hold_output_dir(path: str | os.PathLike, *, holder: str) -> Iterator[Path]:
+    """Hold directory ``path`` for this writer alone while the block runs; OutputDirBusyError at once, naming the
+    directory and who holds it, when another writer holds it.
+
+    The directory is checked (:func:`check_output_dir`) and created; the lock is the kernel's (``flock`` on
+    ``path/.skinstretch-lock``, which names ``holder``, the process and the host), so a holder that dies, even by
+    SIGKILL, lets go of it at once: the file it leaves behind is recognised as stale and taken over. Two analyses
+    started into one directory used to wipe each other's work in progress and leave no result. A directory this
+    call created is removed again if it is still empty at the end (a refused run leaves nothing).
+    """
+    path = check_output_dir(path)
+    created = not path.exists()
+    path.mkdir(parents=True, exist_ok=True)
+    lock = path / LOCK_FILE
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            other = os.read(fd, 512).decode("utf-8", "replace").strip() or "another program (starting)"
+            os.close(fd)
+            raise OutputDirBusyError(f"{path}: in use by {other}; wait for it to end or write elsewhere") from None
+        try:  # the holder before may have removed the file between our open and our lock: lock the one on disk
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    try:
+        stale = os.read(fd, 512).decode("utf-8", "replace").strip()
+        if stale:
+            log.info("%s: taking over the lock left by %s (gone)", path, stale)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (f"{holder} (pid {os.getpid()} on {socket.gethostname()}, since "
+                       f"{time.strftime('%Y-%m-%d %H:%M:%S')})\n").encode(), 0)
+        yield path
+    finally:
+        lock.unlink(missing_ok=True)  # before letting go: a writer waiting on this file then opens a new one
+        os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):
+                path.rmdir()  # only when empty

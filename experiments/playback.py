@@ -31,7 +31,8 @@ from skinstretch.drivers.display.base import TactileDisplay
 from skinstretch.drivers.display.stress_protocol import rate_to_mhz
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.session_file import SessionWriter, open_session
-from skinstretch.drivers.errors import DeviceError, SafetyStop, SessionFileError
+from skinstretch.drivers.display.safety import check_movie
+from skinstretch.drivers.errors import DeviceError, DeviceTimeoutError, SafetyStop, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_dir, check_output_file
 from skinstretch.experiments.protocol import MAX_FORCE_CEILING_N
@@ -280,17 +281,15 @@ def play_movie(
     """
     from skinstretch.drivers.display.movie_stream import stream_movie, stream_movie_buffered  # noqa: PLC0415
 
-    movie = np.asarray(movie_um, dtype=float)
-    if movie.ndim != 3 or movie.shape[1:] != SHAPE or movie.shape[0] < 1:
-        raise InvalidInputError(f"movie_um must have shape (T, 10, 10) with T >= 1, got {movie.shape}")
-    if not np.all(np.isfinite(movie)):
-        raise InvalidInputError("movie_um holds NaN or inf; fill or reset those contactors first (seed 5.4)")
+    movie = check_movie(movie_um)  # real and finite, or refused naming the frame and contactor
     rate_to_mhz(rate_hz)  # 1..700 Hz, the STReSS refresh rate
     if not (0 < force_ceiling_n <= MAX_FORCE_CEILING_N):
         raise InvalidInputError(f"force_ceiling_n must be in (0, {MAX_FORCE_CEILING_N:g}] N, got {force_ceiling_n!r}")
     if path is not None:
         # before the first frame: what is played must be recordable
         check_output_file(path, overwrite=overwrite, remedy=REPLACE_IT)
+    if force is not None:
+        require_force_sample(force)  # before the display is armed: a ceiling needs a sensor that speaks
     n = movie.shape[0]
     corrector = corrector or (ContactorCorrector() if closed_loop else None)
     forces = np.full((n, 6), np.nan)
@@ -397,6 +396,18 @@ def play_movie(
     return result
 
 
+def require_force_sample(force, *, timeout_s: float = 2.0) -> None:
+    """DeviceTimeoutError unless ``force`` (``latest() -> (6,) or None``) delivers a sample within ``timeout_s``:
+    a force ceiling on a sensor that never answers would protect nobody, so the movie is not started."""
+    deadline = time.monotonic() + timeout_s
+    while force.latest() is None:
+        if time.monotonic() > deadline:
+            raise DeviceTimeoutError(f"force sensor {getattr(force, 'description', force)}: no sample within "
+                                     f"{timeout_s:g} s; the force ceiling cannot be enforced, so the movie was not "
+                                     "started")
+        time.sleep(0.02)
+
+
 def _record_playback(path, result: PlaybackResult, t: np.ndarray, force: tuple[np.ndarray, np.ndarray], *, metadata,
                      force_ceiling_n):
     """Write a played movie's streams; ``t`` times the played frames, ``force`` is (times, wrenches) of every
@@ -497,12 +508,13 @@ def load_movie(source: str | os.PathLike) -> tuple[np.ndarray, float | None]:
                 rate = float(s.camera_mode.fps)  # one movie frame per camera frame (seed 5.4)
         except SessionFileError:
             pass
-        return _check_movie(results.tactile_positions_um, p), rate
+        return _check_movie(results.tactile_positions_um, p, analysed=True), rate
     if p.suffix == ".npy":
         try:
-            return _check_movie(np.load(p, allow_pickle=False), p), None
+            raw = np.load(p, allow_pickle=False)
         except ValueError as exc:
             raise SessionFileError(f"{p}: not a readable .npy movie ({exc})") from None
+        return _check_movie(raw, p), None
     if p.suffix in (".h5", ".hdf5"):
         import h5py  # noqa: PLC0415
 
@@ -560,12 +572,14 @@ def resample_movie(movie_um: np.ndarray, *, from_hz: float, to_hz: float) -> np.
     return out.reshape(t_dst.size, *movie.shape[1:])
 
 
-def _check_movie(movie: np.ndarray, source: Path) -> np.ndarray:
-    movie = np.asarray(movie, float)
-    if movie.ndim != 3 or movie.shape[1:] != SHAPE:
-        raise SessionFileError(f"{source}: movie must have shape (T, 10, 10), got {movie.shape}")
-    # Contactors with no measurement are reset to rest (seed 5.4: "its position is reset").
-    return np.where(np.isfinite(movie), movie, 0.0)
+def _check_movie(movie: np.ndarray, source: Path, *, analysed: bool = False) -> np.ndarray:
+    """The movie as floats, refused like a display target (complex, not numbers, NaN, inf, another shape), naming
+    the frame and contactor. An ``analysed`` movie (one the analysis wrote) has NaN where a contactor was not
+    measured: those are reset to rest (seed 5.4: "its position is reset"), as the analysis means them."""
+    raw = np.asarray(movie)
+    if analysed and raw.dtype.kind == "f":
+        raw = np.where(np.isnan(raw), 0.0, raw)
+    return check_movie(raw, name=str(source))
 
 
 def play_protocol_movie(protocol, session_directory: Path, *, devices,

@@ -39,7 +39,8 @@ from typing import Any, Callable, Sequence
 
 log = logging.getLogger(__name__)
 
-__all__ = ["worker_pool", "die_with_parent", "guard_process_tree"]
+__all__ = ["StopRequested", "check_stop", "die_with_parent", "end_pool_now", "guard_process_tree", "stop_deferred",
+           "stop_on_signals", "stop_pending", "stop_reason", "stopped_by_signal", "worker_pool"]
 
 _PR_SET_PDEATHSIG = 1
 #: How often a worker that cannot count on the parent-death signal checks that its owner is alive (s).
@@ -165,6 +166,101 @@ def _serve_requests(requests: queue.SimpleQueue) -> None:
             done.set_result(fn())
         except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
             done.set_exception(exc)
+
+
+# -- a signal asks the command to stop -----------------------------------------------------------------------------
+
+
+class StopRequested(KeyboardInterrupt):
+    """A signal asked the command to stop: SIGTERM (``kill``, systemd), SIGHUP (a closing terminal) or SIGINT
+    (Ctrl-C). A KeyboardInterrupt, raised in the main thread, so every ``finally`` and every handler of Ctrl-C
+    closes what it opened (Python's default for SIGTERM ends the process on the spot, like SIGKILL)."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(signal.Signals(signum).name)
+
+    @property
+    def exit_status(self) -> int:
+        return 128 + self.signum
+
+
+def stop_reason(exc: BaseException) -> str:
+    """Why a command was stopped, for a trial's ``status_reason`` and the last line: ``SIGTERM received``."""
+    if isinstance(exc, StopRequested):
+        return f"{signal.Signals(exc.signum).name} received"
+    return "interrupted (Ctrl-C)"
+
+
+_STOP_SIGNAL: list[int] = []  # the signal that asked this process to stop (stop_on_signals), if one did
+_STOPPED: list[int] = []  # every signal stop_on_signals handled in this process (kept after the block)
+
+
+def stopped_by_signal() -> bool:
+    """Whether a signal handled by :func:`stop_on_signals` asked this process to stop (the command line then
+    ends it without the interpreter's slow teardown, once the command has closed what it wrote)."""
+    return bool(_STOPPED)
+
+
+@contextlib.contextmanager
+def stop_on_signals(signums: Sequence[int] = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)):
+    """While the block runs, the first of ``signums`` raises :class:`StopRequested` in the main thread; later
+    ones are ignored, so that the clean-up it starts (closing files, resting the display, ending workers) is
+    not cut short. Python drops an exception raised where it cannot propagate (a finaliser, a weakref callback
+    that the signal happened to interrupt): loops that can run long call :func:`check_stop` as well. The
+    handlers before are restored at the end."""
+
+    def handler(signum: int, frame) -> None:
+        _STOPPED.append(signum)
+        if _STOP_SIGNAL:
+            log.warning("%s received again while stopping: ignored", signal.Signals(signum).name)
+            return
+        _STOP_SIGNAL.append(signum)
+        if not _DEFERRED:
+            raise StopRequested(signum)
+
+    previous = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        _STOP_SIGNAL.clear()
+
+
+_DEFERRED: list[int] = []  # stop_deferred blocks running
+
+
+@contextlib.contextmanager
+def stop_deferred():
+    """A signal that arrives in the block does not interrupt it (closing a trial's file, logging how it ended):
+    it is noted, and the next :func:`check_stop` after the block acts on it."""
+    _DEFERRED.append(1)
+    try:
+        yield
+    finally:
+        _DEFERRED.pop()
+
+
+def stop_pending() -> bool:
+    """Whether a signal asked this process to stop (see :func:`stop_on_signals`)."""
+    return bool(_STOP_SIGNAL)
+
+
+def check_stop() -> None:
+    """Raise :class:`StopRequested` if a signal asked this process to stop (for a loop that can run long: the
+    handler's own exception may have been dropped). Not for clean-up code, which must run to its end."""
+    if _STOP_SIGNAL:
+        raise StopRequested(_STOP_SIGNAL[0])
+
+
+def end_pool_now(pool: cf.ProcessPoolExecutor) -> None:
+    """Cancel what ``pool`` has queued and end its workers now, their tasks unfinished (a command that was asked to
+    stop does not wait minutes for an analysis). The standard library has no public way before Python 3.14."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(OSError, ValueError):
+            proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 # -- whatever else the command started ----------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from skinstretch.experiments.provenance import software_versions
 from skinstretch.drivers.session_file import open_session
 from skinstretch.processing.errors import SkinstretchError
 from skinstretch.experiments.figures import chapter6 as fig6
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Quantity", "TrialEntry", "build_report", "collect_trials", "evaluation_quantities", "report_trials",
            "trial_figures", "viewer_command"]
@@ -61,8 +64,9 @@ def collect_trials(session_dir: str | Path) -> list[TrialEntry]:
 
 
 def report_trials(target: str | Path) -> list[TrialEntry]:
-    """The trials a report of ``target`` shows: a runner's session directory (every trial), an analysis output
-    directory of ``skinstretch analyze`` (its ``results.h5`` names the session), or a single session file."""
+    """The trials a report of ``target`` shows: a runner's session directory (every trial), a data directory
+    (every trial of every subject and session under it), an analysis output directory of ``skinstretch analyze``
+    (its ``results.h5`` names the session), or a single session file."""
     from skinstretch.drivers.errors import SessionFileError  # noqa: PLC0415
     from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
@@ -74,8 +78,14 @@ def report_trials(target: str | Path) -> list[TrialEntry]:
         return [TrialEntry(name=session.stem, session=session, analysis=target)]
     if target.is_dir():
         trials = collect_trials(target)
+        if not trials:  # a data directory: every trial of every subject and session under it
+            from skinstretch.experiments.study import study_sessions  # noqa: PLC0415
+
+            trials = [TrialEntry(name=str(s.parent.relative_to(target)), session=s,
+                                 analysis=s.parent / "analysis" if (s.parent / "analysis" / "results.h5").exists()
+                                 else None) for s in study_sessions(target)]
         if not trials:
-            raise SessionFileError(f"{target}: neither a session directory of skinstretch record (no trial "
+            raise SessionFileError(f"{target}: neither a data or session directory of skinstretch record (no trial "
                                    "holds a session.h5) nor an analysis output (no results.h5)")
         return trials
     if target.is_file():
@@ -89,6 +99,11 @@ def report_trials(target: str | Path) -> list[TrialEntry]:
 
 def _esc(x: Any) -> str:
     return html.escape(str(x))
+
+
+def _anchor(name: str) -> str:
+    """The HTML id of a trial's section (the study overview links to it)."""
+    return "trial-" + "".join(ch if ch.isalnum() or ch in "-_" else "-" for ch in name)
 
 
 def _num(v: Any) -> str:
@@ -112,11 +127,16 @@ def _img(fig, caption: str) -> str:
 
 
 def _guard(what: str, fn: Callable[[], str]) -> str:
-    """Run one report part; a failure becomes a visible note naming the part and the reason."""
+    """Run one report part; one that cannot be drawn (nothing to show) becomes a visible note naming the part and
+    why; a fault of ours is logged with its traceback and named as such, never shown as the figure."""
     try:
         return fn()
-    except (SkinstretchError, ValueError, KeyError, IndexError, OSError) as exc:
-        return f'<p class="warn">{_esc(what)}: not available ({_esc(type(exc).__name__)}: {_esc(exc)})</p>'
+    except (SkinstretchError, ValueError, KeyError) as exc:
+        reason = str(exc).strip("'")  # a KeyError quotes its text
+        return f'<p class="warn">{_esc(what)}: not shown: {_esc(reason)}</p>'
+    except (IndexError, OSError):
+        log.exception("report part %r could not be drawn", what)
+        return f'<p class="warn">{_esc(what)}: not shown: it could not be drawn (the log has the details)</p>'
 
 
 _CSS = """
@@ -258,7 +278,7 @@ def _triangulated_pairs(r, span: int):
         raise KeyError(f"no strain at span {span}")
     ok = np.nonzero(s.ok)[0]
     if ok.size == 0:
-        raise ValueError(f"no frame pair at span {span} gave a triangulation")
+        raise ValueError(f"no frame pair at span {span} gave a triangulation the self-checks trust")
     return s, ok
 
 
@@ -300,11 +320,43 @@ def _edge_series(r, span: int) -> str:
                      "on one colour scale fitted to them")
 
 
+def _tensor_maps(r) -> str:
+    """The strain tensor maps of up to four frames: the cumulative strain from the reference frame when the results
+    hold it, else the longest span's."""
+    from skinstretch.experiments.results_file import TENSOR_COLUMNS  # noqa: PLC0415
+
+    c = r.cumulative
+    if c is not None and c.pairs.size and "exx" in (c.triangles.dtype.names or ()):
+        table, what = c, f"cumulative from frame {c.reference_frame}"
+    else:
+        span = max(r.strain)
+        table, what = r.strain[span], f"over {span} frames"
+        if "exx" not in (table.triangles.dtype.names or ()):
+            raise KeyError("results written before the strain tensor was measured")
+    with_tri = np.unique(table.triangles["pair"][table.triangles["tensor_status"] == 0])
+    if with_tri.size == 0:
+        raise ValueError(f"no triangle with a strain tensor ({what})")
+    picks = dict.fromkeys(int(with_tri[i]) for i in np.linspace(0, with_tri.size - 1, min(4, with_tri.size))
+                          .round().astype(int))
+    panels = []
+    for k in picks:
+        t = table.triangles[(table.triangles["pair"] == k) & (table.triangles["tensor_status"] == 0)]
+        corners = np.stack([np.column_stack([t[f"x{j}"], t[f"y{j}"]]) for j in range(3)], axis=1)
+        panel = {"corners": corners, "flipped": t["flipped"],
+                 "label": f"frames {int(table.pairs['frame_a'][k])}-{int(table.pairs['frame_b'][k])}"}
+        panel.update({q: t[q] for q in TENSOR_COLUMNS if q != "angle_deg"})
+        panels.append(panel)
+    fig = fig6.tensor_maps_figure(panels, shape=r.image_shape)
+    return _img(fig, f"Strain tensor maps ({what}): Green-Lagrange exx, eyy, exy (tensor shear, half the engineering "
+                     "shear) and the principal strains e1 >= e2 of each triangle, drawn where its corners were in the "
+                     "first frame of its pair; one colour scale per quantity across its frames")
+
+
 def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, dict[str, Any]]:
     """HTML of one trial and the numbers other sections reuse (profile, evaluation, movie)."""
     from skinstretch.experiments.results_file import read_results  # noqa: PLC0415
 
-    parts = [f"<h2>Trial {_esc(entry.name)}</h2>"]
+    parts = [f'<h2 id="{_anchor(entry.name)}">Trial {_esc(entry.name)}</h2>']
     info: dict[str, Any] = {"name": entry.name}
     with open_session(entry.session) as session:
         md = session.metadata
@@ -350,6 +402,17 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
             e = st.edges["change"]
             summary.append(Quantity(f"edge length change p5 / p95, span {span}",
                                     (np.percentile(e, [5, 95]) * 100).tolist() if e.size else "none", "%"))
+        for name, spread in (r.summary.get("uncertainty") or {}).items():
+            if spread:  # each measurement's predicted standard error (median / 95th percentile)
+                percent = name.startswith("edge_change")
+                summary.append(Quantity(name.replace("_", " ") + " (median / p95)",
+                                        [spread["median"] * (100 if percent else 1),
+                                         spread["p95"] * (100 if percent else 1)], "%" if percent else "px"))
+        warnings = r.summary.get("warnings") or []
+        info["warnings"] = list(warnings)
+        if warnings:  # the self-checks that failed: read before any number below
+            parts.append('<div class="warn"><strong>Warnings</strong><ul>'
+                         + "".join(f"<li>{_esc(w)}</li>" for w in warnings) + "</ul></div>")
         parts.append("<h3>Analysis</h3>" + _quantity_table(summary))
         notes = r.summary.get("notes") or []
         if notes:  # what the analysis said about the whole clip: the caveats of every number below
@@ -360,6 +423,7 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
         parts.append(_guard(f"measurements over {span_long} frames",
                             lambda: _measurement_panel(r, session, span_long)))
         parts.append(_guard("edge length series", lambda: _edge_series(r, span_long)))
+        parts.append(_guard("strain tensor maps", lambda: _tensor_maps(r)))
         if r.trajectories is not None:
             parts.append(_guard("trajectory lengths", lambda: _img(
                 fig6.trajectory_length_figure(r.trajectories.lengths, n_frames=r.n_frames),
@@ -393,6 +457,40 @@ def _truth_section(r, session, info: dict[str, Any]) -> str:
 
 
 # -------------------------------------------------------------------------------------------------- report
+
+
+def _study_section(trials: Sequence[Any]) -> str:
+    """The study overview (:mod:`skinstretch.experiments.study`): one row per trial linking to its section, and the
+    trials' Figure-94 profiles on one plot, coloured by surface."""
+    def pct(v: float) -> Any:
+        return v * 100 if math.isfinite(v) else "-"
+
+    head = ["trial", "subject", "protocol", "surface", "status", "method", "frames", "travel (mm)",
+            "edge change p5 (%)", "p95 (%)", "cumulative e1 (%)", "e2 (%)", "warnings"]
+    body = []
+    for t in trials:
+        cells = [t.subject, t.protocol, t.surface, t.status, t.method or "-", t.n_frames,
+                 t.travel_mm if math.isfinite(t.travel_mm) else "-", pct(t.edge_change_p5), pct(t.edge_change_p95),
+                 pct(t.cumulative_e1), pct(t.cumulative_e2)]
+        warn = "; ".join(t.warnings)
+        body.append(f'<tr><td><a href="#{_anchor(t.name)}">{_esc(t.name)}</a></td>'
+                    + "".join(f"<td>{_num(c)}</td>" for c in cells)
+                    + f'<td class="{"warn" if warn else ""}" style="text-align:left">{_esc(warn) or "-"}</td></tr>')
+    table = ("<table><thead><tr>" + "".join(f"<th>{_esc(h)}</th>" for h in head) + "</tr></thead><tbody>"
+             + "".join(body) + "</tbody></table>")
+    out = ["<h2>Study overview</h2>",
+           "<p>One row per trial (click a name for its section). Edge change: between consecutive frames; "
+           "cumulative e1, e2: median principal strains of the last frame relative to the reference frame.</p>",
+           table]
+    groups: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {}
+    for t in trials:
+        if t.profile is not None:
+            groups.setdefault(t.surface, []).append((t.name, *t.profile))
+    if groups:
+        out.append(_guard("study profiles", lambda: _img(
+            fig6.grouped_profiles_figure(groups), "Stretch along the sliding direction of every trial (seed Figure "
+                                                  "94), one colour per surface")))
+    return "\n".join(out)
 
 
 def _movie_section(r, name: str) -> str:
@@ -483,8 +581,22 @@ def build_report(
         rows = [(n, *(q[key].value if key in q else "-" for key, _ in _SUMMARY_KEYS)) for n, q in evals]
         body.insert(0, "<h2>Measured vs true (simulated sessions)</h2>" + _table(
             rows, ["trial", *(label for _, label in _SUMMARY_KEYS)]))
-    overview = [(i["name"], i.get("surface", "?"), i.get("scene", ""), "yes" if "results" in i else "no") for i in infos]
-    body.insert(0, "<h2>Trials</h2>" + _table(overview, ["trial", "surface", "scene", "analysed"]))
+    study = None
+    if session_dir is not None and Path(session_dir).is_dir():
+        from skinstretch.experiments.study import study_overview  # noqa: PLC0415
+
+        shown = {e.session.resolve() for e in entries}
+        study = [t for t in study_overview(session_dir) if t.session.resolve() in shown]
+    if study:
+        body.insert(0, _guard("study overview", lambda: _study_section(study)))
+    else:
+        overview = [(i["name"], i.get("surface", "?"), i.get("scene", ""), "yes" if "results" in i else "no")
+                    for i in infos]
+        body.insert(0, "<h2>Trials</h2>" + _table(overview, ["trial", "surface", "scene", "analysed"]))
+    warned = [(i["name"], w) for i in infos for w in i.get("warnings", ())]
+    if warned:  # at the top: a number a self-check doubts is never read as ok
+        body.insert(0, '<div class="warn"><h2>Warnings</h2><ul>'
+                    + "".join(f"<li>{_esc(n)}: {_esc(w)}</li>" for n, w in warned) + "</ul></div>")
     movies = [i for i in infos if "movie" in i]
     if movies:
         pick = next((i for i in movies if i.get("surface") == "ridge"), movies[0])

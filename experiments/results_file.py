@@ -38,11 +38,13 @@ from skinstretch.processing.errors import Remedy
 from skinstretch.processing.feature_table import KIND_NAMES
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow
 from skinstretch.processing.stretch import StretchProfile
+from skinstretch.processing.strain_tensor import TENSOR_STATUS_NAMES
 from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = [
     "FORMAT_NAME", "FORMAT_VERSION", "PairStatus", "PAIR_DTYPE", "MOTION_DTYPE", "EDGE_DTYPE", "TRIANGLE_DTYPE",
-    "TRACK_DTYPE", "SpanStrain", "TactileMovieTable", "FlowResults", "MeshDensity", "Results", "ResultsWriter",
+    "TRACK_DTYPE", "TENSOR_COLUMNS", "SpanStrain", "CumulativeStrain", "TactileMovieTable", "FlowResults",
+    "MeshDensity", "Results", "ResultsWriter",
     "read_results", "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info", "RESULTS_FILE", "SUMMARY_FILE",
     "held_results", "check_results_dir", "refuse_held_results",
 ]
@@ -66,6 +68,7 @@ class PairStatus(IntEnum):
     TOO_FEW_POINTS = 2  # fewer than 3 distinct matched points
     COLLINEAR = 3  # the matched points are collinear
     NO_USABLE_TRIANGLE = 4  # every triangle too thin or too long
+    DOUBTED = 5  # measured, but a self-check failed (the reason says which): not a number to trust
 
     @property
     def key(self) -> str:
@@ -76,17 +79,23 @@ PAIR_DTYPE = np.dtype(
     [("frame_a", np.int32), ("frame_b", np.int32), ("n_points", np.int32), ("status", np.int8), ("reason", "S96")]
 )
 MOTION_DTYPE = np.dtype(
-    [("pair", np.int32), ("id", np.int64), ("x", np.float64), ("y", np.float64), ("dx", np.float64), ("dy", np.float64)]
+    [("pair", np.int32), ("id", np.int64), ("x", np.float64), ("y", np.float64), ("dx", np.float64), ("dy", np.float64),
+     ("sigma", np.float64), ("match", np.float64)]
 )
 EDGE_DTYPE = np.dtype(
     [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("xa", np.float64), ("ya", np.float64),
-     ("xb", np.float64), ("yb", np.float64), ("length", np.float64), ("change", np.float64)]
+     ("xb", np.float64), ("yb", np.float64), ("length", np.float64), ("change", np.float64),
+     ("change_sigma", np.float64)]
 )
 TRIANGLE_DTYPE = np.dtype(
     [("pair", np.int32), ("id_a", np.int64), ("id_b", np.int64), ("id_c", np.int64), ("x0", np.float64),
      ("y0", np.float64), ("x1", np.float64), ("y1", np.float64), ("x2", np.float64), ("y2", np.float64),
-     ("area", np.float64), ("change", np.float64), ("flipped", np.bool_)]
+     ("area", np.float64), ("change", np.float64), ("flipped", np.bool_), ("change_sigma", np.float64),
+     ("exx", np.float64), ("eyy", np.float64), ("exy", np.float64), ("e1", np.float64), ("e2", np.float64),
+     ("angle_deg", np.float64), ("tensor_status", np.int8)]
 )
+#: The strain-tensor columns of a triangle table (absent from files written before they were measured).
+TENSOR_COLUMNS = ("exx", "eyy", "exy", "e1", "e2", "angle_deg")
 #: One row per kept trajectory.
 TRACK_DTYPE = np.dtype([("track", np.int64), ("kind", np.int8), ("n_frames", np.int32), ("first_frame", np.int32),
                         ("last_frame", np.int32)])
@@ -97,11 +106,27 @@ def _table_units(**units: str) -> str:
 
 
 _XY, _DXY = ("x", "y"), ("dx", "dy")
-_CODES = {"status": {int(s): s.key for s in PairStatus}, "kind": dict(KIND_NAMES)}
+_CODES = {"status": {int(s): s.key for s in PairStatus}, "kind": dict(KIND_NAMES),
+          "tensor_status": dict(TENSOR_STATUS_NAMES)}
 _PAIRS = DatasetInfo(_table_units(frame_a=ONE, frame_b=ONE, n_points=ONE, status=ONE, reason=TEXT), ("pair",),
                      "one row per frame pair: its frames, the points measured, status 0 or why not (reason)",
                      column_codes={"status": _CODES["status"]})
 _MOVIE_AXES = ("frame", "contactor_row", "contactor_column")
+
+_EDGES = DatasetInfo(
+    _table_units(pair=ONE, id_a=ONE, id_b=ONE, xa=PX, ya=PX, xb=PX, yb=PX, length=PX, change=ONE,
+                 change_sigma=ONE), ("row",),
+    "Delaunay edges of every pair: endpoints in frame a, length, change L_b/L_a - 1 (a fraction) and its standard "
+    "error (inf where an endpoint's is)")
+_TRIANGLES = DatasetInfo(
+    _table_units(pair=ONE, id_a=ONE, id_b=ONE, id_c=ONE, x0=PX, y0=PX, x1=PX, y1=PX, x2=PX, y2=PX, area=PX2,
+                 change=ONE, flipped=ONE, change_sigma=ONE, exx=ONE, eyy=ONE, exy=ONE, e1=ONE, e2=ONE,
+                 angle_deg=DEG, tensor_status=ONE), ("row",),
+    "Delaunay triangles of every pair: corners in frame a, area, change A_b/A_a - 1 (a fraction) and its standard "
+    "error (inf where a corner's is), flipped; "
+    "Green-Lagrange strain of frame b relative to frame a (fractions, image axes, exy = E[0,1] = half the "
+    "engineering shear), principal strains e1 >= e2 and the angle of e1 from +x towards +y (deg); tensor_status "
+    "0 ok, else the tensor is 0 and not a measurement", column_codes={"tensor_status": _CODES["tensor_status"]})
 
 #: Every dataset of a results file (``strain/span_<s>/...`` for every span ``s``), as the writer describes it in
 #: the file (:mod:`skinstretch.drivers.file_vocabulary`); :meth:`Results.dataset_info` reads it back.
@@ -109,8 +134,11 @@ RESULTS_DATASETS: dict[str, DatasetInfo] = {
     "frame_flags": DatasetInfo(TEXT, ("frame",), "empty, or why a frame gave nothing (all_black, saturated, "
                                                  "no_finger, no contact)"),
     "motion_pairs": _PAIRS,
-    "motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX), ("row",),
-                          "every displacement measured between consecutive frames: point in frame a, to frame b"),
+    "motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX, sigma=PX, match=ONE), ("row",),
+                          "every displacement measured between consecutive frames: point in frame a, to frame b, "
+                          "its predicted standard error per axis (inf, no bound, where its windows do not match or "
+                          "do not fit in the image) and its windows' match after the motion (1 identical, 0 "
+                          "unrelated or no window)"),
     "fingertip/displacement": DatasetInfo(PX, ("pair", "component"), "mean displacement per consecutive pair; 0 "
                                           "where not valid", _DXY),
     "fingertip/n_points": DatasetInfo(ONE, ("pair",), "displacements averaged"),
@@ -143,13 +171,16 @@ RESULTS_DATASETS: dict[str, DatasetInfo] = {
                                      "displacement of each node to the next frame; 0 where not valid", _DXY),
     "flow/valid": DatasetInfo(ONE, ("pair", "grid_y", "grid_x"), "node in contact and registered (bool)"),
     "strain/span_<s>/pairs": _PAIRS,
-    "strain/span_<s>/edges": DatasetInfo(
-        _table_units(pair=ONE, id_a=ONE, id_b=ONE, xa=PX, ya=PX, xb=PX, yb=PX, length=PX, change=ONE), ("row",),
-        "Delaunay edges of every pair: endpoints in frame a, length, change L_b/L_a - 1 (a fraction)"),
-    "strain/span_<s>/triangles": DatasetInfo(
-        _table_units(pair=ONE, id_a=ONE, id_b=ONE, id_c=ONE, x0=PX, y0=PX, x1=PX, y1=PX, x2=PX, y2=PX, area=PX2,
-                     change=ONE, flipped=ONE), ("row",),
-        "Delaunay triangles of every pair: corners in frame a, area, change A_b/A_a - 1 (a fraction), flipped"),
+    "strain/span_<s>/edges": _EDGES,
+    "strain/span_<s>/triangles": _TRIANGLES,
+    "cumulative/pairs": _PAIRS,
+    "cumulative/motion": DatasetInfo(_table_units(pair=ONE, id=ONE, x=PX, y=PX, dx=PX, dy=PX, sigma=PX, match=ONE),
+                                     ("row",),
+                                     "displacement of every skin point (track or flow grid node) from the reference "
+                                     "frame (the group's reference_frame attribute) to frame_b of its pair, its "
+                                     "predicted standard error and window match (as motion's)"),
+    "cumulative/edges": _EDGES,
+    "cumulative/triangles": _TRIANGLES,
 }
 
 
@@ -174,6 +205,33 @@ class SpanStrain:
     def ok(self) -> np.ndarray:
         """Pairs that gave a triangulation."""
         return self.pairs["status"] == PairStatus.OK
+
+
+@dataclass
+class CumulativeStrain:
+    """Motion and triangulation strain of every frame relative to one reference frame (the first with measured
+    points, normally 0): along the trajectories (features) or the skin points followed through the flow fields
+    (flow). Pair ``i`` is (reference, frame_b); ``motion`` rows have the skin points' reference-frame positions."""
+
+    reference_frame: int
+    pairs: np.ndarray  # PAIR_DTYPE
+    motion: np.ndarray  # MOTION_DTYPE
+    edges: np.ndarray  # EDGE_DTYPE
+    triangles: np.ndarray  # TRIANGLE_DTYPE
+
+    def sample(self, frame: int) -> MotionSample | None:
+        """The skin points' motion from the reference frame to ``frame``, or None when there is no such pair."""
+        where = np.flatnonzero(self.pairs["frame_b"] == int(frame))
+        if int(frame) == self.reference_frame:
+            rows = self.motion[self.motion["pair"] == 0] if self.pairs.size else self.motion[:0]
+            p = np.column_stack([rows["x"], rows["y"]])
+            return MotionSample(self.reference_frame, self.reference_frame, p, np.zeros_like(p),
+                                rows["id"].astype(np.int64))
+        if where.size == 0:
+            return None
+        rows = self.motion[self.motion["pair"] == int(where[0])]
+        return MotionSample(self.reference_frame, int(frame), np.column_stack([rows["x"], rows["y"]]),
+                            np.column_stack([rows["dx"], rows["dy"]]), rows["id"].astype(np.int64))
 
 
 @dataclass(frozen=True)
@@ -511,6 +569,7 @@ class Results:
             self.has_trajectories = "trajectories" in f
             self.has_flow = "flow" in f
             self.has_movie = "tactile_movie" in f
+            self.has_cumulative = "cumulative" in f
 
     # -- the file
     @contextmanager
@@ -586,6 +645,17 @@ class Results:
                 span = int(h.attrs["span"])
                 out[span] = SpanStrain(span, h["pairs"][()], h["edges"][()], h["triangles"][()])
         return dict(sorted(out.items()))
+
+    @cached_property
+    def cumulative(self) -> CumulativeStrain | None:
+        """Motion and strain of every frame relative to the reference frame, or None (results written before it
+        was measured)."""
+        if not self.has_cumulative:
+            return None
+        with self.open() as f:
+            g = f["cumulative"]
+            return CumulativeStrain(int(g.attrs["reference_frame"]), g["pairs"][()], g["motion"][()],
+                                    g["edges"][()], g["triangles"][()])
 
     # -- per frame
     @property
@@ -693,7 +763,8 @@ class Results:
     # -- tables for users
     def to_dataframe(self, part: str, *, span: int = 1):
         """A pandas DataFrame of one part: ``"trajectories"``, ``"motion"``, ``"strain"`` (edges of ``span``),
-        ``"triangles"`` (of ``span``), ``"profile"``, ``"fingertip"`` or ``"features"``."""
+        ``"triangles"`` (of ``span``, with each triangle's strain tensor), ``"cumulative"`` (the triangles of every
+        frame relative to the reference frame), ``"profile"``, ``"fingertip"`` or ``"features"``."""
         import pandas as pd  # noqa: PLC0415 - only for users who ask for DataFrames
 
         if part == "trajectories":
@@ -710,6 +781,14 @@ class Results:
             pairs = pd.DataFrame({"pair": np.arange(s.pairs.size), "frame_a": s.pairs["frame_a"],
                                   "frame_b": s.pairs["frame_b"]})
             return table.merge(pairs, on="pair", how="left")
+        if part == "cumulative":
+            c = self.cumulative
+            if c is None:
+                raise SessionFileError(f"{self.path}: results written before the cumulative strain was measured; "
+                                       "analyse the session again")
+            pairs = pd.DataFrame({"pair": np.arange(c.pairs.size), "frame_a": c.pairs["frame_a"],
+                                  "frame_b": c.pairs["frame_b"]})
+            return pd.DataFrame(c.triangles).merge(pairs, on="pair", how="left")
         if part == "profile":
             return pd.DataFrame({f"position_{self.profile_axis}_px": self.profile.x, "change": self.profile.change,
                                  "valid": self.profile.valid})
@@ -722,8 +801,8 @@ class Results:
             if self.features is None:
                 raise SessionFileError(f"{self.path}: {self.method} results have no features")
             return pd.DataFrame(self.features)
-        raise SessionFileError(f"unknown results part {part!r} (trajectories, motion, strain, triangles, profile, "
-                               "fingertip, features)")
+        raise SessionFileError(f"unknown results part {part!r} (trajectories, motion, strain, triangles, cumulative, "
+                               "profile, fingertip, features)")
 
     def __repr__(self) -> str:
         return f"Results({str(self.path)!r}, method={self.method}, frames={self.n_frames})"

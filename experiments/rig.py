@@ -456,13 +456,18 @@ class RigDevices:
             raise DeviceError("the rig has no display (display.kind: none)")
         return self.display.device
 
-    def close(self) -> None:
+    def close(self, *, now: bool = False) -> None:
+        """Close every device; ``now``: a command asked to stop does not wait for the scene renders under way."""
+        from skinstretch.experiments.process_lifetime import end_pool_now  # noqa: PLC0415
+
+        pool = self._render_pool
         errors = []
         for closer in (
             (lambda: self._force.close()) if self._force is not None else None,
             (lambda: self._display.close()) if self._display is not None else None,
             (lambda: self._aravis.close()) if self._aravis is not None else None,
-            (lambda: self._render_pool.shutdown(wait=True, cancel_futures=True)) if self._render_pool else None,
+            ((lambda: end_pool_now(pool)) if now else (lambda: pool.shutdown(wait=True, cancel_futures=True)))
+            if pool else None,
             *[(lambda s=s: s.close()) for s in self._sim_servers],
         ):
             if closer is None:

@@ -51,7 +51,8 @@ from skinstretch.drivers.session_file import attach_truth, expected_session_byte
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.drivers.errors import DeviceError, DiskFullError, SessionFileError
 from skinstretch.experiments.output_paths import check_output_dir
-from skinstretch.experiments.process_lifetime import worker_pool
+from skinstretch.experiments.process_lifetime import (check_stop, end_pool_now, stop_deferred, stop_pending,
+                                                      stop_reason, worker_pool)
 from skinstretch.processing.errors import InvalidInputError, Remedy, SkinstretchError
 from skinstretch.experiments.protocol import PlannedTrial, Protocol, Rig
 from skinstretch.experiments.skin_mapping_step import store_calibration
@@ -229,6 +230,7 @@ class TrialResult:
     analysis_error: str = ""
     analysed: bool = False  # an analysis was run (or attempted) for this trial
     disk_full: bool = False  # it failed because the disk was full (the run stops there)
+    interrupted: KeyboardInterrupt | None = None  # a signal stopped it (the run stops there and re-raises it)
 
 
 @dataclass
@@ -240,9 +242,15 @@ class SessionRun:
     playback: Any = None
     playback_error: str = ""
     stopped: str = ""
+    interrupted: KeyboardInterrupt | None = None  # the signal (or Ctrl-C) that stopped the run
 
     def count(self, status: str) -> int:
         return sum(t.status == status for t in self.trials)
+
+    @property
+    def failed_before(self) -> int:
+        """Trials a ``--resume`` skipped because an earlier run ended them failed or aborted."""
+        return sum(t.status == "skipped" and t.reason != "already complete" for t in self.trials)
 
     @property
     def analyses(self) -> tuple[int, int]:
@@ -253,17 +261,18 @@ class SessionRun:
     @property
     def ok(self) -> bool:
         """Every trial recorded (or done before a resume), every analysis done, the run not stopped."""
-        return (all(t.status in ("complete", "skipped") for t in self.trials) and not self.stopped
-                and self.analyses[0] == 0)
+        return (all(t.status in ("complete", "skipped") for t in self.trials) and not self.failed_before
+                and not self.stopped and self.analyses[0] == 0)
 
     def summary_line(self) -> str:
         """One line: how many of how many trials and analyses failed, and why the run stopped if it did."""
         n = len(self.trials)
-        failed = self.count("failed") + self.count("aborted")
+        failed = self.count("failed") + self.count("aborted") + self.failed_before
         bad_analyses, analyses = self.analyses
         if self.ok:
             return f"all {n} trials recorded" + (f", {analyses} of {analyses} analyses done" if analyses else "")
-        parts = [f"{failed} of {n} trials failed"]
+        parts = [f"{failed} of {n} trials failed" + (f" ({self.failed_before} in an earlier run)"
+                                                      if self.failed_before else "")]
         if self.count("not run"):
             parts.append(f"{self.count('not run')} not run")
         parts.append(f"{bad_analyses} of {analyses} analyses failed")
@@ -304,6 +313,7 @@ class _ForcePump(threading.Thread):
         self.recorder = recorder
         self.stop_event = threading.Event()
         self.error: str | None = None
+        self.samples = 0
 
     def run(self) -> None:
         try:
@@ -311,6 +321,7 @@ class _ForcePump(threading.Thread):
                 t, data = self.source.read_block(timeout_s=0.2)
                 if len(t):
                     self.recorder.put_samples("force", t, data)
+                    self.samples += len(t)
         except SkinstretchError as exc:
             self.error = f"force sensor: {type(exc).__name__}: {exc}"
         except OSError as exc:
@@ -374,81 +385,96 @@ def record_trial(
     pump = None
     failure: str | None = None
     seq = 0
-    try:
-        if devices.display is not None:
-            devices.display.rest()
-        camera = devices.camera_for(trial=trial, protocol=protocol, n_frames=n_target)
-        camera.start()
-        if "force" in streams:
-            devices.force.begin()
-            pump = _ForcePump(devices.force, recorder)
-            pump.start()
-        frames = 0
-        timeout = max(1.0, 20 * mode.period_s)
-        last_report = time.monotonic()
-        while frames < n_target:
-            if recorder.failure is not None:
-                failure = recorder.failure
-                break
-            if pump is not None and pump.error:
-                failure = pump.error
-                break
-            try:
-                frame = camera.read(timeout_s=timeout)
-            except DeviceError as exc:
-                if type(exc).__name__ == "EndOfStreamError":
-                    break  # a finite source (replay, simulation) ran out: the trial ends with what it gave
-                raise
-            recorder.put_frame(
-                frame.image,
-                timestamp=frame.host_timestamp_s,
-                frame_id=frame.frame_id,
-                device_timestamp=frame.device_timestamp_s,
-            )
-            if "display_state" in streams:
-                recorder.put_samples("display_state", frame.host_timestamp_s, devices.display.measured_positions_um())
-            frames += 1
-            now = time.monotonic()
-            if now - last_report >= 0.25 or frames == n_target:
-                last_report = now
-                progress(f"  {trial.dirname}: {frames}/{n_target} frames")
-                seq += 1
-                log.emit(
-                    "event",
-                    {"uid": uuid.uuid4().hex, "run_start": run_uid, "seq_num": seq, "data": {"frames": frames}},
-                )
-    except (DeviceError, OSError) as exc:
-        failure = f"device fault: {type(exc).__name__}: {exc}"
-    except SkinstretchError as exc:
-        failure = f"{type(exc).__name__}: {exc}"
-    finally:
-        if pump is not None:
-            pump.stop_event.set()
-            pump.join(2.0)
-            try:
-                devices.force.end()
-            except (SkinstretchError, OSError):
-                pass
-        if camera is not None:
-            try:
-                camera.stop()
-            except (SkinstretchError, OSError):
-                pass
-        if devices.display is not None:
-            try:
+    interrupted: KeyboardInterrupt | None = None
+    try:  # whatever stops the trial, even a signal in the clean-up, the file is closed below
+        try:
+            if devices.display is not None:
                 devices.display.rest()
-            except (SkinstretchError, OSError) as exc:
-                failure = failure or f"display did not return to rest: {exc}"
-    if failure is None and recorder.failure is not None:
-        failure = recorder.failure
-    stats = recorder.finish(failed_reason=failure)
-    truth = getattr(camera, "truth", None)
-    if truth is not None and stats.frames_written > 0 and not recorder.disk_full:
-        _attach_truth(path, truth)
-    summary = _summarise(path, stats)
-    status = "complete" if stats.status == "complete" else "failed"
-    return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary,
-                       disk_full=recorder.disk_full)
+            camera = devices.camera_for(trial=trial, protocol=protocol, n_frames=n_target)
+            camera.start()
+            if "force" in streams:
+                devices.force.begin()
+                pump = _ForcePump(devices.force, recorder)
+                pump.start()
+            frames = 0
+            timeout = max(1.0, 20 * mode.period_s)
+            last_report = time.monotonic()
+            while frames < n_target:
+                check_stop()
+                if recorder.failure is not None:
+                    failure = recorder.failure
+                    break
+                if pump is not None and pump.error:
+                    failure = pump.error
+                    break
+                try:
+                    frame = camera.read(timeout_s=timeout)
+                except DeviceError as exc:
+                    if type(exc).__name__ == "EndOfStreamError":
+                        break  # a finite source (replay, simulation) ran out: the trial ends with what it gave
+                    raise
+                recorder.put_frame(
+                    frame.image,
+                    timestamp=frame.host_timestamp_s,
+                    frame_id=frame.frame_id,
+                    device_timestamp=frame.device_timestamp_s,
+                )
+                if "display_state" in streams:
+                    recorder.put_samples("display_state", frame.host_timestamp_s, devices.display.measured_positions_um())
+                frames += 1
+                now = time.monotonic()
+                if now - last_report >= 0.25 or frames == n_target:
+                    last_report = now
+                    progress(f"  {trial.dirname}: {frames}/{n_target} frames")
+                    seq += 1
+                    log.emit(
+                        "event",
+                        {"uid": uuid.uuid4().hex, "run_start": run_uid, "seq_num": seq, "data": {"frames": frames}},
+                    )
+        except (DeviceError, OSError) as exc:
+            failure = f"device fault: {type(exc).__name__}: {exc}"
+        except SkinstretchError as exc:
+            failure = f"{type(exc).__name__}: {exc}"
+        finally:
+            if pump is not None:
+                pump.stop_event.set()
+                pump.join(2.0)
+                try:
+                    devices.force.end()
+                except (SkinstretchError, OSError):
+                    pass
+                # a sensor that fell silent near the end, or never spoke: the trial has no force, so it failed
+                if failure is None and pump.error:
+                    failure = pump.error
+                elif failure is None and pump.samples == 0:
+                    failure = f"force sensor: {devices.force.description} delivered no sample during the trial"
+            if camera is not None:
+                try:
+                    camera.stop()
+                except (SkinstretchError, OSError):
+                    pass
+            if devices.display is not None:
+                try:
+                    devices.display.rest()
+                except (SkinstretchError, OSError) as exc:
+                    failure = failure or f"display did not return to rest: {exc}"
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (process_lifetime.stop_on_signals)
+        interrupted = exc
+        failure = f"aborted: {stop_reason(exc)}"
+    with stop_deferred():  # a signal from here on is acted on once the file is closed (run_protocol)
+        if failure is None and recorder.failure is not None:
+            failure = recorder.failure
+        stats = recorder.finish(failed_reason=failure)
+        if interrupted is not None:  # closed as aborted; the truth is not attached, the run stops (run_protocol)
+            return TrialResult(trial=trial.dirname, path=path, status="aborted", reason=stop_reason(interrupted),
+                               summary=_summarise(path, stats), interrupted=interrupted)
+        truth = getattr(camera, "truth", None)
+        if truth is not None and stats.frames_written > 0 and not recorder.disk_full and not stop_pending():
+            _attach_truth(path, truth)
+        summary = _summarise(path, stats)
+        status = "complete" if stats.status == "complete" else "failed"
+        return TrialResult(trial=trial.dirname, path=path, status=status, reason=stats.reason, summary=summary,
+                           disk_full=recorder.disk_full)
 
 
 def expected_trial_bytes(protocol: Protocol, trial: PlannedTrial) -> int:
@@ -594,6 +620,7 @@ def run_protocol(
     results: list[TrialResult] = []
     plan = protocol.planned_trials()
     run = SessionRun(directory=sdir, trials=results)
+    current_run = ""  # the start document of the trial being recorded, until its stop document
     try:
         with EventLog(log_path) as log:
             # Runs started but never stopped were interrupted (crash, SIGKILL): close them in the log as aborted.
@@ -611,6 +638,7 @@ def run_protocol(
             if hasattr(devices, "prepare"):
                 devices.prepare(protocol=protocol, trials=todo)
             for k, trial in enumerate(plan):
+                check_stop()
                 tdir = sdir / trial.dirname
                 path = tdir / SESSION_FILE
                 if trial.dirname in done or path.exists():
@@ -627,7 +655,7 @@ def run_protocol(
                     run.stopped = str(exc)
                     break
                 tdir.mkdir(parents=True, exist_ok=True)
-                run_uid = uuid.uuid4().hex
+                run_uid = current_run = uuid.uuid4().hex
                 log.emit(
                     "start",
                     {
@@ -662,25 +690,30 @@ def run_protocol(
                     progress=progress,
                     writer_factory=writer_factory,
                 )
-                s = result.summary
-                progress(
-                    f"trial {k + 1}/{len(plan)} {trial.dirname}: {result.status}"
-                    + (f" ({result.reason})" if result.reason else "")
-                    + f", {s.get('frames', 0)} frames, {s.get('dropped_frames', 0)} dropped, "
-                    f"{s.get('mean_fps', 0.0):.1f} fps, {s.get('bytes', 0) / 1e6:.1f} MB"
-                )
-                log.emit(
-                    "stop",
-                    {
-                        "uid": uuid.uuid4().hex,
-                        "run_start": run_uid,
-                        "exit_status": "success" if result.status == "complete" else "fail",
-                        "reason": result.reason,
-                        "summary": result.summary,
-                        "num_events": {"primary": s.get("frames", 0)},
-                    },
-                )
-                results.append(result)
+                with stop_deferred():  # a signal now is acted on once the log says how the trial ended
+                    s = result.summary
+                    progress(
+                        f"trial {k + 1}/{len(plan)} {trial.dirname}: {result.status}"
+                        + (f" ({result.reason})" if result.reason else "")
+                        + f", {s.get('frames', 0)} frames, {s.get('dropped_frames', 0)} dropped, "
+                        f"{s.get('mean_fps', 0.0):.1f} fps, {s.get('bytes', 0) / 1e6:.1f} MB"
+                    )
+                    log.emit(
+                        "stop",
+                        {
+                            "uid": uuid.uuid4().hex,
+                            "run_start": run_uid,
+                            "exit_status": {"complete": "success", "aborted": "abort"}.get(result.status, "fail"),
+                            "reason": result.reason,
+                            "summary": result.summary,
+                            "num_events": {"primary": s.get("frames", 0)},
+                        },
+                    )
+                    results.append(result)
+                    current_run = ""
+                if result.interrupted is not None:  # a signal: nothing more is recorded, analysed or played
+                    raise result.interrupted
+                check_stop()
                 if mapping is not None and path.exists():
                     try:
                         store_calibration(path, mapping)
@@ -713,7 +746,12 @@ def run_protocol(
                                                                                if t.status == "not run"]}})
             for result, fut, run_uid in pending:
                 try:
-                    out = fut.result()
+                    while True:
+                        try:
+                            out = fut.result(timeout=0.25)
+                            break
+                        except cf.TimeoutError:
+                            check_stop()
                 except Exception as exc:  # the worker process died: reported, never raised into the recording
                     out = TrialAnalysis(False, error=f"analysis process failed: {type(exc).__name__}: {exc}")
                 if out.ok:
@@ -744,9 +782,38 @@ def run_protocol(
                 except (SkinstretchError, OSError) as exc:
                     run.playback_error = f"{type(exc).__name__}: {exc}"
                     progress(f"playback: FAILED ({run.playback_error})")
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: close in the log what was under way, then stop
+        run.interrupted = exc
+        run.stopped = stop_reason(exc)
+        _log_interruption(run, plan, sdir, log_path, current_run, pending)
     finally:
         if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            if run.interrupted is not None:
+                end_pool_now(pool)
+            else:
+                pool.shutdown(wait=True, cancel_futures=True)
         if own_devices:
-            devices.close()
+            devices.close(now=run.interrupted is not None)
     return run
+
+
+def _log_interruption(run: SessionRun, plan: list[PlannedTrial], sdir: Path, log_path: Path, current_run: str,
+                      pending: list) -> None:
+    """After a signal: the trial whose start was logged without a stop is closed as aborted, the analyses still
+    running are given up (their trials keep their data: ``skinstretch analyze`` later), the trials not reached are
+    "not run", and the log says so. Runs with the log closed: its documents are appended again."""
+    with EventLog(log_path) as log:
+        if current_run:
+            log.emit("stop", {"uid": uuid.uuid4().hex, "run_start": current_run, "exit_status": "abort",
+                              "reason": run.stopped})
+        for result, fut, _ in pending:
+            if fut.done() and not fut.cancelled() and fut.exception() is None and fut.result().ok:
+                result.analysis = Path(fut.result().results)
+            elif not result.analysis_error:
+                result.analysis_error = f"not finished: {run.stopped}"
+        recorded = {t.trial for t in run.trials}
+        run.trials.extend(TrialResult(t.dirname, sdir / t.dirname / SESSION_FILE, "not run", reason=run.stopped)
+                          for t in plan if t.dirname not in recorded)
+        log.emit("event", {"uid": uuid.uuid4().hex, "name": "run_stopped",
+                           "data": {"reason": run.stopped, "not_run": [t.trial for t in run.trials
+                                                                       if t.status == "not run"]}})

@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
@@ -91,6 +92,9 @@ class SubpixelParams:
         scene 0.110 / 0.099 / 0.097 / 0.100 %, a stretch twice the scene's 0.149 / 0.123 / 0.120 / 0.119 %, the
         reversal 0.095 / 0.091 / 0.088 / 0.088 %; a plain slide, where most of what the test calls curved is
         noise, 0.074 / 0.084 / 0.079 / 0.076 %.
+    model_sigma_px : float
+        The error a window's residual does not show (px per axis), added in quadrature to each predicted standard
+        error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
     """
 
     window_mm: float = Field(0.6, gt=0)
@@ -105,6 +109,7 @@ class SubpixelParams:
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
     span_direct_full: float = Field(8.0, gt=1)
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
 
 #: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
@@ -136,7 +141,7 @@ def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
     f = np.asarray(image, dtype=np.float32)
     mean = _smooth(f, sigma_px)
     d = f - mean
-    std = np.sqrt(_smooth(d * d, sigma_px)) + 2.0
+    std = np.sqrt(np.maximum(_smooth(d * d, sigma_px), 0.0)) + 2.0  # box filters round a flat patch to -1e-7
     return np.clip(128.0 + 40.0 * d / std, 0, 255).astype(np.uint8)
 
 
@@ -337,15 +342,25 @@ class SubpixelRefiner:
         return _covariances(self._window_statistics(prev_image, curr_image, points, displacement,
                                                     self._window_halves(window_px, points.shape[0])))
 
+    def registration_check(self, prev_image, curr_image, points: np.ndarray,
+                           displacement: np.ndarray) -> RegistrationCheck:
+        """How well each displacement is known, from its window: predicted standard error and window match
+        (:class:`~skinstretch.processing.measurement_uncertainty.RegistrationCheck`); NaN where the window leaves
+        an image."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        txx, txy, tyy, s2, texture = self._window_statistics(prev_image, curr_image, points, displacement,
+                                                             self._window_halves(None, points.shape[0])).T
+        return registration_check(txx, txy, tyy, s2, texture, model_sigma_px=self.params.model_sigma_px)
+
     def _window_statistics(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                            halves: np.ndarray) -> np.ndarray:
-        """:func:`_window_statistics_kernel`'s rows (Txx, Txy, Tyy, s^2) for ``points`` (n, 2) read at
+        """:func:`_window_statistics_kernel`'s rows (Txx, Txy, Tyy, s^2, v) for ``points`` (n, 2) read at
         ``points + displacement`` in the second image."""
         a, gx, gy = _image_and_gradient(prev_image, "prev_image")
         b = _as_gray(curr_image.image if isinstance(curr_image, PreparedImage) else curr_image, "curr_image")
         displacement = _displacement_rows(displacement, points, "displacement")
         if points.shape[0] == 0:
-            return np.zeros((0, 4))
+            return np.zeros((0, 5))
         return _window_statistics_kernel(a, b, gx, gy, points, np.ascontiguousarray(displacement), halves)
 
     def span_residual_variance(self, prev_image, curr_image, points: np.ndarray,
@@ -516,11 +531,11 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
 
 @njit(nogil=True, fastmath=FASTMATH)
 def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
-    """Per point, rows (Txx, Txy, Tyy, s^2) over its window of half-side ``halves[i]``: T the structure tensor of
-    ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear); NaN where the window leaves either
-    image."""
+    """Per point, rows (Txx, Txy, Tyy, s^2, v) over its window of half-side ``halves[i]``: T the structure tensor
+    of ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear), v the variance of ``a`` (its
+    texture); NaN where the window leaves either image."""
     h, w = a.shape
-    out = np.full((points.shape[0], 4), np.nan)
+    out = np.full((points.shape[0], 5), np.nan)
     for i in range(points.shape[0]):
         half = halves[i]
         c, r = int(np.round(points[i, 0])), int(np.round(points[i, 1]))
@@ -532,7 +547,7 @@ def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
         w00, w01 = np.float32((1.0 - fx) * (1.0 - fy)), np.float32(fx * (1.0 - fy))
         w10, w11 = np.float32((1.0 - fx) * fy), np.float32(fx * fy)
         txx = txy = tyy = 0.0
-        rr = 0.0
+        rr = sa = saa = 0.0
         for y in range(r - half, r + half + 1):
             # float32 row sums (SIMD-wide), float64 window sums
             b0 = b[y + iy, c - half + ix:c + half + ix + 2]
@@ -541,7 +556,7 @@ def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
             gxr = gx[y, c - half:c + half + 1]
             gyr = gy[y, c - half:c + half + 1]
             z = np.float32(0.0)
-            sxx = sxy = syy = srr = z
+            sxx = sxy = syy = srr = s1 = s2 = z
             for k in range(2 * half + 1):
                 d = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11) - ar[k]
                 ax = gxr[k]
@@ -550,20 +565,26 @@ def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
                 sxy += ax * ay
                 syy += ay * ay
                 srr += d * d
+                s1 += ar[k]
+                s2 += ar[k] * ar[k]
             txx += float(sxx)
             txy += float(sxy)
             tyy += float(syy)
             rr += float(srr)
+            sa += float(s1)
+            saa += float(s2)
+        n = (2 * half + 1) ** 2
         out[i, 0] = txx
         out[i, 1] = txy
         out[i, 2] = tyy
-        out[i, 3] = rr / ((2 * half + 1) ** 2 - 2)
+        out[i, 3] = rr / (n - 2)
+        out[i, 4] = max(saa / n - (sa / n) ** 2, 0.0)
     return out
 
 
 def _covariances(stats: np.ndarray) -> np.ndarray:
     """``s^2 T^-1`` (n, 2, 2) from :func:`_window_statistics_kernel`'s rows; NaN where T is singular or unknown."""
-    txx, txy, tyy, s2 = stats.T
+    txx, txy, tyy, s2 = stats[:, :4].T
     det = txx * tyy - txy * txy
     ok = np.isfinite(det) & (det > 0.0) & (det > 1e-9 * (txx + tyy) ** 2)
     out = np.full((stats.shape[0], 2, 2), np.nan)

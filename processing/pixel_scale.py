@@ -15,6 +15,12 @@ from typing import Any
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.validated_dataclass import PositiveFloat, validated_dataclass
 
+#: A fingertip's median ridge period (mm; 0.39-0.46 mm interquartile): what scale-dependent reductions are sized by.
+RIDGE_PERIOD_MM = 0.43
+#: Fewest pixels per ridge period an image may keep when it is reduced (a pyramid level, a downsampled copy):
+#: below it the ridges alias and a coarse registration locks onto a wrong ridge.
+MIN_REDUCED_PERIOD_PX = 6.0
+
 
 @validated_dataclass
 class Calibration:
@@ -64,3 +70,24 @@ class Calibration:
     def px_int(self, mm: float, minimum: int = 0) -> int:
         """A length in mm rounded to whole pixels, at least ``minimum``."""
         return max(int(round(self.px(mm))), minimum)
+
+    def resolvable_reduction(self, most: int) -> int:
+        """The largest integer downsampling factor, at most ``most``, that keeps a ridge period
+        (:data:`RIDGE_PERIOD_MM`) at least :data:`MIN_REDUCED_PERIOD_PX` pixels long (1 at coarse scales).
+
+        >>> Calibration(px_per_mm=62.0).resolvable_reduction(4), Calibration(px_per_mm=19.7).resolvable_reduction(4)
+        (4, 1)
+        """
+        return max(1, min(int(most), int(self.px(RIDGE_PERIOD_MM) // MIN_REDUCED_PERIOD_PX)))
+
+    def resolvable_halvings(self, most: int) -> int:
+        """The most pyramid halvings, at most ``most``, that keep a ridge period at least
+        :data:`MIN_REDUCED_PERIOD_PX` pixels long (0 at coarse scales).
+
+        >>> Calibration(px_per_mm=62.0).resolvable_halvings(5), Calibration(px_per_mm=19.7).resolvable_halvings(5)
+        (2, 0)
+        """
+        period, levels = self.px(RIDGE_PERIOD_MM), 0
+        while levels < int(most) and period / 2.0 ** (levels + 1) >= MIN_REDUCED_PERIOD_PX:
+            levels += 1
+        return levels

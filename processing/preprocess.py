@@ -184,6 +184,11 @@ def ridge_statistics(smoothed: np.ndarray, *, sigma_px: float, cell_px: int = 4)
     return RidgeStatistics(mean=full, cell_image=cells, cell_mean=m, cell_std=std, cell_px=int(cell_px))
 
 
+#: Where the bright envelope is below this fraction of the frame's (its 90th percentile) the glass is not lit: the
+#: light is not divided out there and it is no contact (FTIR: valleys in contact are nearly as bright as the glass).
+DARK_ENVELOPE_FRACTION = 0.25
+
+
 def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: float, min_extent_px: float = 0.0,
                 texture_floor: float = 0.1, reference_percentile: float = 90.0) -> tuple[np.ndarray, float]:
     """Where the skin touches the glass: contact fraction from the local contrast, and the background mask.
@@ -211,6 +216,9 @@ def contact_map(stats: RidgeStatistics, *, shape: tuple[int, int], min_contact: 
     m, s = stats.cell_mean, stats.cell_std
     env = cv2.scaleAdd(s, math.sqrt(2.0), m)
     kappa = cv2.divide(s, np.maximum(env, 1.0), scale=2.0 * math.sqrt(2.0))
+    # A dark surround (a black background, a print smaller than the frame) is not lit skin, whatever its noise's
+    # relative contrast: FTIR's valleys in contact are nearly as bright as the glass.
+    kappa[env < DARK_ENVELOPE_FRACTION * float(np.percentile(env, 90))] = 0.0
     textured = kappa[kappa > texture_floor]
     h, w = shape
     if textured.size == 0:
@@ -258,7 +266,9 @@ def flatten_light(smoothed: np.ndarray, *, cell_px: int, window_px: float, sigma
     sg = float(sigma_px) / cell_px
     k = 2 * int(math.ceil(3.0 * sg)) + 1
     env = cv2.GaussianBlur(env, (k, k), sg, borderType=cv2.BORDER_REFLECT)
-    gain = cv2.divide(np.full_like(env, 255.0), np.maximum(env, 1.0))
+    # Not lit where darker than a fraction of the frame's light (a black surround): left dark, its noise unamplified.
+    floor = max(1.0, DARK_ENVELOPE_FRACTION * float(np.percentile(env, 90)))
+    gain = cv2.divide(np.full_like(env, 255.0), np.maximum(env, floor))
     if cell_px > 1:
         gain = cv2.resize(gain, (w, h), interpolation=cv2.INTER_LINEAR)
     return cv2.multiply(smoothed, gain)

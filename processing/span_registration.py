@@ -1,5 +1,6 @@
 """The motion of tracked points over a longer span, registered directly between the span's two frames (beyond the
-seed): :class:`SpanRegistration` for the features, :class:`SpanFrames` shared with the flow's ``SpanRefiner``."""
+seed): :class:`SpanRegistration` for the features, :class:`SpanFrames` shared with the flow's ``SpanRefiner``, and
+the predicted standard error of a sample's points (:class:`SampleUncertainty`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.measurement_uncertainty import MIN_MATCH, RegistrationCheck
 from skinstretch.processing.tracking import MotionSample
 
 
@@ -20,16 +22,24 @@ class SpanFrames:
     reused as the first frame of later ones, and dropped once the spans have passed it. ``frame(j)`` gives frame j,
     ``prepare`` turns it into what the registration takes."""
 
-    def __init__(self, frame: Callable[[int], np.ndarray], prepare: Callable[[np.ndarray], Any]) -> None:
+    def __init__(self, frame: Callable[[int], np.ndarray], prepare: Callable[[np.ndarray], Any], *,
+                 keep: int = 0) -> None:
         self._frame = frame
         self._prepare = prepare
+        self._keep = int(keep)
         self._prepared: dict[int, Any] = {}
 
     def pair(self, k0: int, k1: int) -> tuple[Any, Any]:
-        """Frames ``k0`` and ``k1`` prepared; frames before ``k0`` are dropped (no later span starts before it)."""
-        for j in [j for j in self._prepared if j < k0]:
+        """Frames ``k0`` and ``k1`` prepared; frames more than ``keep`` before ``k0`` are dropped (no later span
+        starts before them)."""
+        for j in [j for j in self._prepared if j < k0 - self._keep]:
             del self._prepared[j]
         return self.get(k0), self.get(k1)
+
+    def keep_only(self, j: int) -> None:
+        """Drop every prepared frame but ``j`` (spans that all start at ``j``: a reference frame)."""
+        for k in [k for k in self._prepared if k != j]:
+            del self._prepared[k]
 
     def get(self, j: int) -> Any:
         if j not in self._prepared:
@@ -56,9 +66,10 @@ class SpanRegistration:
     ``frame_a``).
     """
 
-    def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray]) -> None:
+    def __init__(self, refiner: SubpixelRefiner, frame: Callable[[int], np.ndarray], *,
+                 frames: SpanFrames | None = None) -> None:
         self.refiner = refiner
-        self._frames = SpanFrames(frame, refiner.prepare)
+        self._frames = frames if frames is not None else SpanFrames(frame, refiner.prepare)
         self.seconds = 0.0  # spent in refine and refine_all (the stage's share of the analysis' time)
 
     def refine(self, sample: MotionSample) -> MotionSample:
@@ -98,7 +109,36 @@ class SpanRegistration:
                                self.refiner.params.span_direct_full)[:, None]
         disp = np.where(fit.ok[:, None], weight * fit.displacement + (1.0 - weight) * sample.displacement,
                         sample.displacement)
-        return MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, disp, sample.ids)
+        return checked(MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, disp, sample.ids),
+                       self.refiner.registration_check(pair[0], pair[1], sample.points, disp))
+
+
+class SampleUncertainty:
+    """Each point's predicted standard error (``MotionSample.sigma``, px) of a measured sample, from the
+    registration window around it in the sample's two frames (``SubpixelRefiner.registration_check``): what a
+    window registration of that displacement would leave as residual, over the window's texture. ``frames``: the
+    prepared frames, shared with :class:`SpanRegistration` (call in increasing ``frame_a``)."""
+
+    def __init__(self, refiner: SubpixelRefiner, frames: SpanFrames) -> None:
+        self.refiner = refiner
+        self._frames = frames
+
+    def __call__(self, sample: MotionSample) -> MotionSample:
+        if len(sample) == 0 or sample.sigma is not None:
+            return sample
+        a, b = self._frames.pair(int(sample.frame_a), int(sample.frame_b))
+        return checked(sample, self.refiner.registration_check(a, b, sample.points, sample.displacement))
+
+
+def checked(sample: MotionSample, check: RegistrationCheck) -> MotionSample:
+    """``sample`` with each point's sigma and match (``check``), doubted as a whole when most of its windows do not
+    match after the measured motion (a self-check: a chain gone astray, a mislinked pair of frames)."""
+    match = float(np.median(check.match)) if check.match.size else float("nan")
+    doubt = sample.doubt
+    if not doubt and match < MIN_MATCH:
+        doubt = f"the frames do not match after the measured motion (median window match {match:.2f} < {MIN_MATCH})"
+    return MotionSample(int(sample.frame_a), int(sample.frame_b), sample.points, sample.displacement, sample.ids,
+                        check.sigma, check.match, doubt)
 
 
 def direct_weight(curvature: np.ndarray, threshold: float, full: float) -> np.ndarray:

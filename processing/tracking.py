@@ -146,6 +146,9 @@ class MotionSample:
     points: np.ndarray  # (n, 2) x, y px in frame_a
     displacement: np.ndarray  # (n, 2) px from frame_a to frame_b
     ids: np.ndarray  # (n,) int64: track (or grid point) index, stable across pairs
+    sigma: np.ndarray | None = None  # (n,) px: predicted standard error per axis of each displacement (None: none)
+    match: np.ndarray | None = None  # (n,): each point's window match after the motion (None: not checked)
+    doubt: str = ""  # why a self-check doubts the whole pair ("" when none does)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

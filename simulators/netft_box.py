@@ -61,12 +61,16 @@ class NetFTFaults:
         A datagram is sent twice.
     garble_probability : float
         A datagram is replaced by random bytes of a wrong length (its sequence number is used up).
+    silent : bool
+        The box reads every request and sends nothing back, as one behind a firewall that drops its datagrams
+        (nothing refuses the requests either, so the driver hears nothing at all).
     """
 
     loss_probability: Probability = 0.0
     reorder_probability: Probability = 0.0
     duplicate_probability: Probability = 0.0
     garble_probability: Probability = 0.0
+    silent: bool = False
 
     @model_validator(mode="after")
     def _one_fault_at_most(self) -> "NetFTFaults":
@@ -324,6 +328,9 @@ class NetFTSimulator:
 
     def _emit(self, packet: bytes) -> None:
         f = self._faults
+        if f.silent:
+            self._count("lost")
+            return
         r = self._rng.random() if (f.loss_probability or f.reorder_probability or f.duplicate_probability
                                    or f.garble_probability) else 1.0
         held, self._held = self._held, None
@@ -405,12 +412,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=1000.0, help="records per second (<= 7000)")
     p.add_argument("--force", type=float, default=0.0, help="constant normal force Fz, N")
     p.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
+    p.add_argument("--silent", action="store_true", help="read requests, answer nothing (a firewalled box)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     sim = NetFTSimulator(
         rate_hz=args.rate,
         wrench=normal_force_wrench(lambda t: args.force),
-        faults=NetFTFaults(loss_probability=args.loss),
+        faults=NetFTFaults(loss_probability=args.loss, silent=args.silent),
         seed=args.seed,
         host=args.host,
         port=args.port,

@@ -47,6 +47,7 @@ _PUBLIC = {
     "read_results": ("skinstretch.experiments.results_file", "read_results"),
     "Results": ("skinstretch.experiments.results_file", "Results"),
     "save_figures": ("skinstretch.experiments.analysis.result_figures", "save_figures"),
+    "probe": ("skinstretch.experiments.probe", "probe"),
     # errors
     "SkinstretchError": ("skinstretch.processing.errors", "SkinstretchError"),
 }

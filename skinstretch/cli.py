@@ -102,11 +102,24 @@ def main(argv: list[str] | None = None) -> int:
         log.error("skinstretch %s: error: %s", args.command, " ".join(text.split()))
         log.debug("where it happened", exc_info=True)
         rc = 1
-    except KeyboardInterrupt:
-        log.error("skinstretch %s: interrupted", args.command)
-        rc = 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a signal a command turned into one (SIGTERM: 143)
+        log.error("skinstretch %s: interrupted%s", args.command, f" ({exc.args[0]})" if exc.args else "")
+        rc = getattr(exc, "exit_status", 130)
     _exit_now_if_hdf5_cannot_shut_down(rc)
+    lifetime = sys.modules.get("skinstretch.experiments.process_lifetime")  # not imported: no signal handled
+    if lifetime is not None and lifetime.stopped_by_signal():
+        # everything it wrote is closed; the interpreter's teardown of the numerical libraries took 0.5-0.8 s
+        # more, and a command asked to stop ends within a second
+        _exit_now(rc)
     return rc
+
+
+def _exit_now(rc: int) -> None:
+    """End the process now, output flushed, without the interpreter's shutdown."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(rc)
 
 
 def _exit_now_if_hdf5_cannot_shut_down(rc: int) -> None:
@@ -116,10 +129,7 @@ def _exit_now_if_hdf5_cannot_shut_down(rc: int) -> None:
     if disk_space is not None and disk_space.unclosed_files():
         log.error("skinstretch: %d file(s) could not be closed on the full disk; exiting without HDF5's shutdown",
                   len(disk_space.unclosed_files()))
-        logging.shutdown()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(rc or 1)
+        _exit_now(rc or 1)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -108,7 +108,7 @@ def test_a_failing_callback_still_rests_the_display_then_raises(sim):
     display, link = sim
 
     def broken(index, command, ack):
-        if index == 20:
+        if index >= 20:  # not == 20: a loaded machine may skip that frame as late
             return np.zeros((3, 3))  # a bug in the caller's controller
         return command + 5.0
 

@@ -7,7 +7,7 @@ import pytest
 from skinstretch.drivers.display.base import DisplayInfo, FrameAck, TactileDisplay
 from skinstretch.drivers.display.stress_protocol import Status
 from skinstretch.drivers.session_file import open_session
-from skinstretch.experiments.playback import ContactorCorrector, load_movie, play_movie
+from skinstretch.experiments.playback import ContactorCorrector, _check_movie, load_movie, play_movie
 from skinstretch.drivers.errors import DeviceError, SessionFileError
 from skinstretch.processing.errors import InvalidInputError
 
@@ -133,7 +133,7 @@ def test_closed_loop_cuts_rms_error_at_least_five_times(tmp_path):
 
 def test_force_ceiling_stops_movie_with_contactors_at_rest(tmp_path):
     display = PlantDisplay()
-    force = FixedForce([1.0] * 100 + [6.0])
+    force = FixedForce([1.0] * 101 + [6.0])  # the first sample is read before the movie starts
     result = _play(display, _movie(400), force=force, force_ceiling_n=5.0, path=tmp_path / "pb.h5")
     assert result.stopped.startswith("safety stop: normal force 6.00 N")
     assert result.frames_sent == 100 and not result.complete  # frames skipped on a starved host aside
@@ -174,7 +174,7 @@ def test_corrector_learns_gain_offset_and_backlash():
 def test_bad_inputs_are_named():
     with pytest.raises(InvalidInputError, match="movie_um"):
         _play(PlantDisplay(), np.zeros((5, 8, 8)))
-    with pytest.raises(InvalidInputError, match="NaN"):
+    with pytest.raises(InvalidInputError, match=r"frame 0, contactor \(0, 0\) is nan"):
         _play(PlantDisplay(), np.full((5, 10, 10), np.nan))
     with pytest.raises(InvalidInputError, match="max_correction_um"):
         ContactorCorrector(max_correction_um=-1)
@@ -182,15 +182,33 @@ def test_bad_inputs_are_named():
 
 def test_load_movie_formats(tmp_path):
     m = np.zeros((4, 10, 10))
-    m[1, 2, 3] = np.nan
+    m[1, 2, 3] = 7.5
     np.save(tmp_path / "m.npy", m)
     got, rate = load_movie(tmp_path / "m.npy")
-    assert got.shape == (4, 10, 10) and got[1, 2, 3] == 0 and rate is None
+    assert got.shape == (4, 10, 10) and got[1, 2, 3] == 7.5 and rate is None
     with pytest.raises(SessionFileError, match="no such"):
         load_movie(tmp_path / "none.npy")
     np.save(tmp_path / "bad.npy", np.zeros((4, 3)))
-    with pytest.raises(SessionFileError, match="shape"):
+    with pytest.raises(InvalidInputError, match="shape"):
         load_movie(tmp_path / "bad.npy")
+
+
+def test_a_users_movie_with_nan_or_complex_values_is_refused_naming_the_frame(tmp_path):
+    # A user's movie: NaN is refused (issue 41: it was silently reset to rest), and so is a complex array (it
+    # played, imaginary parts dropped, with only numpy's ComplexWarning).
+    m = np.zeros((4, 10, 10))
+    m[1, 2, 3] = np.nan
+    np.save(tmp_path / "nan.npy", m)
+    with pytest.raises(InvalidInputError, match=r"nan.npy: frame 1, contactor \(2, 3\) is nan"):
+        load_movie(tmp_path / "nan.npy")
+    np.save(tmp_path / "complex.npy", np.zeros((4, 10, 10), complex))
+    with pytest.raises(InvalidInputError, match="complex.npy is complex"):
+        load_movie(tmp_path / "complex.npy")
+    # A movie the analysis wrote: NaN marks a contactor it could not measure, reset to rest (seed 5.4).
+    got = _check_movie(m, tmp_path / "analysis", analysed=True)
+    assert got[1, 2, 3] == 0 and np.isfinite(got).all()
+    with pytest.raises(InvalidInputError, match="is inf"):
+        _check_movie(np.where(np.isnan(m), np.inf, m), tmp_path / "analysis", analysed=True)
 
 
 def test_corrector_stays_converged_over_a_long_movie():
@@ -233,7 +251,7 @@ def test_an_interrupted_movie_keeps_what_it_played_with_the_contactors_at_rest(t
     display = PlantDisplay()
     movie = _movie(300)
     with pytest.raises(RuntimeError, match="sensor driver crashed"):
-        _play(display, movie, force=BrokenForce(after=120), closed_loop=closed_loop, buffered=False,
+        _play(display, movie, force=BrokenForce(after=121), closed_loop=closed_loop, buffered=False,  # 1: before
               path=tmp_path / "pb.h5", metadata={"trial": 7})
     assert display.rested and not display.armed
     with open_session(tmp_path / "pb.h5") as s:

@@ -114,7 +114,7 @@ def test_image_folder_needs_a_rate_and_a_scale_named_as_flags(tmp_path, capsys):
         np.testing.assert_array_equal(s.read_frames(), _frames(12))
     capsys.readouterr()
     assert main(["import", str(folder), "-o", str(out), "--fps", "30", "--px-per-mm", "40", "-q"]) == 2
-    assert _errors(capsys) == [f"skinstretch import: error: {out} exists; pass --overwrite to replace it"]
+    assert _errors(capsys) == [f"skinstretch import: error: {out}: exists already; pass --overwrite to replace it"]
     assert main(["import", str(folder), "-o", str(out), "--fps", "25", "--px-per-mm", "40", "--overwrite", "-q"]) == 0
     with open_session(out) as s:
         assert s.camera_mode.fps == 25.0

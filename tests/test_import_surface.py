@@ -79,3 +79,47 @@ def test_what_cannot_be_read_says_why():
     acc.add(flat_image)
     with pytest.raises(InvalidInputError, match="frame is"):
         acc.add(np.zeros((100, 100)))
+
+
+def _moved_print(**conditions):
+    from skinstretch.simulators.moved_print import ClipConditions, PrintMotion, render_print_clip
+
+    c = ClipConditions(**{"shape": (512, 512), "n_frames": 6, **conditions})
+    return render_print_clip(c, PrintMotion(slide_px=(0.5, 0.0), stretch=(0.0005, 0.0))).frames
+
+
+@pytest.mark.parametrize("px_per_mm,background,bright", [
+    (15.0, "white", False), (19.685, "white", False), (30.0, "black", False), (20.0, "grey", False),
+    (40.0, "black", True), (100.0, "white", False),
+])
+def test_a_flat_print_smaller_than_the_frame_reads_flat_on_any_background(px_per_mm, background, bright):
+    """Issue 38: the plain background around a print (and the step at its edge) is no glass-fixed band."""
+    found = detect_surface(_moved_print(px_per_mm=px_per_mm, background=background, bright_ridges=bright),
+                           px_per_mm=px_per_mm)
+    assert found.kind == "flat" and found.band_depth < 0.15, found.describe()
+    if px_per_mm < 62:  # the 20 x 25 mm print leaves background in a 512-px frame
+        assert found.textured_fraction < 0.9
+    assert "% of the frame that holds print or skin, 6 frames" in found.describe()
+
+
+def test_a_band_across_a_print_smaller_than_the_frame_is_still_read():
+    """The texture mask keeps a glass-fixed band that takes 0.6 of the contrast: a valley on a grey background."""
+    frames = _moved_print(px_per_mm=25.0, background="grey", noise_grey=0.0).astype(np.float64)
+    band = 1 - 0.6 * np.exp(-0.5 * ((np.arange(512) - 280) / 12.0) ** 2)[:, None]  # along x, across y
+    found = detect_surface(128 + (frames - 128) * band, px_per_mm=25.0)
+    assert (found.kind, found.axis) == ("valley", "y") and abs(found.band_at_px - 280) < 5, found.describe()
+
+
+def test_the_import_says_what_it_read_and_from_what(tmp_path, capsys):
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, f in enumerate(_moved_print(px_per_mm=19.685, background="white")):
+        cv2.imwrite(str(folder / f"f{k}.png"), f)
+    assert main(["import", str(folder), "-o", str(tmp_path / "s.h5"), "--px-per-mm", "19.685", "--fps", "60"]) == 0
+    with open_session(tmp_path / "s.h5") as s:
+        assert s.metadata["surface"]["kind"] == "flat"
+        assert 0.1 < s.metadata["surface"]["detection"]["textured_fraction"] < 0.5
+    said = [line for line in capsys.readouterr().err.splitlines() if "surface" in line]
+    assert len(said) == 1 and "flat: no glass-fixed band" in said[0] and "of the frame that holds print" in said[0]

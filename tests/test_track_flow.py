@@ -5,7 +5,8 @@ import pytest
 
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.flow import DenseFlow, FlowParams, grid_strain, sample_dense_flow
+from skinstretch.processing.flow import DenseFlow, FlowParams
+from skinstretch.processing.flow_fields import grid_strain, sample_dense_flow
 from skinstretch.processing.stretch import triangulation_strain
 from tests.test_track_support import affine_field, render
 

@@ -98,6 +98,12 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
         page.keyboard.press(str(key))
         assert page.locator(f'input[data-overlay="{name}"]').is_checked() is not was
         assert _overlay_pixels(page) != before, f"toggling {name} changed nothing"
+    # Arrows whose predicted standard error is above the limit the user sets are hidden (all, at a tiny limit).
+    shown = _overlay_pixels(page)
+    page.fill("#max-sigma", "0.0001")
+    assert _overlay_pixels(page) != shown
+    page.fill("#max-sigma", "")
+    assert _overlay_pixels(page) == shown
     # Readout: hover the first feature of this frame
     x, y = page.evaluate("[S.current.ov.features.x[0], S.current.ov.features.y[0]]")
     box = page.locator("#view").bounding_box()
@@ -149,6 +155,39 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     print(f"frame with overlays on screen: median {np.median(ms):.1f} ms, max {np.max(ms):.1f} ms over {len(ms)}")
     assert page.evaluate("window.viewerStats.errors") == []
     assert page.problems == []
+
+
+def test_a_failed_self_check_is_in_the_banner(page, tmp_path):
+    """A flow locked onto wrong ridges (two pyramid levels over a 19.7 px/mm print): the pairs a self-check doubted
+    are named above the frame, in the warnings banner."""
+    from skinstretch.drivers.camera_modes import CameraMode
+    from skinstretch.drivers.session_file import write_session
+    from skinstretch.experiments.analysis import analyze_session
+    from skinstretch.experiments.viewer.server import start_server
+    from skinstretch.experiments.viewer.session_data import find_view_target
+    from skinstretch.processing.pixel_scale import Calibration
+    from tests.print_clips import print_frame, print_image
+
+    image = print_image()
+    frames = np.stack([print_frame(image, k, px_per_mm=19.7, background=255.0, shape=(484, 640), contact=None)
+                       for k in range(6)])
+    trial = tmp_path / "000-flat-r1"
+    trial.mkdir()
+    path = write_session(trial / "session.h5", frames, timestamps=np.arange(6) / 60,
+                         camera_mode=CameraMode("full", 640, 484, 60.0), calibration=Calibration(px_per_mm=19.7),
+                         metadata={"surface": {"kind": "flat"}})
+    analyze_session(path, trial / "analysis", method="flow",
+                    params={"flow": {"pyramid_levels": 2}, "strain": {"spans": [1, 3]}})
+    server = start_server(find_view_target(trial))
+    try:
+        page.goto(server.url)
+        page.wait_for_function("window.viewerStats.shown.length > 0", timeout=30000)
+        banner = page.locator("#analysis-warnings")
+        assert banner.is_visible()
+        assert "consecutive frame pairs failed a self-check" in banner.inner_text()
+        assert page.problems == []
+    finally:
+        server.stop()
 
 
 def test_a_page_without_the_token_gets_nothing(page, served):

@@ -264,6 +264,11 @@ class NetFTSensor(ForceSensor):
         Receive buffer asked of the kernel (bursts at 7 kHz must not overflow it).
     queue_size : int
         Samples held between the receive thread and :meth:`read`.
+    silence_timeout_s : float
+        A stream that brings no datagram for this long (from the start request on) fails with DeviceError (not
+        the DeviceTimeoutError of a :meth:`read` that found nothing yet, which callers retry): a box that never
+        answers (behind a firewall dropping its datagrams, at a wrong address that sends no ICMP refusal) is a
+        fault, not a sensor reading nothing.
 
     Examples
     --------
@@ -289,8 +294,14 @@ class NetFTSensor(ForceSensor):
         counts_per_torque: float = 1_000_000.0,
         socket_buffer_bytes: int = 4 * 1024 * 1024,
         queue_size: int = 65536,
+        silence_timeout_s: float = 1.0,
     ) -> None:
         super().__init__(queue_size=queue_size)
+        if not (isinstance(silence_timeout_s, (int, float)) and 0 < silence_timeout_s < math.inf):
+            raise InvalidInputError(f"silence_timeout_s must be a positive number of seconds, "
+                                    f"got {silence_timeout_s!r}")
+        self._silence_timeout = float(silence_timeout_s)
+        self._last_heard = time.monotonic()
         if not isinstance(host, str) or not host:
             raise InvalidInputError(f"host must be an IP address or host name, got {host!r}")
         if not isinstance(port, int) or not 0 < port < 65536:
@@ -347,6 +358,7 @@ class NetFTSensor(ForceSensor):
             pass
         finally:
             self._sock.settimeout(0.05)
+        self._last_heard = time.monotonic()
         self._send(RdtCommand.START_REALTIME)
 
     def _do_stop(self) -> None:
@@ -359,9 +371,15 @@ class NetFTSensor(ForceSensor):
         try:
             data = self._sock.recv(65536)
         except socket.timeout:
+            silent = time.monotonic() - self._last_heard
+            if silent > self._silence_timeout:
+                raise DeviceError(
+                    f"{self!r}: no data for {silent:.1f} s ({self.stats.received} samples received since the start "
+                    "request): the box does not answer (address, firewall, cable?)") from None
             return []
         except ConnectionRefusedError:
             raise DeviceError(f"{self!r}: nothing answers at {self._address[0]}:{self._address[1]} (ICMP refused)")
+        self._last_heard = time.monotonic()
         host_t = time.time()
         try:
             records = decode_records(data)

@@ -7,6 +7,7 @@ Read it in this order:
 * :mod:`.frames` — frames streamed from a session file (or held by the caller), glass-fixed shading removed;
 * :mod:`.measure` — motion between consecutive frames, chunk by chunk on the executor;
 * :mod:`.derive` — strain tables, fingertip motion, visibility window, profile and movie, in pixels;
+* :mod:`.cumulative` — every frame's motion from the reference frame, along trajectories or the flow's skin points;
 * :mod:`.pipeline` — :func:`analyze_session` / :func:`analyze_frames`: the stages in order, results written as they
   come (:mod:`skinstretch.experiments.results_file`).
 """

@@ -10,22 +10,25 @@ tactile movie a block of frames at a time), so nothing here holds the whole sess
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from skinstretch.experiments.results_file import (
-    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
+    AXIS_NAMES, EDGE_DTYPE, MOTION_DTYPE, TENSOR_COLUMNS, TRIANGLE_DTYPE, PairStatus, SpanStrain, pair_rows,
 )
 from skinstretch.processing.display_mapping import TactileMovie, TactileMovieBuilder
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow, fingertip_motion, visibility_window
+from skinstretch.processing.measurement_uncertainty import area_change_sigma, edge_change_sigma
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.stretch import (
     COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, StretchProfile, horizontal_stretch_profile, mean_profile,
     triangulation_strains,
 )
+from skinstretch.processing.strain_tensor import triangle_strain_tensors
 from skinstretch.processing.tracking import MotionSample
 
 __all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "stretch_profile", "sliding_axis",
@@ -34,6 +37,9 @@ __all__ = ["PixelScales", "Derived", "span_strain", "motion_rows", "derive", "st
 #: Frames of the tactile movie built and handed on at a time.
 MOVIE_BLOCK_FRAMES = 256
 
+#: A self-check: a pair whose typical edge changes length by more than this per frame of its span is doubted (no
+#: fingerpad stretches 5 % in 1/60 s; a registration locked onto wrong ridges reads tens of per cent).
+MAX_STRAIN_PER_FRAME = 0.05
 _STATUS_OF_STRAIN = {STRAIN_OK: PairStatus.OK, TOO_FEW_POINTS: PairStatus.TOO_FEW_POINTS,
                      COLLINEAR: PairStatus.COLLINEAR}
 
@@ -62,6 +68,18 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     n = len(samples)
     reasons = [b.failure(i) or "" for i in range(n)]
     status = [_STATUS_OF_STRAIN.get(int(c), PairStatus.NO_USABLE_TRIANGLE) for c in b.status]
+    for i, smp in enumerate(samples):
+        if status[i] != PairStatus.OK:
+            continue
+        # Self-checks: a pair whose registration failed, or whose strain no skin makes that fast.
+        change = b.edge_change[b.edge_offsets[i]:b.edge_offsets[i + 1]]
+        typical = float(np.median(np.abs(change))) if change.size else 0.0
+        if smp.doubt:
+            status[i], reasons[i] = PairStatus.DOUBTED, smp.doubt
+        elif typical > MAX_STRAIN_PER_FRAME * (frames := int(b.frame_b[i] - b.frame_a[i])):
+            status[i], reasons[i] = PairStatus.DOUBTED, (
+                f"strain no skin makes in {frames} frame{'s' if frames > 1 else ''} (median |edge change| "
+                f"{100 * typical:.1f} % > {100 * MAX_STRAIN_PER_FRAME * frames:.0f} %)")
     pairs = pair_rows(b.frame_a, b.frame_b, b.n_points, status, reasons)
     where = np.arange(first_pair, first_pair + n, dtype=np.int64)
     # The edge and triangle tables are filled field by field over the batch's flat arrays.
@@ -70,6 +88,9 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     edges["id_a"], edges["id_b"] = b.ids[b.edges].T
     edges["xa"], edges["ya"], edges["xb"], edges["yb"] = b.points[b.edges].reshape(-1, 4).T
     edges["length"], edges["change"] = b.edge_length, b.edge_change
+    sigma = np.concatenate([np.full(len(smp), np.inf) if smp.sigma is None else np.asarray(smp.sigma, np.float64)
+                            for smp in samples]) if samples else np.zeros(0)
+    edges["change_sigma"] = edge_change_sigma(sigma[b.edges[:, 0]], sigma[b.edges[:, 1]], b.edge_length)
     tris = np.zeros(b.triangles.shape[0], dtype=TRIANGLE_DTYPE)
     tris["pair"] = np.repeat(where, np.diff(b.triangle_offsets))
     tris["id_a"], tris["id_b"], tris["id_c"] = b.ids[b.triangles].T
@@ -77,14 +98,21 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     for j in range(3):
         tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
     tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
+    tris["change_sigma"] = area_change_sigma(b.points[b.triangles], sigma[b.triangles], b.area)
+    corners_a = b.points[b.triangles]  # (T, 3, 2)
+    tensors = triangle_strain_tensors(corners_a, corners_a + b.displacement[b.triangles])
+    for name in TENSOR_COLUMNS:
+        tris[name] = getattr(tensors, name)
+    tris["tensor_status"] = tensors.status
     return SpanStrain(span, pairs, edges, tris)
 
 
 def motion_rows(samples: Sequence[MotionSample], *, first_pair: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """The ``motion_pairs`` and ``motion`` rows of a run of consecutive pairs."""
     pairs = pair_rows([s.frame_a for s in samples], [s.frame_b for s in samples], [len(s) for s in samples],
-                      [PairStatus.OK if len(s) else PairStatus.NO_MOTION for s in samples],
-                      ["" if len(s) else "no motion measured" for s in samples])
+                      [PairStatus.NO_MOTION if not len(s) else PairStatus.DOUBTED if s.doubt else PairStatus.OK
+                       for s in samples],
+                      ["no motion measured" if not len(s) else s.doubt for s in samples])
     parts = []
     for i, s in enumerate(samples):
         t = np.zeros(len(s), dtype=MOTION_DTYPE)
@@ -92,6 +120,8 @@ def motion_rows(samples: Sequence[MotionSample], *, first_pair: int = 0) -> tupl
         t["id"] = s.ids
         t["x"], t["y"] = s.points.T
         t["dx"], t["dy"] = s.displacement.T
+        t["sigma"] = np.inf if s.sigma is None else s.sigma  # not estimated: no bound
+        t["match"] = 0.0 if s.match is None else s.match
         parts.append(t)
     return pairs, (np.concatenate(parts) if parts else np.zeros(0, MOTION_DTYPE))
 
@@ -102,7 +132,7 @@ def rectified_sample(s: MotionSample, mapping, px_per_mm: float) -> MotionSample
         return s
     pa = np.asarray(mapping.image_to_surface(s.points), dtype=np.float64) * px_per_mm
     pb = np.asarray(mapping.image_to_surface(s.points + s.displacement), dtype=np.float64) * px_per_mm
-    return MotionSample(s.frame_a, s.frame_b, pa, pb - pa, s.ids)
+    return dataclasses.replace(s, points=pa, displacement=pb - pa)
 
 
 def chain_flows(fields: Sequence, *, stride: int = 1) -> MotionSample:
@@ -114,10 +144,16 @@ def chain_flows(fields: Sequence, *, stride: int = 1) -> MotionSample:
     p0 = first.points
     p = p0 + first.displacement
     ids = first.ids
+    var = None if first.sigma is None else first.sigma**2  # the steps' errors add up (independent)
+    doubt = first.doubt
     for f in fields[1:]:
         d, ok = f.sample(p)
+        step = None if var is None or f.sigma is None else f.sigma_at(p)
+        var = None if step is None else var[ok] + step[ok] ** 2
         p, p0, ids = p[ok] + d[ok], p0[ok], ids[ok]
-    return MotionSample(fields[0].frame_a, fields[-1].frame_b, p0, p - p0, ids)
+        doubt = doubt or (f.status.removeprefix("doubted: ") if f.status.startswith("doubted: ") else "")
+    return MotionSample(fields[0].frame_a, fields[-1].frame_b, p0, p - p0, ids, None if var is None else np.sqrt(var),
+                        doubt=doubt)
 
 
 def sliding_axis(fingertip_position: np.ndarray) -> int:

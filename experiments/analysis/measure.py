@@ -119,7 +119,8 @@ def make_tracker(calibration: Calibration, params) -> Any:
         calibration=calibration,
         params=params.tracking,
         refiner=SubpixelRefiner(calibration=calibration, params=params.subpixel) if params.subpixel else None,
-        motion_estimator=GlobalMotionEstimator(downsample=4) if params.robust_matching else None,
+        motion_estimator=(GlobalMotionEstimator(downsample=calibration.resolvable_reduction(4))
+                          if params.robust_matching else None),
     )
 
 

@@ -10,7 +10,10 @@
    file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive; the
    feature method's trajectories are stored as the tracker is done with each frame and built at the end, a block
    of frames at a time (:mod:`.trajectories`), and the motion follows from them;
-4. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
+4. the motion and strain of every frame relative to the reference frame (the first with measured points) follow
+   (:mod:`.cumulative`): from the stored trajectories, or, for the flow, from each field composed onto the
+   reference one and registered from the reference frame directly as the fields arrive;
+5. fingertip motion, visibility window, stretch profile and tactile movie are derived from the stored motion, read
    back (:mod:`.derive`), the movie written a block of frames at a time, and the file is closed as ``results.h5``
    (``docs/results-format.md``).
 
@@ -41,6 +44,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
     Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
 )
+from skinstretch.experiments.analysis.cumulative import feature_cumulative_samples, flow_cumulative_samples
 from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import (
@@ -64,15 +68,17 @@ from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    EDGE_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter, check_results_dir,
+    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
+    check_results_dir,
 )
-from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
+from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file, hold_output_dir
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
+from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
-from skinstretch.processing.span_registration import SpanRegistration
+from skinstretch.processing.span_registration import SampleUncertainty, SpanFrames, SpanRegistration
 from skinstretch.processing.trajectory_anchoring import (
     GLASS_SMOOTHING_KEY_FRAMES,
     SHAPE_SMOOTHING_KEY_FRAMES,
@@ -84,6 +90,11 @@ __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface
 
 log = logging.getLogger(__name__)
 
+#: A displacement whose median predicted standard error exceeds this (px) is warned about: beyond the accuracy the
+#: measurement is for (the bench's displacement target).
+MEANINGFUL_SIGMA_PX = 0.05
+#: The same for the longest span's edge strain (a fraction): the bench's 11-frame edge-strain target.
+MEANINGFUL_EDGE_SIGMA = 0.002
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
 #: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
@@ -105,6 +116,8 @@ class _StrainTables:
         self.ok: dict[int, int] = {int(s): 0 for s in spans}
         self.edge_change = {int(s): stack.enter_context(StreamedPercentiles(scratch_dir=writer.scratch_dir))
                             for s in spans}
+        self.change_sigma = {int(s): _SigmaSpread(writer, stack) for s in spans}
+        self.doubted = {int(s): _Doubts() for s in spans}
 
     def add(self, span: int, sample: MotionSample) -> None:
         buf = self.buffers[span]
@@ -140,6 +153,8 @@ class _StrainTables:
         self.writer.file[g].attrs["span"] = span
         self.ok[span] += int(np.sum(s.pairs["status"] == PairStatus.OK))
         self.edge_change[span].add(s.edges["change"])
+        self.change_sigma[span].add(s.edges["change_sigma"])
+        self.doubted[span].add(s.pairs)
 
     def finish(self) -> None:
         for span in self.buffers:
@@ -154,13 +169,57 @@ class _StrainTables:
                 self.writer.file[g].attrs["span"] = span
 
 
+class _SigmaSpread:
+    """The standard errors of a table, streamed: median and 95th percentile of the finite ones, and how many are
+    infinite (no bound: windows that do not match after the motion, or no window)."""
+
+    def __init__(self, writer: ResultsWriter, stack: ExitStack) -> None:
+        self.values = stack.enter_context(StreamedPercentiles(scratch_dir=writer.scratch_dir))
+        self.unbounded = 0
+
+    def add(self, sigma: np.ndarray) -> None:
+        self.values.add(sigma[np.isfinite(sigma)])
+        self.unbounded += int(np.count_nonzero(np.isposinf(sigma)))
+
+    def to_dict(self) -> dict[str, float] | None:
+        if not self.values.count:
+            return None
+        median, p95 = self.values.percentiles([50, 95])
+        return {"median": median, "p95": p95, "unbounded": self.unbounded}
+
+
+class _Doubts:
+    """The pairs a self-check doubted (PairStatus.DOUBTED): how many, and the first one's frames and reason."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: tuple[int, int, str] | None = None
+
+    def add(self, pairs: np.ndarray) -> None:
+        doubted = pairs[pairs["status"] == PairStatus.DOUBTED]
+        if doubted.size and self.first is None:
+            p = doubted[0]
+            self.first = (int(p["frame_a"]), int(p["frame_b"]), p["reason"].decode(errors="replace"))
+        self.count += int(doubted.size)
+
+    def describe(self, total: int, what: str) -> str | None:
+        """One warning line, or None when no pair was doubted."""
+        if not self.count or self.first is None:
+            return None
+        a, b, reason = self.first
+        return (f"{self.count} of {total} {what} failed a self-check and are not reported as ok (first: frames "
+                f"{a}-{b}: {reason})")
+
+
 class _MotionTable:
     """The consecutive pairs' motion, written a batch of pairs at a time."""
 
-    def __init__(self, writer: ResultsWriter) -> None:
+    def __init__(self, writer: ResultsWriter, stack: ExitStack) -> None:
         self.writer = writer
         self.block: list[MotionSample] = []
         self.written = 0
+        self.sigma = _SigmaSpread(writer, stack)
+        self.doubted = _Doubts()
 
     def add(self, sample: MotionSample) -> None:
         self.block.append(sample)
@@ -172,6 +231,8 @@ class _MotionTable:
             pairs, rows = motion_rows(self.block, first_pair=self.written)
             self.writer.append("motion_pairs", pairs)
             self.writer.append("motion", rows)
+            self.sigma.add(rows["sigma"])
+            self.doubted.add(pairs)
             self.written += len(self.block)
             self.block = []
 
@@ -186,11 +247,14 @@ def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
 
 def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
                              motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float,
-                             span_registration: SpanRegistration | None = None, threads: int = 1) -> None:
+                             span_registration: SpanRegistration | None = None, threads: int = 1,
+                             uncertainty: SampleUncertainty | None = None) -> None:
     """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
     them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built. With
     ``span_registration``, a longer span's chained motion is refined by registering its two frames (in image
-    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads."""
+    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads; ``uncertainty``
+    gives every point of every span its predicted standard error."""
+    measured = uncertainty if uncertainty is not None else (lambda sample: sample)
     longest = max(spans)
     kinds = store.kinds
     carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need (image pixels)
@@ -208,7 +272,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
         for k0 in range(first, last + 1, SPAN_REGISTRATION_BATCH):
             longer = []  # (span, chained motion) of this batch of pairs, registered together
             for k in range(k0, min(last + 1, k0 + SPAN_REGISTRATION_BATCH)):
-                s = rectified_sample(tr.motion(k, k + 1), mapping, px_per_mm)
+                s = rectified_sample(measured(tr.motion(k, k + 1)), mapping, px_per_mm)
                 motion.add(s)
                 for span in spans:
                     if span == 1:
@@ -219,7 +283,7 @@ def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, stra
                 refined = span_registration.refine_all([c for _, c in longer], threads=threads)
                 longer = [(span, r) for (span, _), r in zip(longer, refined)]
             for span, chained in longer:
-                strain.add(span, rectified_sample(chained, mapping, px_per_mm))
+                strain.add(span, rectified_sample(measured(chained), mapping, px_per_mm))
         first = max(first, last + 1)
         carry = tr.rows[tr.rows["frame"] >= first]
     motion.flush()
@@ -245,11 +309,13 @@ def analyze(
     progress: bool = False,
     overwrite: bool = False,
     source_notes: Sequence[str] = (),
+    lossy_source: bool = False,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
-    (:func:`notes_on_source`).
+    (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
+    predicted standard errors then include (:func:`for_lossy_source`).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
@@ -267,6 +333,9 @@ def analyze(
         log.warning("%s", note)
     notes = [*source_notes, *clip_notes(params, n, method)]
     params = for_clip(params, n, method)
+    if lossy_source:
+        params, note = for_lossy_source(params)
+        notes += [note] if note else []
     image_shape = tuple(int(v) for v in source.shape)
     scales = PixelScales.of(calibration, params.strain)
     spans = [int(s) for s in params.strain.spans]
@@ -287,7 +356,8 @@ def analyze(
         writer = stack.enter_context(ResultsWriter(results_path))
         flags = [""] * n
         strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
-        motion = _MotionTable(writer)
+        motion = _MotionTable(writer, stack)
+        cumulative = _CumulativeTable(writer, scales)
 
         if method == "features":
             n_features = 0
@@ -313,8 +383,9 @@ def analyze(
             # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
             span_registration = anchoring = None
             on_glass = plain_glass(shading, surface)
+            refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
+            frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
             if params.subpixel is not None and (on_glass or shading is not None):
-                refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
                 every = params.tracking.keyframe_interval_frames
                 if every is not None:
                     anchoring = KeyframeAnchoring(
@@ -322,10 +393,11 @@ def analyze(
                         smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES)
                     store.anchor(anchoring)
                 if on_glass:
-                    span_registration = SpanRegistration(refiner, reader)
+                    span_registration = SpanRegistration(refiner, reader, frames=frames)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
                                      px_per_mm=calibration.px_per_mm, span_registration=span_registration,
-                                     threads=1 if params.execution.kind == "serial" else params.execution.workers)
+                                     threads=1 if params.execution.kind == "serial" else params.execution.workers,
+                                     uncertainty=SampleUncertainty(refiner, frames))
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
             # the stages' own shares of it (the bench's stages table)
@@ -343,12 +415,14 @@ def analyze(
             # (ridgeL, 24 frames: 0.142 % chained, 0.191 % refined). The pairs' local prior stays off over a
             # shape (plain_glass): it lets what the shading step leaves into each field.
             refiner = None
+            reference: list = [None]  # the field from the reference frame to the newest frame (with a refiner)
             on_glass = plain_glass(shading, surface)
             pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
             if params.flow.refine_spans and (on_glass or shading is not None):
-                from skinstretch.processing.flow import DenseFlow, SpanRefiner  # noqa: PLC0415
+                from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
+                reference_refiner = ReferenceRefiner(refiner.flow, reader)
 
             def on_field(f) -> None:
                 if not recent:  # the first field
@@ -360,6 +434,17 @@ def analyze(
                     flags[k] = refused or flags[k]                              # reason
                 recent.append(f)
                 motion.add(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
+                if refiner is not None:
+                    # Cumulative (DIC's reference frame): the reference field composed with this one, registered
+                    # from the reference frame to frame b directly; chaining alone adds up each step's bias.
+                    measured = None
+                    if reference[0] is not None:
+                        reference[0], measured = reference_refiner.advance(reference[0], f)
+                    elif int(f.valid[::stride, ::stride].sum()) >= 3:
+                        reference[0] = measured = f
+                    if measured is not None and measured.valid.any():  # else a frame refused: no row
+                        cumulative.add(rectified_sample(measured.motion(stride=stride), mapping,
+                                                        calibration.px_per_mm))
                 for span in spans:
                     if len(recent) >= span:
                         steps = list(recent)[len(recent) - span:]
@@ -374,6 +459,16 @@ def analyze(
             timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
         t0 = time.perf_counter()
         strain.finish()
+        if method == "features":
+            for sample in feature_cumulative_samples(writer.file, n_frames=n):
+                cumulative.add(sample)
+        elif not cumulative.written and not cumulative.batch:  # no refiner: the stored fields chained
+            for sample in flow_cumulative_samples(writer.file, stride=params.strain.flow_stride, mapping=mapping,
+                                                  px_per_mm=calibration.px_per_mm):
+                cumulative.add(sample)
+        cumulative.finish()
+        timing["cumulative_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         samples = writer.samples()
         d = derive(samples, n_frames=n, image_shape=image_shape, scales=scales)
         _write_derived(writer, d, flags)
@@ -401,9 +496,49 @@ def analyze(
         }
         writer.file.attrs.update(attrs)
         summary = summarize(writer, d, strain, n_frames=n, results_path=results_path, session_path=session_path,
-                            method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes)
+                            method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes,
+                            motion=motion)
+        for warning in summary["warnings"][1 if summary["density"].get("too_sparse") else 0:]:
+            log.warning("%s", warning)  # (the density's was logged where it was found)
         attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
         return writer.finish(attrs)
+
+
+class _CumulativeTable:
+    """The motion and strain of every frame relative to the reference frame (:mod:`.cumulative`), written a batch
+    of frames at a time; empty tables (reference_frame -1) when no frame had 3 measured points."""
+
+    def __init__(self, writer: ResultsWriter, scales: PixelScales) -> None:
+        self.writer, self.scales = writer, scales
+        self.batch: list[MotionSample] = []
+        self.written = 0
+        self.reference = -1
+
+    def add(self, sample: MotionSample) -> None:
+        self.reference = int(sample.frame_a)
+        self.batch.append(sample)
+        if len(self.batch) == STRAIN_BATCH_PAIRS:
+            self._flush()
+
+    def _flush(self) -> None:
+        w, batch = self.writer, self.batch
+        s = span_strain(batch, span=0, max_edge_px=self.scales.max_edge_px, first_pair=self.written,
+                        min_spacing_px=self.scales.min_spacing_px)
+        w.append("cumulative/pairs", s.pairs)
+        w.append("cumulative/motion", motion_rows(batch, first_pair=self.written)[1])
+        w.append("cumulative/edges", s.edges)
+        w.append("cumulative/triangles", s.triangles)
+        self.written += len(batch)
+        self.batch = []
+
+    def finish(self) -> None:
+        if self.batch:
+            self._flush()
+        if self.written == 0:
+            for name, dtype in (("pairs", PAIR_DTYPE), ("motion", MOTION_DTYPE), ("edges", EDGE_DTYPE),
+                                ("triangles", TRIANGLE_DTYPE)):
+                self.writer.append(f"cumulative/{name}", np.zeros(0, dtype))
+        self.writer.file["cumulative"].attrs["reference_frame"] = self.reference
 
 
 def _write_derived(w: ResultsWriter, d: Derived, flags: list[str]) -> None:
@@ -429,11 +564,34 @@ def _append_movie(w: ResultsWriter, movie: TactileMovie) -> None:
     w.append_array("tactile_movie/stretch_change", movie.stretch_change)
 
 
+def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str, Any],
+              density: dict[str, Any]) -> list[str]:
+    """The lines a user must read before trusting the numbers: a mesh too sparse to map strain (logged where it is
+    found), pairs a self-check doubted, and a predicted error beyond what the measurement is for (the bench's
+    displacement and edge-strain targets)."""
+    out = [density.get("warning") if density.get("too_sparse") else None,
+           motion.doubted.describe(motion.written, "consecutive frame pairs")]
+    out += [strain.doubted[span].describe(strain.done[span], f"{span}-frame spans")
+            for span in strain.buffers if span > 1]
+    disp = uncertainty.get("displacement_sigma_px")
+    if disp is not None and not disp["median"] <= MEANINGFUL_SIGMA_PX:
+        out.append(f"the displacements' predicted error is {disp['median']:.3g} px (median standard error), above "
+                   f"{MEANINGFUL_SIGMA_PX} px: the frames' texture or noise limit this measurement")
+    span = max(strain.buffers)
+    edges = uncertainty.get(f"edge_change_sigma_span_{span}")
+    if edges is not None and not edges["median"] <= MEANINGFUL_EDGE_SIGMA:
+        out.append(f"the {span}-frame edge strain's predicted error is {100 * edges['median']:.2g} % (median "
+                   f"standard error), above {100 * MEANINGFUL_EDGE_SIGMA:.1f} %: the points are too few, too close "
+                   "or too uncertain for strain at this scale")
+    return [w for w in out if w]
+
+
 def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
               session_path: str, method: str, timing: dict, shading_status: str, flags: list[str],
-              notes: list[str] = ()) -> dict[str, Any]:
+              notes: list[str] = (), motion: _MotionTable | None = None) -> dict[str, Any]:
     """The small JSON summary written next to the results (and into them); ``notes``: what the clip's length changed
-    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in."""
+    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in; ``warnings``:
+    what a user must read before trusting the numbers (self-checks failed, a large predicted error)."""
     f = writer.file
     out: dict[str, Any] = {
         "results": str(results_path) if results_path is not None else "(in memory)",
@@ -458,15 +616,22 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
     out["density"] = mesh_density(f, method=method, n_frames=n_frames, px_per_mm=float(f.attrs["px_per_mm"]),
                                   spans=list(strain.buffers), max_edge_px=strain.max_edge_px,
                                   window=out["min_track_frames"]).to_dict()
+    uncertainty: dict[str, Any] = {}
+    if motion is not None:
+        uncertainty["displacement_sigma_px"] = motion.sigma.to_dict()
     for span in strain.buffers:
         g = f[f"strain/span_{span}"]
         changes = strain.edge_change[span]
         out[f"strain_span_{span}"] = {
             "pairs": int(g["pairs"].shape[0]),
             "pairs_ok": strain.ok[span],
+            "pairs_doubted": strain.doubted[span].count,
             "edges": int(g["edges"].shape[0]),
             "edge_change_p5_p95": changes.percentiles([5, 95]) if changes.count else None,
         }
+        uncertainty[f"edge_change_sigma_span_{span}"] = strain.change_sigma[span].to_dict()
+    out["uncertainty"] = uncertainty
+    out["warnings"] = _warnings(motion, strain, uncertainty, out["density"]) if motion is not None else []
     return out
 
 
@@ -478,14 +643,37 @@ def surface_kind(metadata: dict) -> str | None:
     return str(surface) if surface else None
 
 
-def notes_on_source(metadata: dict) -> list[str]:
-    """What a session's metadata says its frames lost before the analysis: imported from a lossy file
-    (:mod:`skinstretch.experiments.frame_import` records ``source.lossy``)."""
+def source_is_lossy(metadata: dict) -> bool:
+    """The session's frames were imported from a lossy file (:mod:`skinstretch.experiments.frame_import` records
+    ``source.lossy``)."""
     source = metadata.get("source")
-    if isinstance(source, dict) and source.get("lossy") is True:
-        return [f"the frames were imported from lossy compression ({source.get('compression') or 'unknown'}): the "
-                "motion measured departs from what the camera's own frames give (docs/import-and-replay.md, Accuracy)"]
+    return isinstance(source, dict) and source.get("lossy") is True
+
+
+def notes_on_source(metadata: dict) -> list[str]:
+    """What a session's metadata says its frames lost before the analysis: imported from a lossy file."""
+    if source_is_lossy(metadata):
+        return [f"the frames were imported from lossy compression ({metadata['source'].get('compression') or 'unknown'}"
+                "): the motion measured departs from what the camera's own frames give (docs/import-and-replay.md, "
+                "Accuracy)"]
     return []
+
+
+def for_lossy_source(params: AnalysisParams) -> tuple[AnalysisParams, str]:
+    """``params`` whose predicted errors include a lossy codec's (``model_sigma_px`` of the flow and the sub-pixel
+    stages raised to :data:`LOSSY_MODEL_SIGMA_PX` where left at the default), and the note that says so ("" when the
+    user set them)."""
+    changed = {}
+    for stage in ("flow", "subpixel"):
+        p = getattr(params, stage)
+        if p is not None and p.model_sigma_px == MODEL_SIGMA_PX:
+            changed[stage] = dataclasses.replace(p, model_sigma_px=LOSSY_MODEL_SIGMA_PX)
+    if not changed:
+        return params, ""
+    return params.model_copy(update=changed), (
+        f"the predicted errors include {LOSSY_MODEL_SIGMA_PX} px per axis for the lossy compression ("
+        + ", ".join(f"{stage}.model_sigma_px" for stage in changed) + f" {LOSSY_MODEL_SIGMA_PX} instead of "
+        f"{MODEL_SIGMA_PX}; set them to choose)")
 
 
 #: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose
@@ -506,7 +694,14 @@ def analyze_session(
     """Analyse one session file into ``outdir`` (created): ``results.h5`` and ``summary.json``; returns the results.
 
     Frames are read from the file as they are measured, so a session of any length fits in memory. An ``outdir``
-    that holds results already is refused (before anything is analysed) unless ``overwrite``."""
+    that holds results already is refused (before anything is analysed) unless ``overwrite``, and so is one
+    another analysis is writing into (:func:`~skinstretch.experiments.output_paths.hold_output_dir`)."""
+    with hold_output_dir(outdir, holder=f"an analysis of {Path(session_path).name}"):
+        return _analyze_session_held(session_path, outdir, method=method, params=params, executor=executor,
+                                     progress=progress, overwrite=overwrite)
+
+
+def _analyze_session_held(session_path, outdir, *, method, params, executor, progress, overwrite) -> Results:
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
     session_path, outdir = Path(session_path), Path(outdir)
@@ -519,13 +714,14 @@ def analyze_session(
             mapping = mapping_from_dict(json.loads(session.mapping_json))
         calibration = Calibration(px_per_mm=session.calibration.px_per_mm, mapping=mapping)
         surface = surface_kind(session.metadata)
-        notes = notes_on_source(session.metadata)
+        notes = notes_on_source(session.metadata) + session.timestamp_faults()
+        lossy = source_is_lossy(session.metadata)
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes)
+                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes, lossy_source=lossy)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):

@@ -4,7 +4,10 @@ the table says how long until it was detected, what was kept, where the display 
 Faults: SIGKILL of ``record`` mid-trial (analysis on), a disk that fills mid-trial (a 50 MB tmpfs filled by another
 process when root, an injected full disk otherwise), a camera that stalls, the display link at end-of-file
 (unplugged), stalled and killed (the firmware process), a force above the ceiling, a corrupt and a truncated
-session file, a truncated video given to ``import``, a protocol with a typo.
+session file (given to ``analyze`` and to ``view``), a truncated video given to ``import``, a protocol with a typo;
+the drill of issue 41: ``record --live`` (the viewer reading the file while the recorder writes after the trial),
+two ``analyze`` runs into one OUTDIR, a force sensor that never answers, a complex and a NaN movie given to
+``play``, SIGTERM of ``record`` mid-trial.
 
 "Detected after" is the time from the fault to the moment the program acted on it (stopped the trial or movie,
 refused the file), measured on the host clock; for SIGKILL, to the moment the last process of the killed
@@ -41,7 +44,7 @@ SECTION = "faults"
 ATTEMPTS = 3
 
 DESCRIPTION = ("fault matrix: SIGKILL, disk full, camera stall, display EOF/stall/kill, force ceiling, bad files "
-               "and videos, bad protocol")
+               "and videos, bad protocol, live view, one OUTDIR twice, silent force sensor, bad movies, SIGTERM")
 
 COLUMNS = ["fault", "injected", "detected after s", "kept", "display", "exit status", "as designed"]
 CLI = [sys.executable, "-m", "skinstretch.cli"]
@@ -155,11 +158,14 @@ def _sigkill(work: Path) -> _Row:
     resume = _cli("record", str(proto), "-o", str(work / "killed"), "--resume", "--no-movie")
     done = {d.get("run_start"): d for name, d in read_events(sdir / "events.jsonl") if name == "stop"}
     aborted = any(d.get("exit_status") == "abort" for d in done.values())
+    # --resume records the rest and, since issue 41, counts the aborted trial: status 1, "1 in an earlier run"
+    counted = "1 of 3 trials failed (1 in an earlier run)" in resume.stderr
     return _Row("SIGKILL of record", "mid-trial 2 of 3, analysis of trial 1 running", gone_s,
-                f"{n} frames readable, {lost:.3f} s lost; --resume: trial marked aborted, the rest recorded",
+                f"{n} frames readable, {lost:.3f} s lost; --resume: trial marked aborted (and counted), the rest "
+                "recorded",
                 "twin died with record (hardware: firmware watchdog, 50 ms)",
                 f"-9; --resume {resume.returncode}",
-                left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 0)
+                left == 0 and gone_s <= 2.0 and lost <= 0.1 and aborted and resume.returncode == 1 and counted)
 
 
 def replay_rig(work: Path, *, rate_hz: float | None = None) -> Path:
@@ -469,9 +475,15 @@ def _bad_file(work: Path, kind: str) -> _Row:
         refused = str(exc)
     took = time.perf_counter() - t0
     done = _cli("analyze", str(path), "-o", str(work / f"{kind}-out"))
+    t0 = time.perf_counter()
+    viewed = _cli("view", str(path), "--no-browser", "--port", "0", timeout_s=60)  # hung, or a traceback (issue 41)
+    view_s = time.perf_counter() - t0
     why = refused.split(": ", 1)[-1].split(" (")[0]
-    return _Row(f"{kind} session file", injected, took, f"refused ({why}); file untouched", "-",
-                f"{done.returncode} (analyze)", bool(refused) and done.returncode == 2 and _one_line(done.stderr))
+    return _Row(f"{kind} session file", injected, took,
+                f"refused ({why}); file untouched; view refused too, in {view_s:.2f} s with start-up", "-",
+                f"{done.returncode} (analyze), {viewed.returncode} (view)",
+                bool(refused) and done.returncode == 2 and _one_line(done.stderr) and viewed.returncode == 2
+                and _one_line(viewed.stderr) and "truncated or corrupt" in viewed.stderr)
 
 
 def _bad_video(work: Path) -> _Row:
@@ -526,6 +538,193 @@ def _bad_protocol(work: Path) -> _Row:
                 and not (work / "typo").exists())
 
 
+# ------------------------------------------------------------------------------------------ issue 41's drill
+
+
+def _live_view(work: Path) -> _Row:
+    """``record --live``: the viewer process holds the session file open (SWMR) while the recorder closes it and
+    then adds the ground truth, stores the status, logs the stop document and analyses the trial."""
+    proto = _protocol(work / "live.yaml", [("a", 1.0, "flat")], analysis=True)
+    shutil.rmtree(work / "live", ignore_errors=True)
+    t0 = time.time()
+    done = _cli("record", str(proto), "-o", str(work / "live"), "--live", "--no-movie", timeout_s=900)
+    took = time.time() - t0
+    trial = work / "live" / "s01" / "live" / "000-a-r1"
+    with open_session(trial / "session.h5") as s:
+        status, truth = s.status, s.has_truth
+    stops = [d for name, d in read_events(trial.parent / "events.jsonl") if name == "stop"]
+    analysed = (trial / "analysis" / "results.h5").exists()
+    viewer = "viewer: showing" in done.stderr
+    lost = "without its simulated ground truth" in done.stderr
+    kept = (f"truth {'kept' if truth else 'LOST'}, status {status}, stop {stops[-1]['exit_status'] if stops else '-'}"
+            f", analysis {'written' if analysed else 'MISSING'}; viewer {'attached' if viewer else 'NOT attached'}")
+    return _Row("live view (record --live)", "viewer reads session.h5 while the recorder writes after the trial",
+                math.nan, kept, "-", str(done.returncode),
+                done.returncode == 0 and truth and status == "complete" and analysed and viewer and not lost
+                and bool(stops) and stops[-1]["exit_status"] == "success" and took < 900)
+
+
+def _one_outdir_twice(work: Path) -> _Row:
+    """Two ``analyze`` runs into one OUTDIR, started together: one refused at once naming the holder, one done."""
+    frames = np.random.default_rng(3).integers(0, 256, (60, 484, 640), dtype=np.uint8)
+    session = write_session(work / "twice.h5", frames, timestamps=np.arange(60) / 60.0,
+                            camera_mode=CAMERA_MODES["full"], calibration=CAL, overwrite=True)
+    out = work / "twice-out"
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = CLI + ["analyze", str(session), "-o", str(out), "-q"]
+    starts, procs = [], []
+    for _ in range(2):
+        starts.append(time.time())
+        procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    ended = []
+    for proc in procs:
+        proc.wait(600)
+        ended.append(time.time())
+    errs = [proc.stderr.read() for proc in procs]
+    for proc in procs:
+        proc.stdout.close()
+        proc.stderr.close()
+    codes = [proc.returncode for proc in procs]
+    refused = [k for k in (0, 1) if codes[k] == 2]
+    line = ""
+    if len(refused) == 1:
+        line = [l for l in errs[refused[0]].splitlines() if "error:" in l][-1]
+    ok = (sorted(codes) == [0, 2] and "in use by an analysis of twice.h5 (pid" in line
+          and (out / "results.h5").exists() and not (out / ".skinstretch-lock").exists())
+    # detection in process, as for the other rows: an analysis started while another holds the directory
+    from skinstretch.experiments.analysis import analyze_session  # noqa: PLC0415
+    from skinstretch.experiments.output_paths import OutputDirBusyError, hold_output_dir  # noqa: PLC0415
+
+    shutil.rmtree(out, ignore_errors=True)
+    with hold_output_dir(out, holder="the bench"):
+        t0 = time.perf_counter()
+        try:
+            analyze_session(session, out)
+            took = math.nan
+        except OutputDirBusyError:
+            took = time.perf_counter() - t0
+    return _Row("one OUTDIR, two analyses", "two analyze runs into one OUTDIR, started together", took,
+                f"one finished (results.h5 kept), one refused: {line.split(': ', 3)[-1][:60]}...", "-",
+                " and ".join(str(c) for c in codes) + " (analyze)", ok)
+
+
+def _silent_force(work: Path) -> _Row:
+    """A Net F/T that reads the requests and never answers (a firewall dropping its datagrams), at a loopback
+    address of its own: the trial fails in one line; a movie with a force ceiling is refused before arming."""
+    from skinstretch.drivers.display.stress import StressDisplay  # noqa: PLC0415
+    from skinstretch.drivers.display.transports import SerialTransport  # noqa: PLC0415
+    from skinstretch.drivers.errors import DeviceTimeoutError  # noqa: PLC0415
+    from skinstretch.drivers.forcesensor.netft import NetFTSensor  # noqa: PLC0415
+    from skinstretch.experiments.playback import play_movie  # noqa: PLC0415
+    from skinstretch.experiments.rig import ForceSource  # noqa: PLC0415
+    from skinstretch.simulators import stress_links  # noqa: PLC0415
+    from skinstretch.simulators.netft_box import NetFTFaults, NetFTSimulator  # noqa: PLC0415
+
+    with NetFTSimulator(host="127.0.0.3", faults=NetFTFaults(silent=True)) as box:
+        host, port = box.address
+        source = replay_rig(work)  # its replay session, for the camera
+        rig = work / "silent-rig.yaml"
+        rig.write_text(source.read_text().replace("force: {kind: none}", f"force: {{kind: netft, address: {host}, "
+                                                                         f"options: {{port: {port}}}}}"))
+        proto = _protocol(work / "silent.yaml", [("a", 1.5, "flat")])  # longer than the 1 s silence timeout
+        shutil.rmtree(work / "silent", ignore_errors=True)
+        done = _cli("record", str(proto), "--rig", str(rig), "-o", str(work / "silent"))
+        sdir = work / "silent" / "s01" / "silent"
+        docs = read_events(sdir / "events.jsonl")
+        start = [d for name, d in docs if name == "start"]
+        stop = [d for name, d in docs if name == "stop"]
+        with open_session(sdir / "000-a-r1" / "session.h5") as s:
+            status, reason = s.status, s.status_reason
+        detected = stop[0]["time"] - start[0]["time"] if start and stop else math.nan
+        stress_links.register_url_handler()
+        link = stress_links.make_link(seed=0)
+        display = StressDisplay(SerialTransport(stress_links.attach(f"bench_silent_{os.getpid()}", link)))
+        force = ForceSource(NetFTSensor(host, port=port), description=f"Net F/T at {host}")
+        try:
+            play_movie(display, _movie(700), closed_loop=False, force=force, force_ceiling_n=5.0)
+            movie = "PLAYED"
+        except DeviceTimeoutError:
+            movie = "refused"
+        finally:
+            force.close()
+            display.close()
+        armed = link.firmware.armed
+    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+    ok = (done.returncode == 1 and status == "failed" and ("no data for" in reason or "no sample" in reason)
+          and last.startswith("skinstretch record: 1 of 1 trials failed") and movie == "refused" and not armed)
+    return _Row("silent force sensor", "Net F/T at 127.0.0.3 reads requests, never answers (firewall)", detected,
+                f"trial {status} ({reason.split(': ', 1)[-1]}); movie with a 5 N ceiling {movie}",
+                "never armed" if not armed else "ARMED", f"{done.returncode} (record)", ok)
+
+
+def _bad_movies(work: Path) -> _Row:
+    """A complex movie and a user's movie with a NaN, given to ``play``: refused before the display is armed."""
+    from skinstretch.experiments.playback import load_movie  # noqa: PLC0415
+    from skinstretch.processing.errors import InvalidInputError  # noqa: PLC0415
+
+    codes, lines, took = [], [], []
+    for kind in ("complex", "nan"):
+        movie = _movie(2100)
+        if kind == "complex":
+            movie = movie.astype(complex)
+        else:
+            movie[5, 2, 7] = np.nan
+        np.save(work / f"{kind}-movie.npy", movie)
+        t0 = time.perf_counter()
+        try:
+            load_movie(work / f"{kind}-movie.npy")
+        except InvalidInputError:
+            took.append(time.perf_counter() - t0)
+        out = work / f"{kind}-movie.h5"
+        out.unlink(missing_ok=True)
+        done = _cli("play", str(work / f"{kind}-movie.npy"), "--movie-rate", "700", "-o", str(out))
+        codes.append(done.returncode)
+        lines.append(done.stderr.strip())
+        if out.exists() or not _one_line(done.stderr):
+            codes[-1] = -1
+    took = max(took) if len(took) == 2 else math.nan
+    ok = len(lines) == 2 and codes == [2, 2] and "is complex" in lines[0] and "frame 5, contactor (2, 7) is nan" in lines[1]
+    return _Row("bad movie (play)", "a complex (2100, 10, 10) movie; a user's movie with one NaN", took,
+                "both refused in one line (the NaN named: frame 5, contactor (2, 7)); nothing played", "never armed",
+                " and ".join(map(str, codes)) + " (play)", ok)
+
+
+def _sigterm(work: Path) -> _Row:
+    """SIGTERM (kill, systemd, a closing terminal) of ``record`` mid-trial: the trial closed as aborted."""
+    rig = replay_rig(work)
+    proto = _protocol(work / "term.yaml", [("a", 1.5, "flat"), ("b", 1.0, "flat")])
+    shutil.rmtree(work / "term", ignore_errors=True)
+    child = subprocess.Popen(CLI + ["record", str(proto), "--rig", str(rig), "-o", str(work / "term"), "--no-movie"],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    lines = _Lines(child)
+    try:
+        if lines.wait_for(lambda line: "/90 frames" in line) is None:
+            raise RuntimeError("record never started writing frames")
+        time.sleep(0.2)
+        sent = time.time()
+        child.send_signal(signal.SIGTERM)
+        rc = child.wait(30)
+        exited_s = time.time() - sent
+        while _session_alive(child.pid) and time.time() - sent < 10:
+            time.sleep(0.02)
+        left = len(_session_alive(child.pid))
+    finally:
+        for proc in _session_alive(child.pid):
+            proc.kill()
+    lines.wait_for(lambda line: False, timeout_s=5)
+    child.stdout.close()
+    trial = work / "term" / "s01" / "term" / "000-a-r1"
+    with open_session(trial / "session.h5") as s:
+        n, status, reason = s.n_frames, s.status, s.status_reason
+    stops = [d for name, d in read_events(trial.parent / "events.jsonl") if name == "stop"]
+    reserve = list(trial.glob(".*.reserve"))
+    ok = (rc == 143 and status == "failed" and reason == "aborted: SIGTERM received" and not reserve and left == 0
+          and [d["exit_status"] for d in stops] == ["abort"] and exited_s < 1.0)
+    return _Row("SIGTERM of record", "mid-trial 1 of 2 (kill, systemd, a closing terminal)", exited_s,
+                f"{n} frames readable, file {status} ({reason}), reserve {'LEFT' if reserve else 'removed'}, "
+                f"stop: abort; {left} process(es) left; next trial not run", "rested", str(rc), ok)
+
+
 def run(options: BenchOptions) -> list[BenchTable]:
     work = Path(options.workdir) / "faults"
     shutil.rmtree(work, ignore_errors=True)
@@ -536,7 +735,12 @@ def run(options: BenchOptions) -> list[BenchTable]:
                  ("corrupt file", lambda w: _bad_file(w, "corrupt")),
                  ("truncated file", lambda w: _bad_file(w, "truncated")),
                  ("bad video", _bad_video),
-                 ("bad protocol", _bad_protocol)]
+                 ("bad protocol", _bad_protocol),
+                 ("live view", _live_view),
+                 ("one outdir twice", _one_outdir_twice),
+                 ("silent force", _silent_force),
+                 ("bad movies", _bad_movies),
+                 ("SIGTERM", _sigterm)]
     rows, notes, reruns = [], [], []
     for name, scenario in scenarios:
         for attempt in range(1, ATTEMPTS + 1):
@@ -554,7 +758,11 @@ def run(options: BenchOptions) -> list[BenchTable]:
     notes.append("detected after: fault -> the program acted (trial or movie stopped, file refused); SIGKILL: -> "
                  "the last process of record's session gone. Display link timeout 0.2 s, camera read timeout 1 s.")
     notes.append("exit status: what the command a user runs returns for that fault (1: record with a failed trial, "
-                 "3: play stopped, 2: refused before starting, -9: killed).")
+                 "3: play stopped, 2: refused before starting, -9: killed, 143: record stopped by SIGTERM).")
+    notes.append("Issue 41's rows: live view has no detection time (nothing should fail); one OUTDIR and bad movie: "
+                 "the refusal in process (an analysis started while another holds the directory; loading the "
+                 "movie); silent force sensor: from the trial's start document to its stop document (1 s silence "
+                 "timeout); SIGTERM: from the signal to record's exit.")
     notes.append("Measured on this machine under the load of the moment (other developers' jobs); the simulated rig.")
     notes.append(f"A row not as designed is run again, up to {ATTEMPTS} times: on a starved machine the simulated "
                  "display (a thread of the playing process) can fall silent for the 0.2 s link timeout before the "

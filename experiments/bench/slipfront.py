@@ -73,7 +73,8 @@ def _run(options: BenchOptions, executor) -> list[BenchTable]:
         evaluate_dense_pair,
         evaluate_tracking,
     )
-    from skinstretch.processing.flow import DenseFlow, sample_dense_flow  # noqa: PLC0415
+    from skinstretch.processing.flow import DenseFlow  # noqa: PLC0415
+    from skinstretch.processing.flow_fields import sample_dense_flow  # noqa: PLC0415
     from skinstretch.simulators.scene import load_scene, render_session  # noqa: PLC0415
 
     n_frames = 90 if options.quick else 180

@@ -67,7 +67,8 @@ def _run(options, scenes, n_frames, n_peer_pairs, full_rows, pair_rows, notes, w
     from skinstretch.experiments.analysis.executor import WorkerProcesses
     from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading, plain_glass
     from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
-    from skinstretch.processing.flow import DenseFlow, sample_dense_flow
+    from skinstretch.processing.flow import DenseFlow
+    from skinstretch.processing.flow_fields import sample_dense_flow
     from skinstretch.processing.tracking import MotionSample
     from skinstretch.simulators.scene import load_scene, render_session
 

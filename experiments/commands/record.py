@@ -3,7 +3,8 @@
 Exit status 0 only when every trial was recorded and every analysis done; otherwise 1, and the last line says how
 many of how many trials and analyses failed, and why the run stopped early if it did (a full disk). Problems found
 before anything is recorded (bad protocol, unwritable output, a protocol that cannot fit on the disk) are one
-line and status 2.
+line and status 2. SIGTERM, SIGHUP or Ctrl-C close the trial being recorded as aborted and end the command with
+128 + the signal (143, 129, 130), its last line saying so (docs/reliability.md, "Stopped by a signal").
 """
 
 from __future__ import annotations
@@ -46,10 +47,16 @@ def protocol_path(text: str) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from skinstretch.experiments.process_lifetime import guard_process_tree  # noqa: PLC0415
-    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
+    from skinstretch.experiments.process_lifetime import guard_process_tree, stop_on_signals  # noqa: PLC0415
 
     guard_process_tree()  # whatever ends this process, nothing it started outlives it
+    with stop_on_signals():  # SIGTERM, SIGHUP, Ctrl-C: the trial is closed as aborted, then the command ends
+        return _record(args)
+
+
+def _record(args: argparse.Namespace) -> int:
+    from skinstretch.experiments.runner import run_protocol  # noqa: PLC0415 - keeps `skinstretch --help` fast
+
     path = protocol_path(args.protocol)
     protocol = load_protocol(path)
     rig = load_rig(args.rig)
@@ -80,4 +87,6 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(end="", flush=True)
     log.error("skinstretch record: %s", line)
+    if result.interrupted is not None:  # 128 + the signal, as a shell reports a command a signal ended
+        return getattr(result.interrupted, "exit_status", 130)
     return 1

@@ -11,14 +11,15 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("report", help="write the HTML report of a session directory, an analysis or a session file",
+    p = sub.add_parser("report", help="write the HTML report of a data or session directory, an analysis or a "
+                                      "session file",
                        description="Figures (seed chapter 6), numbers with their units, parameters and versions of "
-                       "every trial of a session directory (DATADIR/<subject>/<session> of skinstretch record), of "
-                       "an analysis output (OUTDIR of skinstretch analyze) or of a session file; simulated trials "
-                       "also show measured vs true.")
-    p.add_argument("target", type=Path, metavar="SESSION_DIR|OUTDIR|SESSION.h5",
-                   help="a session directory written by skinstretch record, an analysis output directory, or a "
-                        "session file")
+                       "every trial of a data directory (DATADIR of skinstretch record: a study overview first), of a "
+                       "session directory (DATADIR/<subject>/<session>), of an analysis output (OUTDIR of skinstretch "
+                       "analyze) or of a session file; simulated trials also show measured vs true.")
+    p.add_argument("target", type=Path, metavar="DATADIR|SESSION_DIR|OUTDIR|SESSION.h5",
+                   help="a data or session directory written by skinstretch record, an analysis output directory, "
+                        "or a session file")
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="HTML file (default: report.html in the directory, or SESSION-report.html beside a file); "
                         "an existing one is overwritten: a report is regenerated from the data")

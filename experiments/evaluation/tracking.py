@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from skinstretch.drivers.session_file import SessionTruth
 from skinstretch.experiments.results_file import PairStatus, Results
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.measurement_uncertainty import RADIUS_95_1D, RADIUS_95_2D
 from skinstretch.processing.tracking import MotionSample
 
 
@@ -77,9 +78,10 @@ def _rms(a: np.ndarray) -> float:
     return float(np.sqrt(np.mean(a**2))) if a.size else math.nan
 
 
-def displacement_errors(r: Results, tf: TruthField) -> np.ndarray:
-    """Per measured point of every consecutive pair: |measured - true| px (points with known truth only)."""
-    errs = []
+def displacement_errors(r: Results, tf: TruthField, *, with_sigma: bool = False):
+    """Per measured point of every consecutive pair: |measured - true| px (points with known truth only); with
+    ``with_sigma`` also each point's reported standard error (NaN where the results have none)."""
+    errs, sigmas = [], []
     for i, pair in enumerate(r.motion_pairs):
         rows = r.motion[r.motion["pair"] == i]
         if rows.size == 0:
@@ -88,15 +90,18 @@ def displacement_errors(r: Results, tf: TruthField) -> np.ndarray:
         d, ok = tf.between(pts, int(pair["frame_a"]), int(pair["frame_b"]))
         meas = np.column_stack([rows["dx"], rows["dy"]])
         errs.append(np.hypot(*(meas[ok] - d[ok]).T))
-    return np.concatenate(errs) if errs else np.zeros(0)
+        sigmas.append(rows["sigma"][ok] if "sigma" in (rows.dtype.names or ()) else np.full(int(ok.sum()), np.nan))
+    cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0)  # noqa: E731
+    return (cat(errs), cat(sigmas)) if with_sigma else cat(errs)
 
 
-def edge_strain_errors(r: Results, tf: TruthField, span: int) -> tuple[np.ndarray, np.ndarray]:
-    """(edge-length change errors, triangle-area change errors) of one span (fractions)."""
+def edge_strain_errors(r: Results, tf: TruthField, span: int, *, with_sigma: bool = False):
+    """(edge-length change errors, triangle-area change errors) of one span (fractions); with ``with_sigma`` also
+    the edges' reported standard errors (NaN where the results have none)."""
     if span not in r.strain:
-        return np.zeros(0), np.zeros(0)
+        return (np.zeros(0),) * (3 if with_sigma else 2)
     s = r.strain[span]
-    e_err, a_err = [], []
+    e_err, a_err, e_sigma = [], [], []
     for i, pair in enumerate(s.pairs):
         if pair["status"] != PairStatus.OK:
             continue
@@ -110,6 +115,8 @@ def edge_strain_errors(r: Results, tf: TruthField, span: int) -> tuple[np.ndarra
             ok = oka & okb
             true_change = np.hypot(*((pb + db) - (pa + da)).T) / np.hypot(*(pb - pa).T) - 1.0
             e_err.append(e["change"][ok] - true_change[ok])
+            e_sigma.append(e["change_sigma"][ok] if "change_sigma" in (e.dtype.names or ())
+                           else np.full(int(ok.sum()), np.nan))
         t = s.triangles[(s.triangles["pair"] == i) & ~s.triangles["flipped"]]
         if t.size:
             p = [np.column_stack([t[f"x{j}"], t[f"y{j}"]]) for j in range(3)]
@@ -126,7 +133,15 @@ def edge_strain_errors(r: Results, tf: TruthField, span: int) -> tuple[np.ndarra
             true_change = area(q) / area(p) - 1.0
             a_err.append(t["change"][ok] - true_change[ok])
     cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0)  # noqa: E731
-    return cat(e_err), cat(a_err)
+    return (cat(e_err), cat(a_err), cat(e_sigma)) if with_sigma else (cat(e_err), cat(a_err))
+
+
+def coverage_95(errors: np.ndarray, sigma: np.ndarray, radius: float) -> float:
+    """The fraction of ``errors`` (absolute, or vector lengths) within ``radius`` times their reported standard
+    error: the 95 % interval's coverage (an honest uncertainty gives >= 0.95); a point without one counts as
+    outside. NaN when there are no errors."""
+    errors, sigma = np.abs(np.asarray(errors, np.float64)), np.asarray(sigma, np.float64)
+    return float(np.mean(errors <= radius * np.where(np.isnan(sigma), -1.0, sigma))) if errors.size else math.nan
 
 
 def wrong_match_rate(r: Results, truth: SessionTruth, *, assoc_px: float) -> tuple[float, int]:
@@ -255,7 +270,7 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
     tf = TruthField(truth)
     if tf.n_frames < r.n_frames:
         raise InvalidInputError(f"truth has {tf.n_frames} frames, results {r.n_frames}")
-    derr = displacement_errors(r, tf)
+    derr, dsigma = displacement_errors(r, tf, with_sigma=True)
     assoc = 0.1 * r.px_per_mm  # 0.1 mm: well under the spacing of features of one kind
     wrong, judged = wrong_match_rate(r, truth, assoc_px=assoc)
     med_len = math.nan
@@ -272,12 +287,16 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
             "median_trajectory_frames": med_len,
         },
         "strain": {},
+        "uncertainty": {"displacement_coverage_95": coverage_95(derr, dsigma, RADIUS_95_2D),
+                        "displacement_sigma_median_px": float(np.median(dsigma[np.isfinite(dsigma)])) if np.isfinite(dsigma).any()
+                        else math.nan},
     }
     for span in sorted(r.strain):
-        e_err, a_err = edge_strain_errors(r, tf, span)
+        e_err, a_err, e_sigma = edge_strain_errors(r, tf, span, with_sigma=True)
         out["strain"][f"edge_rmse_{span}"] = _rms(e_err)
         out["strain"][f"area_rmse_{span}"] = _rms(a_err)
         out["strain"][f"n_edges_{span}"] = int(e_err.size)
+        out["uncertainty"][f"edge_coverage_95_{span}"] = coverage_95(e_err, e_sigma, RADIUS_95_1D)
     for key in ("edge_rmse_1", "edge_rmse_11", "area_rmse_1"):
         out["strain"].setdefault(key, math.nan)
     out["profile"] = evaluate_profile(r, tf, strip_px=profile_strip_px(r))

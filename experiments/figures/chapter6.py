@@ -12,6 +12,8 @@ colorbar in %.
 * :func:`edge_change_series_figure` — Figures 78, 81, ...: edge-length change at several positions in a sequence.
 * :func:`trajectory_length_figure` — Figure 70: distribution of trajectory lengths.
 * :func:`stretch_profile_figure` — Figure 94: horizontal stretch profile averaged over a sequence, per sequence.
+* :func:`tensor_maps_figure` — no seed equivalent: exx, eyy, exy, e1, e2 of the triangles at several frames, as DIC
+  tools show them, one colour scale per quantity across its frames.
 * :func:`contactor_positions_figure` — Figure 96; :func:`stretch_fields_figure` — Figure 97.
 * :func:`playback_figure` — target vs measured contactor positions, open vs closed loop (no seed equivalent), its
   RMS errors those of the runs' own :class:`PlaybackTrace` (one computation for table and figure).
@@ -40,6 +42,8 @@ __all__ = [
     "edge_change_series_figure",
     "trajectory_length_figure",
     "stretch_profile_figure",
+    "tensor_maps_figure",
+    "grouped_profiles_figure",
     "contactor_positions_figure",
     "stretch_fields_figure",
     "playback_figure",
@@ -272,6 +276,71 @@ def edge_change_series_figure(
     _colorbar(fig, mappable, list(axes), "edge length change (%)",
               np.concatenate([np.asarray(p["edge_change"], float).ravel() for p in panels]), limit)
     fig.suptitle(title or "Edge length change (blue = compression, red = stretch)", fontsize=10)
+    return fig
+
+
+def grouped_profiles_figure(groups: Mapping[str, Sequence[tuple[str, np.ndarray, np.ndarray]]], *,
+                            xlabel: str = "position along the sliding direction (mm)", title: str = "") -> Figure:
+    """Seed Figure 94 of many trials on one plot: ``groups`` maps a surface to its trials' (label, x, change as a
+    fraction); one colour per surface (Okabe-Ito), one line per trial, the legend counting each surface's trials."""
+    if not groups:
+        raise InvalidInputError("groups must hold at least one surface")
+    colors = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000"]
+    fig = Figure(figsize=(9.0, 3.6))
+    ax = fig.subplots()
+    ax.axhline(0, color="0.6", linewidth=0.8)
+    for k, (surface, trials) in enumerate(groups.items()):
+        color = colors[k % len(colors)]
+        for i, (_, x, ch) in enumerate(trials):
+            ax.plot(np.asarray(x, float), np.asarray(ch, float) * 100, "-", color=color, linewidth=1.2, alpha=0.85,
+                    label=f"{surface} ({len(trials)} trials)" if i == 0 else None)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("stretch change (%)")
+    ax.legend(fontsize=8)
+    ax.set_title(title or "Relative change in stretch with position, every trial (seed Figure 94)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+#: The quantities of :func:`tensor_maps_figure`, each with its colour-bar label.
+TENSOR_MAP_LABELS = {"exx": "exx (%)", "eyy": "eyy (%)", "exy": "exy, tensor shear (%)", "e1": "e1, major (%)",
+                     "e2": "e2, minor (%)"}
+
+
+def tensor_maps_figure(panels: Sequence[Mapping[str, np.ndarray]], *, shape: tuple[int, int],
+                       quantities: Sequence[str] = tuple(TENSOR_MAP_LABELS), title: str = "") -> Figure:
+    """The Green-Lagrange components and principal strains of the triangles at several frames: one row per
+    quantity, one column per frame, one colour scale (and colorbar, in %) per quantity across its frames, so a
+    colour means the same strain in every panel of a row (scaled to the row's data, :func:`strain_limit`).
+
+    ``panels``: mappings with ``corners`` (T, 3, 2) px, ``flipped`` (T,) bool (drawn black), one (T,) array per
+    quantity (fractions) and ``label`` (the panel's frames).
+    """
+    if not panels:
+        raise InvalidInputError("panels must hold at least one measurement")
+    quantities = list(quantities)
+    cols, rows = len(panels), len(quantities)
+    fig = Figure(figsize=(2.9 * cols + 1.2, 2.3 * rows))
+    axes = np.asarray(fig.subplots(rows, cols, squeeze=False))
+    for r, q in enumerate(quantities):
+        ok_values = [np.asarray(p[q], float)[~np.asarray(p["flipped"], bool)] for p in panels]
+        limit = strain_limit(*ok_values)
+        mappable = None
+        for c, p in enumerate(panels):
+            ax = axes[r, c]
+            corners = np.asarray(p["corners"], float).reshape(-1, 3, 2)
+            flipped = np.asarray(p["flipped"], bool)
+            ax.set_facecolor("0.85")
+            mappable = PolyCollection(corners[~flipped], cmap=_CMAP, norm=_norm(limit), edgecolors="none")
+            mappable.set_array(np.asarray(p[q], float)[~flipped] * 100)
+            ax.add_collection(mappable)
+            if np.any(flipped):
+                ax.add_collection(PolyCollection(corners[flipped], facecolors="k", edgecolors="none"))
+            _frame_axes(ax, shape, f"{q}, {p['label']}" if r == 0 or cols == 1 else q)
+        _colorbar(fig, mappable, list(axes[r]), TENSOR_MAP_LABELS.get(q, f"{q} (%)"), np.concatenate(ok_values),
+                  limit)
+    fig.suptitle(title or "Green-Lagrange strain and principal strains (image axes; blue = compression, red = "
+                 "stretch; one scale per row)", fontsize=10)
     return fig
 
 

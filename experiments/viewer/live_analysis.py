@@ -80,7 +80,7 @@ class LiveAnalyzer:
         self._extractor = FeatureExtractor(calibration=cal, params=ExtractionParams())
         self._tracker = FeatureTracker(
             calibration=cal, params=TrackingParams(smoothing_radius_frames=0),
-            motion_estimator=GlobalMotionEstimator(downsample=4),
+            motion_estimator=GlobalMotionEstimator(downsample=cal.resolvable_reduction(4)),
         )
         self._refiner = SubpixelRefiner(calibration=cal)
         self._max_edge_px = cal.px(MAX_EDGE_MM)

@@ -15,6 +15,13 @@ Routes (``sid`` numbers the session shown: it changes when a followed data direc
     GET /api/s/{sid}/frame/{k}.bmp        frame k (lossless BMP)
     GET /api/s/{sid}/overlay/{k}?span=s   frame k's overlays (JSON, see session_data.FrameOverlays)
     GET /api/events                       server-sent events: "state" on any change, "live" per analysed frame
+    GET /api/s/{sid}/gauge?frame=k&x=&y=[&x2=&y2=][&radius_mm=]
+                                          a virtual gauge (extensometer) placed on frame k: JSON of every frame
+    GET /api/s/{sid}/gauge.csv?...        the same as CSV (what skinstretch probe writes)
+    GET /study                            the study overview page (a data directory)
+    GET /api/study                        its trials (JSON, see skinstretch.experiments.study)
+    POST /api/study/open/{i}              show trial i (no longer following the newest)
+    POST /api/study/follow                follow the newest trial again
 """
 
 from __future__ import annotations
@@ -90,7 +97,7 @@ class ViewerState:
         self._status = "waiting"
         self._n_frames = 0
         self._results_error = ""
-        self._reopened = False
+        self._chosen: Path | None = None  # a trial opened from the study overview (then not following the newest)
         if target.session is not None:
             self._switch(target.session, target.results)
         self.update()
@@ -104,7 +111,6 @@ class ViewerState:
             self._close_current()
             self.source = SessionSource(session)
             self.sid += 1
-            self._reopened = False
             self._results_error = ""
             self.results = self._load_results(results)
             log.info("viewer: showing %s", session)
@@ -122,7 +128,7 @@ class ViewerState:
     def update(self) -> None:
         """Look for a newer trial (data directory), new frames, the end of the recording and new results."""
         with self._lock:
-            if self.target.directory is not None:
+            if self.target.directory is not None and self._chosen is None:
                 newest = newest_trial_session(self.target.directory)
                 if newest is not None and (self.source is None or newest.resolve() != self.source.path.resolve()):
                     try:
@@ -135,10 +141,8 @@ class ViewerState:
             status = self.source.status()
             if status == "recording" and self.results is None and self.live and self.analyzer is None:
                 self.analyzer = LiveAnalyzer(self.source).start()
-            if status != "recording" and not self._reopened:
-                self._reopened = True
-                if self._status == "recording":
-                    self.source.reopen_if_closed()  # a truth is attached to a simulated recording after it ends
+            if status != "recording" and self.source.reopen_if_changed():  # closed, then its truth attached
+                status = self.source.status()
             self._status = status
             if self.results is None and not self._results_error:
                 found = _results_beside(self.source.path)
@@ -176,7 +180,8 @@ class ViewerState:
         with self._lock:
             base: dict[str, Any] = {
                 "sid": self.sid,
-                "follows_directory": self.target.follows_directory,
+                "follows_directory": self.target.follows_directory and self._chosen is None,
+                "study_available": self.target.follows_directory,
                 "kinds": {str(k): v.replace("_", " ") for k, v in KIND_NAMES.items()},
                 "results_error": self._results_error,
                 **self.snapshot(),
@@ -221,6 +226,60 @@ class ViewerState:
             else:
                 note = "no analysis results yet: run skinstretch analyze on this session"
             return empty_overlays(k, note).to_json_bytes()
+
+    def gauge(self, sid: int, query: dict[str, str]):
+        """The gauge of ``query`` (frame, x, y[, x2, y2][, radius_mm]) as a GaugeSeries, or None without results."""
+        def number(name: str) -> float | None:
+            if name not in query or query[name] == "":
+                return None
+            try:
+                return float(query[name])
+            except ValueError:
+                raise InvalidInputError(f"{name} must be a number, got {query[name]!r}") from None
+
+        with self._lock:
+            if sid != self.sid or self.results is None:
+                return None
+            x, y, frame = number("x"), number("y"), number("frame")
+            if x is None or y is None:
+                raise InvalidInputError("a gauge needs x and y")
+            return self.results.gauge(frame=int(frame or 0), x=x, y=y, x2=number("x2"), y2=number("y2"),
+                                      radius_mm=number("radius_mm"))
+
+    def study(self) -> dict[str, Any]:
+        """The study overview of the data directory shown (``{"available": False}`` for a single trial)."""
+        from skinstretch.experiments.study import study_overview  # noqa: PLC0415
+
+        directory = self.target.directory
+        if directory is None:
+            return {"available": False, "reason": "the viewer shows one trial: run skinstretch view DATADIR"}
+        with self._lock:
+            shown = self.source.path.resolve() if self.source is not None else None
+            following = self._chosen is None
+        trials = study_overview(directory)
+        return {"available": True, "directory": directory.name, "following": following,
+                "trials": [{**t.to_json(), "shown": shown is not None and t.session.resolve() == shown}
+                           for t in trials]}
+
+    def open_trial(self, index: int) -> bool:
+        """Show trial ``index`` of the study overview (and stop following the newest); False if there is none."""
+        from skinstretch.experiments.study import study_sessions  # noqa: PLC0415
+
+        if self.target.directory is None:
+            return False
+        sessions = study_sessions(self.target.directory)
+        if not 0 <= index < len(sessions):
+            return False
+        with self._lock:
+            self._chosen = sessions[index]
+            self._switch(sessions[index], _results_beside(sessions[index]))
+        self.update()
+        return True
+
+    def follow_newest(self) -> None:
+        with self._lock:
+            self._chosen = None
+        self.update()
 
     def live_update(self, seen_version: int) -> tuple[int, bytes | None]:
         """(version, the newest live overlays as JSON) when a frame was analysed live since ``seen_version``."""
@@ -297,6 +356,36 @@ def create_app(state: ViewerState, *, token: str, allowed_hosts: list[str] | Non
             return PlainTextResponse(f"no frame {k} in session {sid}", status_code=404)
         return Response(data, media_type="application/json", headers={"cache-control": "no-store"})
 
+    async def gauge(request: Request) -> Response:
+        sid = request.path_params["sid"]
+        try:
+            series = await anyio.to_thread.run_sync(state.gauge, sid, dict(request.query_params))
+        except SkinstretchError as exc:
+            return PlainTextResponse(str(exc), status_code=400)
+        if series is None:
+            return PlainTextResponse(f"no analysis results for session {sid}", status_code=404)
+        if request.url.path.endswith(".csv"):
+            return Response(series.csv_text().encode(), media_type="text/csv", headers={
+                "cache-control": "no-store", "content-disposition": f'attachment; filename="{series.kind}.csv"'})
+        return JSONResponse(series.to_json(), headers={"cache-control": "no-store"})
+
+    async def study_page(request: Request) -> Response:
+        return FileResponse(STATIC_DIR / "study.html", headers={"cache-control": "no-store"})
+
+    async def study(request: Request) -> Response:
+        data = await anyio.to_thread.run_sync(state.study)
+        return JSONResponse(data, headers={"cache-control": "no-store"})
+
+    async def open_trial(request: Request) -> Response:
+        ok = await anyio.to_thread.run_sync(state.open_trial, request.path_params["i"])
+        if not ok:
+            return PlainTextResponse(f"no trial {request.path_params['i']} in this study", status_code=404)
+        return JSONResponse({"sid": state.sid})
+
+    async def follow(request: Request) -> Response:
+        await anyio.to_thread.run_sync(state.follow_newest)
+        return JSONResponse({"sid": state.sid})
+
     async def events(request: Request) -> Response:
         from sse_starlette.sse import EventSourceResponse  # noqa: PLC0415
 
@@ -341,6 +430,12 @@ def create_app(state: ViewerState, *, token: str, allowed_hosts: list[str] | Non
         Route("/api/s/{sid:int}/frame/{k:int}.bmp", frame),
         Route("/api/s/{sid:int}/overlay/{k:int}", overlay),
         Route("/api/events", events),
+        Route("/api/s/{sid:int}/gauge", gauge),
+        Route("/api/s/{sid:int}/gauge.csv", gauge),
+        Route("/study", study_page),
+        Route("/api/study", study),
+        Route("/api/study/open/{i:int}", open_trial, methods=["POST"]),
+        Route("/api/study/follow", follow, methods=["POST"]),
         Mount("/static", app=StaticFiles(directory=STATIC_DIR), name="static"),
     ]
     middleware = [Middleware(TokenGate, token=token)]

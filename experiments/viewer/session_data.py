@@ -7,7 +7,9 @@ Everything the viewer needs from ``results.h5`` goes through :func:`load_results
 example trajectories stored as a long table), this file is the one to adapt.
 
 A session still being recorded is read in SWMR mode through :class:`SessionSource`; it has no results yet, and
-its overlays come from the live analysis (:mod:`skinstretch.experiments.viewer.live_analysis`) instead.
+its overlays come from the live analysis (:mod:`skinstretch.experiments.viewer.live_analysis`) instead. Every file
+is opened as :func:`~skinstretch.drivers.session_file.open_session` opens it for ``analyze`` (refused in one line
+when truncated or corrupt) and without a file lock, so the viewer never makes the recorder's writes fail.
 
 Coordinates are image pixels, x = column, y = row; strains are fractions (the page shows %).
 """
@@ -16,16 +18,16 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 import orjson
 
 from skinstretch.drivers.errors import SessionFileError
-from skinstretch.drivers.session_file import Session, open_session
+from skinstretch.drivers.session_file import Session, held_for_writing, open_hdf5_for_reading, open_session
 from skinstretch.experiments.results_file import read_results
 
 log = logging.getLogger(__name__)
@@ -42,6 +44,15 @@ __all__ = [
     "load_results_index",
     "nice_scale",
 ]
+
+#: What the viewer's strain map can show: the triangles' area change, the edges' length change, the Green-Lagrange
+#: components and the principal strains (docs/viewer.md); numeric triangle columns beyond these (an uncertainty)
+#: are offered as well, under their own names.
+MAP_QUANTITIES = ("area", "edge", "exx", "eyy", "exy", "e1", "e2")
+#: The span that stands for the cumulative strain (from the reference frame) in the page's span selector.
+CUMULATIVE = 0
+_NOT_MAPPED = frozenset({"pair", "id_a", "id_b", "id_c", "x0", "y0", "x1", "y1", "x2", "y2", "area", "change",
+                         "flipped", "tensor_status", "angle_deg"})
 
 RESULTS_FILE = "results.h5"
 SESSION_FILE = "session.h5"
@@ -82,6 +93,11 @@ class Mesh:
     change: np.ndarray
     flipped: np.ndarray
     drawn_at: str  # which frame's positions the vertices are drawn at: "frame_b" or "frame_a"
+    #: Every quantity a map can show per triangle (MAP_QUANTITIES and any further numeric column, e.g. an
+    #: uncertainty), fractions; "area" is ``change``.
+    values: dict[str, np.ndarray] = field(default_factory=dict)
+    edge_xy: np.ndarray | None = None  # (e, 4) x0 y0 x1 y1, drawn where the vertices are
+    edge_change: np.ndarray | None = None  # (e,) L_b / L_a - 1
 
 
 @dataclass
@@ -116,6 +132,7 @@ class FrameOverlays:
     strain_scale: float  # fraction; the colour scale runs from -strain_scale to +strain_scale
     notes: list[str] = field(default_factory=list)
     arrow_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # track (or grid node) per arrow
+    arrow_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))  # predicted standard error per arrow, px
     exposure_time: float | None = None  # host time stamp (s, Unix) of the frame (live view latency)
     analysed_time: float | None = None
     _json: bytes | None = field(default=None, init=False, repr=False, compare=False)
@@ -140,6 +157,9 @@ class FrameOverlays:
                 "span": m.span, "frame_a": m.frame_a, "frame_b": m.frame_b, "drawn_at": m.drawn_at,
                 "xy": _round(m.xy, 2), "ids": _ints(m.ids).ravel(),
                 "change": _round(m.change, 5), "flipped": np.asarray(m.flipped, bool),
+                "values": {k: _round(v, 6) for k, v in m.values.items()},
+                "edge_xy": _round(m.edge_xy, 2) if m.edge_xy is not None else None,
+                "edge_change": _round(m.edge_change, 6) if m.edge_change is not None else None,
             }
         truth = None
         if self.truth is not None:
@@ -154,6 +174,7 @@ class FrameOverlays:
             "matches": _round(self.matches, 2),
             "arrows": _round(self.arrows, 3),
             "arrow_ids": _ints(self.arrow_ids),
+            "arrow_sigma": _round(np.nan_to_num(self.arrow_sigma, nan=-1.0, posinf=1e9), 4),  # -1 none, 1e9 inf
             "tails": [_round(t, 1) for t in self.tails],
             "mesh": mesh,
             "outline": _round(self.outline, 1),
@@ -224,9 +245,14 @@ class SessionSource:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
-        self._session: Session = open_session(self.path, swmr=True)
+        self._session: Session = open_session(self.path)
+        self._opened_as = self._on_disk()
         self._truth = None
         self._truth_loaded = False
+
+    def _on_disk(self) -> tuple[int, int]:
+        st = self.path.stat()
+        return st.st_mtime_ns, st.st_size
 
     @property
     def session(self) -> Session:
@@ -250,7 +276,8 @@ class SessionSource:
             return self._session.timestamp(index)
 
     def truth(self):
-        """The simulated session's truth, or None (read once: a recording gets its truth after it is closed)."""
+        """The simulated session's truth, or None (a recording gets its truth after it is closed: see
+        :meth:`reopen_if_changed`)."""
         if not self._truth_loaded:
             with self._lock:
                 if self._session.has_truth:
@@ -260,12 +287,27 @@ class SessionSource:
                     self._truth_loaded = True
         return self._truth
 
-    def reopen_if_closed(self) -> None:
-        """Re-open the file once its recorder closed it: a truth attached afterwards becomes visible."""
+    def reopen_if_changed(self, *, wait_s: float = 2.0) -> bool:
+        """Open the file again when it changed on disk since it was opened (its recorder closed it, a ground truth
+        was attached), so that what was written is seen; True when it did. Not while another program holds it
+        open for writing (it would refuse the reader): False, and the caller asks again later. A writer that
+        takes it between that check and the opening is waited for up to ``wait_s``."""
+        if self._on_disk() == self._opened_as or held_for_writing(self.path):
+            return False
         with self._lock:
             self._session.close()
-            self._session = open_session(self.path, swmr=True)
-            self._truth_loaded = False
+            deadline = time.monotonic() + wait_s
+            while True:
+                try:
+                    self._session = open_session(self.path)
+                    break
+                except SessionFileError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.05)
+            self._opened_as = self._on_disk()
+            self._truth, self._truth_loaded = None, False
+        return True
 
     def describe(self) -> dict[str, Any]:
         s = self._session
@@ -322,6 +364,7 @@ class ResultsIndex:
     has_tactile: bool
     window: dict[str, Any]
     notes: list[str]  # what the analysis said about the whole clip (its summary's notes)
+    warnings: list[str]  # the summary's warnings: self-checks that failed, a large predicted error
     _features: np.ndarray | None
     _features_by_frame: _PerFrame | None
     _feature_track: np.ndarray | None  # feature row -> track
@@ -336,6 +379,14 @@ class ResultsIndex:
     _pair_frames: dict[int, tuple[np.ndarray, np.ndarray]]  # span -> (frame_a, frame_b) per pair row
     _window_centers: np.ndarray | None
     _tactile: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    #: span (CUMULATIVE: from the reference frame) -> quantity -> colour-scale limit (fraction)
+    map_scales: dict[int, dict[str, float]] = field(default_factory=dict)
+    reference_frame: int = -1  # of the cumulative strain; -1 without one
+    _edges: dict[int, np.ndarray] = field(default_factory=dict)
+    _edges_by_pair: dict[int, _PerFrame] = field(default_factory=dict)
+    _cumulative_motion: np.ndarray | None = None
+    _cumulative_motion_by_pair: _PerFrame | None = None
+    _results: Any = None  # the Results (the gauge reads its cumulative motion)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -343,11 +394,34 @@ class ResultsIndex:
             "coordinates": self.coordinates,
             "spans": self.spans,
             "strain_scale": {str(k): v for k, v in self.strain_scale.items()},
+            "map_scales": {str(k): v for k, v in self.map_scales.items()},
+            "map_quantities": self.map_quantities(),
+            "reference_frame": self.reference_frame,
+            "has_gauge": self.reference_frame >= 0,
             "motion_axis": self.motion_axis,
             "has_tactile": self.has_tactile,
             "window": self.window,
             "notes": list(self.notes),
+            "warnings": list(self.warnings),
         }
+
+    def map_quantities(self) -> list[str]:
+        """The quantities the page's map selector offers: MAP_QUANTITIES the results hold, then extra columns."""
+        names: list[str] = []
+        for scales in self.map_scales.values():
+            names += [q for q in scales if q not in names]
+        return [q for q in MAP_QUANTITIES if q in names] + [q for q in names if q not in MAP_QUANTITIES]
+
+    def gauge(self, *, frame: int, x: float, y: float, x2: float | None = None, y2: float | None = None,
+              radius_mm: float | None = None):
+        """The gauge (or with ``x2``, ``y2`` the extensometer) at a point clicked on ``frame``, located in the
+        reference frame first (:func:`skinstretch.experiments.probe.reference_position`)."""
+        from skinstretch.experiments.probe import probe, reference_position  # noqa: PLC0415
+
+        at = reference_position(self._results, (x, y), frame=frame, radius_mm=radius_mm)
+        to = None if x2 is None or y2 is None else reference_position(self._results, (x2, y2), frame=frame,
+                                                                        radius_mm=radius_mm)
+        return probe(self._results, at=at, to=to, radius_mm=radius_mm)
 
     # -- one frame
     def overlays(self, k: int, *, span: int = 1, truth=None) -> FrameOverlays:
@@ -359,11 +433,17 @@ class ResultsIndex:
                                   strain_scale=self.strain_scale.get(span, 0.02))
         features = self._frame_features(k)
         matches, tails = self._matches_and_tails(k)
-        arrows, arrow_ids = self._arrows(k)
+        arrows, arrow_ids, arrow_sigma = self._arrows(k)
         if k == 0:
             notes.append("frame 0: no previous frame, so no matches, displacements or strain")
         mesh = self._mesh(k, span)
-        if mesh is None and k >= span:
+        if span == CUMULATIVE:
+            if self.reference_frame < 0:
+                notes.append("no cumulative strain in these results (analysed before it was stored, or no frame "
+                             "had 3 measured points)")
+            elif mesh is None and k != self.reference_frame:
+                notes.append(f"no cumulative strain from frame {self.reference_frame} to {k}")
+        elif mesh is None and k >= span:
             notes.append(f"no strain for frames {k - span}->{k} (see the results' pair status)")
         elif mesh is None and span >= self.n_frames:
             notes.append(f"no strain over {span} frames: the {self.n_frames}-frame session has no pair that far apart")
@@ -381,7 +461,7 @@ class ResultsIndex:
             tactile_reset=tm[1][k] if tm is not None else None,
             tactile_clipped=tm[2][k] if tm is not None else None,
             truth=truth_marks(truth, k), strain_scale=self.strain_scale.get(span, 0.02), notes=notes,
-            arrow_ids=arrow_ids,
+            arrow_ids=arrow_ids, arrow_sigma=arrow_sigma,
         )
 
     def _frame_features(self, k: int) -> FeatureMarks:
@@ -414,43 +494,77 @@ class ResultsIndex:
                     tails.append(np.column_stack([xs[ok, j], ys[ok, j]]))
         return matches, tails
 
-    def _arrows(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def _arrows(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if k == 0:
-            return np.zeros((0, 4)), np.zeros(0, np.int64)
+            return np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0)
         m = self._motion[self._motion_by_pair.rows(k - 1)]
         xy = np.column_stack([m["x"] + m["dx"], m["y"] + m["dy"], m["dx"], m["dy"]]).astype(np.float64)
-        return xy, m["id"].astype(np.int64)
+        sigma = m["sigma"] if "sigma" in (m.dtype.names or ()) else np.full(m.shape[0], np.nan)
+        return xy, m["id"].astype(np.int64), np.asarray(sigma, np.float64)
+
+    def _pair_row(self, k: int, span: int) -> int:
+        """The row of the pair (k - span, k), or of the cumulative pair (reference, k); -1 when there is none."""
+        if span not in self._pair_frames:
+            return -1
+        fa, fb = self._pair_frames[span]
+        if span == CUMULATIVE:
+            i = int(np.searchsorted(fb, k))
+            return i if i < fb.size and fb[i] == k else -1
+        pair = k - span  # pair rows are indexed by their first frame
+        return pair if 0 <= pair < fa.size and fa[pair] == k - span and fb[pair] == k else -1
+
+    def _positions_at(self, k: int, span: int, pair: int, ids: np.ndarray) -> np.ndarray | None:
+        """Where the points ``ids`` (any shape) are in frame k, (..., 2); None when one of them is not known."""
+        if self._track_x is not None:
+            # Features: ids are track indices, so the vertices can be drawn where they are now.
+            p = np.stack([self._track_x[k][ids], self._track_y[k][ids]], axis=-1)
+            return p if np.isfinite(p).all() else None
+        if span == 1:
+            m = self._motion[self._motion_by_pair.rows(pair)]
+        elif span == CUMULATIVE and self._cumulative_motion is not None:
+            m = self._cumulative_motion[self._cumulative_motion_by_pair.rows(pair)]
+        else:
+            return None
+        order = np.argsort(m["id"], kind="stable")
+        sorted_ids = m["id"][order]
+        j = np.searchsorted(sorted_ids, ids)
+        j = np.minimum(j, max(sorted_ids.size - 1, 0))
+        if sorted_ids.size == 0 or not np.all(sorted_ids[j] == ids):
+            return None
+        rows = order[j]
+        return np.stack([(m["x"] + m["dx"])[rows], (m["y"] + m["dy"])[rows]], axis=-1)
 
     def _mesh(self, k: int, span: int) -> Mesh | None:
-        if span not in self._triangles or k < span:
+        if span not in self._triangles:
             return None
-        fa, fb = self._pair_frames[span]
-        pair = k - span  # pair rows are indexed by their first frame
-        if not (0 <= pair < fa.size and fa[pair] == k - span and fb[pair] == k):
+        pair = self._pair_row(k, span)
+        if pair < 0:
             return None
         t = self._triangles[span][self._triangles_by_pair[span].rows(pair)]
         if t.size == 0:
             return None
+        fa = int(self._pair_frames[span][0][pair])
         ids = np.column_stack([t["id_a"], t["id_b"], t["id_c"]]).astype(np.int64)
         xy = np.column_stack([t["x0"], t["y0"], t["x1"], t["y1"], t["x2"], t["y2"]]).astype(np.float64)
         drawn_at = "frame_a"
-        if self._track_x is not None:
-            # Features: the triangles' ids are track indices, so the vertices can be drawn where they are now.
-            bx, by = self._track_x[k][ids], self._track_y[k][ids]
-            ok = np.all(np.isfinite(bx) & np.isfinite(by), axis=1)
-            if ok.all():
-                xy = np.column_stack([bx[:, 0], by[:, 0], bx[:, 1], by[:, 1], bx[:, 2], by[:, 2]])
-                drawn_at = "frame_b"
-        elif span == 1:
-            # Flow: the consecutive pair's motion table gives every node's position in frame k.
-            m = self._motion[self._motion_by_pair.rows(pair)]
-            lookup = dict(zip(m["id"].tolist(), range(m.size)))
-            rows = np.array([[lookup.get(int(i), -1) for i in tri] for tri in ids], dtype=np.int64)
-            if rows.size and (rows >= 0).all():
-                px, py = (m["x"] + m["dx"])[rows], (m["y"] + m["dy"])[rows]
-                xy = np.column_stack([px[:, 0], py[:, 0], px[:, 1], py[:, 1], px[:, 2], py[:, 2]])
-                drawn_at = "frame_b"
-        return Mesh(span, k - span, k, xy, ids, t["change"].astype(np.float64), t["flipped"].astype(bool), drawn_at)
+        moved = self._positions_at(k, span, pair, ids)
+        if moved is not None:
+            xy, drawn_at = moved.reshape(-1, 6), "frame_b"
+        values = {"area": t["change"].astype(np.float64)}
+        for name in t.dtype.names:
+            if name not in _NOT_MAPPED and t.dtype[name].kind == "f":
+                values[name] = t[name].astype(np.float64)
+        edge_xy = edge_change = None
+        if span in self._edges:
+            e = self._edges[span][self._edges_by_pair[span].rows(pair)]
+            edge_change = e["change"].astype(np.float64)
+            edge_xy = np.column_stack([e["xa"], e["ya"], e["xb"], e["yb"]]).astype(np.float64)
+            if drawn_at == "frame_b":
+                ends = self._positions_at(k, span, pair, np.column_stack([e["id_a"], e["id_b"]]).astype(np.int64))
+                if ends is not None:
+                    edge_xy = ends.reshape(-1, 4)
+        return Mesh(span, fa, k, xy, ids, t["change"].astype(np.float64), t["flipped"].astype(bool), drawn_at,
+                    values, edge_xy, edge_change)
 
     def _window(self, k: int) -> tuple[float, float, float, float] | None:
         w = self.window
@@ -496,25 +610,50 @@ def load_results_index(path: Path) -> ResultsIndex:
             where = fi >= 0
             feature_track[fi[where]] = np.nonzero(where)[1]
     triangles, tri_by_pair, pair_frames, scale = {}, {}, {}, {}
-    for span, s in sorted(r.strain.items()):
+    edges, edges_by_pair, map_scales = {}, {}, {}
+    tables = dict(sorted(r.strain.items()))
+    cumulative = r.cumulative
+    if cumulative is not None and cumulative.reference_frame >= 0:
+        tables[CUMULATIVE] = cumulative
+    for span, s in tables.items():
         triangles[span] = s.triangles
         tri_by_pair[span] = _PerFrame.build(s.triangles["pair"], s.pairs.size)
+        edges[span] = s.edges
+        edges_by_pair[span] = _PerFrame.build(s.edges["pair"], s.pairs.size)
         pair_frames[span] = (np.asarray(s.pairs["frame_a"], np.int64), np.asarray(s.pairs["frame_b"], np.int64))
         ok = ~np.asarray(s.triangles["flipped"], bool)
         scale[span] = nice_scale(np.asarray(s.triangles["change"])[ok])
+        map_scales[span] = _map_scales(s.triangles[ok], s.edges["change"])
+    tactile = None
     tactile = None
     if r.tactile_positions_um is not None:
         tactile = (np.asarray(r.tactile_positions_um, np.float64), np.asarray(r.tactile_reset, bool),
                    np.asarray(r.tactile_clipped, bool))
     return ResultsIndex(
         path=Path(path), method=r.method, n_frames=n, coordinates=r.coordinates, spans=sorted(r.strain),
-        strain_scale=scale, motion_axis=r.profile_axis_index, has_tactile=tactile is not None, window=dict(r.window),
+        strain_scale=scale, map_scales=map_scales, motion_axis=r.profile_axis_index, has_tactile=tactile is not None,
+        window=dict(r.window),
         notes=[str(n) for n in (r.summary.get("notes") or [])],
+        warnings=[str(w) for w in (r.summary.get("warnings") or [])],
         _features=feats, _features_by_frame=by_frame, _feature_track=feature_track, _track_x=tx, _track_y=ty,
         _track_present=tpresent, _track_linked=tlinked, _motion=r.motion,
         _motion_by_pair=_PerFrame.build(r.motion["pair"], max(n - 1, 0)), _triangles=triangles,
         _triangles_by_pair=tri_by_pair, _pair_frames=pair_frames, _window_centers=r.visibility_window.centers if r.visibility_window else None, _tactile=tactile,
+        reference_frame=cumulative.reference_frame if cumulative is not None else -1, _edges=edges,
+        _edges_by_pair=edges_by_pair, _cumulative_motion=cumulative.motion if cumulative is not None else None,
+        _cumulative_motion_by_pair=_PerFrame.build(cumulative.motion["pair"], cumulative.pairs.size)
+        if cumulative is not None else None, _results=r,
     )
+
+
+def _map_scales(triangles: np.ndarray, edge_change: np.ndarray) -> dict[str, float]:
+    """Each map quantity's colour-scale limit over the whole session (one scale for every frame)."""
+    out = {"area": nice_scale(triangles["change"]), "edge": nice_scale(edge_change)}
+    ok = triangles["tensor_status"] == 0 if "tensor_status" in triangles.dtype.names else slice(None)
+    for name in triangles.dtype.names:
+        if name not in _NOT_MAPPED and triangles.dtype[name].kind == "f":
+            out[name] = nice_scale(triangles[name][ok])
+    return out
 
 
 # ------------------------------------------------------------------------------------------ what to show
@@ -535,15 +674,8 @@ class ViewTarget:
 
 
 def _h5_format(path: Path) -> str:
-    try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as f:
-            fmt = f.attrs.get("format", "")
-    except OSError:
-        try:
-            with h5py.File(path, "r") as f:
-                fmt = f.attrs.get("format", "")
-        except OSError as exc:
-            raise SessionFileError(f"{path}: HDF5 file cannot be opened ({exc})") from None
+    with open_hdf5_for_reading(path) as f:  # refused in one line, as analyze refuses it
+        fmt = f.attrs.get("format", "")
     return fmt.decode() if isinstance(fmt, bytes) else str(fmt)
 
 
@@ -553,7 +685,7 @@ def _results_beside(session: Path) -> Path | None:
 
 
 def _session_of_results(results: Path) -> Path:
-    with h5py.File(results, "r") as f:
+    with open_hdf5_for_reading(results) as f:
         raw = f.attrs.get("session_path", "")
     sp = Path(raw.decode() if isinstance(raw, bytes) else str(raw))
     if not sp.exists():

@@ -14,7 +14,15 @@ const STRAIN_MAP = ["#053061", "#2166ac", "#4393c3", "#92c5de", "#d1e5f0", "#f7f
 const TACTILE_MAP = ["#2d004b", "#542788", "#8073ac", "#b2abd2", "#d8daeb", "#f7f7f7", "#fee0b6", "#fdb863",
   "#e08214", "#b35806", "#7f3b08"];
 const TACTILE_RANGE_UM = 50;
-const ARROW_GAIN = 5;
+const DEFAULT_ARROW_GAIN = 5;
+// What each map quantity is, for the colour bar and the readout (docs/viewer.md, "Strain maps").
+const MAP_TITLES = {
+  area: (r) => `area change ${r} − 1; grey = flipped`,
+  edge: (r) => `edge length change ${r.replace(/A/g, "L")} − 1`,
+  exx: () => "Green-Lagrange exx (image x)", eyy: () => "Green-Lagrange eyy (image y)",
+  exy: () => "Green-Lagrange exy (tensor shear, half the engineering shear)",
+  e1: () => "major principal strain e1", e2: () => "minor principal strain e2",
+};
 const HIT_RADIUS_SCREEN_PX = 10;
 const TAIL_FRAMES = 12;  // session_data.TAIL_FRAMES: the server sends each tail through its last 12 frames
 
@@ -22,7 +30,9 @@ const S = {
   info: null, sid: 0, n: 0, k: 0, span: 1, scale: 1, playing: false, follow: false,
   overlays: new Map(), images: new Map(), current: null, pinned: null, hover: null,
   on: { features: true, matches: false, tails: true, mesh: true, arrows: false, outline: true, window: true },
-  busy: false, pendingFrame: null, direction: 1,
+  busy: false, pendingFrame: null, direction: 1, maxSigma: 0,
+  quantity: "area", fixedRange: null, arrowGain: DEFAULT_ARROW_GAIN, tool: "inspect", gauge: null, gaugeQuery: null,
+  drag: null,
 };
 // Measurements the browser tests and the live bench read: per shown frame, how long it took and, for a live
 // frame, its exposure time (host clock, s) and when it was on screen (same clock: Date.now()).
@@ -64,11 +74,23 @@ async function loadInfo() {
     view.width = Math.round(info.width * S.scale);
     view.height = Math.round(info.height * S.scale);
   }
-  const spans = info.results ? info.results.spans : [1];
-  $("span").innerHTML = spans.map((s) => `<option value="${s}">${s}</option>`).join("");
+  const spans = info.results ? info.results.spans.slice() : [1];
+  const cumulative = info.results && info.results.reference_frame >= 0;
+  if (cumulative) spans.push(0);  // 0: the cumulative strain, from the reference frame
+  $("span").innerHTML = spans.map((s) => s === 0 ?
+    `<option value="0">cumulative from frame ${info.results.reference_frame}</option>` :
+    `<option value="${s}">${s}</option>`).join("");
+  const quantities = info.results && info.results.map_quantities ? info.results.map_quantities : ["area"];
+  $("map-quantity").innerHTML = quantities.map((q) => `<option value="${q}">${q}</option>`).join("");
+  S.quantity = quantities.includes(S.quantity) ? S.quantity : quantities[0];
+  $("map-quantity").value = S.quantity;
+  $("study-link").hidden = !info.study_available;
+  for (const id of ["tool-gauge", "tool-extensometer"]) $(id).disabled = !cumulative;
+  clearGauge();
   S.span = spans.includes(S.span) ? S.span : spans[0];
   $("span").value = String(S.span);
-  showAnalysisNotes(info.results ? info.results.notes : []);
+  showAnalysisList("analysis-warnings", "Warnings", info.results ? info.results.warnings : []);
+  showAnalysisList("analysis-notes", "Analysis notes", info.results ? info.results.notes : []);
   buildLegend();
   setStatus(info);
   S.follow = info.status === "recording" || info.follows_directory;
@@ -78,22 +100,28 @@ async function loadInfo() {
   if (S.n > 0) await showFrame(S.follow ? S.n - 1 : Math.min(S.k, S.n - 1));
 }
 
-// What the analysis said about the whole clip (a short clip, a lossy source, a shape's shading left in), shown
-// above the frame for as long as the results are: a doubtful number should come with its caveat.
-function showAnalysisNotes(notes) {
-  const box = $("analysis-notes");
+// Above the frame for as long as the results are shown, so a doubtful number comes with its caveat: the
+// analysis' warnings (self-checks that failed, in red) and notes (a short clip, a lossy source, a shape's shading).
+function showAnalysisList(id, heading, items) {
+  const box = $(id);
   box.innerHTML = "";
-  box.hidden = !notes || notes.length === 0;
+  box.hidden = !items || items.length === 0;
   if (box.hidden) return;
   const title = document.createElement("strong");
-  title.textContent = "Analysis notes";
+  title.textContent = heading;
   const ul = document.createElement("ul");
-  for (const n of notes) {
+  for (const n of items) {
     const li = document.createElement("li");
     li.textContent = n;
     ul.appendChild(li);
   }
   box.append(title, ul);
+}
+
+// An arrow is drawn when its predicted standard error is known and within the chosen limit (none: every arrow).
+function arrowShown(ov, i) {
+  const s = ov.arrow_sigma ? ov.arrow_sigma[i] : -1;
+  return !(S.maxSigma > 0) || (s >= 0 && s <= S.maxSigma);
 }
 
 function setStatus(st) {
@@ -120,7 +148,7 @@ function buildLegend() {
   }
   const extra = [["#ff4fd8", "match: line from the previous frame"], ["rgba(255,140,60,0.85)", `trajectory tail (last ${TAIL_FRAMES} frames)`],
     ["#ffd400", "fingertip outline (hull of measured points)"],
-    ["#00e5ff", "visibility window (seed 5.2)"], ["#7CFC00", `displacement ×${ARROW_GAIN}`]];
+    ["#00e5ff", "visibility window (seed 5.2)"], ["#7CFC00", `displacement ×${S.arrowGain}`]];
   for (const [color, text] of extra) {
     const li = document.createElement("li");
     li.innerHTML = `<svg width="18" height="18"><line x1="2" y1="9" x2="16" y2="9" stroke="${color}" stroke-width="3"/></svg><span>${text}</span>`;
@@ -178,8 +206,9 @@ async function showFrame(k, live = null) {
       ov.source === "live" ? "live analysis" : "");
     setText("notes", ov.notes.join(" · "));
     drawTactile(ov);
-    drawColorbar(ov.strain_scale, ov.mesh);
+    drawColorbar(mapScale(ov), ov.mesh);
     updateReadout();
+    drawGaugePlot();
     prefetch(k + S.direction);
   } catch (e) {
     window.viewerStats.errors.push(String(e));
@@ -204,7 +233,9 @@ function draw() {
   ctx.drawImage(img, 0, 0, view.width, view.height);
   ctx.setTransform(S.scale, 0, 0, S.scale, 0, 0);
   const lw = 1 / S.scale;
-  if (S.on.mesh && ov.mesh) drawMesh(ov.mesh, ov.strain_scale, lw);
+  if (S.on.mesh && ov.mesh) {
+    if (S.quantity === "edge") drawEdges(ov.mesh, mapScale(ov), lw); else drawMesh(ov.mesh, mapScale(ov), lw);
+  }
   if (S.on.window && ov.window) {
     const [x0, y0, x1, y1] = ov.window;
     ctx.setLineDash([6 * lw, 4 * lw]);
@@ -242,7 +273,9 @@ function draw() {
     ctx.strokeStyle = "#7CFC00"; ctx.lineWidth = 1.4 * lw;
     ctx.beginPath();
     // From the feature onwards, in the direction it moved (its tail lies behind it: the two do not overlap).
-    for (const [x, y, dx, dy] of ov.arrows) arrow(x, y, x + ARROW_GAIN * dx, y + ARROW_GAIN * dy, 4 * lw);
+    ov.arrows.forEach(([x, y, dx, dy], i) => {
+      if (arrowShown(ov, i)) arrow(x, y, x + S.arrowGain * dx, y + S.arrowGain * dy, 4 * lw);
+    });
     ctx.stroke();
   }
   if (S.on.features) {
@@ -250,16 +283,72 @@ function draw() {
     for (let i = 0; i < f.x.length; i++) drawMarker(ctx, f.x[i], f.y[i], f.kind[i], lw);
   }
   drawHighlight(lw);
+  drawGaugeMarks(lw);
+}
+
+// The colour scale of the map shown: fixed by the user, or the session's own for this quantity and span (one scale
+// for every frame, so colours compare across frames).
+function mapScale(ov) {
+  if (S.fixedRange) return S.fixedRange;
+  const r = S.info && S.info.results;
+  const scales = r && r.map_scales ? r.map_scales[String(S.span)] : null;
+  return scales && scales[S.quantity] ? scales[S.quantity] : ov.strain_scale;
+}
+
+function meshValues(mesh) {
+  if (S.quantity === "area" || !mesh.values || !mesh.values[S.quantity]) return mesh.change;
+  return mesh.values[S.quantity];
+}
+
+function drawEdges(mesh, scale, lw) {
+  if (!mesh.edge_xy) return;
+  const groups = new Map();
+  for (let i = 0; i < mesh.edge_xy.length; i++) {
+    const key = Math.round(Math.max(-1, Math.min(1, mesh.edge_change[i] / scale)) * MESH_STEPS);
+    if (!groups.has(key)) groups.set(key, []);
+    groups.get(key).push(mesh.edge_xy[i]);
+  }
+  ctx.lineWidth = 2.2 * lw;
+  for (const [key, segs] of groups) {
+    ctx.strokeStyle = colorOf(STRAIN_MAP, key / MESH_STEPS);
+    ctx.beginPath();
+    for (const [x0, y0, x1, y1] of segs) { ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); }
+    ctx.stroke();
+  }
+}
+
+// The gauge (a ring of its radius) or the extensometer (a line) where it is in the frame shown; the line being
+// dragged.
+function drawGaugeMarks(lw) {
+  ctx.strokeStyle = "#ff2da0"; ctx.lineWidth = 2.5 * lw;
+  if (S.drag && S.drag.to) {
+    ctx.beginPath(); ctx.moveTo(S.drag.from[0], S.drag.from[1]); ctx.lineTo(S.drag.to[0], S.drag.to[1]); ctx.stroke();
+  }
+  const g = S.gauge;
+  if (!g) return;
+  const c = g.columns, k = S.k;
+  if (!c.ok[k]) return;
+  ctx.beginPath();
+  if (g.kind === "gauge") {
+    ctx.arc(c.x[k], c.y[k], g.radius_px, 0, 2 * Math.PI);
+    ctx.moveTo(c.x[k] - 4 * lw, c.y[k]); ctx.lineTo(c.x[k] + 4 * lw, c.y[k]);
+    ctx.moveTo(c.x[k], c.y[k] - 4 * lw); ctx.lineTo(c.x[k], c.y[k] + 4 * lw);
+  } else {
+    ctx.moveTo(c.x1[k], c.y1[k]); ctx.lineTo(c.x2[k], c.y2[k]);
+    ctx.moveTo(c.x1[k] + 4 * lw, c.y1[k]); ctx.arc(c.x1[k], c.y1[k], 4 * lw, 0, 2 * Math.PI);
+    ctx.moveTo(c.x2[k] + 4 * lw, c.y2[k]); ctx.arc(c.x2[k], c.y2[k], 4 * lw, 0, 2 * Math.PI);
+  }
+  ctx.stroke();
 }
 
 // Triangles are filled one path per colour step (MESH_STEPS over the scale; flipped ones grey): a canvas fill per
 // triangle cost the live view most of its drawing time, and the steps are finer than the eye tells apart.
 const MESH_STEPS = 50;
 function drawMesh(mesh, scale, lw) {
-  const xy = mesh.xy, groups = new Map();
+  const xy = mesh.xy, groups = new Map(), values = meshValues(mesh);
   for (let i = 0; i < xy.length; i++) {
     const key = mesh.flipped[i] ? "flipped" :
-      Math.round(Math.max(-1, Math.min(1, mesh.change[i] / scale)) * MESH_STEPS);
+      Math.round(Math.max(-1, Math.min(1, values[i] / scale)) * MESH_STEPS);
     if (!groups.has(key)) groups.set(key, []);
     groups.get(key).push(xy[i]);
   }
@@ -336,9 +425,13 @@ function drawBar(c, map, label, title) {
 function drawColorbar(scale, mesh) {
   // Written with k, the frame shown, so that the bar stays the same from frame to frame (the readout names the pair).
   const n = mesh ? mesh.frame_b - mesh.frame_a : 1;
-  const ratio = !mesh ? "Ab / Aa" : mesh.drawn_at === "frame_a" ? `A(k+${n}) / A(k)` : `A(k) / A(k−${n})`;
-  drawBar($("colorbar"), STRAIN_MAP, (t) => fmt(t * scale * 100), `%   (area change ${ratio} − 1; grey = flipped)`);
+  const ratio = !mesh ? "Ab / Aa" : mesh.span === 0 ? `A(k) / A(${mesh.frame_a})` :
+    mesh.drawn_at === "frame_a" ? `A(k+${n}) / A(k)` : `A(k) / A(k−${n})`;
+  const title = MAP_TITLES[S.quantity] ? MAP_TITLES[S.quantity](ratio) : S.quantity;
+  const pair = !mesh ? "" : mesh.span === 0 ? `, frame ${mesh.frame_a} to k` : "";
+  drawBar($("colorbar"), STRAIN_MAP, (t) => fmt(t * scale * 100), `%   (${title}${pair}${S.fixedRange ? ", fixed" : ""})`);
   $("colorbar").dataset.scale = String(scale);
+  setText("map-title", `${S.quantity === "area" ? "Area change" : S.quantity === "edge" ? "Edge length change" : S.quantity} of each ${S.quantity === "edge" ? "edge" : "triangle"}`);
 }
 function fmt(v) { return v >= 1 ? v.toFixed(v % 1 ? 1 : 0) : v.toPrecision(2).replace(/0+$/, ""); }
 
@@ -452,7 +545,12 @@ function updateReadout() {
     lines.push(`  x ${f.x[i].toFixed(2)} px, y ${f.y[i].toFixed(2)} px; quality ${f.quality[i].toFixed(2)}`);
     const a = ov.arrow_ids.indexOf(f.track[i]);
     const meas = a >= 0 ? ov.arrows[a] : null;
-    if (meas) lines.push(`  displacement from the previous frame: dx ${meas[2].toFixed(3)}, dy ${meas[3].toFixed(3)} px`);
+    if (meas) {
+      const sg = ov.arrow_sigma ? ov.arrow_sigma[a] : -1;
+      const sigma = sg < 0 ? "not estimated" : sg >= 1e9 ? "unbounded (its windows do not match)" : `${sg.toFixed(3)} px`;
+      lines.push(`  displacement from the previous frame: dx ${meas[2].toFixed(3)}, dy ${meas[3].toFixed(3)} px; ` +
+        `standard error ${sigma}`);
+    }
     if (ov.truth) {
       const t = ov.truth, r2 = (0.1 * mm) ** 2;
       let tb = -1, td = r2;
@@ -480,6 +578,12 @@ function updateReadout() {
     lines.push(`triangle of tracks ${ids.join(", ")}, frames ${m.frame_a}→${m.frame_b}:`);
     lines.push(m.flipped[i] ? "  flipped (orientation changed: a tracking error or a fold, not a strain)" :
       `  area change (strain) ${pct(m.change[i], 3)}`);
+    if (!m.flipped[i] && m.values && m.values.exx) {
+      const v = (q) => pct(m.values[q][i], 3);
+      lines.push(`  exx ${v("exx")}, eyy ${v("eyy")}, exy ${v("exy")}`);
+      lines.push(`  e1 ${v("e1")}, e2 ${v("e2")}`);
+      for (const q of Object.keys(m.values)) if (!["area", "exx", "eyy", "exy", "e1", "e2"].includes(q)) lines.push(`  ${q} ${v(q)}`);
+    }
   }
   el.textContent = lines.join("\n");
 }
@@ -525,6 +629,7 @@ $("next").addEventListener("click", () => step(1));
 $("slider").addEventListener("input", (e) => { setPlaying(false); setFollow(false); showFrame(Number(e.target.value)); });
 $("follow").addEventListener("change", (e) => setFollow(e.target.checked));
 $("span").addEventListener("change", (e) => { S.span = Number(e.target.value); showFrame(S.k); });
+$("max-sigma").addEventListener("input", (e) => { S.maxSigma = Number(e.target.value) || 0; if (S.current) draw(); });
 view.addEventListener("mousemove", (ev) => {
   const [x, y] = canvasPoint(ev);
   S.hover = hitTest(x, y);
@@ -532,10 +637,143 @@ view.addEventListener("mousemove", (ev) => {
 });
 view.addEventListener("mouseleave", () => { S.hover = null; if (!S.pinned) { draw(); updateReadout(); } });
 view.addEventListener("click", (ev) => {
+  if (S.tool !== "inspect") return;  // the gauge tools place on mouse up
   const [x, y] = canvasPoint(ev);
   S.pinned = S.pinned ? null : pin(hitTest(x, y));
   draw(); updateReadout();
 });
+view.addEventListener("mousedown", (ev) => {
+  if (S.tool === "inspect") return;
+  S.drag = { from: canvasPoint(ev), to: null };
+});
+view.addEventListener("mousemove", (ev) => {
+  if (!S.drag || S.tool !== "extensometer") return;
+  S.drag.to = canvasPoint(ev);
+  draw();
+});
+view.addEventListener("mouseup", (ev) => {
+  if (!S.drag) return;
+  const from = S.drag.from, to = canvasPoint(ev);
+  S.drag = null;
+  if (S.tool === "gauge") placeGauge(from);
+  else if (Math.hypot(to[0] - from[0], to[1] - from[1]) >= 3) placeGauge(from, to);
+  else draw();
+});
+
+// ------------------------------------------------------------------------------------ map and gauge controls
+$("map-quantity").addEventListener("change", (e) => { S.quantity = e.target.value; syncRange(); refreshMap(); });
+$("range-fixed").addEventListener("change", () => syncRange());
+$("range-value").addEventListener("change", () => syncRange());
+$("arrow-gain-input").addEventListener("change", (e) => {
+  const v = Number(e.target.value);
+  S.arrowGain = Number.isFinite(v) && v > 0 ? v : DEFAULT_ARROW_GAIN;
+  $("arrow-gain").textContent = String(S.arrowGain);
+  buildLegend(); draw();
+});
+document.querySelectorAll('input[name="tool"]').forEach((r) => r.addEventListener("change", () => {
+  S.tool = document.querySelector('input[name="tool"]:checked').value;
+  view.style.cursor = S.tool === "inspect" ? "crosshair" : "cell";
+}));
+$("save-png").addEventListener("click", () => download(view.toDataURL("image/png"), `frame-${S.k}-${S.quantity}.png`));
+$("save-csv").addEventListener("click", () => {
+  if (S.gaugeQuery) download(`api/s/${S.sid}/gauge.csv?${S.gaugeQuery}`, `${S.gauge.kind}.csv`);
+});
+
+// A fixed colour range (± the value, in %) holds for every frame and quantity until unticked; unticked, each
+// quantity has the session's own scale. Ticking it starts from the scale shown.
+function syncRange() {
+  if ($("range-fixed").checked) {
+    const v = Number($("range-value").value);
+    S.fixedRange = Number.isFinite(v) && v > 0 ? v / 100 : null;
+  } else {
+    S.fixedRange = null;
+    if (S.current) $("range-value").value = String(+(100 * mapScale(S.current.ov)).toPrecision(3));
+  }
+  refreshMap();
+}
+
+function refreshMap() {
+  if (!S.current) return;
+  draw();
+  drawColorbar(mapScale(S.current.ov), S.current.ov.mesh);
+}
+
+function download(href, name) {
+  const a = document.createElement("a");
+  a.href = href; a.download = name;
+  document.body.appendChild(a); a.click(); a.remove();
+}
+
+function clearGauge() {
+  S.gauge = null; S.gaugeQuery = null;
+  $("gauge-panel").hidden = true;
+  $("save-csv").disabled = true;
+}
+
+async function placeGauge(a, b = null) {
+  const q = new URLSearchParams({ frame: String(S.k), x: a[0].toFixed(2), y: a[1].toFixed(2),
+    radius_mm: String(Number($("gauge-radius").value) || 1) });
+  if (b) { q.set("x2", b[0].toFixed(2)); q.set("y2", b[1].toFixed(2)); }
+  const r = await fetch(`api/s/${S.sid}/gauge?${q}`);
+  if (!r.ok) { setText("notes", `gauge: ${await r.text()}`); return; }
+  S.gauge = await r.json();
+  S.gaugeQuery = q.toString();
+  $("gauge-panel").hidden = false;
+  $("save-csv").disabled = false;
+  draw();
+  drawGaugePlot();
+}
+
+// The gauge's time plot: its cumulative strain components (or the extensometer's length change) in % against the
+// frame, the frame shown marked.
+const GAUGE_SERIES = { gauge: [["exx", "#d55e00"], ["eyy", "#0072b2"], ["exy", "#009e73"], ["e1", "#cc79a7"], ["e2", "#56b4e9"]],
+  extensometer: [["length_change", "#d55e00"]] };
+function drawGaugePlot() {
+  const g = S.gauge;
+  if (!g) return;
+  const c = $("gauge-plot"), p = c.getContext("2d"), cols = g.columns, n = cols.frame.length;
+  const series = GAUGE_SERIES[g.kind];
+  let lo = 0, hi = 0;
+  for (const [name] of series) cols[name].forEach((v, i) => { if (cols.ok[i] && v !== null) { lo = Math.min(lo, v); hi = Math.max(hi, v); } });
+  if (hi - lo < 1e-4) { hi += 5e-5; lo -= 5e-5; }
+  const L = 56, R = 8, T = 8, B = 30, w = c.width - L - R, h = c.height - T - B;
+  const X = (i) => L + (n > 1 ? (i / (n - 1)) * w : 0), Y = (v) => T + (1 - (v - lo) / (hi - lo)) * h;
+  p.clearRect(0, 0, c.width, c.height);
+  p.strokeStyle = "#999"; p.lineWidth = 1; p.strokeRect(L, T, w, h);
+  p.fillStyle = "#111"; p.font = "10px system-ui, sans-serif"; p.textAlign = "right";
+  for (const v of [lo, 0, hi]) { p.fillText(`${(100 * v).toPrecision(2)} %`, L - 3, Y(v) + 3); }
+  p.strokeStyle = "#ccc"; p.beginPath(); p.moveTo(L, Y(0)); p.lineTo(L + w, Y(0)); p.stroke();
+  p.textAlign = "center"; p.fillText("frame", L + w / 2, c.height - 4);
+  p.fillText("0", L, T + h + 12); p.fillText(String(n - 1), L + w, T + h + 12);
+  let lx = L + 4;
+  for (const [name, color] of series) {
+    p.strokeStyle = color; p.lineWidth = 1.5; p.beginPath();
+    let on = false;
+    cols[name].forEach((v, i) => {
+      if (!cols.ok[i] || v === null) { on = false; return; }
+      if (on) p.lineTo(X(i), Y(v)); else p.moveTo(X(i), Y(v));
+      on = true;
+    });
+    p.stroke();
+    p.fillStyle = color; p.textAlign = "left"; p.fillText(name, lx, T + 10); lx += p.measureText(name).width + 8;
+  }
+  p.strokeStyle = "#000"; p.setLineDash([3, 3]); p.beginPath(); p.moveTo(X(S.k), T); p.lineTo(X(S.k), T + h); p.stroke();
+  p.setLineDash([]);
+  const k = S.k, mm = S.info.px_per_mm;
+  let note;
+  if (!cols.ok[k]) note = `frame ${k}: ${cols.reason[k] || "not measured"}`;
+  else if (g.kind === "gauge") {
+    note = `frame ${k}: at x ${cols.x[k].toFixed(1)}, y ${cols.y[k].toFixed(1)} px, moved ${cols.dx[k].toFixed(2)}, ${cols.dy[k].toFixed(2)} px` +
+      ` since frame ${g.reference_frame}; exx ${pct(cols.exx[k], 3)} ± ${(100 * cols.exx_sigma[k]).toFixed(3)}, ` +
+      `eyy ${pct(cols.eyy[k], 3)} ± ${(100 * cols.eyy_sigma[k]).toFixed(3)}, exy ${pct(cols.exy[k], 3)} ± ${(100 * cols.exy_sigma[k]).toFixed(3)}, ` +
+      `e1 ${pct(cols.e1[k], 3)}, e2 ${pct(cols.e2[k], 3)} (${cols.n_points[k]} points within ${(g.radius_px / mm).toFixed(2)} mm)`;
+  } else {
+    note = `frame ${k}: length ${cols.length_px[k].toFixed(2)} px (${(cols.length_px[k] / mm).toFixed(3)} mm), change ${pct(cols.length_change[k], 3)} ± ${(100 * cols.length_change_sigma[k]).toFixed(3)} % since frame ${g.reference_frame}`;
+  }
+  setText("gauge-title", g.kind === "gauge" ? `Gauge at (${g.at[0].toFixed(1)}, ${g.at[1].toFixed(1)}) px of frame ${g.reference_frame}` :
+    `Extensometer (${g.at[0].toFixed(1)}, ${g.at[1].toFixed(1)}) to (${g.to[0].toFixed(1)}, ${g.to[1].toFixed(1)}) px of frame ${g.reference_frame}`);
+  setText("gauge-note", note);
+}
 document.addEventListener("keydown", (ev) => {
   if (ev.target.tagName === "SELECT" || (ev.target.tagName === "INPUT" && ev.target.type !== "checkbox" && ev.target.type !== "range")) return;
   const big = ev.shiftKey ? 10 : 1;

@@ -1,0 +1,84 @@
+"""Motion and strain of every frame relative to one reference frame (DIC's "reference image"), from what the
+analysis stored: along the trajectories (features) or along skin points followed through the flow fields (flow).
+
+The reference is the first frame with at least 3 measured points (normally frame 0). Features: the tracks present
+in it, each followed for as long as it stays linked (one ``run``). Flow: every ``stride``-th valid node of its field,
+each carried by the consecutive fields in turn (bilinear, as :func:`~.derive.chain_flows`), dropped once it reaches
+an invalid node. Both read the results file being written one frame or field at a time, so memory holds one
+frame's points, not the session's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import h5py
+import numpy as np
+
+from skinstretch.experiments.analysis.derive import rectified_sample
+from skinstretch.processing.flow import FlowField
+from skinstretch.processing.tracking import MotionSample
+
+__all__ = ["feature_cumulative_samples", "flow_cumulative_samples"]
+
+_MIN_POINTS = 3
+
+
+def _frame_offsets(frames: np.ndarray, n_frames: int) -> np.ndarray:
+    return np.searchsorted(frames, np.arange(n_frames + 1))
+
+
+def feature_cumulative_samples(f: h5py.File, *, n_frames: int) -> Iterator[MotionSample]:
+    """(reference, k) for every frame k after the reference, from the stored ``trajectories`` (sorted by frame,
+    positions already on the skin when the session has a mapping); nothing when no frame has 3 tracks."""
+    if "trajectories" not in f:
+        return
+    ds = f["trajectories"]
+    frames = ds.fields("frame")[()]
+    if frames.size and np.any(np.diff(frames) < 0):  # pragma: no cover - the writer appends frames in order
+        raise ValueError("trajectories are not sorted by frame")
+    off = _frame_offsets(frames, n_frames)
+    counts = np.diff(off)
+    ref = int(np.argmax(counts >= _MIN_POINTS)) if np.any(counts >= _MIN_POINTS) else -1
+    if ref < 0:
+        return
+    r0 = ds[int(off[ref]) : int(off[ref + 1])]
+    p0 = np.column_stack([r0["x"], r0["y"]])
+    for k in range(ref + 1, n_frames):
+        rk = ds[int(off[k]) : int(off[k + 1])] if off[k + 1] > off[k] else r0[:0]
+        _, ia, ib = np.intersect1d(r0["track"], rk["track"], assume_unique=True, return_indices=True)
+        same = r0["run"][ia] == rk["run"][ib]
+        ia, ib = ia[same], ib[same]
+        pk = np.column_stack([rk["x"][ib], rk["y"][ib]])
+        yield MotionSample(ref, k, p0[ia], pk - p0[ia], r0["track"][ia].astype(np.int64))
+
+
+def flow_cumulative_samples(f: h5py.File, *, stride: int = 1, mapping=None, px_per_mm: float = 1.0
+                            ) -> Iterator[MotionSample]:
+    """(reference, k) for every frame k after the reference, following the skin points through the stored
+    consecutive fields (``flow/displacement``, ``flow/valid``); rectified to the skin with ``mapping``."""
+    if "flow" not in f:
+        return
+    g = f["flow"]
+    gx, gy = g["grid_x"][()], g["grid_y"][()]
+    disp, valid = g["displacement"], g["valid"]
+    n_pairs = disp.shape[0]
+
+    def field(k: int) -> FlowField:
+        v = valid[k]
+        d = np.where(v[..., None], disp[k].astype(np.float64), np.nan)
+        return FlowField(k, k + 1, gx, gy, d, v, np.zeros(2), 0)
+
+    ref = next((k for k in range(n_pairs) if int(valid[k][::stride, ::stride].sum()) >= _MIN_POINTS), -1)
+    if ref < 0:
+        return
+    first = field(ref).motion(stride=stride)
+    p0, ids = first.points, first.ids
+    p = p0 + first.displacement
+    yield rectified_sample(MotionSample(ref, ref + 1, p0, p - p0, ids), mapping, px_per_mm)
+    for k in range(ref + 1, n_pairs):
+        d, ok = field(k).sample(p)
+        p = np.where(ok[:, None], p + np.nan_to_num(d), np.nan)
+        keep = ok & np.all(np.isfinite(p), axis=1)
+        p0, p, ids = p0[keep], p[keep], ids[keep]
+        yield rectified_sample(MotionSample(ref, k + 1, p0, p - p0, ids), mapping, px_per_mm)

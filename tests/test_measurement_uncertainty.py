@@ -1,0 +1,130 @@
+"""Every measurement with its uncertainty, every gross failure flagged: the predicted standard errors
+(:mod:`skinstretch.processing.measurement_uncertainty`) cover the true error, and the analysis' self-checks doubt a
+registration locked onto wrong ridges, in the results, the summary and the report."""
+
+import numpy as np
+import pytest
+
+from skinstretch.experiments.analysis import analyze_frames
+from skinstretch.experiments.results_file import PairStatus
+from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.flow import DenseFlow, FlowParams
+from skinstretch.processing.measurement_uncertainty import (
+    MIN_MATCH, RADIUS_95_2D, area_change_sigma, edge_change_sigma, larger_axis_sigma,
+)
+from skinstretch.processing.pixel_scale import Calibration
+from tests.print_clips import print_frame, print_image, true_x
+
+SHAPE = (240, 320)
+SLIDE, STRETCH = 0.5, 0.0005
+
+
+def _true_dx(x0, frame_a, frame_b):
+    """True x displacement from frame_a to frame_b of the point at x0 in frame_a."""
+    skin = (np.asarray(x0) - SHAPE[1] / 2 - SLIDE * frame_a) / (1 + STRETCH * frame_a) + SHAPE[1] / 2
+    return true_x(skin, frame_b, width=SHAPE[1], slide_px=SLIDE, stretch=STRETCH) - x0
+
+
+def test_the_weakest_direction_bounds_the_error():
+    assert float(larger_axis_sigma(4.0, 0.0, 1.0, 0.25)) == pytest.approx(0.5)
+    assert float(larger_axis_sigma(1.0, 1.0, 1.0, 0.25)) == np.inf  # parallel ridges only: no bound along them
+    assert np.isnan(larger_axis_sigma(1.0, 0.0, 1.0, np.nan))
+
+
+def test_strain_errors_follow_the_points_errors():
+    """First-order propagation against a Monte Carlo of the same independent point errors."""
+    rng = np.random.default_rng(0)
+    tri = np.array([[0.0, 0.0], [30.0, 2.0], [8.0, 25.0]])
+    sigma = np.array([0.02, 0.03, 0.025])
+    noisy = tri + rng.normal(size=(20000, 3, 2)) * sigma[None, :, None]
+    length = np.hypot(*(tri[1] - tri[0]))
+    change = np.hypot(*(noisy[:, 1] - noisy[:, 0]).T) / length - 1
+    assert float(edge_change_sigma(sigma[0], sigma[1], length)) == pytest.approx(change.std(), rel=0.05)
+
+    def area(v):
+        return 0.5 * ((v[..., 1, 0] - v[..., 0, 0]) * (v[..., 2, 1] - v[..., 0, 1])
+                      - (v[..., 2, 0] - v[..., 0, 0]) * (v[..., 1, 1] - v[..., 0, 1]))
+
+    predicted = area_change_sigma(tri[None], sigma[None], area(tri))[0]
+    assert predicted == pytest.approx((area(noisy) / area(tri) - 1).std(), rel=0.05)
+
+
+@pytest.fixture(scope="module")
+def print_pair():
+    image = print_image()
+    return [print_frame(image, k, px_per_mm=19.7, background=255.0, shape=SHAPE) for k in (0, 1)]
+
+
+def test_a_point_registered_a_ridge_astray_is_unbounded(print_pair):
+    refiner = SubpixelRefiner(calibration=Calibration(px_per_mm=19.7))
+    a, b = (refiner.prepare(f) for f in print_pair)
+    pts = np.array([[150.0, 110.0], [170.0, 130.0], [140.0, 100.0]])
+    right = np.column_stack([_true_dx(pts[:, 0], 0, 1), np.zeros(3)])
+    ok = refiner.registration_check(a, b, pts, right)
+    assert np.all(ok.match > 0.9) and np.all(np.isfinite(ok.sigma)) and np.all(ok.sigma < 0.05)
+    astray = right + [4.0, 0.0]  # half a ridge period at 19.7 px/mm
+    bad = refiner.registration_check(a, b, pts, astray)
+    assert np.all(bad.match < MIN_MATCH) and np.all(np.isinf(bad.sigma))
+
+
+@pytest.mark.parametrize("px_per_mm", [19.7, 62.0])
+def test_the_flow_s_sigma_covers_its_error(px_per_mm):
+    image = print_image()
+    a, b = (print_frame(image, k, px_per_mm=px_per_mm, background=255.0, shape=SHAPE) for k in (0, 3))
+    f = DenseFlow(calibration=Calibration(px_per_mm=px_per_mm)).compute(a, b)
+    assert f.status == "ok"
+    X, _ = np.meshgrid(f.grid_x, f.grid_y)
+    err = np.hypot(f.displacement[..., 0] - _true_dx(X, 0, 3), f.displacement[..., 1])[f.valid]
+    sigma = f.sigma[f.valid]
+    assert np.mean(np.isfinite(sigma)) > 0.9  # unbounded: windows that do not match (the contact's edge)
+    assert np.mean(err <= RADIUS_95_2D * sigma) >= 0.9
+    assert np.median(f.match[f.valid]) > 0.9
+
+
+@pytest.fixture(scope="module")
+def wide_clip():
+    """A 19.7 px/mm print on white in a 640x484 frame: two pyramid levels alias its ridges (the fault the
+    scale-derived levels fixed) and lock some pairs' fields onto wrong ridges."""
+    image = print_image()
+    return np.stack([print_frame(image, k, px_per_mm=19.7, background=255.0, shape=(484, 640), contact=None)
+                     for k in range(6)])
+
+
+def test_a_flow_locked_onto_wrong_ridges_is_doubted(wide_clip):
+    flow = DenseFlow(calibration=Calibration(px_per_mm=19.7), params=FlowParams(pyramid_levels=2))
+    statuses = [flow.compute(wide_clip[k], wide_clip[k + 1]).status for k in range(5)]
+    assert sum(s.startswith("doubted: ") for s in statuses) >= 2  # those fields are tens of px wrong
+    assert flow.compute(wide_clip[1], wide_clip[2]).motion().doubt
+
+
+@pytest.mark.parametrize("method", ["features", "flow"])
+@pytest.mark.parametrize("background", [255.0, 0.0])
+@pytest.mark.parametrize("px_per_mm", [19.7, 40.0, 62.0])
+def test_the_analysis_is_right_or_says_so(px_per_mm, background, method):
+    """A real print at three pixel scales, inside a contact on a white or black background: every measured point
+    within 0.05 px (RMSE) with its 95 % interval covering the truth, or a warning in the summary."""
+    image = print_image()
+    frames = np.stack([print_frame(image, k, px_per_mm=px_per_mm, background=background, shape=SHAPE)
+                       for k in range(14)])
+    r = analyze_frames(frames, calibration=Calibration(px_per_mm=px_per_mm), method=method,
+                       params={"strain": {"spans": [1, 5]}, "execution": {"kind": "serial"}})
+    warnings = r.summary["warnings"]
+    m, pairs = r.motion, r.motion_pairs
+    err = np.hypot(m["dx"] - _true_dx(m["x"], pairs["frame_a"][m["pair"]], pairs["frame_b"][m["pair"]]), m["dy"])
+    accurate = err.size > 0 and np.sqrt(np.mean(err**2)) <= 0.05 and np.mean(err <= RADIUS_95_2D * m["sigma"]) >= 0.9
+    assert accurate or warnings, (px_per_mm, background, method, err.size)
+    if method == "flow":  # the dense method is accurate on every one of these
+        assert accurate and not warnings
+    assert set(r.summary["uncertainty"]) == {"displacement_sigma_px", "edge_change_sigma_span_1",
+                                             "edge_change_sigma_span_5"}
+
+
+def test_a_failed_registration_is_flagged_in_the_results_and_the_summary(wide_clip):
+    r = analyze_frames(wide_clip, calibration=Calibration(px_per_mm=19.7), method="flow",
+                       params={"flow": {"pyramid_levels": 2}, "strain": {"spans": [1, 3]},
+                               "execution": {"kind": "serial"}})
+    doubted = r.motion_pairs["status"] == PairStatus.DOUBTED
+    assert doubted.sum() >= 2
+    assert all(reason.startswith(b"the frames do not match") for reason in r.motion_pairs["reason"][doubted])
+    assert any("consecutive frame pairs failed a self-check" in w for w in r.summary["warnings"])
+    assert r.summary["strain_span_1"]["pairs_doubted"] >= 2
