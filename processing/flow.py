@@ -28,6 +28,7 @@ Strain comes from the grid (:func:`skinstretch.processing.flow_fields.grid_strai
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -837,14 +838,18 @@ class SpanRefiner:
     def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
         self.flow = flow
         self._frames = SpanFrames(frame, lambda image: flow._prepare(flow._frame([image], 0)))
+        self.seconds = 0.0  # spent in refine (the stage's share of the analysis' time)
 
     def refine(self, fields: Sequence[FlowField]) -> FlowField:
         """The span from ``fields[0].frame_a`` to ``fields[-1].frame_b`` (consecutive fields, in order)."""
         if not fields:
             raise InvalidInputError("a span needs at least one field")
+        t0 = time.perf_counter()
         k0, k1 = int(fields[0].frame_a), int(fields[-1].frame_b)
         prev, curr = self._frames.pair(k0, k1)
-        return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        out = self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        self.seconds += time.perf_counter() - t0
+        return out
 
 
 class ReferenceRefiner(SpanRefiner):

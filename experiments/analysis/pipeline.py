@@ -381,16 +381,17 @@ def analyze(
             # over a ridge or valley whose shading was removed, there by a line over more key frames: each direct
             # registration also carries what the shading step leaves of the glass-fixed patterns. A longer span is
             # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
-            span_registration = None
+            span_registration = anchoring = None
             on_glass = plain_glass(shading, surface)
             refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
             frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
             if params.subpixel is not None and (on_glass or shading is not None):
                 every = params.tracking.keyframe_interval_frames
                 if every is not None:
-                    store.anchor(KeyframeAnchoring(
+                    anchoring = KeyframeAnchoring(
                         refiner, reader, interval=every, reference_span=params.tracking.keyframe_reference_frames,
-                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES))
+                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES)
+                    store.anchor(anchoring)
                 if on_glass:
                     span_registration = SpanRegistration(refiner, reader, frames=frames)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
@@ -399,6 +400,9 @@ def analyze(
                                      uncertainty=SampleUncertainty(refiner, frames))
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
+            # the stages' own shares of it (the bench's stages table)
+            m.timing["keyframes_s"] = anchoring.seconds if anchoring is not None else 0.0
+            m.timing["span_registration_s"] = span_registration.seconds if span_registration is not None else 0.0
             timing, parallel = dict(m.timing), m.parallel
         else:
             recent: deque = deque(maxlen=max(spans))
@@ -452,6 +456,7 @@ def analyze(
                              on_field=on_field, progress=progress)
             motion.flush()
             timing, parallel = dict(m.timing), m.parallel
+            timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
         t0 = time.perf_counter()
         strain.finish()
         if method == "features":
