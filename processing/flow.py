@@ -90,10 +90,7 @@ class FlowParams:
         A node whose registration residual exceeds this multiple of the median is flagged invalid...
     residual_floor : float
         ...unless its residual is at most this (mean absolute grey-level difference over the window, in the
-        locally normalised image, whose standard deviation is 40): a noise-free image pair (a synthetic speckle,
-        a rendered scene) registers to a median residual near 0, and the ratio alone then flagged exact nodes (a
-        third of those of a speckle shifted by one pixel, at any window). The rig's frames give a median of
-        about 3, so the floor never acts there; a node that registered wrongly leaves tens.
+        locally normalised image of standard deviation 40): for noise-free pairs, whose median residual is near 0.
     clg_levels : int
         Pyramid levels above full resolution on which the coupled registration also runs, coarse to fine, after
         the affine start (0: full resolution only, enough after the affine start on the seed's scenes).
