@@ -92,8 +92,7 @@ class FlowParams:
         ...unless its residual is at most this (mean absolute grey-level difference over the window, in the
         locally normalised image of standard deviation 40): for noise-free pairs, whose median residual is near 0.
     clg_levels : int
-        Pyramid levels above full resolution on which the coupled registration also runs, coarse to fine, after
-        the affine start (0: full resolution only, enough after the affine start on the seed's scenes).
+        Pyramid levels above full resolution on which the coupled registration also runs after the affine start.
     normalize_sigma_mm : float or None
         Local contrast normalisation scale (see :func:`skinstretch.processing.displacement_refinement.local_normalize`).
     adaptive : bool
@@ -192,8 +191,7 @@ class FlowField:
         nodes (in float64), NaN outside the grid and wherever one of the four surrounding nodes is invalid."""
         h, w = int(shape[0]), int(shape[1])
         gx, gy = self.grid_x, self.grid_y
-        u = np.full((h, w), np.nan, np.float32)
-        v = np.full((h, w), np.nan, np.float32)
+        u, v = np.full((h, w), np.nan, np.float32), np.full((h, w), np.nan, np.float32)
         if gx.size < 2 or gy.size < 2:
             return u, v
         x = np.arange(w, dtype=np.float64)
