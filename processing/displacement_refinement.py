@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
-import numba
 import numpy as np
 from pydantic import Field
 
@@ -23,6 +22,7 @@ from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, Regis
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
+from skinstretch.processing.jit import njit
 
 
 @parameters
@@ -433,7 +433,7 @@ class SubpixelRefiner:
 
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
     or T is singular)."""
@@ -486,7 +486,7 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     return out
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
     """Per point, rows (Txx, Txy, Tyy, s^2, v) over its window of half-side ``halves[i]``: T the structure tensor
     of ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear), v the variance of ``a`` (its
@@ -575,7 +575,7 @@ def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.
     return _window_fraction_kernel(integral, np.ascontiguousarray(points, dtype=np.float64), int(half))
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _window_fraction_kernel(integral, points, half):
     h, w = integral.shape[0] - 1, integral.shape[1] - 1
     out = np.empty(points.shape[0])

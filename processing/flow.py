@@ -28,6 +28,7 @@ Strain comes from the grid (:func:`skinstretch.processing.flow_fields.grid_strai
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -150,8 +151,7 @@ class FlowField:
         nodes (in float64), NaN outside the grid and wherever one of the four surrounding nodes is invalid."""
         h, w = int(shape[0]), int(shape[1])
         gx, gy = self.grid_x, self.grid_y
-        u = np.full((h, w), np.nan, np.float32)
-        v = np.full((h, w), np.nan, np.float32)
+        u, v = np.full((h, w), np.nan, np.float32), np.full((h, w), np.nan, np.float32)
         if gx.size < 2 or gy.size < 2:
             return u, v
         x = np.arange(w, dtype=np.float64)
@@ -502,7 +502,7 @@ class DenseFlow:
             field = field * f
         if self.params.adaptive:
             field, _ = self._adapt(system, field, level_prior, lam, span=span)
-        system.linearise(field, with_residual=True)
+        system.residuals(field)
         residual = system.abs_residual
         med = float(np.median(residual[contact]))
         valid = contact & (residual <= max(self.params.max_residual_ratio * med, self.params.residual_floor) + 1e-6)
@@ -723,25 +723,32 @@ class _LinearSystem:
         self.rx = self.gxx * u0[..., 0] + self.gxy * u0[..., 1] - bx
         self.ry = self.gxy * u0[..., 0] + self.gyy * u0[..., 1] - by
         if with_residual:
-            d = bw - self.a_pad
-            self.residual = self._window_sums(d * d) * inb
-            self.abs_residual = self._window_sums(np.abs(d)) / float((2 * half + 1) ** 2)
+            self._residuals(bw)
 
-    def _window_sums(self, image: np.ndarray) -> np.ndarray:
-        """Sum of ``image`` (padded like ``a_pad``) over each node's window."""
-        half = self.half
-        ii = cv2.integral(image, sdepth=cv2.CV_64F)
-        r, c = self.rows[:, None], self.cols[None, :]
+    def residuals(self, field: np.ndarray) -> None:
+        """The windows' residuals at ``field`` (for :meth:`check`), the gradient products as last linearised."""
+        p, warped = self.pad, self.flow._warp(self.b, self.gx, self.gy, field)
+        self._residuals(cv2.copyMakeBorder(warped, p, p, p, p, cv2.BORDER_REFLECT_101))
+
+    def _residuals(self, bw: np.ndarray) -> None:
+        d = bw - self.a_pad
+        self.residual = self._window_sums(d * d) * self.inb
+        self.abs_residual = self._window_sums(np.abs(d)) / float((2 * self.half + 1) ** 2)
+
+    def _window_sums(self, image: np.ndarray, ii: np.ndarray | None = None) -> np.ndarray:
+        """Sum of ``image`` (padded like ``a_pad``) over each node's window (``ii``: its integral image, if made)."""
+        half, r, c = self.half, self.rows[:, None], self.cols[None, :]
+        ii = cv2.integral(image, sdepth=cv2.CV_64F) if ii is None else ii
         return (ii[r + half + 1, c + half + 1] - ii[r - half, c + half + 1] - ii[r + half + 1, c - half]
                 + ii[r - half, c - half])
 
     def check(self) -> RegistrationCheck:
-        """Each node's predicted standard error and window match (:func:`registration_check` of its window's
-        gradient products, residual and texture variances), after :meth:`linearise` with its residual."""
+        """Each node's :func:`registration_check` (gradient products, residual and texture variances)."""
         n = float((2 * self.half + 1) ** 2)
         if self._texture is None:
-            mean = self._window_sums(self.a_pad) / n
-            self._texture = np.maximum(self._window_sums(self.a_pad * self.a_pad) / n - mean * mean, 0.0)
+            total, squares = cv2.integral2(self.a_pad, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+            mean = self._window_sums(self.a_pad, total) / n
+            self._texture = np.maximum(self._window_sums(self.a_pad, squares) / n - mean * mean, 0.0)
         return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
                                   model_sigma_px=self.flow.params.model_sigma_px)
 
@@ -786,14 +793,18 @@ class SpanRefiner:
     def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
         self.flow = flow
         self._frames = SpanFrames(frame, lambda image: flow._prepare(flow._frame([image], 0)))
+        self.seconds = 0.0  # spent in refine (the stage's share of the analysis' time)
 
     def refine(self, fields: Sequence[FlowField]) -> FlowField:
         """The span from ``fields[0].frame_a`` to ``fields[-1].frame_b`` (consecutive fields, in order)."""
         if not fields:
             raise InvalidInputError("a span needs at least one field")
+        t0 = time.perf_counter()
         k0, k1 = int(fields[0].frame_a), int(fields[-1].frame_b)
         prev, curr = self._frames.pair(k0, k1)
-        return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        out = self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        self.seconds += time.perf_counter() - t0
+        return out
 
 
 class ReferenceRefiner(SpanRefiner):

@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numba
 import numpy as np
 from pydantic import Field
 
@@ -38,6 +37,7 @@ from skinstretch.processing.displacement_refinement import PreparedImage, Subpix
 from skinstretch.processing.neighbour_fusion import fuse_with_neighbours
 # smooth_positions stays importable from here, where it was defined before it moved
 from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
+from skinstretch.processing.jit import njit
 
 
 @parameters
@@ -770,7 +770,7 @@ class _Refinement:
     bridged_disp: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
     the run's extracted positions (equal to the extracted positions when displacements are raw differences); rows

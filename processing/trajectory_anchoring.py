@@ -22,6 +22,7 @@ Hand-written: no library anchors feature trajectories to key frames (OpenCV's an
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -137,6 +138,7 @@ class KeyframeAnchoring:
         self._rows: list[tuple[np.ndarray, int, np.ndarray]] = []  # (groups, frame, raw corrections)
         self._previous = -1
         self._final = False
+        self.seconds = 0.0  # spent in add (the stage's share of the analysis' time)
 
     def _grow(self, n: int) -> None:
         have = self._ref.size
@@ -152,6 +154,7 @@ class KeyframeAnchoring:
         """Key frame ``k``: the runs present (``group``, distinct ids >= 0) and their chained positions (n, 2) px.
         ``final``: the sequence's last frame, a key frame whatever its number (the drift after the last multiple of
         the interval is corrected too); no key frame follows it."""
+        t0 = time.perf_counter()
         k = int(k)
         if self._final or k <= self._previous or (k % self.interval and not final):
             raise InvalidInputError(f"key frames come in increasing multiples of {self.interval}, then the last "
@@ -202,6 +205,7 @@ class KeyframeAnchoring:
         live = set(self._ref[self._last == k].tolist()) | {k}
         for j in [j for j in self._prepared if j not in live]:
             del self._prepared[j]
+        self.seconds += time.perf_counter() - t0
 
     def _image(self, j: int) -> Any:
         if j not in self._prepared:

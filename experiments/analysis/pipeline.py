@@ -361,14 +361,15 @@ def analyze(
             t0 = time.perf_counter()
             # The trajectories' chained drift corrected at key frames (KeyframeAnchoring) and a longer span
             # registered directly between its two frames (SpanRegistration), as the plan says.
-            span_registration = None
+            span_registration = anchoring = None
             refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
             frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
             if plan.keyframe_smoothing_key_frames is not None:
-                store.anchor(KeyframeAnchoring(
+                anchoring = KeyframeAnchoring(
                     refiner, reader, interval=params.tracking.keyframe_interval_frames,
                     reference_span=params.tracking.keyframe_reference_frames,
-                    smoothing=plan.keyframe_smoothing_key_frames))
+                    smoothing=plan.keyframe_smoothing_key_frames)
+                store.anchor(anchoring)
             if plan.span_registration:
                 span_registration = SpanRegistration(refiner, reader, frames=frames)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
@@ -377,6 +378,9 @@ def analyze(
                                      uncertainty=SampleUncertainty(refiner, frames))
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
+            # the stages' own shares of it (the bench's stages table)
+            m.timing["keyframes_s"] = anchoring.seconds if anchoring is not None else 0.0
+            m.timing["span_registration_s"] = span_registration.seconds if span_registration is not None else 0.0
             timing, parallel = dict(m.timing), m.parallel
         else:
             recent: deque = deque(maxlen=max(spans))
@@ -424,6 +428,7 @@ def analyze(
                              on_field=on_field, progress=progress)
             motion.flush()
             timing, parallel = dict(m.timing), m.parallel
+            timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
         t0 = time.perf_counter()
         strain.finish()
         if method == "features":
