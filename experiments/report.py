@@ -418,6 +418,11 @@ def trial_figures(entry: TrialEntry, *, truth_eval: bool = True) -> tuple[str, d
         if notes:  # what the analysis said about the whole clip: the caveats of every number below
             parts.append('<div class="warn"><strong>Analysis notes</strong><ul>'
                          + "".join(f"<li>{_esc(n)}</li>" for n in notes) + "</ul></div>")
+        from skinstretch.experiments.analysis.plan import plan_rows  # noqa: PLC0415
+
+        plan = plan_rows(r.summary.get("plan") or {})
+        if plan:  # the choices the analysis made for this surface and clip, and any parameter not applied as asked
+            parts.append("<h3>Analysis plan</h3>" + _table(plan, ["choice", "value"]))
         parts.append(_guard("measurements over 1 frame", lambda: _measurement_panel(r, session, 1)))
         span_long = max(r.strain) if r.strain else 11
         parts.append(_guard(f"measurements over {span_long} frames",

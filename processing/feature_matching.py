@@ -15,13 +15,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import validate_features
 from skinstretch.processing.pixel_scale import Calibration
+from skinstretch.processing.jit import njit
 
 __all__ = ["Matches", "FeatureColumns", "feature_columns", "match_features", "match_columns", "LostFeatures",
            "duplicate_starts", "merge_bridged", "crowded_points"]
@@ -61,10 +61,7 @@ def match_features(
     search_radius_mm : float
         Radius of the circular search window around each expected position.
 
-    Returns
-    -------
-    Matches
-        One-to-one pairs, finalised in decreasing eq. 5.1 confidence.
+    Returns :class:`Matches`: one-to-one pairs, finalised in decreasing eq. 5.1 confidence.
 
     Examples
     --------
@@ -134,7 +131,7 @@ def match_columns(prev: FeatureColumns, curr: FeatureColumns, pred: np.ndarray, 
     return Matches(i, j, conf)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, corient, cknown, radius):
     """Candidates (same kind, distance <= radius from the expected position; ``cxy_sorted`` is the current
     frame's positions sorted by x, ``corder`` their rows), rated by eq. 5.1, then finalised greedily in decreasing

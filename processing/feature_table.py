@@ -2,10 +2,8 @@
 
 A feature table is a NumPy structured array with the fixed columns of :data:`FEATURE_DTYPE`. It is written to
 results files as is (HDF5 compound dataset), so its columns are part of the on-disk format: add columns at the
-end, never rename or reorder them.
-
-Coordinates are image pixels with the origin at the centre of the top-left pixel: ``x`` is the column and
-``y`` the row, both sub-pixel floats.
+end, never rename or reorder them. Coordinates are image pixels with the origin at the centre of the top-left
+pixel: ``x`` is the column and ``y`` the row, both sub-pixel floats.
 
 Columns
 -------
@@ -18,9 +16,8 @@ x, y : float64
 kind : int8
     A :class:`FeatureKind`: 0 valley ending, 1 valley bifurcation, 2 pore (seed 4.7: circle, square, triangle).
 orientation : float32
-    Direction of the feature in degrees, counter-clockwise from the +x axis with y pointing up the image
-    (i.e. ``atan2(-dy, dx)``), in [0, 360). NaN exactly when ``orientation_known`` is False (pores, and
-    minutiae whose valleys are too short or incoherent, seed 4.7).
+    Direction in degrees, counter-clockwise from +x with y up the image (``atan2(-dy, dx)``), in [0, 360); NaN
+    exactly when ``orientation_known`` is False (pores, minutiae whose valleys are too short or incoherent).
 orientation_known : bool
     Whether ``orientation`` holds a value.
 quality : float32

@@ -28,6 +28,7 @@ Strain comes from the grid (:func:`skinstretch.processing.flow_fields.grid_strai
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -51,74 +52,30 @@ from skinstretch.processing.tracking import MotionSample
 
 @parameters
 class FlowParams:
-    """Options of :class:`DenseFlow`, in mm and grey levels.
+    """Options of :class:`DenseFlow`, in mm and grey levels (the evidence behind the defaults: docs/tuning-log.md).
 
     Parameters
     ----------
-    grid_step_mm : float
-        Largest spacing of the measurement grid; the grid is never coarser than a quarter of the window (a smaller
-        window resolves finer detail only on a finer grid).
-    window_mm : float
-        Side of the registration window (about two ridge periods): the resolution knob. Smaller windows resolve
-        shorter strain features (a slip front, a short-period star pattern) with more noise; see
-        ``skinstretch bench --only star`` for the resolution/noise curve.
-        With ``smoothness`` 1.5 the default 0.8 mm beats 0.6 mm / 1.0 in edge strain on the seed's scenes (and
-        DeepFlow's, on the same pairs); wider windows do better still inside the field but err by up to 0.25 px at
-        its border under a large shift plus 2 % strain.
-    window_px : int or None
-        The window side in pixels (odd, >= 7), overriding ``window_mm`` when given (None: from ``window_mm``).
+    grid_step_mm, window_mm, window_px : float, float, int or None
+        Largest grid spacing (mm; at most a quarter of the window); side of the registration window (mm, about two
+        ridge periods: the resolution knob, ``bench --only star``), in pixels (odd, >= 7) when ``window_px`` given.
     pyramid_levels : int or None
-        Pyramid levels above full resolution for the first registration; None: as many as keep a ridge period at
-        least 6 px long on the top level (:meth:`Calibration.resolvable_halvings`: 2 at 62 px/mm, 0 at 20 px/mm).
-    min_contrast : float
-        Minimum local grey-level standard deviation for a node to count as in contact (FTIR: no contact = no
-        ridges = flat bright image).
-    smoothness : float
-        Weight of the coupling between neighbouring nodes, relative to the median data weight.
-    refine_iterations, solver_sweeps : int
-        Gauss-Newton iterations per pyramid level, and over-relaxed (SOR) sweeps of the coupled system per
-        iteration.
-    sor_omega : float
-        Over-relaxation factor of those sweeps, in (0, 2); 1 is Gauss-Seidel.
-    prior_refits : int
-        Per Gauss-Newton iteration, how many times the affine prior is re-fitted to the field and the coupled
-        system re-solved (``solver_sweeps`` each). Along the ridges the data barely constrain the field, so
-        there it follows the prior: with a single fit per iteration a wrong start in uniform strain (e.g.
-        0.2 % along the ridges after ECC) persists.
-    max_residual_ratio : float
-        A node whose registration residual exceeds this multiple of the median is flagged invalid...
-    residual_floor : float
-        ...unless its residual is at most this (mean absolute grey-level difference over the window, in the
-        locally normalised image, whose standard deviation is 40): a noise-free image pair (a synthetic speckle,
-        a rendered scene) registers to a median residual near 0, and the ratio alone then flagged exact nodes (a
-        third of those of a speckle shifted by one pixel, at any window). The rig's frames give a median of
-        about 3, so the floor never acts there; a node that registered wrongly leaves tens.
-    clg_levels : int
-        Pyramid levels above full resolution on which the coupled registration also runs, coarse to fine, after
-        the affine start (0: full resolution only, enough after the affine start on the seed's scenes).
-    normalize_sigma_mm : float or None
-        Local contrast normalisation scale (see :func:`skinstretch.processing.displacement_refinement.local_normalize`).
-    adaptive : bool
-        Adaptive regularization: the membrane is weakened where the images ask for more detail than it lets
-        through (a slip front, a short-period pattern), across the level lines of that detail and not along
-        them, see :meth:`DenseFlow._adapt`.
-    local_prior : bool
-        The membrane ties a pair's field to the affine plus the field's own deviation from it smoothed over about
-        half a window, so that it smooths noise without pulling a smoothly curved field (a fingertip turning, its
-        sides lagging) towards the affine (:func:`_local_prior`). False: to the affine alone. The analysis turns it
-        off over a ridge or valley (glass shading removed), where the freer coupling lets what is left of the
-        glass-fixed shading into the field.
-    texture_gate : bool
-        Refuse frames without fingerprint texture in contact (:mod:`skinstretch.processing.texture_gate`). False
-        for images of other textures (a DIC speckle, ``skinstretch flow`` by default).
-    refine_spans : bool
-        A longer span (the 11-frame strain) is the composition of the consecutive fields refined by registering
-        its own two frames (:class:`SpanRefiner`, on a flat surface). False: the composition alone, about twice as
-        fast on a flat surface, but a slip front's 11-frame edge strain errs several times more (see
-        :meth:`DenseFlow.compute_spans`).
-    model_sigma_px : float
-        The error a window's residual does not show (px per axis), added in quadrature to each node's predicted
-        standard error (:func:`~skinstretch.processing.measurement_uncertainty.registration_check`).
+        Pyramid levels of the first registration; None: as many as keep a ridge period >= 6 px on the top level.
+    min_contrast, smoothness, sor_omega : float
+        Grey-level standard deviation of a node in contact; coupling weight of neighbours (relative to the median
+        data weight); SOR over-relaxation factor in (0, 2).
+    refine_iterations, solver_sweeps, prior_refits : int
+        Gauss-Newton iterations per level; SOR sweeps per iteration; affine prior re-fits per iteration.
+    max_residual_ratio, residual_floor, model_sigma_px : float
+        A node whose residual exceeds this multiple of the median, and this floor (grey levels), is invalid; the
+        error a residual does not show (px per axis), added in quadrature to each node's predicted standard error.
+    clg_levels, normalize_sigma_mm : int, float or None
+        Pyramid levels on which the coupled registration also runs after the affine start (0: full resolution only);
+        local contrast normalisation scale (mm; :func:`..displacement_refinement.local_normalize`).
+    adaptive, local_prior, texture_gate, refine_spans : bool
+        Adaptive regularization (:meth:`DenseFlow._adapt`); a pair's membrane tied to the affine plus its own smoothed
+        deviation (the analysis plan turns it off over a shape); refuse frames without fingerprint texture; a longer
+        span's composed fields refined by registering its own two frames (:class:`SpanRefiner`).
     """
 
     grid_step_mm: float = Field(0.2, gt=0)
@@ -194,8 +151,7 @@ class FlowField:
         nodes (in float64), NaN outside the grid and wherever one of the four surrounding nodes is invalid."""
         h, w = int(shape[0]), int(shape[1])
         gx, gy = self.grid_x, self.grid_y
-        u = np.full((h, w), np.nan, np.float32)
-        v = np.full((h, w), np.nan, np.float32)
+        u, v = np.full((h, w), np.nan, np.float32), np.full((h, w), np.nan, np.float32)
         if gx.size < 2 or gy.size < 2:
             return u, v
         x = np.arange(w, dtype=np.float64)
@@ -837,14 +793,18 @@ class SpanRefiner:
     def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
         self.flow = flow
         self._frames = SpanFrames(frame, lambda image: flow._prepare(flow._frame([image], 0)))
+        self.seconds = 0.0  # spent in refine (the stage's share of the analysis' time)
 
     def refine(self, fields: Sequence[FlowField]) -> FlowField:
         """The span from ``fields[0].frame_a`` to ``fields[-1].frame_b`` (consecutive fields, in order)."""
         if not fields:
             raise InvalidInputError("a span needs at least one field")
+        t0 = time.perf_counter()
         k0, k1 = int(fields[0].frame_a), int(fields[-1].frame_b)
         prev, curr = self._frames.pair(k0, k1)
-        return self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        out = self.flow._register(prev, curr, k0, k1, None, compose_fields(fields))
+        self.seconds += time.perf_counter() - t0
+        return out
 
 
 class ReferenceRefiner(SpanRefiner):

@@ -9,11 +9,12 @@ solvers do not take the per-node 2x2 blocks without assembling a sparse matrix p
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from skinstretch.processing.jit import njit
 
-@numba.njit(cache=True, nogil=True)
+
+@njit(nogil=True)
 def warp_maps(field, gx0, gy0, step_x, step_y, h, w):
     """Remap coordinates (x + u, y + v) of every pixel, (u, v) bilinear between grid nodes, constant beyond."""
     gyn, gxn = field.shape[0], field.shape[1]
@@ -43,7 +44,7 @@ def warp_maps(field, gx0, gy0, step_x, step_y, h, w):
     return mx, my
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def window_moments(s, d, rows, cols, half):
     """Window sums at nodes (rows x cols, window 2 half + 1) of Ix^2, IxIy, Iy^2, IxIt, IyIt, with (Ix, Iy) the
     3x3 Sobel gradient of ``s / 2`` (scaled to grey levels per pixel) and It = ``d``; returns (5, rows, cols).
@@ -88,7 +89,7 @@ def window_moments(s, d, rows, cols, half):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _relax_node(u, i, j, ax, ay, c, px, py, omega):
     """One node's over-relaxed update: solve ``[[ax, c], [c, ay]] x = (px, py)`` and move ``u[i, j]`` by
     ``omega`` towards it."""
@@ -112,7 +113,7 @@ def sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
     return sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam_map, lam_map, none, none, sweeps, omega)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, sweeps, omega):
     """:func:`sor` with a membrane weight per node and edge direction, for an anisotropic membrane: the weights of
     a node's edges along x (``wx``), along y (``wy``) and along the diagonals (``wd1``: to (i + 1, j + 1) and

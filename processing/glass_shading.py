@@ -64,32 +64,19 @@ def glass_shading(
 
     Parameters
     ----------
-    frames : sequence of (H, W) uint8 arrays, or an (N, H, W) uint8 array
-        The whole sequence.
-    use : sequence of int, optional
-        The frames to take the statistics from (at least 2; default all), e.g. without all-black or saturated ones.
+    frames, use : sequence of (H, W) uint8 arrays or an (N, H, W) uint8 array; sequence of int, optional
+        The whole sequence; the frames to take the statistics from (at least 2; default all).
     smooth_px : float or (float, float)
-        Gaussian smoothing (standard deviation, px; one value or (along x, along y)) of the mean and standard
-        deviation maps: it removes what is left of the texture in them. The shading of a ridge or a valley varies
-        only across the shape, i.e. along the sliding direction, so it can be smoothed much more along the shape:
-        on valleyL (sliding along y) ``(8, 1.5)`` keeps the profile correlation of ``1.5`` and halves the damage
-        to the 11-frame edge strain of flatL.
+        Gaussian smoothing (px; one value or (along x, along y)) of the mean and standard deviation maps.
     along_shape_px : float, optional
-        Find the shape's direction from the sequence mean instead and smooth along it by this much, across it by
-        ``smooth_px`` (a single value then). The shape's axis is the image axis whose profile (the mean of each
-        row, or of each column) holds more of the sequence mean's variance: the shading of a ruled surface is a
-        function of the across-shape coordinate, while what the clip left of the print averages out over a whole
-        row or column. (Gradients of the blurred mean picked the wrong axis on 8-30 frames of a real print whose
-        ridges run along the slide: the ghost of those ridges outweighed the band; the profiles kept a margin of
-        6x or more on every clip tried, 4 shapes, 6 prints, 8-60 frames, both orientations.)
+        Smooth along the shape by this much (across it by ``smooth_px``); the shape's axis is the image axis whose
+        profile holds more of the sequence mean's variance.
     level, contrast : float
         Output grey level of the glass-fixed mean and output contrast of one standard deviation.
     floor_fraction : float
-        The standard deviation is floored at this fraction of its 90th percentile, so that pixels the skin never
-        covered (the glass around the finger) stay flat instead of amplifying sensor noise.
+        The standard deviation is floored at this fraction of its 90th percentile (glass the skin never covered).
     min_motion_ratio : float
-        Smallest accepted ratio of the median temporal standard deviation to the median spatial contrast of the
-        texture (local standard deviation) inside the skin.
+        Smallest accepted ratio of the median temporal standard deviation to the median spatial contrast in the skin.
 
     Raises
     ------

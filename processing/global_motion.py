@@ -18,11 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
 
 
 @dataclass(frozen=True)
@@ -159,7 +159,7 @@ def local_gradients(points: np.ndarray, displacements: np.ndarray, *, neighbours
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _knn_median(points, matched_points, matched_displacements, k):
     """Per point, the median (per axis, as np.median) of the displacements of its k nearest matched points.
     The matched points are scanned outward in x from the point's own x, stopping once the x gap alone exceeds

@@ -270,35 +270,24 @@ def fit_grid_mapping(
     ----------
     views : sequence of (ij (K, 2) int, xy (K, 2) float)
         Lattice indices and detected centres (px) of each image's dots; unindexed dots must be left out.
-    image_shape : (H, W)
-        Image size.
-    surface : {"auto", "flat", "ridge", "valley"}
-        Surface model; "auto" guesses it from the spacing of the rows and keeps the best fit.
-    spacing_mm : float
-        Dot pitch of the grid.
-    working_distance_mm : float
-        Nominal camera distance (starting point only).
+    image_shape, surface : (H, W), {"auto", "flat", "ridge", "valley"}
+        Image size; surface model ("auto" guesses it from the spacing of the rows and keeps the best fit).
+    spacing_mm, working_distance_mm : float
+        Dot pitch of the grid; nominal camera distance (starting point only).
     shape_height_mm, shape_width_mm : float
         Nominal size of a ridge or valley (starting point only; width = 4 sigma).
-    max_rms_px : float
-        A fit whose RMS residual exceeds this raises CalibrationError.
-    min_dots : int
-        Fewer indexed dots (all images together) raise CalibrationError.
+    max_rms_px, min_dots : float, int
+        A fit whose RMS residual exceeds this, or fewer indexed dots (all images), raise CalibrationError.
     outlier_px : float
         Dots whose residual exceeds max(outlier_px, 5 x robust sigma) after the robust fit are dropped.
     dot_diameter_mm : float or None
-        Dot diameter; the offset between a dot's image centroid and the image of its centre is then predicted with
-        the fitted rig and removed (None: detected centroids are taken as the dot centres).
+        Dot diameter: the offset of a dot's image centroid from its centre's image is predicted and removed.
     spline_profile : bool
-        When the Gaussian profile leaves systematic residuals (median above ``SPLINE_TRIGGER_PX``), add a smooth
-        cubic-spline correction to the ridge or valley profile.
+        A cubic-spline correction of the ridge or valley profile when the Gaussian leaves systematic residuals.
     n_detected : int, optional
         Number of dots detected (for the report only).
 
-    Returns
-    -------
-    mapping : GridMapping
-    report : CalibrationReport
+    Returns ``mapping`` (GridMapping) and ``report`` (CalibrationReport).
     """
     if surface not in ("auto",) + SURFACE_KINDS:
         raise InvalidInputError(f"surface must be 'auto' or one of {SURFACE_KINDS}, got {surface!r}")

@@ -14,6 +14,7 @@ the compiled functions it calls from other files, which numba's own key leaves o
 from __future__ import annotations
 
 import hashlib
+import logging
 import warnings
 
 import numba
@@ -24,7 +25,9 @@ try:  # numba's internal cache class; without it (another numba layout) plain ca
 except ImportError:  # pragma: no cover - depends on the installed numba
     FunctionCache = Dispatcher = None
 
-__all__ = ["njit"]
+__all__ = ["njit", "announce_compilation"]
+
+log = logging.getLogger(__name__)
 
 
 def _callee_fingerprint(py_func) -> str:
@@ -121,3 +124,36 @@ def njit(*args, cache: bool = True, **options):
             return decorate(args[0])
         raise TypeError("njit takes the function alone or keyword options only")
     return decorate
+
+
+class _FirstCompilation(numba.core.event.Listener):
+    """Logs one line at the first kernel numba compiles in this process (not at one it loads from its cache)."""
+
+    def __init__(self) -> None:
+        self.said = False
+
+    def on_start(self, event) -> None:
+        if not self.said:
+            self.said = True
+            name = getattr(getattr(event.data.get("dispatcher"), "py_func", None), "__qualname__", "a kernel")
+            log.warning("compiling the analysis' kernels (numba, starting with %s): this run is slower; `./run` "
+                        "compiles them at set-up and later runs load them from the cache", name)
+
+    def on_end(self, event) -> None:
+        pass
+
+
+_listener: _FirstCompilation | None = None
+
+
+def announce_compilation() -> None:
+    """From now on, say in one log line when this process compiles a kernel at run time (its disk cache missed:
+    an install or an edit since ``./run`` set things up; ``python -m skinstretch.experiments.compile_kernels``).
+    Idempotent."""
+    global _listener
+    if _listener is None:
+        _listener = _FirstCompilation()
+        numba.core.event.install_listener("numba:compile", _listener)
+
+
+announce_compilation()  # every kernel's module imports this one: a compilation anywhere is announced

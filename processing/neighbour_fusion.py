@@ -21,11 +21,11 @@ weights is not in scipy or scikit-image.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
 
 #: Weight of a point's gradient mismatch (its own window's displacement gradient against its neighbours' affine)
 #: in the model term, times the neighbours' typical squared distance. It loosens the pull where the skin does not
@@ -93,7 +93,7 @@ def fuse_with_neighbours(
                         float(model_sigma_px) ** 2, int(min_neighbours))
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _neighbour_weight(points, cov, i, j, sigma, model_var):
     """Neighbour j of point i: its offset (ox, oy), distance weight wt, and weight matrix (w00, w01, w11), the
     inverse of its covariance plus the model term times wt; wt = 0 where that covariance is not positive."""
@@ -107,7 +107,7 @@ def _neighbour_weight(points, cov, i, j, sigma, model_var):
     return ox, oy, wt, wt * c / det, -wt * b / det, wt * a / det
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _fuse_kernel(points, disp, cov, grad, usable, indptr, indices, sigma, model_var, min_neighbours):
     n = points.shape[0]
     out = disp.copy()

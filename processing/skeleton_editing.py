@@ -6,33 +6,17 @@ chain of them, as the extraction does. The public functions take and return a
 
 - :func:`remove_short_valleys` (4.8.1): a valley bounded by two endings and shorter than ~0.2 mm is a pore.
 - :func:`heal_broken_valleys` (4.8.2): join facing endings closer than ~0.6 mm, best confidence (eq. 4.4) first;
-  given the image (:class:`GapEvidence`), never across a ridge (below).
+  given the image (:class:`GapEvidence`), never across a ridge: a gap whose line crosses more than
+  ``max_ridge_px`` of skin as dark as the ridges around is left open.
 - :func:`remove_short_spurs` (4.8.3): a short branch roughly perpendicular to its valley is deleted (a pore is
   left at its tip when it was long enough to be one).
 - :func:`remove_bridges` (4.8.4): a short valley between two bifurcations, roughly perpendicular to both valleys,
   is a pore joining two valleys.
 
-Beyond the seed, given the ridge flow (:mod:`skinstretch.processing.ridge_flow`), a spur or bridge is judged by the
-direction of the ridges around it instead of the valleys at its node, which the same pore (or a minutia nearby)
-bends: it is a pore's when it crosses the ridges more than it follows them (within 45 degrees of their normal). A
-true valley ending near a fork, or the stretch of valley between two facing ridge endings, runs along the ridges
-and stays (flatL bifurcation recall 0.91 -> 0.98 on 20 seeds of 12 frames); a stub of one or two pixels goes
-whatever its direction, and the spur rule repeats until nothing changes.
-
-Also beyond the seed, given the background (where the skin is out of contact, seed 4.3): a branch that ends at it
-is a valley that leaves the contact, its length cut by the contact's edge, not a spur; it stays, and so does its
-fork (a ridge that ends at the fork and fades out of contact before the edge leaves the fork's third valley only
-a few pixels long in the image). Its own ending, at the edge, goes with the border rule (4.8.6). Likewise a valley
-between two forks that runs along the background joins valleys round a ridge that has left the contact, not
-across a pore: it is no bridge.
-
-Also beyond the seed, given the image around the skeleton (:class:`GapEvidence`), healing asks the image whether
-the gap is a break of the valley or a ridge: two valleys that really end facing each other (the print's ridges
-join between them) are separated by skin as dark as the ridges around, whereas a valley broken by noise, a speck
-or a weak spot of contact is only a little darker than the threshold there. A gap whose straight line crosses more
-than ``max_ridge_px`` of skin in the darkest quarter of the local ridge-to-valley range is left open (flatL seed
-7011: two true endings 0.5 mm apart across a ridge were joined in most of 12 frames; no gap of the simulated prints
-needs healing).
+Beyond the seed: given the ridge flow, a spur or bridge is a pore's when it crosses the ridges more than it
+follows them (within 45 degrees of their normal); a stub of one or two pixels goes whatever its direction. Given
+the background, a branch that ends at it (a valley leaving the contact) is no spur, and a valley between two forks
+that runs along it is no bridge. The evidence: docs/tuning-log.md.
 
 All lengths here are pixels: :mod:`skinstretch.processing.extraction` converts the seed's millimetres once.
 The results depend on the order of the loops, which is part of the rules: edges and nodes in id order, a pass

@@ -4,6 +4,7 @@ the predicted standard error of a sample's points (:class:`SampleUncertainty`)."
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -69,6 +70,7 @@ class SpanRegistration:
                  frames: SpanFrames | None = None) -> None:
         self.refiner = refiner
         self._frames = frames if frames is not None else SpanFrames(frame, refiner.prepare)
+        self.seconds = 0.0  # spent in refine and refine_all (the stage's share of the analysis' time)
 
     def refine(self, sample: MotionSample) -> MotionSample:
         """``sample`` (chained, ``frame_b`` > ``frame_a`` + 1) with each point's displacement the chained one and
@@ -76,11 +78,21 @@ class SpanRegistration:
         curved)."""
         if len(sample) == 0:
             return sample
-        return self._registered(sample, self._frames.pair(int(sample.frame_a), int(sample.frame_b)))
+        t0 = time.perf_counter()
+        out = self._registered(sample, self._frames.pair(int(sample.frame_a), int(sample.frame_b)))
+        self.seconds += time.perf_counter() - t0
+        return out
 
     def refine_all(self, samples: Sequence[MotionSample], *, threads: int = 1) -> list[MotionSample]:
         """:meth:`refine` of each of ``samples`` (in increasing ``frame_a``), in order; the registrations run on
         ``threads`` threads (the kernel releases the GIL), the frames are prepared in this one."""
+        t0 = time.perf_counter()
+        try:
+            return self._refine_all(samples, threads)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _refine_all(self, samples: Sequence[MotionSample], threads: int) -> list[MotionSample]:
         pairs = [self._frames.pair(int(s.frame_a), int(s.frame_b)) if len(s) else None for s in samples]
 
         def one(sample: MotionSample, pair: tuple[Any, Any] | None) -> MotionSample:

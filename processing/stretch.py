@@ -397,24 +397,15 @@ def triangulation_strain(
     ----------
     sample : MotionSample
         Points in frame a and their displacement to frame b.
-    max_edge_px : float, optional
-        Triangles with an edge longer than this in frame a are left out (long hull slivers span regions with
-        no features between them).
-    min_area_px2 : float
-        Triangles smaller than this in frame a are degenerate and left out.
+    max_edge_px, min_area_px2 : float
+        Triangles with an edge longer than this in frame a (hull slivers), or smaller than this, are left out.
     min_quality : float
-        Slivers are left out: shape quality ``4 sqrt(3) A / (a^2 + b^2 + c^2)`` (1 equilateral, 0 flat) below
-        this. A sliver's relative area change divides by a near-zero area: a pixel of noise becomes tens of %.
+        Slivers are left out: shape quality ``4 sqrt(3) A / (a^2 + b^2 + c^2)`` (1 equilateral, 0 flat) below this.
     min_spacing_px : float
-        Points are taken in increasing ``ids`` (the oldest tracks first) and one closer than this to a point
-        already taken is left out (0: every point). An edge's strain error is the two ends' displacement error
-        over its length: two tracks a few pixels apart (two landmarks of one ridge, a landmark and a pore) would
-        give edges whose strain is mostly noise.
+        Points are taken in increasing ``ids`` (the oldest tracks first) and one closer than this to a point already
+        taken is left out (0: every point): an edge's strain error is its ends' displacement error over its length.
 
-    Raises
-    ------
-    InsufficientDataError
-        Fewer than 3 distinct points, or all of them collinear.
+    Raises InsufficientDataError for fewer than 3 distinct points, or all of them collinear.
 
     Examples
     --------

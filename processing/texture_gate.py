@@ -2,29 +2,22 @@
 
 A frame without a print in contact (camera noise, a blank or black frame, a saturated one, a print out of focus)
 must be flagged with a named reason, and no motion or strain may be measured from it: noise registers against
-noise as happily as a print against a print (20 frames of uniform noise gave the dense method 19 "ok" pairs).
+noise as happily as a print against a print.
 
 The test is physical. In FTIR a print in contact is a field of dark ridges, nearly parallel over a millimetre,
-with a period of 0.43 mm (median of 212 real prints, IQR 0.39-0.46 mm; shared FACTS). So, per block of 3.5
-ridge periods (~1.5 mm), on the frame reduced until a period spans 6-12 px:
+with a period of about 0.43 mm. So, per block of 3.5 ridge periods (~1.5 mm), on the frame reduced until a period
+spans 6-12 px:
 
 * **orientation coherence** of the ridge band (structure tensor, ``(l1 - l2) / (l1 + l2)``): ridges keep one
-  orientation over a block, band-limited isotropic noise does not: its coherence falls as one over the square
-  root of the number of independent samples in the block. Bundled scenes: 5th percentile 0.85, median 0.92;
-  400 noise frames of four kinds (white, Gaussian, smooth, speckle): 95th percentile 0.24, worst block 0.42.
-* **ridge-band energy**: a difference of Gaussians tuned to the ridge period keeps the ridge band; a print puts
-  a large share of its detail energy there (5th percentile 0.21, median 0.48), white noise about the band's
-  share of the spectrum (0.15 at the working resolution), a straight edge (contact border, shading) and an
-  out-of-focus print almost nothing (blur removes the ridge frequency first);
-* **amplitude**: the ridge band must stand above the camera's noise (FTIR ridges are tens of grey levels deep,
-  2 grey levels of camera noise leave ~0.2 in the band).
+  orientation over a block, band-limited isotropic noise does not;
+* **ridge-band energy**: a difference of Gaussians tuned to the ridge period keeps the ridge band, where a print
+  puts a large share of its detail energy; a straight edge or an out-of-focus print almost none;
+* **amplitude**: the ridge band must stand above the camera's noise.
 
 A block is *textured* when all three hold; a frame passes when its textured blocks cover at least
-``min_textured_mm2`` (about two blocks: a few ridges and pores to register; the bundled scenes have at least
-26 mm^2 textured in every frame tried, noise frames none). Otherwise the reason is ``out_of_focus`` when the
-blocks that show any structure hold most of their energy below the ridge band, else ``no_texture``. Exposure
-comes first: ``all_black`` (nothing above ``black_level``) and ``saturated`` (more than ``saturated_fraction``
-at 255), as the feature extraction defines them (seed 4 frame checks). About 0.3-0.7 ms a 640x484 frame.
+``min_textured_mm2``. Otherwise the reason is ``out_of_focus`` when the blocks that show any structure hold most
+of their energy below the ridge band, else ``no_texture``. Exposure comes first: ``all_black`` and ``saturated``,
+as the feature extraction defines them (seed 4 frame checks). The measured figures: docs/tuning-log.md.
 
 Hand-written because no library offers a fingerprint-quality measure on the seed's FTIR images (NIST NFIQ is a
 C program scoring ink prints for matching, not motion); the measures themselves are OpenCV filters.

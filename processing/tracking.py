@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numba
 import numpy as np
 from pydantic import Field
 
@@ -38,74 +37,46 @@ from skinstretch.processing.displacement_refinement import PreparedImage, Subpix
 from skinstretch.processing.neighbour_fusion import fuse_with_neighbours
 # smooth_positions stays importable from here, where it was defined before it moved
 from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
+from skinstretch.processing.jit import njit
 
 
 @parameters
 class TrackingParams:
-    """Options of feature matching and trajectory building (seed 5.1), in mm and frames.
+    """Options of feature matching and trajectory building (seed 5.1), in mm and frames (evidence: tuning log).
 
     Parameters
     ----------
-    search_radius_mm : float
-        Radius of the circular search window (seed 5.1.1: 0.3 mm "generally reasonable").
-    min_length_frames : int or None
-        Trajectories present in fewer frames are rejected (seed 5.1.2: 30). None: 30 here; the analysis uses half
-        of a clip shorter than 30 frames instead (:func:`min_length_for_clip`) and says so.
-    smoothing_radius_frames : int
-        Half-width R of the Gaussian smoothing kernel of eq. 5.3 (seed Figure 53: diameter 3 -> R = 1); 0 = none.
-    smoothing_sigma_frames : float
-        Standard deviation of that kernel (seed Figure 53: 1).
+    search_radius_mm, min_length_frames : float, int or None
+        Radius of the circular search window (mm; seed 5.1.1: 0.3 mm); trajectories shorter than this are rejected
+        (None: the seed's 30, half of a shorter clip in the analysis).
+    smoothing_radius_frames, smoothing_sigma_frames : int, float
+        Half-width R and sigma of eq. 5.3's Gaussian (seed Figure 53: R = 1, sigma 1); R = 0 (default): none.
     max_gap_frames : int
-        A feature lost for at most this many frames is re-linked to its trajectory (0 = the seed's behaviour:
-        "no attempt is made to keep track of features through discontinuities").
+        A feature lost for at most this many frames is re-linked to its trajectory (0: the seed's behaviour).
     max_local_deviation_mm : float
-        With sub-pixel refinement: a refined displacement further than this from the median of its 7 nearest
-        refined neighbours is rejected (0.008 mm = 0.5 px at 62 px/mm; frame-to-frame strain of a few % over
-        the ~0.5 mm between neighbours moves them apart by far less).
+        A refined displacement further than this (mm) from the median of its 7 nearest refined neighbours is rejected.
     max_bridge_deviation_spreads : float or None
-        With sub-pixel refinement: a step measured by registration alone (a bridged point: no feature confirms it)
-        that departs from the median of its 7 nearest neighbours' by more than this many times the frame's robust
-        spread of those departures (1.4826 x their median) ends the bridge. At a valley's bottom such a window can
-        lock onto what the glass-shading step leaves and go 0.3-0.5 px astray a frame, under the absolute bound
-        (``max_local_deviation_mm``: 0.84 px at 105 px/mm) but 6-14 spreads out, and its trajectory then drifts
-        by pixels (valleyS, 60 frames, seed 1: 11-frame edge strain 0.235 -> 0.117 %); the good bridged steps of 10
-        clips (our print and real ones; slide, stretch, slip front, ridge, valley) stayed within 8.3 spreads. None:
-        the absolute bound alone.
+        A bridged step further from its neighbours' than this many robust spreads ends the bridge (None: no bound).
     max_bridge_frames : int or None
-        With sub-pixel refinement: a tracked point whose feature is not found again is followed by registration
-        alone (bridged) for at most this many frames (None: as long as its registration holds, i.e. while it stays
-        in view and in contact and moves like its neighbours); found again within ``merge_radius_mm``, the feature
-        continues it. 0: no bridging.
+        A point whose feature is lost is followed by registration alone for at most this many frames (None: while
+        its registration holds; 0: no bridging).
     merge_radius_mm : float
-        With sub-pixel refinement: a feature this close to where the registration measured a tracked point to be
-        is that point's landmark: it confirms the point's match, or continues it when the point's own feature was
-        missed; another feature this close starts no track of its own (one skin point detected twice). 0.1 mm =
-        6 px at 62 px/mm, a quarter of a ridge period: the jitter of a detection is smaller, and distinct landmarks
-        are rarely closer.
-    fusion_radius_mm : float or None
-        With sub-pixel refinement: each refined displacement is fused with the local affine prediction of its
-        refined neighbours within this radius, each weighted by its window's covariance (the window's parallel
-        ridges leave the motion along them ill-determined: :mod:`skinstretch.processing.neighbour_fusion`). None:
-        no fusion.
-    fusion_model_sigma_mm : float
-        How far a point's true motion may depart from its neighbours' local affine in one frame (a stick-slip or
-        slip band): the neighbours' prediction is never trusted more closely (0.0002 mm = 0.012 px).
-    keyframe_interval_frames : int or None
-        With sub-pixel refinement, in the analysis: every this many frames each trajectory is registered directly
-        from a reference key frame and its chained drift corrected (:mod:`skinstretch.processing.
-        trajectory_anchoring`). None: chained positions only.
-    keyframe_reference_frames : int
-        How many frames a reference key frame serves before the key frame reached replaces it.
+        A feature this close (mm) to where registration put a tracked point is that point's landmark.
+    fusion_radius_mm, fusion_model_sigma_mm : float or None, float
+        Neighbours (mm) whose affine prediction is fused with a refined displacement (None: no fusion), and how far
+        (mm a frame) a point's motion may depart from it.
+    keyframe_interval_frames, keyframe_reference_frames : int or None, int
+        Key-frame anchoring's interval (None: chained positions only) and how many frames a reference key frame serves.
     """
 
     search_radius_mm: float = Field(0.3, gt=0)
     min_length_frames: int | None = Field(None, ge=1)
-    smoothing_radius_frames: int = Field(1, ge=0)
+    smoothing_radius_frames: int = Field(0, ge=0)
     smoothing_sigma_frames: float = Field(1.0, gt=0)
-    max_gap_frames: int = Field(0, ge=0)
+    max_gap_frames: int = Field(3, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
     max_bridge_deviation_spreads: float | None = Field(10.0, gt=0)
-    max_bridge_frames: int | None = Field(0, ge=0)
+    max_bridge_frames: int | None = Field(None, ge=0)
     merge_radius_mm: float = Field(0.1, gt=0)
     fusion_radius_mm: float | None = Field(1.5, gt=0)
     fusion_model_sigma_mm: float = Field(0.0002, gt=0)
@@ -799,7 +770,7 @@ class _Refinement:
     bridged_disp: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _chain_tracks(track, raw_x, raw_y, dx, dy, linked, n_tracks):
     """Positions as the running sum of measured displacements within each linked run, anchored to the mean of
     the run's extracted positions (equal to the extracted positions when displacements are raw differences); rows

@@ -2,38 +2,27 @@
 frame-to-frame steps, corrected.
 
 A trajectory's positions are the running sum of its frame-to-frame displacements (seed 5.1.2), and with them the
-sum of their errors: a 40-frame trajectory ends 0.09 px from the skin point it started on (flatL, seed 0), and
-where every step errs a little the same way it drifts further (in a copy compressed by a video codec, consecutive
-frames share the codec's motion-compensated coding: a ridgeL copy at H.264 crf 12 ends 0.77 px off). What digital
-image correlation does against this, incremental correlation against a reference frame that is replaced when it
-has aged, is done here at key frames: every ``interval`` frames and at the sequence's last frame (else the frames
-after the last multiple of the interval keep their chained drift), each point of a linked run is registered directly
-from its reference key frame (:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.
-register_span`, started from the chained motion); the difference from the chained position is the drift,
-smoothed over neighbouring key frames (their registrations' noise) and spread linearly over the frames between.
-A reference serves for ``reference_span`` frames (then the key frame reached becomes the reference), or until a
-registration from it fails (a black or saturated frame, a window that leaves the view or the contact): then the
-key frame before, at its anchored position, serves, and the failed key frame is chained on from it.
+sum of their errors. What digital image correlation does against this, incremental correlation against a
+reference frame replaced when it has aged, is done here at key frames: every ``interval`` frames and at the
+sequence's last frame, each point of a linked run is registered directly from its reference key frame
+(:meth:`~skinstretch.processing.displacement_refinement.SubpixelRefiner.register_span`, started from the chained
+motion); the difference from the chained position is the drift, smoothed over ``smoothing`` neighbouring key
+frames (their registrations' noise) and spread linearly over the frames between. A reference serves for
+``reference_span`` frames (then the key frame reached replaces it), or until a registration from it fails: then
+the key frame before, at its anchored position, serves, and the failed key frame is chained on from it.
 
-On plain glass the corrections follow the drift closely (a line over 3 key frames). Over a ridge or valley whose
-glass-fixed shading was removed, each registration also carries what that step leaves of the glass-fixed patterns,
-and with 3 key frames real prints' strain got worse (11-frame edge strain 0.199 -> 0.219 % mean); a line over 9
-key frames, a reference's span, averages it (0.199 -> 0.191 %). Where a shape's shading stayed in (the skin slid
-too little), the registrations would follow the shading itself: chained. Measured over the clips of the ``accuracy``
-real-print table (our print with seeds 0-2 and six real prints, 60 frames; our harness, scored by that table's
-code). The four flat fields, 36 clips: drift of our print's trajectories against the truth 0.147 -> 0.083 px RMS
-(mean of 12 clips), 11-frame edge strain 0.108 -> 0.101 % mean and 0.157 -> 0.144 % worst (better on 34 clips),
-displacement 0.0314 -> 0.0309 px mean (better on every clip). The ridge and valley, 18 clips: drift 0.114 -> 0.073
-px (our print), 11-frame edge strain 0.174 -> 0.164 % mean (better on 17 clips; the 18th's shading stayed in). A
-registration that jumps from its chained guess (:data:`MAX_CORRECTION_STEP_SPREADS`) is not taken; replacing an
-outlying correction by its neighbours' median instead cost accuracy where the strain varies (stretch on print
-101_2: 0.138 -> 0.153 %).
+On plain glass the corrections follow the drift closely (a line over :data:`GLASS_SMOOTHING_KEY_FRAMES`); over a
+ridge or valley whose shading was removed each registration also carries what that step leaves of the glass-fixed
+patterns, averaged by a line over :data:`SHAPE_SMOOTHING_KEY_FRAMES`; where a shape's shading stayed in, the
+analysis plan leaves the trajectories chained. A registration that jumps from its chained guess
+(:data:`MAX_CORRECTION_STEP_SPREADS`) is not taken. The measurements behind these choices: docs/tuning-log.md.
 
 Hand-written: no library anchors feature trajectories to key frames (OpenCV's and scikit-image's trackers chain).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -149,6 +138,7 @@ class KeyframeAnchoring:
         self._rows: list[tuple[np.ndarray, int, np.ndarray]] = []  # (groups, frame, raw corrections)
         self._previous = -1
         self._final = False
+        self.seconds = 0.0  # spent in add (the stage's share of the analysis' time)
 
     def _grow(self, n: int) -> None:
         have = self._ref.size
@@ -164,6 +154,7 @@ class KeyframeAnchoring:
         """Key frame ``k``: the runs present (``group``, distinct ids >= 0) and their chained positions (n, 2) px.
         ``final``: the sequence's last frame, a key frame whatever its number (the drift after the last multiple of
         the interval is corrected too); no key frame follows it."""
+        t0 = time.perf_counter()
         k = int(k)
         if self._final or k <= self._previous or (k % self.interval and not final):
             raise InvalidInputError(f"key frames come in increasing multiples of {self.interval}, then the last "
@@ -214,6 +205,7 @@ class KeyframeAnchoring:
         live = set(self._ref[self._last == k].tolist()) | {k}
         for j in [j for j in self._prepared if j not in live]:
             del self._prepared[j]
+        self.seconds += time.perf_counter() - t0
 
     def _image(self, j: int) -> Any:
         if j not in self._prepared:

@@ -6,15 +6,15 @@ module stays under 900 lines.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from skinstretch.processing.errors import InvalidInputError
+from skinstretch.processing.jit import njit
 
 __all__ = ["smooth_positions", "smooth_track_rows"]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def smooth_track_rows(track, frame, run, pos, offsets, weights):
     """Gaussian smoothing along time within each linked run (see :func:`smooth_positions`) of rows sorted by
     frame then track (``offsets``: first row of each frame); ``weights`` are the kernel's 2R + 1 values. Each sum

@@ -8,15 +8,16 @@ image at a time (no per-point windows, no second-order warp, no statistic of the
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from skinstretch.processing.jit import njit
 
 #: The kernels below sum over windows of up to 63 x 63 pixels in any order (``reassoc``: vectorised sums, rounding
 #: differences ~1e-15 relative) and keep IEEE NaN and infinity semantics (a failed fit stays NaN, then rejected).
 FASTMATH = {"reassoc", "contract"}
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def shifted_window(b, c, r, half, dx, dy):
     """The window of side 2 half + 1 around pixel (c, r) shifted by (dx, dy), for bilinear sampling of ``b``: its
     integer offset (ix, iy), fractions (fx, fy) (the same for every pixel of the window), and whether every
@@ -28,7 +29,7 @@ def shifted_window(b, c, r, half, dx, dy):
     return ix, iy, dx - ix, dy - iy, inside
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def _bilinear(b, qx, qy):
     """``b`` at (qx, qy) by bilinear interpolation (float32 weights), for a point its callers keep inside ``b``.
     A plain call that LLVM inlines (Numba's ``inline="always"`` here kept the callers' loops from vectorising)."""
@@ -42,7 +43,7 @@ def _bilinear(b, qx, qy):
             + (b[y0 + 1, x0] * (one - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def affine_kernel(a, b, gx, gy, points, disp, half, steps):
     """Per point, the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p onto
     ``b`` (``steps`` >= 2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0; fewer when a step
@@ -184,7 +185,7 @@ _AFFINE_COEFFS = np.array([0, 1, 2, 6, 7, 8])
 _CURVATURE_COEFFS = np.array([3, 4, 5, 9, 10, 11])
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH)
+@njit(nogil=True, fastmath=FASTMATH)
 def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     """Per point, the second-order warp x -> x + d + sum_k (cx_k, cy_k) m_k(s, t) that registers the window of
     ``a`` around p onto ``b``: m = (1, s, t, s^2, s t, t^2) of the window's normalised coordinates
@@ -370,7 +371,7 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     return out, ok
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _add_row_terms(rhs, o, e0, e1, e2, t):
     """Adds a row's sums ``e0, e1, e2`` (of ``g e s^0, s^1, s^2``) to the six terms of ``rhs`` from ``o`` on, in the
     order of ``_SECOND_ORDER_TERMS`` (1, s, t, s^2, s t, t^2), ``t`` the row's coordinate."""
@@ -382,7 +383,7 @@ def _add_row_terms(rhs, o, e0, e1, e2, t):
     rhs[o + 5] += e0 * t * t
 
 
-@numba.njit(cache=True, nogil=True, fastmath=FASTMATH, inline="always")
+@njit(nogil=True, fastmath=FASTMATH, inline="always")
 def _second_order_residual_row(a, b, gx, gy, q, c, half, y, t, dx, dy, ss, ss32, out, store):
     """The residual ``e = a(x) - b(x + d + warp)`` along row ``y`` of the window around column ``c`` (bilinear;
     ``t`` the row's normalised coordinate, ``ss`` the columns', ``ss32`` the same in float32), for

@@ -105,8 +105,9 @@ def ridge_session():
     return scene.render_session("ridgeL", n_frames=40, seed=1)
 
 
-def _params(kind, workers=2):
-    return analysis_params({"tracking": {"min_length_frames": 5}, "execution": {"kind": kind, "workers": workers}})
+def _params(kind, workers=2, **tracking):
+    return analysis_params({"tracking": {"min_length_frames": 5, **tracking},
+                            "execution": {"kind": kind, "workers": workers}})
 
 
 def _assert_same_results(a, b):
@@ -130,8 +131,12 @@ def test_processes_threads_and_serial_give_the_same_results(ridge_session, metho
     threads = analyze_frames(s.frames, params=_params("threads", 3), **kw)
     procs = analyze_frames(s.frames, params=_params("processes", 2), **kw)
     assert serial.params["parallel"].startswith("serial: 1 chunk")
-    assert threads.params["parallel"].startswith("threads (3): 3 chunks")
-    assert procs.params["parallel"].startswith("processes (2): 2 chunks")
+    if method == "features":  # points bridged without end (the default): the workers extract, this process tracks
+        assert threads.params["parallel"].startswith("threads (3): features extracted in 2 chunks, tracked in this")
+        assert procs.params["parallel"].startswith("processes (2): features extracted in 2 chunks, tracked in this")
+    else:
+        assert threads.params["parallel"].startswith("threads (3): 3 chunks")
+        assert procs.params["parallel"].startswith("processes (2): 2 chunks")
     if method == "features":
         _assert_same_results(procs, serial)
         _assert_same_results(threads, serial)
@@ -140,12 +145,21 @@ def test_processes_threads_and_serial_give_the_same_results(ridge_session, metho
         np.testing.assert_array_equal(threads.motion, serial.motion)
 
 
+def test_chunks_tracked_apart_join_when_bridging_is_bounded(ridge_session):
+    s = ridge_session
+    kw = dict(calibration=s.calibration, surface="ridge")
+    serial = analyze_frames(s.frames, params=_params("serial", max_bridge_frames=2), **kw)
+    threads = analyze_frames(s.frames, params=_params("threads", 3, max_bridge_frames=2), **kw)
+    assert threads.params["parallel"].startswith("threads (3): 3 chunks")
+    _assert_same_results(threads, serial)
+
+
 def test_a_join_that_disagrees_is_tracked_here_with_the_same_result(ridge_session, monkeypatch):
     s = ridge_session
     kw = dict(calibration=s.calibration, surface="ridge")
-    serial = analyze_frames(s.frames, params=_params("serial"), **kw)
+    serial = analyze_frames(s.frames, params=_params("serial", max_bridge_frames=2), **kw)
     monkeypatch.setattr(FeatureTracker, "continue_with", lambda self, other, overlap: False)
-    threads = analyze_frames(s.frames, params=_params("threads"), **kw)
+    threads = analyze_frames(s.frames, params=_params("threads", max_bridge_frames=2), **kw)
     assert "1 re-tracked" in threads.params["parallel"]
     _assert_same_results(threads, serial)
 

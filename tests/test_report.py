@@ -56,6 +56,9 @@ def test_report_of_an_analysis_output_has_units_and_the_viewer_command(analysed)
     for n in notes:
         assert _text(f"<li>{html_escape(n)}</li>").strip() in text
     assert "Analysis notes" in text
+    # the plan it executed, with the parameter it did not apply as asked (no key frames over shading left in)
+    assert "Analysis plan" in text and "key-frame anchoring off" in text
+    assert "override: tracking.keyframe_interval_frames asked 5, used None" in text
 
 
 def test_report_of_a_session_file_without_analysis(analysed, tmp_path):

@@ -82,7 +82,7 @@ def test_gap_relinking_keeps_identity():
     tables, truth = moving_features(12, n=20, step=(3.0, 0.0), seed=4)
     tables[5] = tables[5][:10]  # half the features vanish for one frame
     base = dict(min_length_frames=1, smoothing_radius_frames=0)
-    seed_tr = FeatureTracker(calibration=CAL, params=TrackingParams(**base))
+    seed_tr = FeatureTracker(calibration=CAL, params=TrackingParams(max_gap_frames=0, **base))  # the seed: no re-linking
     robust_tr = FeatureTracker(calibration=CAL, params=TrackingParams(max_gap_frames=2, **base))
     for t in tables:
         seed_tr.add_frame(t)
@@ -121,7 +121,7 @@ def test_smoothing_is_normalised_and_keeps_lines():
 def test_minimum_length_filter():
     tables, _ = moving_features(20, n=10, step=(1.0, 0.0), seed=6)
     tables[10] = tables[10][:5]  # five features lost mid-way: their tracks are split in two of 10 frames
-    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=15))
+    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=15, max_gap_frames=0))
     for t in tables:
         tracker.add_frame(t)
     assert tracker.finish().dense().n_tracks == 5

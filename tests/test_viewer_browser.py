@@ -146,6 +146,11 @@ def test_viewer_loads_steps_toggles_and_reads_out(page, served, record_property,
     page.wait_for_function(
         "S.span === 20 && document.getElementById('notes').textContent.includes('no strain over 20')")
     assert "the 20-frame session has no pair that far apart" in page.locator("#notes").inner_text()
+    # The analysis plan is one click away: collapsed, then its rows.
+    plan = page.locator("#analysis-plan")
+    assert plan.is_visible() and not page.locator("#analysis-plan table").is_visible()
+    page.click("#analysis-plan summary")
+    assert "key-frame anchoring" in page.locator("#analysis-plan table").inner_text()
     page.select_option("#span", "1")
     page.wait_for_function("S.span === 1")
     page.screenshot(path=str(tmp_path / "viewer.png"))

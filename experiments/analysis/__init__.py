@@ -3,6 +3,7 @@
 Read it in this order:
 
 * :mod:`.parameters` — one frozen pydantic model per stage, gathered in :class:`AnalysisParams`;
+* :mod:`.plan` — what the surface and the clip change, resolved once into a frozen :class:`AnalysisPlan`;
 * :mod:`.executor` — the one way it runs in parallel (processes, threads or serial), chosen once per run;
 * :mod:`.frames` — frames streamed from a session file (or held by the caller), glass-fixed shading removed;
 * :mod:`.measure` — motion between consecutive frames, chunk by chunk on the executor;
@@ -17,8 +18,9 @@ from skinstretch.experiments.analysis.parameters import (
     METHODS, AnalysisParams, ExecutionParams, GlassShadingParams, StrainParams, analysis_params,
 )
 from skinstretch.experiments.analysis.pipeline import analyze, analyze_frames, analyze_session, surface_kind
+from skinstretch.experiments.analysis.plan import AnalysisPlan, plan_analysis
 
 __all__ = [
     "AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params",
-    "make_executor", "analyze", "analyze_frames", "analyze_session", "surface_kind",
+    "make_executor", "analyze", "analyze_frames", "analyze_session", "surface_kind", "AnalysisPlan", "plan_analysis",
 ]

@@ -2,30 +2,21 @@
 fraction of the features that stay in view kept as trajectories, and the size of the strain mesh.
 
 Fraction kept (one definition, :func:`fraction_kept`, for the analysis' report and for ``skinstretch evaluate`` /
-the accuracy bench):
-
-    of the features found in a frame whose skin point stays in view for the window (at least the minimum
-    trajectory length, in consecutive frames around that frame), the fraction that belongs to a kept trajectory.
-
-A feature whose skin point leaves the view (the image, the contact) before the window is full could not make a kept
-trajectory and does not count; one that stays and is not kept (a short track, a second detection of one skin
-point) counts against. Where the skin point goes is what differs between the two users:
+the accuracy bench): of the features found in a frame whose skin point stays in view for the window (at least the
+minimum trajectory length, in consecutive frames around that frame), the fraction that belongs to a kept
+trajectory. A feature whose skin point leaves the view before the window is full does not count; one that stays
+and is not kept (a short track, a second detection of one skin point) counts against. Where the skin point goes:
 
 * the analysis (:func:`mesh_density`, no truth) follows it through the motion it measured (the median displacement
-  of the nearest measured points, pair after pair) and calls it in view where the frame's features are: inside
-  their Delaunay triangulation (triangles with an edge longer than the strain's ``max_edge_mm`` left out). A
-  feature of a kept trajectory was itself measured for the window: it stays in view and only the others are
-  followed.
+  of the nearest measured points, pair after pair) and calls it in view inside the frame's features' Delaunay
+  triangulation (edges longer than the strain's ``max_edge_mm`` left out);
 * ``skinstretch evaluate`` (:func:`skinstretch.experiments.evaluation.trajectories.evaluate_trajectories`) follows
-  it through the simulator's exact field and calls it in view where feature recall is scored: in contact and at
-  least 0.3 mm from the image edge and the true contact edge.
+  it through the simulator's exact field, in view where feature recall is scored.
 
-A mesh too sparse to map strain is said, in the summary (``too_sparse`` and ``warning``) and in the log, never left
-to be discovered in an empty strain map. It is too sparse when fewer than half of the consecutive frame pairs give
-a strain triangulation, when fewer than :data:`MIN_POINTS_PER_PAIR` points are measured in a typical pair, or when
-the mean edge of the consecutive pairs' triangulations is longer than :data:`MAX_MEAN_EDGE_MM` (the STReSS
-display's contactors are 1 mm apart: a mesh much coarser than that maps nothing under most of them). A fraction
-kept under :data:`MIN_FRACTION_KEPT` is warned about too.
+A mesh too sparse to map strain is said, in the summary (``too_sparse`` and ``warning``) and in the log: fewer
+than half of the consecutive pairs give a strain triangulation, fewer than :data:`MIN_POINTS_PER_PAIR` points in a
+typical pair, or a mean edge longer than :data:`MAX_MEAN_EDGE_MM` (the STReSS display's contactors are 1 mm
+apart). A fraction kept under :data:`MIN_FRACTION_KEPT` is warned about too.
 
 Everything is read from the results file as it is being written, a frame or a block of rows at a time.
 Hand-written: following points through a measured motion and testing them against a triangulated region is

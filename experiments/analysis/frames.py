@@ -164,10 +164,10 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
     saturated: extraction flags them), one more takes the statistics."""
     from skinstretch.processing.extraction import frame_flags  # noqa: PLC0415
     from skinstretch.processing.glass_shading import glass_shading  # noqa: PLC0415
+    from skinstretch.experiments.analysis.plan import shading_min_motion, wants_glass_shading  # noqa: PLC0415
 
     gs = params.glass_shading
-    use = gs.enabled if gs.enabled is not None else surface not in (None, "", "flat")
-    if not use:
+    if not wants_glass_shading(gs, surface):
         return None, "off" if gs.enabled is False else f"off (surface {surface or 'unknown'})"
     good = np.array([not frame_flags(source[k], params.extraction) for k in range(len(source))], dtype=bool)
     try:  # InsufficientDataError: fewer than 2 usable frames, or skin that barely moved
@@ -176,19 +176,8 @@ def estimate_shading(source: FrameSource, *, calibration: Calibration, params, s
             use=np.flatnonzero(good),
             smooth_px=calibration.px(gs.smooth_mm),
             along_shape_px=calibration.px(gs.along_shape_mm),
-            min_motion_ratio=gs.min_motion_valley if surface == "valley" else gs.min_motion,
+            min_motion_ratio=shading_min_motion(gs, surface),
         )
     except InsufficientDataError as exc:
         return None, f"not applied: {exc}"
     return Shading(shading, good), f"applied (motion ratio {shading.motion_ratio:.2f})"
-
-
-def plain_glass(shading: Shading | None, surface: str | None) -> bool:
-    """Whether the skin slides on plain glass as far as the motion measurement knows: a flat (or unknown) surface
-    and no glass-fixed shading removed. Only then is a longer span of the feature method registered directly between
-    its frames and does the flow's pair registration use its local prior
-    (:class:`~skinstretch.processing.flow.FlowParams` ``local_prior``): over a ridge or valley both would follow
-    what is left of the glass-fixed patterns the skin moves through (features, seed 0: 11-frame edge strain 0.118 %
-    on ridgeL and 0.131 % on valleyL chained, 0.124 % and 0.117 % with the direct registration's mean: no clear
-    gain). The flow's span refinement works there too once the shading is removed, with the pairs' own prior."""
-    return shading is None and surface in (None, "", "flat")

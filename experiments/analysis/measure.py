@@ -44,6 +44,9 @@ log = logging.getLogger(__name__)
 MAX_CHUNK_FRAMES = 240
 #: Shorter sessions are measured in one chunk in the caller: handing frames to workers costs more than it saves.
 MIN_FRAMES = 32
+#: Frames a worker extracts in one task when this process tracks (:func:`chunks_can_join` False): short, so that
+#: tracking starts early and follows the workers closely.
+EXTRACTION_CHUNK_FRAMES = 24
 
 
 def chunk_plan(n_frames: int, *, width: int, overlap: int) -> list[tuple[int, int]]:
@@ -162,6 +165,35 @@ def track_chunk(reader: FrameReader, first: int, last: int, calibration: Calibra
 
 
 @dataclass
+class ChunkExtraction:
+    """One chunk's features and flags, extracted in a worker (tracked by the caller), and its seconds."""
+
+    first: int
+    tables: list
+    flags: list
+    seconds: float
+
+
+def extract_chunk(reader: FrameReader, first: int, last: int, calibration: Calibration, params) -> ChunkExtraction:
+    """Extract the features of frames ``first..last`` as recorded (runs in a worker)."""
+    extractor = make_extractor(calibration, params)
+    tables, flags = [], []
+    t0 = time.perf_counter()
+    for k in range(first, last + 1):
+        res = extractor.extract(reader.pair(k)[0], frame_index=k)
+        tables.append(res.features if res.ok else res.features[:0])
+        flags.append(",".join(sorted(res.flags)))
+    return ChunkExtraction(first, tables, flags, time.perf_counter() - t0)
+
+
+def chunks_can_join(params) -> bool:
+    """Whether chunks tracked apart can be joined (:meth:`FeatureTracker.continue_with`): not when a point may be
+    followed by registration alone without end (``max_bridge_frames`` None with a refiner, the analysis' default),
+    which outlives any overlap, so that nearly every join is refused and its frames tracked again."""
+    return params.subpixel is None or params.tracking.max_bridge_frames is not None
+
+
+@dataclass
 class FeatureMeasurement:
     """Seconds per stage, and how the measurement ran."""
 
@@ -190,6 +222,10 @@ def measure_features(
     width = executor_width(executor)
     plan = chunk_plan(n_frames, width=width, overlap=overlap)
     here = len(plan) == 1
+    if not here and not chunks_can_join(params):
+        return _extract_apart_track_here(reader, n_frames=n_frames, calibration=calibration, params=params,
+                                         executor=executor, on_frames=on_frames, on_tracked=on_tracked,
+                                         progress=progress)
     run_on = InlineExecutor() if here else executor
     tasks = [(track_chunk, (reader.part(a, b) if not here else reader, a, b, calibration, params)) for a, b in plan]
     tracker = None
@@ -219,6 +255,37 @@ def measure_features(
         bar.close()
     how = "serial" if here else describe_executor(executor)
     parallel = f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}, {retracked} re-tracked at their join"
+    return FeatureMeasurement(timing, parallel)
+
+
+def _extract_apart_track_here(reader: FrameReader, *, n_frames: int, calibration: Calibration, params,
+                              executor: Executor, on_frames, on_tracked, progress: bool) -> FeatureMeasurement:
+    """:func:`measure_features` where chunks tracked apart could not be joined (:func:`chunks_can_join`): the
+    workers extract short chunks ahead while this process tracks every frame in order, as one sequential tracker
+    (what a refused join falls back to, without tracking those frames twice)."""
+    width = executor_width(executor)
+    plan = [(a, min(a + EXTRACTION_CHUNK_FRAMES, n_frames) - 1) for a in range(0, n_frames, EXTRACTION_CHUNK_FRAMES)]
+    tasks = [(extract_chunk, (reader.part(a, b), a, b, calibration, params)) for a, b in plan]
+    tracker = make_tracker(calibration, params)
+    timing = {"extraction_s": 0.0, "image_prep_s": 0.0, "tracking_s": 0.0}
+    bar = progress_bar(n_frames, enabled=progress, desc="features")
+    try:
+        for j, r in _in_order(executor, tasks, ahead=2 * width + 1):
+            timing["extraction_s"] += r.seconds
+            for k, feats in enumerate(r.tables, start=r.first):
+                t0 = time.perf_counter()
+                prepared = tracker.prepare_image(reader(k))
+                t1 = time.perf_counter()
+                tracker.add_frame(feats, prepared=prepared)
+                timing["image_prep_s"] += t1 - t0
+                timing["tracking_s"] += time.perf_counter() - t1
+            on_frames(r.first, r.tables, r.flags)
+            bar.update(len(r.tables))
+            on_tracked(tracker.take_frames(last=j == len(plan) - 1))
+    finally:
+        bar.close()
+    parallel = (f"{describe_executor(executor)}: features extracted in {len(plan)} chunks, tracked in this process "
+                "(points bridged without end: chunks tracked apart could not be joined)")
     return FeatureMeasurement(timing, parallel)
 
 

@@ -2,31 +2,27 @@
 
 Each stage keeps its own model: extraction, tracking, sub-pixel refinement, flow and display mapping are the
 processing layer's parameter classes (:mod:`skinstretch.processing.parameters`); strain/profile, glass shading and
-execution are defined here. Unknown fields and out-of-range values are refused where the parameters enter: on the
-command line, in a protocol's ``analysis.options`` when the protocol loads (with file, line and field), or when a
-Python user builds them. Everything is in mm, degrees, frames and grey levels; the analysis converts to pixels once.
+execution are defined here. These models are the one validation: unknown fields and out-of-range values are
+refused where the parameters enter (the command line and a protocol's ``analysis.options`` delegate to them, the
+latter with file, line and field), and a stage's own defaults are the analysis' defaults. Everything is in mm,
+degrees, frames and grey levels; the analysis converts to pixels once.
 """
 
 from __future__ import annotations
 
-import logging
-from dataclasses import fields, is_dataclass, replace
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from skinstretch.processing.display_mapping import DisplayMappingParams
 from skinstretch.processing.displacement_refinement import SubpixelParams
-from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
+from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.extraction import ExtractionParams
 from skinstretch.processing.flow import FlowParams
 from skinstretch.processing.parameters import describe_validation_error
-from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, TrackingParams, min_length_for_clip
+from skinstretch.processing.tracking import TrackingParams
 
-__all__ = ["AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params",
-           "for_clip", "clip_notes"]
-
-log = logging.getLogger(__name__)
+__all__ = ["AnalysisParams", "StrainParams", "GlassShadingParams", "ExecutionParams", "METHODS", "analysis_params"]
 
 METHODS = ("features", "flow")
 
@@ -67,20 +63,11 @@ class GlassShadingParams(_Stage):
     (:mod:`skinstretch.processing.glass_shading`: partial contact and slope lighting over a ridge or a valley bias
     every motion estimate towards zero there).
 
-    ``enabled``: True / False, or None for "when the session's surface is not flat" (its metadata ``surface``).
-    ``smooth_mm`` smooths the per-pixel maps across the shape and ``along_shape_mm`` along it (1 mm: what a clip
-    leaves of the print in the maps is a glass-fixed ghost that pulls every step of the motion towards zero, the
-    same way each time; at 0.13 mm the 11-frame edge strain of ridge and valley scenes read 0.21-0.27 % RMS with
-    features and 0.15-0.17 % with the flow, at 1 mm 0.08-0.14 % (one clip 0.25 %) and 0.10-0.11 % (0.06-0.08 %
-    with the flow's spans refined), 11 clips, seeds 0-2; the shape's band must then lie along an image axis within a
-    degree or so: the one whose profile holds more of the clip's mean); a sequence whose skin moved less than
-    ``min_motion`` (temporal over spatial contrast) is left as it is (1.0: with the maps smoothed along the shape,
-    clips from a ratio of 1.0 gained in every case tried, ridge and valley scenes with our print and real ones, 12-60
-    frames; 1.08-1.10 is typical of 60 frames of a real print, which 1.1 left uncorrected, and a valley's profile
-    then comes out reversed; between 0.5 and 1.0 a real print's ghost cost a ridge more than its shading on some
-    clips and less on others, known gaps). Over a valley the skin leaves the glass at its bottom and the shading is
-    much the stronger: left in, it reverses the profile whatever the clip, and removing it gained on every valley
-    clip tried from a ratio of 0.43 (12 frames) up, so there the gate is ``min_motion_valley``.
+    ``enabled``: True / False, or None for "when the session's surface is not flat" (resolved by the analysis plan).
+    ``smooth_mm`` smooths the per-pixel maps across the shape and ``along_shape_mm`` along it (the shape's band must
+    then lie along an image axis within a degree or so); a sequence whose skin moved less than ``min_motion``
+    (temporal over spatial contrast) is left as it is, and over a valley less than ``min_motion_valley`` (its shading
+    is much the stronger: left in, it reverses the profile). The clips behind these values: docs/tuning-log.md.
     """
 
     enabled: bool | None = None
@@ -106,7 +93,7 @@ class AnalysisParams(_Stage):
     ``subpixel`` None leaves displacements at the extraction's accuracy."""
 
     extraction: ExtractionParams = ExtractionParams()
-    tracking: TrackingParams = TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, max_bridge_frames=None)
+    tracking: TrackingParams = TrackingParams()
     subpixel: SubpixelParams | None = SubpixelParams()
     robust_matching: bool = True
     flow: FlowParams = FlowParams()
@@ -114,20 +101,6 @@ class AnalysisParams(_Stage):
     strain: StrainParams = StrainParams()
     glass_shading: GlassShadingParams = GlassShadingParams()
     execution: ExecutionParams = ExecutionParams()
-
-    @model_validator(mode="before")
-    @classmethod
-    def _fields_given_change_the_analysis_defaults(cls, data: Any) -> Any:
-        """``{tracking: {min_length_frames: 10}}`` changes that field of the analysis' tracking defaults (not of
-        TrackingParams' own, which differ: no smoothing and re-linking over 3 frames here)."""
-        if not isinstance(data, dict):
-            return data
-        out = dict(data)
-        for name, value in data.items():
-            default = cls.model_fields[name].default if name in cls.model_fields else None
-            if isinstance(value, dict) and is_dataclass(default):
-                out[name] = {**{f.name: getattr(default, f.name) for f in fields(default)}, **value}
-        return out
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able nested dict (what the results' ``params_json`` records)."""
@@ -143,43 +116,3 @@ def analysis_params(options: dict[str, Any] | AnalysisParams | None = None, **st
         return AnalysisParams.model_validate({**dict(options or {}), **stages})
     except ValidationError as exc:
         raise InvalidInputError(describe_validation_error(exc, "analysis")) from None
-
-
-def clip_notes(params: AnalysisParams, n_frames: int, method: str) -> list[str]:
-    """What a clip of ``n_frames`` changes in the analysis asked for by ``params`` (the minimum trajectory length
-    left to its default adapts to a short clip; a strain span as long as the clip has no pair), one sentence each:
-    the analysis logs them as warnings and keeps them in its summary (``notes``), so that a short clip never gives
-    a silent empty result (the batch table repeats them)."""
-    notes = []
-    if method == "features" and params.tracking.min_length_frames is None:
-        effective = min_length_for_clip(n_frames)
-        if effective < DEFAULT_MIN_LENGTH_FRAMES:
-            notes.append(f"a {n_frames}-frame clip is shorter than the default minimum trajectory length "
-                         f"({DEFAULT_MIN_LENGTH_FRAMES} frames): trajectories of at least {effective} frames are kept "
-                         "(set --min-track to choose)")
-    too_long = [int(s) for s in params.strain.spans if int(s) >= n_frames]
-    if too_long:
-        names = ", ".join(str(s) for s in too_long)
-        notes.append(f"no strain over {names} frame{'s' if too_long != [1] else ''}: the {n_frames}-frame session "
-                     f"has no frame pair that far apart (--span up to {n_frames - 1})")
-    return notes
-
-
-def for_clip(params: AnalysisParams, n_frames: int, method: str) -> AnalysisParams:
-    """The parameters as they apply to a clip of ``n_frames``: a minimum trajectory length left to its default
-    adapts to a short clip; what changes is logged (:func:`clip_notes`; the results record the values used). One
-    the clip cannot satisfy is refused."""
-    if n_frames < 2:
-        raise InsufficientDataError(f"a session needs at least 2 frames to measure motion, got {n_frames}")
-    given = params.tracking.min_length_frames
-    if method == "features" and given is not None and given > n_frames:
-        raise InsufficientDataError(
-            f"the minimum trajectory length ({given} frames, --min-track) is longer than the {n_frames}-frame "
-            f"session: no trajectory could be kept; give at most {n_frames}"
-        )
-    for note in clip_notes(params, n_frames, method):
-        log.warning("%s", note)
-    if method != "features" or given is not None:
-        return params
-    effective = min_length_for_clip(n_frames)
-    return params.model_copy(update={"tracking": replace(params.tracking, min_length_frames=effective)})

@@ -24,7 +24,6 @@ everything else is written as soon as it is final and read back when a later ste
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -53,16 +52,10 @@ from skinstretch.experiments.analysis.frames import (
     FrameSource,
     SessionFrames,
     estimate_shading,
-    plain_glass,
 )
 from skinstretch.experiments.analysis.measure import measure_features, measure_flow
-from skinstretch.experiments.analysis.parameters import (
-    METHODS,
-    AnalysisParams,
-    analysis_params,
-    clip_notes,
-    for_clip,
-)
+from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params
+from skinstretch.experiments.analysis.plan import AnalysisPlan, plan_analysis, refuse_unfit_clip
 from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
 from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
@@ -74,16 +67,11 @@ from skinstretch.experiments.results_file import (
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file, hold_output_dir
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
-from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.span_registration import SampleUncertainty, SpanFrames, SpanRegistration
-from skinstretch.processing.trajectory_anchoring import (
-    GLASS_SMOOTHING_KEY_FRAMES,
-    SHAPE_SMOOTHING_KEY_FRAMES,
-    KeyframeAnchoring,
-)
+from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring
 from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
@@ -315,11 +303,12 @@ def analyze(
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
     (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
-    predicted standard errors then include (:func:`for_lossy_source`).
+    predicted standard errors then include (the plan's).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
-    ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) decides the
-    glass-shading step when ``params.glass_shading.enabled`` is None.
+    ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) enters the
+    :class:`~skinstretch.experiments.analysis.plan.AnalysisPlan`, resolved once before the measurement: the
+    pipeline executes the plan and makes no choice of its own.
     """
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
@@ -329,13 +318,9 @@ def analyze(
     if not isinstance(source, FrameSource):
         source = ArrayFrames(source)
     n = len(source)
+    refuse_unfit_clip(params, n, method)
     for note in source_notes:
         log.warning("%s", note)
-    notes = [*source_notes, *clip_notes(params, n, method)]
-    params = for_clip(params, n, method)
-    if lossy_source:
-        params, note = for_lossy_source(params)
-        notes += [note] if note else []
     image_shape = tuple(int(v) for v in source.shape)
     scales = PixelScales.of(calibration, params.strain)
     spans = [int(s) for s in params.strain.spans]
@@ -344,13 +329,10 @@ def analyze(
             executor = stack.enter_context(make_executor(params.execution))
         t_start = time.perf_counter()
         shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
-        if shading is None and shading_status.startswith("not applied") and surface not in (None, "", "flat"):
-            # Said out loud: over a shape the shading left in biases the motion there (known gaps, short clips).
-            reason = shading_status.removeprefix("not applied: ").removeprefix("glass shading: ").split(";")[0]
-            notes = [*notes, f"the glass-fixed shading over the {surface} was left in: {reason}. The motion across "
-                     "the shape may read too small and its strain be biased; a longer slide over the shape lets the "
-                     "analysis remove it"]
-            log.warning("%s", notes[-1])
+        plan = plan_analysis(params, method=method, n_frames=n, surface=surface, shading_removed=shading is not None,
+                             shading_status=shading_status, lossy_source=lossy_source)
+        params = plan.params
+        notes = [*source_notes, *plan.notes]
         reader = FrameReader(source, shading)
         t_shading = time.perf_counter() - t_start
         writer = stack.enter_context(ResultsWriter(results_path))
@@ -377,44 +359,38 @@ def analyze(
             m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
                                  on_frames=on_frames, on_tracked=store.add, progress=progress)
             t0 = time.perf_counter()
-            # The trajectories' chained drift is corrected at key frames (KeyframeAnchoring) on plain glass and
-            # over a ridge or valley whose shading was removed, there by a line over more key frames: each direct
-            # registration also carries what the shading step leaves of the glass-fixed patterns. A longer span is
-            # registered directly between its two frames (SpanRegistration) on plain glass only (plain_glass).
-            span_registration = None
-            on_glass = plain_glass(shading, surface)
+            # The trajectories' chained drift corrected at key frames (KeyframeAnchoring) and a longer span
+            # registered directly between its two frames (SpanRegistration), as the plan says.
+            span_registration = anchoring = None
             refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
             frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
-            if params.subpixel is not None and (on_glass or shading is not None):
-                every = params.tracking.keyframe_interval_frames
-                if every is not None:
-                    store.anchor(KeyframeAnchoring(
-                        refiner, reader, interval=every, reference_span=params.tracking.keyframe_reference_frames,
-                        smoothing=GLASS_SMOOTHING_KEY_FRAMES if on_glass else SHAPE_SMOOTHING_KEY_FRAMES))
-                if on_glass:
-                    span_registration = SpanRegistration(refiner, reader, frames=frames)
+            if plan.keyframe_smoothing_key_frames is not None:
+                anchoring = KeyframeAnchoring(
+                    refiner, reader, interval=params.tracking.keyframe_interval_frames,
+                    reference_span=params.tracking.keyframe_reference_frames,
+                    smoothing=plan.keyframe_smoothing_key_frames)
+                store.anchor(anchoring)
+            if plan.span_registration:
+                span_registration = SpanRegistration(refiner, reader, frames=frames)
             _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
                                      px_per_mm=calibration.px_per_mm, span_registration=span_registration,
                                      threads=1 if params.execution.kind == "serial" else params.execution.workers,
                                      uncertainty=SampleUncertainty(refiner, frames))
             store.close()  # its scratch file
             m.timing["tracking_s"] += time.perf_counter() - t0
+            # the stages' own shares of it (the bench's stages table)
+            m.timing["keyframes_s"] = anchoring.seconds if anchoring is not None else 0.0
+            m.timing["span_registration_s"] = span_registration.seconds if span_registration is not None else 0.0
             timing, parallel = dict(m.timing), m.parallel
         else:
             recent: deque = deque(maxlen=max(spans))
             stride = params.strain.flow_stride
             # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
-            # frames (SpanRefiner); composing alone adds up every step's smoothing bias (a slip front), and over a
-            # ridge or valley what the shading step leaves of the glass-fixed patterns, the same way at every step
-            # (ridgeL, valleyL: 11-frame edge strain 0.10-0.11 % chained, 0.07 % refined). Not over a shape whose
-            # shading could not be removed (a clip too short): the refinement would follow the shading itself
-            # (ridgeL, 24 frames: 0.142 % chained, 0.191 % refined). The pairs' local prior stays off over a
-            # shape (plain_glass): it lets what the shading step leaves into each field.
+            # frames (SpanRefiner) when the plan says so: composing alone adds up every step's smoothing bias.
             refiner = None
             reference: list = [None]  # the field from the reference frame to the newest frame (with a refiner)
-            on_glass = plain_glass(shading, surface)
-            pair_flow = params.flow if on_glass else dataclasses.replace(params.flow, local_prior=False)
-            if params.flow.refine_spans and (on_glass or shading is not None):
+            pair_flow = params.flow  # the plan's: its local prior off over a shape
+            if plan.span_refiner:
                 from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
                 refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
@@ -452,6 +428,7 @@ def analyze(
                              on_field=on_field, progress=progress)
             motion.flush()
             timing, parallel = dict(m.timing), m.parallel
+            timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
         t0 = time.perf_counter()
         strain.finish()
         if method == "features":
@@ -485,6 +462,7 @@ def analyze(
             "timing_json": json.dumps(timing),
             "params_json": json.dumps({**params.to_dict(), "glass_shading_status": shading_status,
                                        "parallel": parallel}),
+            "plan_json": json.dumps(plan.to_dict()),
             "versions_json": json.dumps(software_versions()),
             "window_json": json.dumps({"x0": d.window.x0, "y0": d.window.y0, "x1": d.window.x1, "y1": d.window.y1}
                                       if d.window is not None else {"status": d.window_status}),
@@ -492,7 +470,7 @@ def analyze(
         writer.file.attrs.update(attrs)
         summary = summarize(writer, d, strain, n_frames=n, results_path=results_path, session_path=session_path,
                             method=method, timing=timing, shading_status=shading_status, flags=flags, notes=notes,
-                            motion=motion)
+                            motion=motion, plan=plan)
         for warning in summary["warnings"][1 if summary["density"].get("too_sparse") else 0:]:
             log.warning("%s", warning)  # (the density's was logged where it was found)
         attrs["summary_json"] = json.dumps(json_safe(summary), default=json_default)
@@ -583,10 +561,12 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
 
 def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_frames: int, results_path,
               session_path: str, method: str, timing: dict, shading_status: str, flags: list[str],
-              notes: list[str] = (), motion: _MotionTable | None = None) -> dict[str, Any]:
+              notes: list[str] = (), motion: _MotionTable | None = None,
+              plan: AnalysisPlan | None = None) -> dict[str, Any]:
     """The small JSON summary written next to the results (and into them); ``notes``: what the clip's length changed
-    (:func:`~skinstretch.experiments.analysis.parameters.clip_notes`) and a shape's shading left in; ``warnings``:
-    what a user must read before trusting the numbers (self-checks failed, a large predicted error)."""
+    and a shape's shading left in (the plan's); ``plan``: the analysis plan executed
+    (:meth:`~skinstretch.experiments.analysis.plan.AnalysisPlan.to_dict`); ``warnings``: what a user must read before
+    trusting the numbers (self-checks failed, a large predicted error)."""
     f = writer.file
     out: dict[str, Any] = {
         "results": str(results_path) if results_path is not None else "(in memory)",
@@ -603,6 +583,7 @@ def summarize(writer: ResultsWriter, d: Derived, strain: _StrainTables, *, n_fra
         "min_track_frames": json.loads(str(f.attrs["params_json"]))["tracking"]["min_length_frames"]
         if method == "features" else None,
         "notes": list(notes),
+        "plan": plan.to_dict() if plan is not None else None,
     }
     if "tracks" in f:
         lengths = f["tracks"].fields("n_frames")[()]
@@ -653,22 +634,6 @@ def notes_on_source(metadata: dict) -> list[str]:
                 "Accuracy)"]
     return []
 
-
-def for_lossy_source(params: AnalysisParams) -> tuple[AnalysisParams, str]:
-    """``params`` whose predicted errors include a lossy codec's (``model_sigma_px`` of the flow and the sub-pixel
-    stages raised to :data:`LOSSY_MODEL_SIGMA_PX` where left at the default), and the note that says so ("" when the
-    user set them)."""
-    changed = {}
-    for stage in ("flow", "subpixel"):
-        p = getattr(params, stage)
-        if p is not None and p.model_sigma_px == MODEL_SIGMA_PX:
-            changed[stage] = dataclasses.replace(p, model_sigma_px=LOSSY_MODEL_SIGMA_PX)
-    if not changed:
-        return params, ""
-    return params.model_copy(update=changed), (
-        f"the predicted errors include {LOSSY_MODEL_SIGMA_PX} px per axis for the lossy compression ("
-        + ", ".join(f"{stage}.model_sigma_px" for stage in changed) + f" {LOSSY_MODEL_SIGMA_PX} instead of "
-        f"{MODEL_SIGMA_PX}; set them to choose)")
 
 
 #: The pipeline on frames in memory (a list of 2-D uint8 arrays or an (N, H, W) array): :func:`analyze`, whose

@@ -65,7 +65,8 @@ def _run(options, scenes, n_frames, n_peer_pairs, full_rows, pair_rows, notes, w
     from skinstretch.experiments.analysis import analysis_params, analyze_frames
     from skinstretch.experiments.analysis.derive import stretch_profile
     from skinstretch.experiments.analysis.executor import WorkerProcesses
-    from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading, plain_glass
+    from skinstretch.experiments.analysis.frames import ArrayFrames, FrameReader, estimate_shading
+    from skinstretch.experiments.analysis.plan import plan_analysis
     from skinstretch.experiments.evaluation.tracking import TruthField, evaluate_dense_pair, evaluate_tracking
     from skinstretch.processing.flow import DenseFlow
     from skinstretch.processing.flow_fields import sample_dense_flow
@@ -133,8 +134,9 @@ def _run(options, scenes, n_frames, n_peer_pairs, full_rows, pair_rows, notes, w
         shaded = FrameReader(source, shading)
         frames = np.stack([shaded(k) for k in range(len(source))])
         pairs = np.linspace(0, n - 2, n_peer_pairs).round().astype(int)
-        ours = DenseFlow(calibration=cal, params=replace(params.flow, local_prior=plain_glass(shading, sc.surface.kind)
-                                                         and params.flow.local_prior))  # as the analysis does
+        plan = plan_analysis(params, method="flow", n_frames=n, surface=sc.surface.kind,
+                             shading_removed=shading is not None)
+        ours = DenseFlow(calibration=cal, params=plan.params.flow)  # as the analysis does
         methods = {"ours flow": None}
         methods.update(_peers())
         strip = cal.px(params.strain.profile_strip_mm)

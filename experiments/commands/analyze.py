@@ -43,13 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def parse_spans(text: str) -> tuple[int, ...]:
+    """The integers of ``--span``; their range is the parameters' to check (StrainParams)."""
     try:
-        spans = tuple(int(s) for s in text.split(",") if s.strip())
+        return tuple(int(s) for s in text.split(",") if s.strip())
     except ValueError:
         raise InvalidInputError(f"--span must be comma-separated integers, got {text!r}") from None
-    if not spans or any(s < 1 for s in spans):
-        raise InvalidInputError(f"--span values must be positive integers, got {text!r}")
-    return spans
 
 
 #: Analysis fields this command's flags set: a bad value is reported under the flag's name.
@@ -82,8 +80,6 @@ def options_from_args(args: argparse.Namespace) -> dict:
         raise InvalidInputError("give --flow-scale (mm) or --flow-scale-px (pixels), not both")
     if (args.flow_scale is not None or args.flow_scale_px is not None) and args.method != "flow":
         raise InvalidInputError("--flow-scale and --flow-scale-px set the flow method's window: add --method flow")
-    if args.min_track is not None and args.min_track < 1:
-        raise InvalidInputError(f"--min-track must be >= 1, got {args.min_track}")
     options: dict = {"strain": {"spans": parse_spans(args.span)}}
     if args.min_track is not None:
         options["tracking"] = {"min_length_frames": args.min_track}

@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +79,8 @@ class LiveAnalyzer:
         self._cal = cal
         self._extractor = FeatureExtractor(calibration=cal, params=ExtractionParams())
         self._tracker = FeatureTracker(
-            calibration=cal, params=TrackingParams(smoothing_radius_frames=0),
+            # no re-linking or bridging while recording (the tracker's own defaults re-link over 3 frames)
+            calibration=cal, params=TrackingParams(max_gap_frames=0, max_bridge_frames=0),
             motion_estimator=GlobalMotionEstimator(downsample=cal.resolvable_reduction(4)),
         )
         self._refiner = SubpixelRefiner(calibration=cal)
@@ -139,32 +141,52 @@ class LiveAnalyzer:
 
     # -- the loop
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                n = self.source.n_frames()
-                if n - 1 <= self._last:
-                    if self.source.status() != "recording" and n - 1 <= self._last:
-                        break  # the recording ended and its last frame is analysed
-                    self._stop.wait(self._poll)
-                    continue
-                k = n - 1
-                if self._last >= 0:
-                    self._skipped += k - self._last - 1
-                self.analyse_frame(k)
-            except (SessionFileError, SkinstretchError, OSError) as exc:
-                self._error = f"{type(exc).__name__}: {exc}"
-                log.warning("live analysis stopped: %s", self._error)
-                break
+        """Two stages on two threads: while this one links frame k to the frame before (matching, refinement,
+        strain), the other extracts the newest frame after k, so a frame costs the longer stage, not both."""
+        with ThreadPoolExecutor(1, thread_name_prefix="live-extraction") as pool:
+            ahead: tuple[int, Future] | None = None  # the next frame to link, being extracted
+            while not self._stop.is_set():
+                try:
+                    if ahead is None:
+                        k = self.source.n_frames() - 1
+                        if k <= self._last:
+                            if self.source.status() != "recording":
+                                break  # the recording ended and its last frame is analysed
+                            self._stop.wait(self._poll)
+                            continue
+                        ahead = (k, pool.submit(self._extract, k))
+                    k, job = ahead
+                    frame = job.result()
+                    newest = self.source.n_frames() - 1
+                    ahead = (newest, pool.submit(self._extract, newest)) if newest > k else None
+                    if self._last >= 0:
+                        self._skipped += k - self._last - 1
+                    self._link(k, frame)
+                except (SessionFileError, SkinstretchError, OSError) as exc:
+                    self._error = f"{type(exc).__name__}: {exc}"
+                    log.warning("live analysis stopped: %s", self._error)
+                    break
+            if ahead is not None:
+                ahead[1].cancel()
 
     def analyse_frame(self, k: int) -> FrameOverlays:
         """Analyse frame ``k`` against the previously analysed frame and keep its overlays."""
+        return self._link(k, self._extract(k))
+
+    def _extract(self, k: int) -> "_ExtractedFrame":
+        """What depends on frame ``k`` alone (thread-safe): its features and prepared images."""
         t0 = time.perf_counter()
         image = self.source.frame(k)
-        exposure = self.source.timestamp(k)
         res = self._extractor.extract(image, frame_index=k)
+        return _ExtractedFrame(t0, self.source.timestamp(k), res, self._tracker.prepare_image(image),
+                               self._refiner.prepare(image))
+
+    def _link(self, k: int, frame: "_ExtractedFrame") -> FrameOverlays:
+        """Frame ``k`` (:meth:`_extract`) matched to the previously analysed frame, its overlays kept; the frames
+        must come in increasing order."""
+        t0 = time.perf_counter()
+        exposure, res, prepared, refine_image = frame.exposure, frame.result, frame.prepared, frame.refine_image
         feats = res.features if res.ok else res.features[:0]
-        prepared = self._tracker.prepare_image(image)
-        refine_image = self._refiner.prepare(image)
         matches = self._tracker.add_frame(feats, prepared=prepared)
         xy = np.column_stack([feats["x"], feats["y"]]).astype(np.float64)
         tracks = np.full(xy.shape[0], -1, np.int64)
@@ -222,7 +244,7 @@ class LiveAnalyzer:
             self._last = k
             if self._t_first is None:
                 self._t_first = time.monotonic()
-            self._durations.append(time.perf_counter() - t0)
+            self._durations.append(time.perf_counter() - t0 + frame.seconds)
             self.version += 1
         return overlays
 
@@ -236,6 +258,22 @@ class LiveAnalyzer:
         ids, xy = ids[order], xy[order]
         starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if ids.size else np.zeros(0, np.int64)
         return [t for t in np.split(xy, starts[1:]) if len(t) >= 2]
+
+
+@dataclass
+class _ExtractedFrame:
+    """One frame's own work for :meth:`LiveAnalyzer._link`: when it started, its exposure time, the extraction's
+    result and the tracker's and refiner's prepared images."""
+
+    started: float
+    exposure: float
+    result: object  # ExtractionResult
+    prepared: object  # the tracker's FrameImages
+    refine_image: object  # the refiner's PreparedImage
+    seconds: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.seconds = time.perf_counter() - self.started
 
 
 def _displacement_of(ids: np.ndarray, sample_ids: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -387,6 +387,7 @@ class ResultsIndex:
     _cumulative_motion: np.ndarray | None = None
     _cumulative_motion_by_pair: _PerFrame | None = None
     _results: Any = None  # the Results (the gauge reads its cumulative motion)
+    plan: list[tuple[str, str]] = field(default_factory=list)  # the analysis plan as rows (plan_rows)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -403,6 +404,7 @@ class ResultsIndex:
             "window": self.window,
             "notes": list(self.notes),
             "warnings": list(self.warnings),
+            "plan": [list(row) for row in self.plan],
         }
 
     def map_quantities(self) -> list[str]:
@@ -593,6 +595,8 @@ def truth_marks(truth, k: int) -> TruthMarks | None:
 
 def load_results_index(path: Path) -> ResultsIndex:
     """Read a results file (``read_results``) and index it per frame for the viewer."""
+    from skinstretch.experiments.analysis.plan import plan_rows  # noqa: PLC0415 - the analysis' modules, when read
+
     r = read_results(path)
     n = int(r.n_frames)
     feats = r.features
@@ -642,7 +646,7 @@ def load_results_index(path: Path) -> ResultsIndex:
         reference_frame=cumulative.reference_frame if cumulative is not None else -1, _edges=edges,
         _edges_by_pair=edges_by_pair, _cumulative_motion=cumulative.motion if cumulative is not None else None,
         _cumulative_motion_by_pair=_PerFrame.build(cumulative.motion["pair"], cumulative.pairs.size)
-        if cumulative is not None else None, _results=r,
+        if cumulative is not None else None, _results=r, plan=plan_rows(r.summary.get("plan") or {}),
     )
 
 

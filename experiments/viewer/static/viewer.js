@@ -91,6 +91,7 @@ async function loadInfo() {
   $("span").value = String(S.span);
   showAnalysisList("analysis-warnings", "Warnings", info.results ? info.results.warnings : []);
   showAnalysisList("analysis-notes", "Analysis notes", info.results ? info.results.notes : []);
+  showAnalysisPlan(info.results ? info.results.plan : []);
   buildLegend();
   setStatus(info);
   S.follow = info.status === "recording" || info.follows_directory;
@@ -116,6 +117,25 @@ function showAnalysisList(id, heading, items) {
     ul.appendChild(li);
   }
   box.append(title, ul);
+}
+
+// The analysis plan (the choices made for this surface and clip, any parameter not applied as asked): collapsed
+// under the notes, one row each.
+function showAnalysisPlan(rows) {
+  const box = $("analysis-plan");
+  const table = box.querySelector("table");
+  table.innerHTML = "";
+  box.hidden = !rows || rows.length === 0;
+  if (box.hidden) return;
+  for (const [what, value] of rows) {
+    const tr = document.createElement("tr");
+    for (const text of [what, value]) {
+      const td = document.createElement("td");
+      td.textContent = text;
+      tr.appendChild(td);
+    }
+    table.appendChild(tr);
+  }
 }
 
 // An arrow is drawn when its predicted standard error is known and within the chosen limit (none: every arrow).
