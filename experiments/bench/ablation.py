@@ -167,11 +167,12 @@ def _condition_clip(name: str, workdir) -> _Clip:
 
 def _plan(quick: bool) -> tuple[list[tuple[str, int, int, str | None]], list[str]]:
     """(scene, frames, seed, texture) of the scene clips, and the conditions rows, of a quick or full run; the
-    full run adds a real print as the texture (a sparse print: what bridging and re-linking were built for)."""
+    full run adds a motion reversal and a real print as the texture (a sparse print: what bridging and re-linking were
+    built for)."""
     if quick:
         return [(s, 48, 0, None) for s in ("slipfront", "ridgeL")], ["base 30 px/mm"]
     scenes = [(s, 72, seed, None) for s in ("flatL", "slipfront", "ridgeL", "valleyL") for seed in (0, 1)]
-    scenes += [(s, 72, 0, "afis_p1_2") for s in ("slipfront", "valleyL")]
+    scenes += [("reversal", 72, 0, None)] + [(s, 72, 0, "afis_p1_2") for s in ("slipfront", "valleyL")]
     return scenes, ["base 30 px/mm", "issue: 19.7 px/mm, white, noise 2"]
 
 
