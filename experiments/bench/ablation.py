@@ -65,7 +65,6 @@ STAGES: tuple[Stage, ...] = (
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
     Stage("re-linking over gaps", "features", {"tracking": {"max_gap_frames": 0}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
-    Stage("in-window gradient fit", "features", {"subpixel": {"gradient_window_mm": None}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
     Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
