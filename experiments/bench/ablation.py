@@ -66,7 +66,6 @@ STAGES: tuple[Stage, ...] = (
     Stage("re-linking over gaps", "features", {"tracking": {"max_gap_frames": 0}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
-    Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
     Stage("glass-shading removal", "features", {"glass_shading": {"enabled": False}}, shaped_only=True),
     Stage("span refiner", "flow", {"flow": {"refine_spans": False}}),
