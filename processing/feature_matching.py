@@ -3,8 +3,6 @@
 * :func:`match_features` / :func:`match_columns`: each feature of frame k-1 is looked for near its expected
   position in frame k; candidates of the same kind inside a circular search window are rated by eq. 5.1,
   ``C = (180 - theta) / 180 + (d_max - d) / d_max``, and finalised in decreasing confidence, each feature used once.
-* :class:`LostFeatures`: features lost by matching, re-linked to a free feature of the same kind near their
-  predicted position within a few frames (beyond the seed).
 * With sub-pixel registration (:class:`skinstretch.processing.tracking.FeatureTracker`), points followed by
   registration alone meet the features again: :func:`merge_bridged` lets a free feature continue the point it
   sits on, :func:`duplicate_starts` keeps a second detection of a tracked point from starting a track, and
@@ -13,7 +11,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -23,7 +21,7 @@ from skinstretch.processing.feature_table import validate_features
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.jit import njit
 
-__all__ = ["Matches", "FeatureColumns", "feature_columns", "match_features", "match_columns", "LostFeatures",
+__all__ = ["Matches", "FeatureColumns", "feature_columns", "match_features", "match_columns",
            "duplicate_starts", "merge_bridged", "crowded_points"]
 
 
@@ -212,54 +210,6 @@ def _match_kernel(expected, pkind, porient, pknown, cxy_sorted, corder, ckind, c
             pc[q] = cc[t]
             q += 1
     return pi, pj, pc
-
-
-@dataclass
-class LostFeatures:
-    """Features lost by matching, kept with a predicted position for re-linking within ``max_gap_frames`` (beyond
-    the seed)."""
-
-    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
-    orientation: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    known: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    track: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    age: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    def __len__(self) -> int:
-        return int(self.track.size)
-
-    def add(self, xy, cols: FeatureColumns, rows, tracks) -> None:
-        """Points lost in this frame; their position was measured in the previous one (found or followed by
-        registration), so they may be re-linked for ``max_gap_frames`` from now."""
-        self.xy = np.concatenate([self.xy, xy])
-        self.kind = np.concatenate([self.kind, cols.kind[rows]])
-        self.orientation = np.concatenate([self.orientation, cols.orientation[rows]])
-        self.known = np.concatenate([self.known, cols.known[rows]])
-        self.track = np.concatenate([self.track, tracks])
-        self.age = np.concatenate([self.age, np.zeros(len(rows), np.int64)])
-
-    def advance(self, step: np.ndarray) -> None:
-        self.xy = self.xy + step
-        self.age = self.age + 1
-
-    def expire(self, max_age: int) -> None:
-        self._select(self.age < max_age)
-
-    def _select(self, keep) -> None:
-        for name in ("xy", "kind", "orientation", "known", "track", "age"):
-            setattr(self, name, getattr(self, name)[keep])
-
-    def relink(self, cols: FeatureColumns, free: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        lost = FeatureColumns(self.xy, self.kind, self.orientation, self.known)
-        sub = FeatureColumns(cols.xy[free], cols.kind[free], cols.orientation[free], cols.known[free])
-        m = match_columns(lost, sub, np.zeros_like(self.xy), radius)
-        got_idx = free[m.curr_index]
-        got_track = self.track[m.prev_index]
-        keep = np.ones(len(self), bool)
-        keep[m.prev_index] = False
-        self._select(keep)
-        return got_idx, got_track
 
 
 def duplicate_starts(xy: np.ndarray, tracks: np.ndarray, bridged_xy: np.ndarray, *, radius: float) -> np.ndarray:

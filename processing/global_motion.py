@@ -9,8 +9,6 @@ Two ingredients, used by :class:`skinstretch.processing.tracking.FeatureTracker`
 * :func:`local_predictions` predicts each feature's displacement from the median displacement of its matched
   neighbours (local structure): after a first matching pass this replaces the single global shift, so features
   in a region that sticks while the rest slides are predicted correctly too.
-
-The tracker also re-links features lost for a few frames (``TrackingParams.max_gap_frames``).
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from skinstretch.processing.errors import InsufficientDataError, InvalidInputErr
 from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.feature_matching import (  # noqa: F401 - match_features: the public matching
-    FeatureColumns, LostFeatures, Matches, crowded_points, duplicate_starts, feature_columns, match_columns,
+    FeatureColumns, Matches, crowded_points, duplicate_starts, feature_columns, match_columns,
     match_features, merge_bridged,
 )
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
@@ -51,8 +51,6 @@ class TrackingParams:
         (None: the seed's 30, half of a shorter clip in the analysis).
     smoothing_radius_frames, smoothing_sigma_frames : int, float
         Half-width R and sigma of eq. 5.3's Gaussian (seed Figure 53: R = 1, sigma 1); R = 0 (default): none.
-    max_gap_frames : int
-        A feature lost for at most this many frames is re-linked to its trajectory (0: the seed's behaviour).
     max_local_deviation_mm : float
         A refined displacement further than this (mm) from the median of its 7 nearest refined neighbours is rejected.
     max_bridge_deviation_spreads : float or None
@@ -73,7 +71,6 @@ class TrackingParams:
     min_length_frames: int | None = Field(None, ge=1)
     smoothing_radius_frames: int = Field(0, ge=0)
     smoothing_sigma_frames: float = Field(1.0, gt=0)
-    max_gap_frames: int = Field(3, ge=0)
     max_local_deviation_mm: float = Field(0.008, gt=0)
     max_bridge_deviation_spreads: float | None = Field(10.0, gt=0)
     max_bridge_frames: int | None = Field(None, ge=0)
@@ -86,12 +83,12 @@ class TrackingParams:
 
 def join_overlap_frames(params: TrackingParams) -> int:
     """Frames two trackers of one sequence must share for :meth:`FeatureTracker.continue_with` to join them: past
-    them a tracker remembers nothing the other did not see (a point waiting to be re-linked expires after
-    ``max_gap_frames``, one followed by registration alone after a finite ``max_bridge_frames``). A point followed
+    them a tracker remembers nothing the other did not see (a point followed by registration alone is let go after
+    a finite ``max_bridge_frames``). A point followed
     for as long as its registration holds may outlive any overlap: a join whose frames disagree is then refused and
     the caller tracks those frames itself."""
     bridge = params.max_bridge_frames
-    return max(int(params.max_gap_frames), int(bridge or 0)) + 2
+    return int(bridge or 0) + 2
 
 
 #: Seed 5.1.2: trajectories shorter than 30 frames are rejected.
@@ -325,7 +322,6 @@ class FeatureTracker:
         # come first, in their table's order, then its bridged points
         self._frames: list[tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
         self._track_kind: list[np.ndarray] = []
-        self._lost = LostFeatures()
         self._released = False
         self._n_taken = 0  # frames handed out by take_frames
         self.global_shifts: list[np.ndarray] = []  # per pair, the prediction used for features without history
@@ -409,24 +405,6 @@ class FeatureTracker:
             if bridged.size and n:
                 bridged, bridged_disp = merge_bridged(prev.xy, self._prev_tracks, bridged, bridged_disp, cols.xy,
                                                       tracks, disp, refined, matched_prev, radius=self._merge_radius)
-            # Points of frame k-1 neither matched nor bridged may be re-linked within max_gap_frames of their last
-            # detection (beyond the seed), with a new run: their motion across the gap is not measured.
-            matched_prev[bridged] = True
-            unmatched_prev = np.flatnonzero(~matched_prev)
-            step = np.median(d, axis=0) if pi.size else shift
-            self._lost.advance(step)
-            free = np.nonzero(tracks < 0)[0]
-            if self.params.max_gap_frames > 0 and free.size and len(self._lost):
-                got_idx, got_track = self._lost.relink(cols, free, self._radius)
-                tracks[got_idx] = got_track
-            if self.params.max_gap_frames > 0 and unmatched_prev.size:
-                self._lost.add(
-                    prev.xy[unmatched_prev] + step,
-                    prev,
-                    unmatched_prev,
-                    self._prev_tracks[unmatched_prev],
-                )
-            self._lost.expire(self.params.max_gap_frames)
             rows = self._prev_feature_row[matches.prev_index]
             matches = Matches(rows, matches.curr_index, matches.confidence)
         bridged_xy = self._prev.xy[bridged] + bridged_disp if bridged.size else np.zeros((0, 2))
@@ -562,12 +540,12 @@ class FeatureTracker:
 
         ``other`` has the same parameters and was fed this tracker's last ``overlap + 1`` frames (the same
         features and images), then the frames that follow. A tracker's state before a frame depends only on
-        the last :func:`join_overlap_frames` frames it saw (previous displacements, features waiting to be
-        re-linked, points followed by registration), or on what those frames hold (a point followed for longer is
+        the last :func:`join_overlap_frames` frames it saw (previous displacements, points followed by
+        registration), or on what those frames hold (a point followed for longer is
         in them).
         When ``other`` agrees with this tracker on all of them, bit for bit (the same matches up to track
-        numbering, the same displacements, refinement flags and, after the first, global shifts), its later frames are those this
-        tracker would have produced: they are appended, tracks renumbered, and this tracker continues from
+        numbering, the same displacements and refinement flags), its later frames are those this tracker would have
+        produced: they are appended, tracks renumbered, and this tracker continues from
         ``other``'s state. When they do not agree nothing changes and False is returned: the caller feeds those
         frames to this tracker itself. This is what lets chunks of a sequence be tracked in parallel with the
         result of one sequential pass (:mod:`skinstretch.experiments.analysis.measure`).
@@ -588,11 +566,6 @@ class FeatureTracker:
             if not (np.array_equal(xa, xb, equal_nan=True) and np.array_equal(da, db, equal_nan=True)
                     and np.array_equal(ra, rb) and np.array_equal(ta < 0, tb < 0)):
                 return False
-            # The shift of the first compared pair only steered its matching (compared above); later ones also
-            # move the features waiting to be re-linked when a pair has no match.
-            first = i == overlap - window + 1
-            if not first and not np.array_equal(self.global_shifts[offset + i - 1], other.global_shifts[i - 1]):
-                return False
             mine.append(ta[ta >= 0])
             theirs.append(tb[tb >= 0])
         pairs = np.unique(np.stack([np.concatenate(theirs), np.concatenate(mine)], axis=1), axis=0)
@@ -603,7 +576,7 @@ class FeatureTracker:
         lut[pairs[:, 0]] = pairs[:, 1]
         lut[n_before:] = self._n_tracks + np.arange(other._n_tracks - n_before)
         later = [other._frames[i][0] for i in range(overlap + 1, other._n_frames)]
-        if any(np.any(lut[t[t >= 0]] < 0) for t in later) or np.any(lut[other._lost.track] < 0):
+        if any(np.any(lut[t[t >= 0]] < 0) for t in later):
             return False  # a track from before the compared frames reappears: cannot be numbered here
         for i in range(overlap + 1, other._n_frames):
             t, xy, _, d, r = other._frames[i]
@@ -620,8 +593,6 @@ class FeatureTracker:
         self._prev_age = other._prev_age
         self._prev_feature_row = other._prev_feature_row
         self._prev_frame = other._prev_frame
-        lost = other._lost
-        self._lost = LostFeatures(lost.xy, lost.kind, lost.orientation, lost.known, lut[lost.track], lost.age)
         return True
 
     def _prediction_shift(self, known: np.ndarray, prepared: "FrameImages | None") -> np.ndarray:

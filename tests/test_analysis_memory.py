@@ -27,7 +27,7 @@ scene = pytest.importorskip("skinstretch.simulators.scene")
 @pytest.mark.parametrize("smoothing", [0, 1, 2])
 @pytest.mark.parametrize("take_every", [1, 3, 7])
 def test_stored_trajectories_are_those_of_finish_to_the_bit(smoothing, take_every):
-    params = TrackingParams(min_length_frames=3, max_gap_frames=3, smoothing_radius_frames=smoothing)
+    params = TrackingParams(min_length_frames=3, smoothing_radius_frames=smoothing)
     cal = Calibration(px_per_mm=62.0)
     whole, taken = FeatureTracker(calibration=cal, params=params), FeatureTracker(calibration=cal, params=params)
     n = 40
@@ -53,12 +53,12 @@ def test_stored_trajectories_are_those_of_finish_to_the_bit(smoothing, take_ever
 
 
 def test_a_tracker_that_handed_frames_out_cannot_finish_and_the_store_wants_every_frame():
-    params = TrackingParams(min_length_frames=3, max_gap_frames=1)
+    params = TrackingParams(min_length_frames=3, max_bridge_frames=1)
     tracker = FeatureTracker(calibration=Calibration(px_per_mm=62.0), params=params)
     for k in range(6):
         tracker.add_frame(sliding_feature_grid(k))
     frames = tracker.take_frames()
-    assert [f.frame for f in frames] == [0, 1, 2]  # the last max_gap_frames + 2 stay for matching
+    assert [f.frame for f in frames] == [0, 1, 2]  # the last max_bridge_frames + 2 stay for matching
     assert all(np.all(np.diff(f.track) > 0) for f in frames)
     with pytest.raises(InvalidInputError):
         tracker.finish()
@@ -175,7 +175,7 @@ def test_stored_trajectories_with_bridged_points_are_those_of_finish_to_the_bit(
     missed = np.random.default_rng(3).random((n, truth[0].shape[0])) < 0.2
     missed[0] = False
     cal = Calibration(px_per_mm=62.0)
-    params = TrackingParams(min_length_frames=4, smoothing_radius_frames=1, max_gap_frames=2, max_bridge_frames=None)
+    params = TrackingParams(min_length_frames=4, smoothing_radius_frames=1, max_bridge_frames=None)
     trackers = [FeatureTracker(calibration=cal, refiner=SubpixelRefiner(calibration=cal), params=params)
                 for _ in range(2)]
     with TrajectoryStore(n_frames=n, params=params) as store:

@@ -47,8 +47,7 @@ def test_a_bad_option_stops_the_protocol_at_load_with_file_line_and_field(tmp_pa
 def test_good_options_keep_the_analysis_defaults_of_fields_not_given():
     p = parse_protocol(PROTOCOL.replace("OPTIONS", "{tracking: {min_length_frames: 12}, flow: {window_mm: 0.5}}"))
     o = p.analysis.options
-    assert o.tracking == TrackingParams(min_length_frames=12, smoothing_radius_frames=0, max_gap_frames=3,
-                                        max_bridge_frames=None)
+    assert o.tracking == TrackingParams(min_length_frames=12, smoothing_radius_frames=0, max_bridge_frames=None)
     assert o.flow.window_mm == 0.5 and o.strain.spans == (1, 11)
 
 

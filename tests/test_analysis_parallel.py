@@ -50,7 +50,7 @@ def test_chunk_plan_keeps_short_sequences_whole():
 
 def _tracker(smoothing=0):
     return FeatureTracker(calibration=Calibration(px_per_mm=62.0),
-                          params=TrackingParams(min_length_frames=3, max_gap_frames=3, smoothing_radius_frames=smoothing))
+                          params=TrackingParams(min_length_frames=3, smoothing_radius_frames=smoothing))
 
 
 def test_continue_with_gives_the_sequential_trajectories():
@@ -83,7 +83,7 @@ def test_continue_with_refuses_disagreeing_trackers_and_changes_nothing():
     assert not a.continue_with(c, overlap=overlap)
     assert (a.n_frames, len(a._frames), a._n_tracks) == before
     with pytest.raises(InvalidInputError, match="overlap"):
-        a.continue_with(c, overlap=2)  # shorter than max_gap_frames + 2
+        a.continue_with(c, overlap=1)  # shorter than join_overlap_frames
 
 
 def test_the_long_trajectory_table_has_the_dense_smoothing_to_the_bit():

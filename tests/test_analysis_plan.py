@@ -17,17 +17,17 @@ def test_one_default_per_parameter():
     built = AnalysisParams(tracking=TrackingParams())
     assert analysis_params({"tracking": {}}) == built == analysis_params({}) == AnalysisParams()
     t = analysis_params({}).tracking
-    assert (t.smoothing_radius_frames, t.max_gap_frames, t.max_bridge_frames) == (0, 3, None)
+    assert (t.smoothing_radius_frames, t.max_bridge_frames) == (0, None)
     # a field given changes that field only
-    assert analysis_params({"tracking": {"max_gap_frames": 1}}).tracking == TrackingParams(max_gap_frames=1)
+    assert analysis_params({"tracking": {"max_bridge_frames": 1}}).tracking == TrackingParams(max_bridge_frames=1)
 
 
 def test_a_refused_parameter_is_one_line():
     with pytest.raises(InvalidInputError) as exc:
-        analysis_params({"tracking": {"max_gap_frames": -1, "search_radius_mm": 0}})
+        analysis_params({"tracking": {"max_bridge_frames": -1, "search_radius_mm": 0}})
     text = str(exc.value)
     assert "\n" not in text
-    assert "analysis.tracking.max_gap_frames" in text and "analysis.tracking.search_radius_mm" in text
+    assert "analysis.tracking.max_bridge_frames" in text and "analysis.tracking.search_radius_mm" in text
     with pytest.raises(InvalidInputError) as exc:
         analysis_params({"flow": {"no_such_option": 1}})
     assert "\n" not in str(exc.value) and "no_such_option" in str(exc.value)

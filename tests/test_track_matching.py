@@ -65,7 +65,7 @@ def test_bad_inputs_are_named():
 @pytest.mark.parametrize("step", [(2.0, 0.5), (10.0, 0.0)])  # 10 px/frame: fast sliding
 def test_tracks_with_noise_misses_and_spurious_features(step):
     tables, truth = moving_features(40, n=60, step=step, noise=0.3, missing=0.05, spurious=8, seed=3)
-    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=10, max_gap_frames=2))
+    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=10))
     for t in tables:
         tracker.add_frame(t)
     tr = tracker.finish().dense()
@@ -76,18 +76,6 @@ def test_tracks_with_noise_misses_and_spurious_features(step):
     assert linked.sum() > 1000
     assert wrong.sum() / linked.sum() < 0.005
     assert np.all(np.isnan(tr.x[~tr.present])) and np.all(np.isfinite(tr.x[tr.present]))
-
-
-def test_gap_relinking_keeps_identity():
-    tables, truth = moving_features(12, n=20, step=(3.0, 0.0), seed=4)
-    tables[5] = tables[5][:10]  # half the features vanish for one frame
-    base = dict(min_length_frames=1, smoothing_radius_frames=0)
-    seed_tr = FeatureTracker(calibration=CAL, params=TrackingParams(max_gap_frames=0, **base))  # the seed: no re-linking
-    robust_tr = FeatureTracker(calibration=CAL, params=TrackingParams(max_gap_frames=2, **base))
-    for t in tables:
-        seed_tr.add_frame(t)
-        robust_tr.add_frame(t)
-    assert seed_tr.finish().dense().n_tracks > robust_tr.finish().dense().n_tracks == 20
 
 
 def test_empty_frame_mid_sequence_is_flagged_not_fatal():
@@ -121,7 +109,7 @@ def test_smoothing_is_normalised_and_keeps_lines():
 def test_minimum_length_filter():
     tables, _ = moving_features(20, n=10, step=(1.0, 0.0), seed=6)
     tables[10] = tables[10][:5]  # five features lost mid-way: their tracks are split in two of 10 frames
-    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=15, max_gap_frames=0))
+    tracker = FeatureTracker(calibration=CAL, params=TrackingParams(min_length_frames=15))
     for t in tables:
         tracker.add_frame(t)
     assert tracker.finish().dense().n_tracks == 5

@@ -42,7 +42,7 @@ def analysed(tmp_path_factory, sim_session):
                          calibration=s.calibration, metadata=s.metadata, truth=s.truth)
     results = analyze_session(path, trial / "analysis", params=AnalysisParams(
         execution={"kind": "threads"}, strain={"spans": (1, 5)},
-        tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, min_length_frames=10))).path
+        tracking=TrackingParams(smoothing_radius_frames=0, min_length_frames=10))).path
     other = write_session(root / "other.h5", 255 - s.frames[:3], timestamps=s.timestamps[:3],
                           camera_mode=s.camera_mode, calibration=s.calibration)  # frames unlike this session's
     return root, trial, path, results, other

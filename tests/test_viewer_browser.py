@@ -44,7 +44,7 @@ def served(tmp_path_factory, sim_session):
                          calibration=s.calibration, metadata={**s.metadata, "trial": "flat"}, truth=s.truth)
     # A 20-frame span on a 20-frame clip: no pair, and a note in the summary that the page must show.
     params = AnalysisParams(execution={"kind": "threads"}, strain={"spans": (1, 11, 20)},
-                            tracking=TrackingParams(smoothing_radius_frames=0, max_gap_frames=3, min_length_frames=10))
+                            tracking=TrackingParams(smoothing_radius_frames=0, min_length_frames=10))
     analyze_session(path, trial / "analysis", params=params)
     server = start_server(find_view_target(trial))
     yield server

@@ -8,7 +8,7 @@ Features (seed 4, 5.1): each chunk is extracted, matched and refined by its own 
 in order. A chunk after the first starts ``overlap`` frames early: its tracker has then seen the same recent frames
 as the previous chunk's at the join, and when the two agree on them bit for bit
 (:meth:`skinstretch.processing.tracking.FeatureTracker.continue_with`) the later frames are exactly those one
-sequential tracker would have produced. When they do not agree (rare: a relinked feature whose history starts
+sequential tracker would have produced. When they do not agree (a point followed by registration from
 before the overlap), this process tracks that chunk's frames itself from the features the chunk extracted: the
 result is the sequential one either way, whatever the executor (the tests check it). The joined tracker hands its
 frames on as soon as matching is done with them (:meth:`~skinstretch.processing.tracking.FeatureTracker.take_frames`)

@@ -63,7 +63,6 @@ STAGES: tuple[Stage, ...] = (
     Stage("key-frame anchoring", "features", {"tracking": {"keyframe_interval_frames": None}}),
     Stage("bridging", "features", {"tracking": {"max_bridge_frames": 0}}),
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
-    Stage("re-linking over gaps", "features", {"tracking": {"max_gap_frames": 0}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
     Stage("robust matching", "features", {"robust_matching": False}),

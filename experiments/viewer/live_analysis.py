@@ -80,7 +80,7 @@ class LiveAnalyzer:
         self._extractor = FeatureExtractor(calibration=cal, params=ExtractionParams())
         self._tracker = FeatureTracker(
             # no re-linking or bridging while recording (the tracker's own defaults re-link over 3 frames)
-            calibration=cal, params=TrackingParams(max_gap_frames=0, max_bridge_frames=0),
+            calibration=cal, params=TrackingParams(max_bridge_frames=0),
             motion_estimator=GlobalMotionEstimator(downsample=cal.resolvable_reduction(4)),
         )
         self._refiner = SubpixelRefiner(calibration=cal)
