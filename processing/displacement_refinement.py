@@ -39,6 +39,9 @@ class SubpixelParams:
         scale of the local contrast normalisation of both images (:func:`local_normalize`; None: raw images).
     min_contrast, max_no_contact_fraction : float
         Grey-level standard deviation below which a pixel is out of contact; largest out-of-contact window fraction.
+    wide_window_mm, target_precision_mm : float or None, float
+        A second, wider window (None: none) for points whose predicted standard deviation (``s^2 T^-1`` of the first
+        window) exceeds ``target_precision_mm``.
     span_window_mm, span_curvature_threshold : float
         Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
         six second-order terms above which its second-order fit is kept (0: always).
@@ -55,6 +58,8 @@ class SubpixelParams:
     normalize_sigma_mm: float | None = Field(0.15, gt=0)
     min_contrast: float = Field(8.0, ge=0)
     max_no_contact_fraction: float = Field(0.05, ge=0, le=1)
+    wide_window_mm: float | None = Field(0.8, gt=0)
+    target_precision_mm: float = Field(0.0005, gt=0)
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
     span_direct_full: float = Field(8.0, gt=1)
@@ -148,6 +153,9 @@ class SubpixelRefiner:
         self.params = params or SubpixelParams()
         self.calibration = calibration
         self._win = calibration.odd_px(self.params.window_mm, minimum=7)
+        wide = self.params.wide_window_mm
+        self._wide = calibration.odd_px(wide, minimum=7) if wide is not None else 0
+        self._target_var = calibration.px(self.params.target_precision_mm) ** 2
         self._span_half = calibration.odd_px(self.params.span_window_mm, minimum=7) // 2
         self._max_corr = calibration.px(self.params.max_correction_mm)
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
@@ -194,6 +202,7 @@ class SubpixelRefiner:
         exceeds ``max_correction_mm`` keep their initial displacement and are flagged ``refined=False``.
         """
         prev_nc = curr_nc = None
+        prev_given = prev_image
         if isinstance(prev_image, PreparedImage):
             prev_image, prev_nc = prev_image.image, prev_image.no_contact_integral
         if isinstance(curr_image, PreparedImage):
@@ -208,7 +217,17 @@ class SubpixelRefiner:
         if n == 0:
             return RefinedDisplacements(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64))
         disp, ok, residual = self._register(prev_image, curr_image, points, init, init, self._win, prev_nc, curr_nc)
-        return RefinedDisplacements(disp, ok, residual, np.full(n, self._win, np.int64))
+        window = np.full(n, self._win, np.int64)
+        if self._wide > self._win and ok.any():
+            # Points the first window measures less precisely than the target: registered again, wider.
+            var = self._predicted_variance(prev_given, curr_image, points, disp, self._win)
+            again = np.flatnonzero(ok & ~(var <= self._target_var))
+            if again.size:
+                d2, ok2, r2 = self._register(prev_image, curr_image, points[again], disp[again], init[again],
+                                             self._wide, prev_nc, curr_nc)
+                take = again[ok2]
+                disp[take], residual[take], window[take] = d2[ok2], r2[ok2], self._wide
+        return RefinedDisplacements(disp, ok, residual, window)
 
     def _register(self, prev_image, curr_image, points, start, init, win, prev_nc, curr_nc):
         """One Lucas-Kanade pass with a ``win`` px window from ``start``; (displacement, ok, residual), the
@@ -256,6 +275,12 @@ class SubpixelRefiner:
         if halves.shape[0] != n:
             raise InvalidInputError(f"window_px has {halves.shape[0]} rows for {n} points")
         return halves
+
+    def _predicted_variance(self, prev_image, curr_image, points, disp, win) -> np.ndarray:
+        """Predicted variance (px^2, trace of ``s^2 T^-1``) of each registered displacement: ``s^2`` the residual
+        variance of the window after registration, ``T`` its structure tensor (NaN where it cannot be computed)."""
+        cov = self.displacement_covariance(prev_image, curr_image, points, disp, np.full(len(points), win))
+        return cov[:, 0, 0] + cov[:, 1, 1]
 
     def displacement_covariance(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
                                 window_px: np.ndarray | None = None) -> np.ndarray:

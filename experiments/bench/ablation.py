@@ -65,6 +65,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
+    Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
     Stage("glass-shading removal", "features", {"glass_shading": {"enabled": False}}, shaped_only=True),
     Stage("span refiner", "flow", {"flow": {"refine_spans": False}}),
