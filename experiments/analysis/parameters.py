@@ -89,8 +89,10 @@ class ExecutionParams(_Stage):
 
 class AnalysisParams(_Stage):
     """Every parameter of the analysis, one model per stage. ``robust_matching`` predicts feature displacements
-    from the measured global motion (:class:`skinstretch.processing.global_motion.GlobalMotionEstimator`);
-    ``subpixel`` None leaves displacements at the extraction's accuracy."""
+    from the measured global motion (:class:`skinstretch.processing.global_motion.GlobalMotionEstimator`); kept
+    though the ablation's slow clips never need it: a slide of several px a frame that starts or reverses loses the
+    seed's prediction (tests/test_track_matching.py). ``subpixel`` None leaves displacements at the extraction's
+    accuracy."""
 
     extraction: ExtractionParams = ExtractionParams()
     tracking: TrackingParams = TrackingParams()
