@@ -71,13 +71,10 @@ _MAX_SPAN_GRADIENT = 0.2
 #: A smaller window of :meth:`SubpixelRefiner.register_span` near the image edge keeps this much room in the second
 #: image, px, for the warp's own reach beyond its start.
 _SPAN_WARP_MARGIN_PX = 2
-#: Most Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` (it stops once a step moves no pixel of the
-#: window by more than 1e-4 px). With the first image's Hessian kept fixed the steps alone contract slowly (about 0.65 a step
-#: on a real print's span); with the secant (Anderson) acceleration of
-#: :func:`~skinstretch.processing.warp_registration.second_order_kernel` 5 steps leave the translation within
-#: 0.001 px (RMS 0.00005 px) of 40 steps' (an 11-frame span of the slide on afis_p1_2, points started 0.2 px off),
-#: against 0.011 px without it.
-SPAN_REGISTRATION_STEPS = 5
+#: Gauss-Newton steps of :meth:`SubpixelRefiner.register_span` from the chained displacements (fewer when a step
+#: moves no pixel by more than 1e-4 px): stopping there keeps the direct fit from chasing its own noise (11-frame
+#: edge strain equal or lower than with 5 steps on every clip tried; evidence: docs/tuning-log.md).
+SPAN_REGISTRATION_STEPS = 2
 
 
 def local_normalize(image: np.ndarray, *, sigma_px: float) -> np.ndarray:
