@@ -393,8 +393,10 @@ def analyze(
             if plan.span_refiner:
                 from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
-                refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
-                reference_refiner = ReferenceRefiner(refiner.flow, reader)
+                flow = DenseFlow(calibration=calibration, params=pair_flow)
+                frames = flow.span_frames(reader, keep=max(spans))  # each frame prepared once for both refiners
+                refiner = SpanRefiner(flow, reader, frames=frames)
+                reference_refiner = ReferenceRefiner(flow, reader, frames=frames)
 
             def on_field(f) -> None:
                 if not recent:  # the first field
