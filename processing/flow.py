@@ -650,17 +650,31 @@ _ADAPT_SIGMA_NODES = 2.0
 
 class _LocalPrior:
     """``affine`` plus the deviation of ``field`` from it, Gaussian-smoothed over ``_PRIOR_SIGMA_NODES`` grid steps
-    among the contact nodes only (normalised convolution: nodes out of contact neither count nor pull; the
-    normalisation, which depends on the contact alone, made once)."""
+    among the contact nodes only (normalised convolution: nodes out of contact neither count nor pull). The
+    smoothing is ``scipy.ndimage.gaussian_filter`` (zero beyond the grid) as two small matrices, and the
+    normalisation, which depends on the contact alone, is made once."""
 
     def __init__(self, contact: np.ndarray) -> None:
         self.weight = contact.astype(np.float64)
-        self.norm = np.maximum(gaussian_filter(self.weight, _PRIOR_SIGMA_NODES, mode="constant"), 1e-9)
+        self.rows, self.cols = (_gaussian_matrix(n, _PRIOR_SIGMA_NODES) for n in contact.shape)
+        self.norm = np.maximum(self.rows @ self.weight @ self.cols.T, 1e-9)
 
     def __call__(self, affine: np.ndarray, field: np.ndarray) -> np.ndarray:
         dev = (field - affine) * self.weight[..., None]
-        smooth = [gaussian_filter(dev[..., c], _PRIOR_SIGMA_NODES, mode="constant") / self.norm for c in range(2)]
+        smooth = [self.rows @ dev[..., c] @ self.cols.T / self.norm for c in range(2)]
         return affine + np.stack(smooth, axis=-1)
+
+
+def _gaussian_matrix(n: int, sigma: float) -> np.ndarray:
+    """The (n, n) matrix of ``scipy.ndimage.gaussian_filter1d`` along an axis of n samples, ``mode="constant"``
+    (its kernel: truncated at 4 sigma, normalised to sum 1)."""
+    radius = int(4.0 * sigma + 0.5)
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * x * x / sigma**2)
+    kernel /= kernel.sum()
+    i = np.arange(n)
+    offset = i[None, :] - i[:, None]
+    return np.where(np.abs(offset) <= radius, kernel[np.clip(offset + radius, 0, 2 * radius)], 0.0)
 
 
 def _anisotropic_membrane(deviation: np.ndarray, weight: np.ndarray, lam: float):
