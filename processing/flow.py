@@ -13,11 +13,10 @@ Design (:class:`DenseFlow`), chosen against DIS, Farneback and DeepFlow on finge
    alone: ``FlowParams.local_prior``), solved by over-relaxed (SOR) sweeps alternating with re-fits of the prior
    (a joint fit of field and prior); Gauss-Newton iterations re-warp the second image. The coupling supplies the
    along-ridge component a single window cannot see (aperture problem); acting on the deviation from such a
-   prior, it does not bias uniform strain. The warp is bilinear: OpenCV's bicubic kernel
-   (a = -0.75) biased the displacement by up to 0.04 px depending on its sub-pixel part, bilinear by < 0.01 px
-   (a noiseless rendering shifted in Fourier space, independent noise added). The kernels are numba (nogil,
-   :mod:`skinstretch.processing.flow_kernels`):
-   window sums of the five gradient products in one pass down the image, the remap coordinates, the solver.
+   prior, it does not bias uniform strain. The warp is bilinear (OpenCV's bicubic kernel biased the displacement by up
+   to 0.04 px depending on its sub-pixel part). The kernels are numba (nogil,
+   :mod:`skinstretch.processing.flow_kernels`): the second image warped and the window sums of the gradient
+   products at the nodes in one pass down the image, the solver, the composition of fields.
 4. Nodes out of contact (a flat window), whose window leaves the second image, or whose residual is far above
    the median (and above a floor, for noise-free images) are flagged invalid, never silently kept.
 
@@ -40,7 +39,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.flow_kernels import membrane_edge_weights, sor, sor_tensor, warp_maps, window_moments
+from skinstretch.processing.flow_kernels import compose_steps, membrane_edge_weights, sor, sor_tensor, warped_moments
 from skinstretch.processing.global_motion import GlobalMotionEstimator
 from skinstretch.processing.measurement_uncertainty import MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
@@ -287,6 +286,11 @@ class DenseFlow:
         gy = np.arange(half, h - half, self._step, dtype=np.float64)
         return gx, gy
 
+    def span_frames(self, frame: Callable[[int], np.ndarray], *, keep: int = 0) -> SpanFrames:
+        """Frames ``frame(j)`` prepared once for this flow's refiners (:class:`SpanRefiner`,
+        :class:`ReferenceRefiner`, which may share them), dropped ``keep`` frames after a span has passed them."""
+        return SpanFrames(frame, lambda image: self._prepare(self._frame([image], 0)), keep=keep)
+
     def compute(
         self,
         image_a: np.ndarray,
@@ -530,13 +534,6 @@ class DenseFlow:
         return FlowField(frame_a, frame_b, gx, gy, disp, valid, shift, n_out, status,
                          sigma=np.where(valid, check.sigma, np.nan), match=np.where(valid, check.match, np.nan))
 
-    def _warp(self, b, gx, gy, field):
-        """``b`` sampled (bilinear) at each pixel plus the grid field (bilinear between nodes, constant beyond)."""
-        h, w = b.shape
-        mx, my = warp_maps(np.ascontiguousarray(field, dtype=np.float64), gx[0], gy[0], gx[1] - gx[0],
-                            gy[1] - gy[0], h, w)
-        return cv2.remap(b, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-
     def _clg(self, a, b, gx, gy, field, contact, prior, *, span=False):
         """Gauss-Newton on all nodes at once: windowed brightness constancy at each node (Lucas-Kanade) plus a
         membrane term tying each node's deviation from a ``prior`` to its neighbours', solved by SOR sweeps
@@ -555,16 +552,18 @@ class DenseFlow:
         Returns the field, the last affine prior and the membrane weight (what :meth:`_adapt` continues from)."""
         sys_ = _LinearSystem(self, a, b, gx, gy, contact)
         nx, ny = sys_.node_x, sys_.node_y
-        design = np.column_stack([nx[contact], ny[contact], np.ones(int(contact.sum()))])
+        # The affine's least-squares fit to the contact nodes is a fixed linear map of their field: made once.
+        fit = np.linalg.pinv(np.column_stack([nx[contact], ny[contact], np.ones(int(contact.sum()))]))
         full = np.stack([nx, ny, np.ones_like(nx)], axis=-1)
         lam = 0.0
         iterations = _SPAN_ITERATIONS if span else int(self.params.refine_iterations)
         smoothness = self.params.smoothness * (_SPAN_SMOOTHNESS if span else 1.0)
 
+        local = None if span or not self.params.local_prior else _LocalPrior(contact)
+
         def fit_prior():
-            coef, *_ = np.linalg.lstsq(design, field[contact], rcond=None)
-            affine = full @ coef
-            return affine if span or not self.params.local_prior else _local_prior(affine, field, contact)
+            affine = full @ (fit @ field[contact])
+            return affine if local is None else local(affine, field)
 
         for _ in range(iterations):
             # Re-fit the affine prior to the current field (and again between solves below): the sweeps move the
@@ -649,14 +648,33 @@ _ADAPT_TO = 12.0
 _ADAPT_SIGMA_NODES = 2.0
 
 
-def _local_prior(affine: np.ndarray, field: np.ndarray, contact: np.ndarray) -> np.ndarray:
+class _LocalPrior:
     """``affine`` plus the deviation of ``field`` from it, Gaussian-smoothed over ``_PRIOR_SIGMA_NODES`` grid steps
-    among the contact nodes only (normalised convolution: nodes out of contact neither count nor pull)."""
-    w = contact.astype(np.float64)
-    norm = np.maximum(gaussian_filter(w, _PRIOR_SIGMA_NODES, mode="constant"), 1e-9)
-    dev = (field - affine) * w[..., None]
-    smooth = [gaussian_filter(dev[..., c], _PRIOR_SIGMA_NODES, mode="constant") / norm for c in range(2)]
-    return affine + np.stack(smooth, axis=-1)
+    among the contact nodes only (normalised convolution: nodes out of contact neither count nor pull). The
+    smoothing is ``scipy.ndimage.gaussian_filter`` (zero beyond the grid) as two small matrices, and the
+    normalisation, which depends on the contact alone, is made once."""
+
+    def __init__(self, contact: np.ndarray) -> None:
+        self.weight = contact.astype(np.float64)
+        self.rows, self.cols = (_gaussian_matrix(n, _PRIOR_SIGMA_NODES) for n in contact.shape)
+        self.norm = np.maximum(self.rows @ self.weight @ self.cols.T, 1e-9)
+
+    def __call__(self, affine: np.ndarray, field: np.ndarray) -> np.ndarray:
+        dev = (field - affine) * self.weight[..., None]
+        smooth = [self.rows @ dev[..., c] @ self.cols.T / self.norm for c in range(2)]
+        return affine + np.stack(smooth, axis=-1)
+
+
+def _gaussian_matrix(n: int, sigma: float) -> np.ndarray:
+    """The (n, n) matrix of ``scipy.ndimage.gaussian_filter1d`` along an axis of n samples, ``mode="constant"``
+    (its kernel: truncated at 4 sigma, normalised to sum 1)."""
+    radius = int(4.0 * sigma + 0.5)
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * x * x / sigma**2)
+    kernel /= kernel.sum()
+    i = np.arange(n)
+    offset = i[None, :] - i[:, None]
+    return np.where(np.abs(offset) <= radius, kernel[np.clip(offset + radius, 0, 2 * radius)], 0.0)
 
 
 def _anisotropic_membrane(deviation: np.ndarray, weight: np.ndarray, lam: float):
@@ -690,29 +708,31 @@ def _anisotropic_membrane(deviation: np.ndarray, weight: np.ndarray, lam: float)
 class _LinearSystem:
     """The data term of one pyramid level, linearised about a field: per node, the window sums of the gradient
     products ``G`` (``gxx, gxy, gyy``) and the right-hand side ``G u - b`` (``rx, ry``) of brightness constancy
-    against the second image warped by the field, and optionally the residual energy ``sum It^2``. Nodes whose
-    window leaves the second image get no data term (they follow their neighbours and are flagged invalid at
-    the end)."""
+    against the second image warped by the field (:func:`~skinstretch.processing.flow_kernels.warped_moments`, over
+    the box of nodes in contact), and optionally the residual energy ``sum It^2``. Nodes whose window leaves the
+    second image get no data term (they follow their neighbours and are flagged invalid at the end)."""
 
     def __init__(self, flow: "DenseFlow", a: np.ndarray, b: np.ndarray, gx: np.ndarray, gy: np.ndarray,
                  contact: np.ndarray) -> None:
         h, w = a.shape
-        self.flow, self.b, self.gx, self.gy, self.contact = flow, b, gx, gy, contact
+        self.flow, self.a, self.b, self.gx, self.gy, self.contact = flow, a, b, gx, gy, contact
         self.shape = (h, w)
         self.half = flow.window_px // 2
-        # Images padded (mirrored) so that every node's window and its 3x3 gradient stencil lie inside.
-        self.pad = self.half + 1
-        self.rows = np.clip(np.round(gy).astype(np.int64), 0, h - 1) + self.pad
-        self.cols = np.clip(np.round(gx).astype(np.int64), 0, w - 1) + self.pad
-        self.a_pad = cv2.copyMakeBorder(a, self.pad, self.pad, self.pad, self.pad, cv2.BORDER_REFLECT_101)
+        self.rows = np.clip(np.round(gy).astype(np.int64), 0, h - 1)
+        self.cols = np.clip(np.round(gx).astype(np.int64), 0, w - 1)
+        r, c = np.nonzero(contact.any(axis=1))[0], np.nonzero(contact.any(axis=0))[0]
+        self.box = (int(r[0]), int(r[-1]) + 1, int(c[0]), int(c[-1]) + 1) if r.size else (0, 0, 0, 0)
         self.node_x, self.node_y = np.meshgrid(gx, gy)
         self._texture: np.ndarray | None = None
 
+    def _moments(self, field: np.ndarray) -> np.ndarray:
+        gx, gy = self.gx, self.gy
+        return warped_moments(self.a, self.b, np.ascontiguousarray(field, dtype=np.float64), gx[0], gy[0],
+                              gx[1] - gx[0], gy[1] - gy[0], self.rows, self.cols, self.half, *self.box)
+
     def linearise(self, field: np.ndarray, *, with_residual: bool = False) -> None:
-        p = self.pad
-        bw = cv2.copyMakeBorder(self.flow._warp(self.b, self.gx, self.gy, field), p, p, p, p, cv2.BORDER_REFLECT_101)
-        # Window sums of Ix^2, IxIy, Iy^2, IxIt, IyIt (gradients of the mean of both images).
-        m = window_moments(self.a_pad + bw, bw - self.a_pad, self.rows, self.cols, self.half)
+        # Window sums of Ix^2, IxIy, Iy^2, IxIt, IyIt (gradients of the mean of both images), It^2, |It|.
+        m = self._moments(field)
         h, w = self.shape
         half = self.half
         tx, ty = self.node_x + field[..., 0], self.node_y + field[..., 1]
@@ -723,32 +743,28 @@ class _LinearSystem:
         self.rx = self.gxx * u0[..., 0] + self.gxy * u0[..., 1] - bx
         self.ry = self.gxy * u0[..., 0] + self.gyy * u0[..., 1] - by
         if with_residual:
-            self._residuals(bw)
+            self._residuals(m)
 
     def residuals(self, field: np.ndarray) -> None:
         """The windows' residuals at ``field`` (for :meth:`check`), the gradient products as last linearised."""
-        p, warped = self.pad, self.flow._warp(self.b, self.gx, self.gy, field)
-        self._residuals(cv2.copyMakeBorder(warped, p, p, p, p, cv2.BORDER_REFLECT_101))
+        self._residuals(self._moments(field))
 
-    def _residuals(self, bw: np.ndarray) -> None:
-        d = bw - self.a_pad
-        self.residual = self._window_sums(d * d) * self.inb
-        self.abs_residual = self._window_sums(np.abs(d)) / float((2 * self.half + 1) ** 2)
-
-    def _window_sums(self, image: np.ndarray, ii: np.ndarray | None = None) -> np.ndarray:
-        """Sum of ``image`` (padded like ``a_pad``) over each node's window (``ii``: its integral image, if made)."""
-        half, r, c = self.half, self.rows[:, None], self.cols[None, :]
-        ii = cv2.integral(image, sdepth=cv2.CV_64F) if ii is None else ii
-        return (ii[r + half + 1, c + half + 1] - ii[r - half, c + half + 1] - ii[r + half + 1, c - half]
-                + ii[r - half, c - half])
+    def _residuals(self, m: np.ndarray) -> None:
+        self.residual = m[5] * self.inb
+        self.abs_residual = m[6] / float((2 * self.half + 1) ** 2)
 
     def check(self) -> RegistrationCheck:
         """Each node's :func:`registration_check` (gradient products, residual and texture variances)."""
         n = float((2 * self.half + 1) ** 2)
         if self._texture is None:
-            total, squares = cv2.integral2(self.a_pad, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-            mean = self._window_sums(self.a_pad, total) / n
-            self._texture = np.maximum(self._window_sums(self.a_pad, squares) / n - mean * mean, 0.0)
+            # Each node's window inside the image (the full-resolution level: nodes at least half a window in).
+            half, r, c = self.half, self.rows[:, None], self.cols[None, :]
+            total, squares = cv2.integral2(self.a, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+            h, w = self.shape
+            r0, r1 = np.maximum(r - half, 0), np.minimum(r + half + 1, h)
+            c0, c1 = np.maximum(c - half, 0), np.minimum(c + half + 1, w)
+            mean, sq = ((ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]) / n for ii in (total, squares))
+            self._texture = np.maximum(sq - mean * mean, 0.0)
         return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
                                   model_sigma_px=self.flow.params.model_sigma_px)
 
@@ -788,11 +804,11 @@ class SpanRefiner:
     """Refines spans one at a time, as consecutive fields arrive (a streaming analysis, or
     :meth:`DenseFlow.compute_spans`): the fields of frames k..k + s composed (:func:`compose_fields`), then
     registered from frame k to frame k + s directly. ``frame(j)`` gives frame j (the fields' frame numbers), each
-    prepared once (:class:`~skinstretch.processing.span_registration.SpanFrames`)."""
+    prepared once (``frames``: :meth:`DenseFlow.span_frames`, which a :class:`ReferenceRefiner` may share)."""
 
-    def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray]) -> None:
+    def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray], *, frames: SpanFrames | None = None) -> None:
         self.flow = flow
-        self._frames = SpanFrames(frame, lambda image: flow._prepare(flow._frame([image], 0)))
+        self._frames = frames if frames is not None else flow.span_frames(frame)
         self.seconds = 0.0  # spent in refine (the stage's share of the analysis' time)
 
     def refine(self, fields: Sequence[FlowField]) -> FlowField:
@@ -810,7 +826,12 @@ class SpanRefiner:
 class ReferenceRefiner(SpanRefiner):
     """DIC's reference frame: the field from a reference frame to frame k composed with the field k -> k + 1 and
     registered from the reference frame to k + 1 directly (:meth:`advance`): the steps' biases do not add up as a
-    chain's do. Only the reference frame stays prepared between calls."""
+    chain's do. The reference frame stays prepared; frame k + 1 comes from ``frames`` (shared with a
+    :class:`SpanRefiner`, it is prepared once for both), which then drops frames more than its ``keep`` before it."""
+
+    def __init__(self, flow: DenseFlow, frame: Callable[[int], np.ndarray], *, frames: SpanFrames | None = None) -> None:
+        super().__init__(flow, frame, frames=frames)
+        self._reference: tuple[int, object] | None = None
 
     def advance(self, reference: FlowField, field: FlowField) -> tuple[FlowField, FlowField]:
         """(the estimate to carry on, what was measured) from ``reference.frame_a`` to ``field.frame_b``, which
@@ -820,8 +841,13 @@ class ReferenceRefiner(SpanRefiner):
         if not field.valid.any():
             field = FlowField(field.frame_a, field.frame_b, field.grid_x, field.grid_y,
                               np.zeros_like(field.displacement), np.ones_like(field.valid), np.zeros(2), 0)
-        measured = self.refine([reference, field])
-        self._frames.keep_only(int(reference.frame_a))
+        t0 = time.perf_counter()
+        k0, k1 = int(reference.frame_a), int(field.frame_b)
+        if self._reference is None or self._reference[0] != k0:
+            self._reference = (k0, self._frames.get(k0))
+        curr, _ = self._frames.pair(k1, k1)
+        measured = self.flow._register(self._reference[1], curr, k0, k1, None, compose_fields([reference, field]))
+        self.seconds += time.perf_counter() - t0
         keep = measured.valid | reference.valid
         disp = np.where(measured.valid[..., None], measured.displacement, reference.displacement)
         return FlowField(reference.frame_a, field.frame_b, reference.grid_x, reference.grid_y,
@@ -840,10 +866,9 @@ def compose_fields(fields: Sequence[FlowField]) -> FlowField:
     ok = first.valid.ravel().copy()
     p = start + np.nan_to_num(first.displacement.reshape(-1, 2))
     for f in fields[1:]:
-        d, good = f.sample(p[ok])
-        idx = np.nonzero(ok)[0]
-        p[idx[good]] += d[good]
-        ok[idx[~good]] = False
+        gx, gy = f.grid_x, f.grid_y
+        compose_steps(p, ok, f.displacement[None], f.valid[None], float(gx[0]), float(gy[0]),
+                      float(gx[1] - gx[0]) if gx.size > 1 else 1.0, float(gy[1] - gy[0]) if gy.size > 1 else 1.0)
     disp = np.where(ok[:, None], p - start, np.nan).reshape(first.displacement.shape)
     valid = ok.reshape(first.valid.shape)
     shift = sum((np.asarray(f.global_shift, dtype=np.float64) for f in fields), np.zeros(2))

@@ -1,10 +1,11 @@
-"""The compiled kernels of the dense flow (:mod:`skinstretch.processing.flow`), numba, nogil: the remap
-coordinates of a grid field, the window sums of the brightness-constancy terms at the nodes, and the
-over-relaxed (SOR) solve of the coupled system.
+"""The compiled kernels of the dense flow (:mod:`skinstretch.processing.flow`), numba, nogil: the second image
+warped by a grid field and the window sums of the brightness-constancy terms at the nodes in one pass, the
+over-relaxed (SOR) solve of the coupled system, and points followed through consecutive fields.
 
 Hand-written: the window sums at a sparse node grid in one pass, and the block SOR of a 2-vector field with a
 membrane on its deviation from a prior, have no library equivalent (OpenCV's box filters give every pixel, scipy's
-solvers do not take the per-node 2x2 blocks without assembling a sparse matrix per iteration).
+solvers do not take the per-node 2x2 blocks without assembling a sparse matrix per iteration). Warping inside the
+pass leaves out the image-sized remap coordinates, warped and padded images that ``cv2.remap`` needs.
 """
 
 from __future__ import annotations
@@ -12,81 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from skinstretch.processing.jit import njit
-
-
-@njit(nogil=True)
-def warp_maps(field, gx0, gy0, step_x, step_y, h, w):
-    """Remap coordinates (x + u, y + v) of every pixel, (u, v) bilinear between grid nodes, constant beyond."""
-    gyn, gxn = field.shape[0], field.shape[1]
-    mx = np.empty((h, w), np.float32)
-    my = np.empty((h, w), np.float32)
-    row_u = np.empty(gxn)
-    row_v = np.empty(gxn)
-    j0s = np.empty(w, np.int64)
-    txs = np.empty(w)
-    for x in range(w):
-        fx = min(max((x - gx0) / step_x, 0.0), gxn - 1.0)
-        j0 = min(int(fx), gxn - 2)
-        j0s[x] = j0
-        txs[x] = fx - j0
-    for y in range(h):
-        fy = min(max((y - gy0) / step_y, 0.0), gyn - 1.0)
-        i0 = min(int(fy), gyn - 2)
-        ty = fy - i0
-        for j in range(gxn):
-            row_u[j] = field[i0, j, 0] * (1 - ty) + field[i0 + 1, j, 0] * ty
-            row_v[j] = field[i0, j, 1] * (1 - ty) + field[i0 + 1, j, 1] * ty
-        for x in range(w):
-            j0 = j0s[x]
-            tx = txs[x]
-            mx[y, x] = x + row_u[j0] * (1 - tx) + row_u[j0 + 1] * tx
-            my[y, x] = y + row_v[j0] * (1 - tx) + row_v[j0 + 1] * tx
-    return mx, my
-
-
-@njit(nogil=True)
-def window_moments(s, d, rows, cols, half):
-    """Window sums at nodes (rows x cols, window 2 half + 1) of Ix^2, IxIy, Iy^2, IxIt, IyIt, with (Ix, Iy) the
-    3x3 Sobel gradient of ``s / 2`` (scaled to grey levels per pixel) and It = ``d``; returns (5, rows, cols).
-
-    One pass down the image keeps running column sums and stores them at each node row's window edges (every
-    pixel's products are computed once); ``rows`` must be increasing and the windows inside the (padded) image."""
-    w = s.shape[1]
-    nr, nc = rows.size, cols.size
-    lo = np.zeros((nr, 5, w))
-    hi = np.zeros((nr, 5, w))
-    acc = np.zeros((5, w))
-    k_lo = 0
-    k_hi = 0
-    for y in range(rows[0] - half, rows[nr - 1] + half + 1):
-        while k_lo < nr and rows[k_lo] - half == y:
-            lo[k_lo] = acc
-            k_lo += 1
-        for x in range(1, w - 1):
-            gx = ((s[y - 1, x + 1] - s[y - 1, x - 1]) + 2.0 * (s[y, x + 1] - s[y, x - 1])
-                  + (s[y + 1, x + 1] - s[y + 1, x - 1])) * 0.0625
-            gy = ((s[y + 1, x - 1] - s[y - 1, x - 1]) + 2.0 * (s[y + 1, x] - s[y - 1, x])
-                  + (s[y + 1, x + 1] - s[y - 1, x + 1])) * 0.0625
-            t = d[y, x]
-            acc[0, x] += gx * gx
-            acc[1, x] += gx * gy
-            acc[2, x] += gy * gy
-            acc[3, x] += gx * t
-            acc[4, x] += gy * t
-        while k_hi < nr and rows[k_hi] + half == y:
-            hi[k_hi] = acc
-            k_hi += 1
-    out = np.zeros((5, nr, nc))
-    prefix = np.zeros(w + 1)
-    for i in range(nr):
-        for k in range(5):
-            run = 0.0
-            for x in range(w):
-                run += hi[i, k, x] - lo[i, k, x]
-                prefix[x + 1] = run
-            for j in range(nc):
-                out[k, i, j] = prefix[cols[j] + half + 1] - prefix[cols[j] - half]
-    return out
 
 
 @njit(nogil=True)
@@ -163,3 +89,170 @@ def membrane_edge_weights(dxx, dxy, dyy):
     beyond, the axis weights are clipped at zero (the nearest non-negative stencil)."""
     a = np.abs(dxy)
     return (np.maximum(dxx - a, 0.0), np.maximum(dyy - a, 0.0), np.maximum(dxy, 0.0), np.maximum(-dxy, 0.0))
+
+
+@njit(nogil=True)
+def _reflect101(i, n):
+    """Index ``i`` mirrored into ``0..n - 1`` without repeating the edge (OpenCV's BORDER_REFLECT_101)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        i = -i if i < 0 else 2 * (n - 1) - i
+    return i
+
+
+@njit(nogil=True)
+def _reflect(i, n):
+    """Index ``i`` mirrored into ``0..n - 1`` repeating the edge (OpenCV's BORDER_REFLECT, as ``cv2.remap``'s)."""
+    while i < 0 or i >= n:
+        i = -i - 1 if i < 0 else 2 * n - i - 1
+    return i
+
+
+@njit(nogil=True)
+def warped_moments(a, b, field, gx0, gy0, step_x, step_y, rows, cols, half, i0, i1, j0, j1):
+    """The data terms of the nodes ``i0..i1 - 1`` x ``j0..j1 - 1`` (a box of the node grid at pixel ``rows`` x
+    ``cols``, window 2 half + 1), ``b`` warped by the grid ``field`` on the fly: (7, rows, cols) window sums of
+    Ix^2, IxIy, Iy^2, IxIt, IyIt, It^2 and |It|, zero outside the box.
+
+    ``b`` is sampled (bilinear, mirrored at its edges) at each pixel plus the field (bilinear between nodes,
+    constant beyond); It is that minus ``a``; (Ix, Iy) the 3x3 Sobel gradient of their mean (grey levels per pixel).
+    Pixels beyond the image are mirrored (BORDER_REFLECT_101) for ``a`` and the warped ``b`` alike. One pass down
+    the box's rows keeps running column sums and stores them at each node row's window edges; only the columns the
+    box's windows cover are warped. The same sums as warping the whole image, padding it and summing every window,
+    without the image-sized intermediates."""
+    h, w = a.shape
+    gyn, gxn = field.shape[0], field.shape[1]
+    out = np.zeros((7, rows.size, cols.size))
+    if i1 <= i0 or j1 <= j0:
+        return out
+    xlo = cols[j0] - half - 1
+    xhi = cols[j1 - 1] + half + 1
+    ylo = rows[i0] - half
+    yhi = rows[i1 - 1] + half
+    nx = xhi - xlo + 1
+    # per column of the box (with its one-pixel margin): the image column it mirrors and its place between nodes
+    xs = np.empty(nx, np.int64)
+    jn = np.empty(nx, np.int64)
+    tx = np.empty(nx)
+    for k in range(nx):
+        x = _reflect101(xlo + k, w)
+        xs[k] = x
+        fx = min(max((x - gx0) / step_x, 0.0), gxn - 1.0)
+        jj = min(int(fx), gxn - 2)
+        jn[k] = jj
+        tx[k] = fx - jj
+    row_u = np.empty(gxn)
+    row_v = np.empty(gxn)
+    s = np.empty((3, nx))  # (a + warped b) / 2 ... of rows y - 1, y, y + 1 (ring)
+    d = np.empty((3, nx))  # warped b - a of the same rows
+    nr = i1 - i0
+    win = np.zeros((nr, 7, nx))  # per node row: the column sums over its window (the sums after it minus before)
+    acc = np.zeros((7, nx))
+    k_lo = 0
+    k_hi = 0
+    for y in range(ylo - 1, yhi + 2):
+        slot = (y - ylo + 1) % 3
+        yr = _reflect101(y, h)
+        fy = min(max((yr - gy0) / step_y, 0.0), gyn - 1.0)
+        ii = min(int(fy), gyn - 2)
+        ty = fy - ii
+        for j in range(gxn):
+            row_u[j] = field[ii, j, 0] * (1 - ty) + field[ii + 1, j, 0] * ty
+            row_v[j] = field[ii, j, 1] * (1 - ty) + field[ii + 1, j, 1] * ty
+        for k in range(nx):
+            x = xs[k]
+            jj = jn[k]
+            t = tx[k]
+            qx = x + row_u[jj] * (1 - t) + row_u[jj + 1] * t
+            qy = yr + row_v[jj] * (1 - t) + row_v[jj + 1] * t
+            fx0 = np.floor(qx)
+            fy0 = np.floor(qy)
+            wx = qx - fx0
+            wy = qy - fy0
+            c0 = int(fx0)
+            r0 = int(fy0)
+            if c0 >= 0 and r0 >= 0 and c0 + 1 < w and r0 + 1 < h:
+                c1 = c0 + 1
+                r1 = r0 + 1
+            else:
+                c1 = _reflect(c0 + 1, w)
+                r1 = _reflect(r0 + 1, h)
+                c0 = _reflect(c0, w)
+                r0 = _reflect(r0, h)
+            v = ((b[r0, c0] * (1 - wx) + b[r0, c1] * wx) * (1 - wy)
+                 + (b[r1, c0] * (1 - wx) + b[r1, c1] * wx) * wy)
+            av = a[yr, x]
+            s[slot, k] = av + v
+            d[slot, k] = v - av
+        yc = y - 1  # the row whose gradients are now complete
+        if yc < ylo:
+            continue
+        while k_lo < nr and rows[i0 + k_lo] - half == yc:
+            win[k_lo] -= acc
+            k_lo += 1
+        sm = (slot + 1) % 3  # row yc - 1
+        sc = (slot + 2) % 3  # row yc
+        sp = slot  # row yc + 1
+        for k in range(1, nx - 1):
+            gx = ((s[sm, k + 1] - s[sm, k - 1]) + 2.0 * (s[sc, k + 1] - s[sc, k - 1])
+                  + (s[sp, k + 1] - s[sp, k - 1])) * 0.0625
+            gy = ((s[sp, k - 1] - s[sm, k - 1]) + 2.0 * (s[sp, k] - s[sm, k])
+                  + (s[sp, k + 1] - s[sm, k + 1])) * 0.0625
+            t = d[sc, k]
+            acc[0, k] += gx * gx
+            acc[1, k] += gx * gy
+            acc[2, k] += gy * gy
+            acc[3, k] += gx * t
+            acc[4, k] += gy * t
+            acc[5, k] += t * t
+            acc[6, k] += abs(t)
+        while k_hi < nr and rows[i0 + k_hi] + half == yc:
+            win[k_hi] += acc
+            k_hi += 1
+    prefix = np.zeros(nx + 1)
+    for i in range(nr):
+        for m in range(7):
+            run = 0.0
+            for k in range(nx):
+                run += win[i, m, k]
+                prefix[k + 1] = run
+            for j in range(j0, j1):
+                out[m, i0 + i, j] = prefix[cols[j] + half + 1 - xlo] - prefix[cols[j] - half - xlo]
+    return out
+
+
+@njit(nogil=True)
+def compose_steps(points, ok, disp, valid, gx0, gy0, step_x, step_y):
+    """Moves ``points`` (n, 2) through the grid fields ``disp`` (k, GY, GX, 2) in turn, each by its bilinear
+    displacement there (one field's grid: origin ``gx0, gy0``, spacing ``step_x, step_y``); ``ok`` (n,) turns False
+    for a point outside a grid or next to one of its invalid nodes (``valid`` (k, GY, GX)), which then stays put."""
+    gyn, gxn = valid.shape[1], valid.shape[2]
+    for f in range(disp.shape[0]):
+        for p in range(points.shape[0]):
+            if not ok[p]:
+                continue
+            fc = (points[p, 0] - gx0) / step_x
+            fr = (points[p, 1] - gy0) / step_y
+            if not (fc >= 0.0 and fc <= gxn - 1 and fr >= 0.0 and fr <= gyn - 1):
+                ok[p] = False
+                continue
+            j = min(int(fc), gxn - 2) if gxn > 1 else 0
+            i = min(int(fr), gyn - 2) if gyn > 1 else 0
+            tx = fc - j
+            ty = fr - i
+            dx = 0.0
+            dy = 0.0
+            for di in range(2):
+                wy = ty if di else 1.0 - ty
+                for dj in range(2):
+                    wgt = wy * (tx if dj else 1.0 - tx)
+                    if wgt <= 1e-9:
+                        continue
+                    if not valid[f, i + di, j + dj]:
+                        ok[p] = False
+                    dx += wgt * disp[f, i + di, j + dj, 0]
+                    dy += wgt * disp[f, i + di, j + dj, 1]
+            if ok[p]:
+                points[p, 0] += dx
+                points[p, 1] += dy

@@ -150,8 +150,10 @@ class FlowMethod:
         if plan.span_refiner:
             from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
-            refiner = SpanRefiner(DenseFlow(calibration=calibration, params=params.flow), reader)
-            reference_refiner = ReferenceRefiner(refiner.flow, reader)
+            flow = DenseFlow(calibration=calibration, params=params.flow)
+            frames = flow.span_frames(reader, keep=max(out.spans))  # each frame prepared once for both refiners
+            refiner = SpanRefiner(flow, reader, frames=frames)
+            reference_refiner = ReferenceRefiner(flow, reader, frames=frames)
 
         def on_field(f) -> None:
             if not recent:  # the first field
