@@ -16,7 +16,8 @@ from skinstretch.processing.jit import njit
 
 @njit(nogil=True)
 def warp_maps(field, gx0, gy0, step_x, step_y, h, w):
-    """Remap coordinates (x + u, y + v) of every pixel, (u, v) bilinear between grid nodes, constant beyond."""
+    """Remap coordinates (x + u, y + v) of every pixel, (u, v) bilinear between grid nodes and extrapolated linearly
+    beyond them (the outer nodes' windows reach past the grid: held constant there, a stretch biased those nodes)."""
     gyn, gxn = field.shape[0], field.shape[1]
     mx = np.empty((h, w), np.float32)
     my = np.empty((h, w), np.float32)
@@ -25,13 +26,13 @@ def warp_maps(field, gx0, gy0, step_x, step_y, h, w):
     j0s = np.empty(w, np.int64)
     txs = np.empty(w)
     for x in range(w):
-        fx = min(max((x - gx0) / step_x, 0.0), gxn - 1.0)
-        j0 = min(int(fx), gxn - 2)
+        fx = (x - gx0) / step_x
+        j0 = min(max(int(np.floor(fx)), 0), gxn - 2)
         j0s[x] = j0
         txs[x] = fx - j0
     for y in range(h):
-        fy = min(max((y - gy0) / step_y, 0.0), gyn - 1.0)
-        i0 = min(int(fy), gyn - 2)
+        fy = (y - gy0) / step_y
+        i0 = min(max(int(np.floor(fy)), 0), gyn - 2)
         ty = fy - i0
         for j in range(gxn):
             row_u[j] = field[i0, j, 0] * (1 - ty) + field[i0 + 1, j, 0] * ty
