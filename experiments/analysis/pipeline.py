@@ -106,6 +106,7 @@ class _StrainTables:
                             for s in spans}
         self.change_sigma = {int(s): _SigmaSpread(writer, stack) for s in spans}
         self.doubted = {int(s): _Doubts() for s in spans}
+        self.regularisation: dict[int, Any] = {}  # per span, a dense registration's (its errors' correlation)
 
     def add(self, span: int, sample: MotionSample) -> None:
         buf = self.buffers[span]
@@ -119,7 +120,7 @@ class _StrainTables:
             return
         self.buffers[span] = []
         kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span],
-                      min_spacing_px=self.min_spacing_px)
+                      min_spacing_px=self.min_spacing_px, regularisation=self.regularisation.get(span))
         fut = self.executor.submit(span_strain, buf, **kwargs)
         self.done[span] += len(buf)
         self.pending.append((span, fut, buf, kwargs))
@@ -424,6 +425,11 @@ def analyze(
                                    else chain_flows(steps, stride=stride))
                         strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
 
+            from skinstretch.processing.flow import DenseFlow  # noqa: PLC0415
+
+            coupling = DenseFlow(calibration=calibration, params=pair_flow)  # the nodes' errors are correlated
+            for span in spans:
+                strain.regularisation[span] = coupling.regularisation(span=refiner is not None and span > 1)
             m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=pair_flow, executor=executor,
                              on_field=on_field, progress=progress)
             motion.flush()
