@@ -41,7 +41,9 @@ from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.flow_kernels import compose_steps, membrane_edge_weights, sor, sor_tensor, warped_moments
 from skinstretch.processing.global_motion import GlobalMotionEstimator
-from skinstretch.processing.measurement_uncertainty import MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import (
+    MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, Regularisation, registration_check,
+)
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.displacement_refinement import local_normalize
 from skinstretch.processing.texture_gate import TEXTURE_REASONS, texture_verdict
@@ -278,6 +280,16 @@ class DenseFlow:
         """Spacing of the measurement grid in pixels."""
         return self._step
 
+    def regularisation(self, *, span: bool = False) -> Regularisation:
+        """How the membrane couples the nodes (their errors' correlation): a pair's (its local prior, if on) or a
+        refined span's (``span``: affine prior, ``_SPAN_SMOOTHNESS``), at a node of median texture (data weight half
+        the median trace of the gradient products, against which the membrane weight is set); the model term is
+        each node's own."""
+        smoothness = self.params.smoothness * (_SPAN_SMOOTHNESS if span else 1.0)
+        prior = _PRIOR_SIGMA_NODES if self.params.local_prior and not span else None
+        return Regularisation(float(self.grid_step_px), self.window_px / self.grid_step_px, 2.0 * smoothness, prior,
+                              float(self.params.model_sigma_px))
+
     def grid(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Grid node coordinates (x, y) for images of ``shape``: nodes whose window fits in the image."""
         h, w = shape
@@ -505,7 +517,8 @@ class DenseFlow:
                                                         prior / f, span=span)
             field = field * f
         if self.params.adaptive:
-            field, _ = self._adapt(system, field, level_prior, lam, span=span)
+            field, weakened = self._adapt(system, field, level_prior, lam, span=span)
+            lam = lam * (1.0 - (1.0 - _SHARP) * weakened)  # each node's membrane (across the detail), for its sigma
         system.residuals(field)
         residual = system.abs_residual
         med = float(np.median(residual[contact]))
@@ -519,7 +532,7 @@ class DenseFlow:
         n_out = int((contact & ~valid).sum())
         disp = np.where(valid[..., None], field, np.nan)
         status = "ok" if valid.any() else "no node registered"
-        check = system.check()
+        check = system.check(lam, self.regularisation(span=span))
         if valid.any():
             # A self-check: right registrations leave windows alike; a field locked onto wrong ridges does not.
             match = float(np.median(check.match[valid]))
@@ -753,8 +766,9 @@ class _LinearSystem:
         self.residual = m[5] * self.inb
         self.abs_residual = m[6] / float((2 * self.half + 1) ** 2)
 
-    def check(self) -> RegistrationCheck:
-        """Each node's :func:`registration_check` (gradient products, residual and texture variances)."""
+    def check(self, membrane=None, regularisation: Regularisation | None = None) -> RegistrationCheck:
+        """Each node's :func:`registration_check` (gradient products, residual and texture variances; the
+        ``membrane`` weight and ``regularisation`` that smoothed the field)."""
         n = float((2 * self.half + 1) ** 2)
         if self._texture is None:
             # Each node's window inside the image (the full-resolution level: nodes at least half a window in).
@@ -766,7 +780,8 @@ class _LinearSystem:
             mean, sq = ((ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]) / n for ii in (total, squares))
             self._texture = np.maximum(sq - mean * mean, 0.0)
         return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
-                                  model_sigma_px=self.flow.params.model_sigma_px)
+                                  model_sigma_px=self.flow.params.model_sigma_px, membrane=membrane,
+                                  regularisation=regularisation)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""

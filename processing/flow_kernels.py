@@ -115,8 +115,9 @@ def warped_moments(a, b, field, gx0, gy0, step_x, step_y, rows, cols, half, i0, 
     ``cols``, window 2 half + 1), ``b`` warped by the grid ``field`` on the fly: (7, rows, cols) window sums of
     Ix^2, IxIy, Iy^2, IxIt, IyIt, It^2 and |It|, zero outside the box.
 
-    ``b`` is sampled (bilinear, mirrored at its edges) at each pixel plus the field (bilinear between nodes,
-    constant beyond); It is that minus ``a``; (Ix, Iy) the 3x3 Sobel gradient of their mean (grey levels per pixel).
+    ``b`` is sampled (bilinear, mirrored at its edges) at each pixel plus the field (bilinear between nodes and
+    extrapolated linearly beyond them: the outer nodes' windows reach past the grid, where a field held constant
+    biases a stretch); It is that minus ``a``; (Ix, Iy) the 3x3 Sobel gradient of their mean (grey levels per pixel).
     Pixels beyond the image are mirrored (BORDER_REFLECT_101) for ``a`` and the warped ``b`` alike. One pass down
     the box's rows keeps running column sums and stores them at each node row's window edges; only the columns the
     box's windows cover are warped. The same sums as warping the whole image, padding it and summing every window,
@@ -138,8 +139,8 @@ def warped_moments(a, b, field, gx0, gy0, step_x, step_y, rows, cols, half, i0, 
     for k in range(nx):
         x = _reflect101(xlo + k, w)
         xs[k] = x
-        fx = min(max((x - gx0) / step_x, 0.0), gxn - 1.0)
-        jj = min(int(fx), gxn - 2)
+        fx = (x - gx0) / step_x  # beyond the outer nodes: extrapolated linearly
+        jj = min(max(int(np.floor(fx)), 0), gxn - 2)
         jn[k] = jj
         tx[k] = fx - jj
     row_u = np.empty(gxn)
@@ -154,8 +155,8 @@ def warped_moments(a, b, field, gx0, gy0, step_x, step_y, rows, cols, half, i0, 
     for y in range(ylo - 1, yhi + 2):
         slot = (y - ylo + 1) % 3
         yr = _reflect101(y, h)
-        fy = min(max((yr - gy0) / step_y, 0.0), gyn - 1.0)
-        ii = min(int(fy), gyn - 2)
+        fy = (yr - gy0) / step_y
+        ii = min(max(int(np.floor(fy)), 0), gyn - 2)
         ty = fy - ii
         for j in range(gxn):
             row_u[j] = field[ii, j, 0] * (1 - ty) + field[ii + 1, j, 0] * ty

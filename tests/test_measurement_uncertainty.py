@@ -10,7 +10,7 @@ from skinstretch.experiments.results_file import PairStatus
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.flow import DenseFlow, FlowParams
 from skinstretch.processing.measurement_uncertainty import (
-    MIN_MATCH, RADIUS_95_2D, area_change_sigma, edge_change_sigma, larger_axis_sigma,
+    MIN_MATCH, RADIUS_95_2D, Regularisation, area_change_sigma, edge_change_sigma, larger_axis_sigma, variance_factor,
 )
 from skinstretch.processing.pixel_scale import Calibration
 from tests.print_clips import print_frame, print_image, true_x
@@ -47,6 +47,59 @@ def test_strain_errors_follow_the_points_errors():
 
     predicted = area_change_sigma(tri[None], sigma[None], area(tri))[0]
     assert predicted == pytest.approx((area(noisy) / area(tri) - 1).std(), rel=0.05)
+
+
+def test_correlated_points_strain_errors_follow_them():
+    """The same with the points' errors correlated as a dense registration's (:class:`Regularisation`): a Monte
+    Carlo of errors drawn with that correlation."""
+    rng = np.random.default_rng(1)
+    tri = np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 12.0]])
+    sigma = np.array([0.02, 0.03, 0.025])
+    model = Regularisation(grid_step_px=3.0, window_nodes=13 / 3, membrane=3.0, prior_nodes=2.0)
+    corr = np.array([[1.0 if i == j else float(model.correlation(tri[j] - tri[i])) for j in range(3)]
+                     for i in range(3)])
+    assert 0.2 < corr[0, 1] < 0.6 and corr[1, 2] < corr[0, 1]  # falls with distance
+    chol = np.linalg.cholesky(corr * np.outer(sigma, sigma))
+    noisy = tri + np.transpose(rng.normal(size=(40000, 2, 3)) @ chol.T, (0, 2, 1))  # each axis alike
+    change = np.hypot(*(noisy[:, 1] - noisy[:, 0]).T) / 12.0 - 1
+    assert float(edge_change_sigma(sigma[0], sigma[1], 12.0, corr[0, 1])) == pytest.approx(change.std(), rel=0.05)
+    assert float(edge_change_sigma(sigma[0], sigma[1], 12.0, corr[0, 1])) < float(edge_change_sigma(sigma[0],
+                                                                                                    sigma[1], 12.0))
+
+    def area(v):
+        return 0.5 * ((v[..., 1, 0] - v[..., 0, 0]) * (v[..., 2, 1] - v[..., 0, 1])
+                      - (v[..., 2, 0] - v[..., 0, 0]) * (v[..., 1, 1] - v[..., 0, 1]))
+
+    predicted = area_change_sigma(tri[None], sigma[None], area(tri), model)[0]
+    assert predicted == pytest.approx((area(noisy) / area(tri) - 1).std(), rel=0.05)
+
+
+@pytest.mark.parametrize("ratio", [0.9, 3.0])
+def test_the_membrane_model_matches_a_lattice_of_windows(ratio):
+    """:func:`variance_factor` and :meth:`Regularisation.correlation` against the system they model, solved
+    directly: white pixel noise summed over each node's 13 px window (nodes 3 px apart, unit gradients: data weight
+    169 per node), the nodes tied to their neighbours by a membrane ``ratio`` times that weight."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    rng = np.random.default_rng(2)
+    n, step, win, samples = 40, 3, 13, 300
+    side = (n - 1) * step + win
+    noise = rng.normal(size=(samples, side, side))
+    ii = np.pad(noise.cumsum(1).cumsum(2), ((0, 0), (1, 0), (1, 0)))
+    at = np.arange(n) * step
+    r0, c0 = at[:, None], at[None, :]
+    b = (ii[:, r0 + win, c0 + win] - ii[:, r0, c0 + win] - ii[:, r0 + win, c0] + ii[:, r0, c0]).reshape(samples, -1)
+    g = float(win * win)
+    path = sp.diags([np.r_[1.0, 2.0 * np.ones(n - 2), 1.0]], [0]) - sp.diags([np.ones(n - 1)] * 2, [-1, 1])
+    lap = sp.kron(sp.eye(n), path) + sp.kron(path, sp.eye(n))
+    u = splu(sp.csc_matrix(g * sp.eye(n * n) + ratio * g * lap)).solve(b.T).T.reshape(samples, n, n)
+    mid = u[:, 14:26, 14:22]  # nodes away from the lattice's edge, and the same 4 nodes (12 px) to their right
+    right = u[:, 14:26, 18:26]
+    assert np.mean(mid**2) * g == pytest.approx(float(variance_factor(ratio, win / step)), rel=0.1)
+    measured = np.mean(mid * right) / np.sqrt(np.mean(mid**2) * np.mean(right**2))
+    model = Regularisation(grid_step_px=step, window_nodes=win / step, membrane=ratio)
+    assert measured == pytest.approx(float(model.correlation(np.array([12.0, 0.0]))), abs=0.06)
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +168,12 @@ def test_the_analysis_is_right_or_says_so(px_per_mm, background, method):
     assert accurate or warnings, (px_per_mm, background, method, err.size)
     if method == "flow":  # the dense method is accurate on every one of these
         assert accurate and not warnings
+        # ...and its edges' predicted errors, their ends correlated (Regularisation), cover their errors
+        s = r.strain[5]
+        e, fa, fb = s.edges, s.pairs["frame_a"][s.edges["pair"]], s.pairs["frame_b"][s.edges["pair"]]
+        moved = (e["xb"] + _true_dx(e["xb"], fa, fb)) - (e["xa"] + _true_dx(e["xa"], fa, fb))
+        err = e["change"] - (np.hypot(moved, e["yb"] - e["ya"]) / e["length"] - 1)
+        assert np.mean(np.abs(err) <= 1.96 * e["change_sigma"]) >= 0.9
     assert set(r.summary["uncertainty"]) == {"displacement_sigma_px", "edge_change_sigma_span_1",
                                              "edge_change_sigma_span_5"}
 

@@ -22,7 +22,7 @@ from skinstretch.experiments.results_file import (
 from skinstretch.processing.display_mapping import TactileMovie, TactileMovieBuilder
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.fingertip import FingertipMotion, VisibilityWindow, fingertip_motion, visibility_window
-from skinstretch.processing.measurement_uncertainty import area_change_sigma, edge_change_sigma
+from skinstretch.processing.measurement_uncertainty import Regularisation, area_change_sigma, edge_change_sigma
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.stretch import (
     COLLINEAR, STRAIN_OK, TOO_FEW_POINTS, StretchProfile, horizontal_stretch_profile, mean_profile,
@@ -60,10 +60,11 @@ class PixelScales:
 
 
 def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: float, first_pair: int = 0,
-                min_spacing_px: float = 0.0) -> SpanStrain:
+                min_spacing_px: float = 0.0, regularisation: Regularisation | None = None) -> SpanStrain:
     """Triangulation strain of a run of pairs of one span (one compiled call for all of them, see
     :func:`~skinstretch.processing.stretch.triangulation_strains`); pair ``i`` of the run is pair ``first_pair + i``
-    of the span. Pairs that cannot give one carry the status and the reason."""
+    of the span. Pairs that cannot give one carry the status and the reason. ``regularisation``: the points' errors
+    are correlated as a dense registration's (None: independent, as features')."""
     b = triangulation_strains(samples, max_edge_px=max_edge_px, min_spacing_px=min_spacing_px)
     n = len(samples)
     reasons = [b.failure(i) or "" for i in range(n)]
@@ -90,7 +91,10 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     edges["length"], edges["change"] = b.edge_length, b.edge_change
     sigma = np.concatenate([np.full(len(smp), np.inf) if smp.sigma is None else np.asarray(smp.sigma, np.float64)
                             for smp in samples]) if samples else np.zeros(0)
-    edges["change_sigma"] = edge_change_sigma(sigma[b.edges[:, 0]], sigma[b.edges[:, 1]], b.edge_length)
+    ea, eb = b.edges[:, 0], b.edges[:, 1]
+    rho = 0.0 if regularisation is None else regularisation.correlation(b.points[eb] - b.points[ea], sigma[ea],
+                                                                        sigma[eb])
+    edges["change_sigma"] = edge_change_sigma(sigma[ea], sigma[eb], b.edge_length, rho)
     tris = np.zeros(b.triangles.shape[0], dtype=TRIANGLE_DTYPE)
     tris["pair"] = np.repeat(where, np.diff(b.triangle_offsets))
     tris["id_a"], tris["id_b"], tris["id_c"] = b.ids[b.triangles].T
@@ -98,7 +102,7 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     for j in range(3):
         tris[f"x{j}"], tris[f"y{j}"] = xy[:, 2 * j], xy[:, 2 * j + 1]
     tris["area"], tris["change"], tris["flipped"] = b.area, b.area_change, b.flipped
-    tris["change_sigma"] = area_change_sigma(b.points[b.triangles], sigma[b.triangles], b.area)
+    tris["change_sigma"] = area_change_sigma(b.points[b.triangles], sigma[b.triangles], b.area, regularisation)
     corners_a = b.points[b.triangles]  # (T, 3, 2)
     tensors = triangle_strain_tensors(corners_a, corners_a + b.displacement[b.triangles])
     for name in TENSOR_COLUMNS:

@@ -182,6 +182,11 @@ class FlowMethod:
                                else chain_flows(steps, stride=stride))
                     out.strain.add(span, out.rectified(chained))
 
+        from skinstretch.processing.flow import DenseFlow  # noqa: PLC0415
+
+        coupling = DenseFlow(calibration=calibration, params=params.flow)  # the nodes' errors are correlated
+        for span in out.spans:
+            out.strain.regularisation[span] = coupling.regularisation(span=refiner is not None and span > 1)
         m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=params.flow,
                          executor=out.executor, on_field=on_field, progress=out.progress)
         out.motion.flush()

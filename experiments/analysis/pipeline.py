@@ -98,6 +98,7 @@ class _StrainTables:
                             for s in spans}
         self.change_sigma = {int(s): _SigmaSpread(writer, stack) for s in spans}
         self.doubted = {int(s): _Doubts() for s in spans}
+        self.regularisation: dict[int, Any] = {}  # per span, a dense registration's (its errors' correlation)
 
     def add(self, span: int, sample: MotionSample) -> None:
         buf = self.buffers[span]
@@ -111,7 +112,7 @@ class _StrainTables:
             return
         self.buffers[span] = []
         kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span],
-                      min_spacing_px=self.min_spacing_px)
+                      min_spacing_px=self.min_spacing_px, regularisation=self.regularisation.get(span))
         fut = self.executor.submit(span_strain, buf, **kwargs)
         self.done[span] += len(buf)
         self.pending.append((span, fut, buf, kwargs))
