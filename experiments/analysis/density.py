@@ -8,8 +8,10 @@ trajectory. A feature whose skin point leaves the view before the window is full
 and is not kept (a short track, a second detection of one skin point) counts against. Where the skin point goes:
 
 * the analysis (:func:`mesh_density`, no truth) follows it through the motion it measured (the median displacement
-  of the nearest measured points, pair after pair) and calls it in view inside the frame's features' Delaunay
-  triangulation (edges longer than the strain's ``max_edge_mm`` left out);
+  of the nearest measured points, pair after pair) and calls it in view inside the Delaunay triangulation of what
+  it measured in the frame, its features and the motion table's points (edges longer than the strain's
+  ``max_edge_mm`` left out): features alone leave the region empty in a frame where extraction found few or none,
+  and would count every feature not kept as leaving the view;
 * ``skinstretch evaluate`` (:func:`skinstretch.experiments.evaluation.trajectories.evaluate_trajectories`) follows
   it through the simulator's exact field, in view where feature recall is scored.
 
@@ -186,8 +188,8 @@ class _FrameRows:
 class MeasuredMotion:
     """The analysis' own :class:`SkinPointMotion`, from a results file being written: a skin point moves by the
     median displacement of the 6 nearest points measured between the two frames (none within 1 mm: it is not
-    followed), and is in view inside the Delaunay triangulation of the frame's features (triangles with an edge
-    longer than ``max_edge_px`` left out)."""
+    followed), and is in view inside the Delaunay triangulation of the frame's measured points (:meth:`measured_points`;
+    triangles with an edge longer than ``max_edge_px`` left out)."""
 
     def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
         self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
@@ -214,10 +216,23 @@ class MeasuredMotion:
         ok = cKDTree(src).query(points, distance_upper_bound=self._reach)[0] <= self._reach
         return points + local_predictions(points, src, d), ok
 
+    def measured_points(self, frame: int) -> np.ndarray:
+        """(n, 2) where the analysis measured something in ``frame``: its features and the points of the motion
+        table there (a pair's points in its first frame, moved into its second)."""
+        parts = []
+        if self._features is not None:
+            rows = self._features(frame)
+            parts.append(np.column_stack([rows["x"], rows["y"]]))
+        for i, moved in ((self._pair_of.get(int(frame)), False), (self._pair_of.get(int(frame) - 1), True)):
+            if i is not None and self._motion is not None and self._pairs[i + 1] > self._pairs[i]:
+                rows = self._motion(i)
+                xy = np.column_stack([rows["x"], rows["y"]])
+                parts.append(xy + np.column_stack([rows["dx"], rows["dy"]]) if moved else xy)
+        return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 2))
+
     def in_view(self, points, frame):
         if self._region[0] != frame:
-            rows = self._features(frame)
-            self._region = (frame, _region(np.column_stack([rows["x"], rows["y"]]), self._max_edge))
+            self._region = (frame, _region(self.measured_points(frame), self._max_edge))
         region = self._region[1]
         if region is None or points.shape[0] == 0:
             return np.zeros(points.shape[0], bool)
