@@ -21,7 +21,7 @@ from skinstretch.processing.errors import InvalidInputError
 from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, RegistrationCheck, registration_check
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
-from skinstretch.processing.warp_registration import FASTMATH, affine_kernel, second_order_kernel, shifted_window
+from skinstretch.processing.warp_registration import FASTMATH, second_order_kernel, shifted_window
 from skinstretch.processing.jit import njit
 
 
@@ -42,8 +42,6 @@ class SubpixelParams:
     wide_window_mm, target_precision_mm : float or None, float
         A second, wider window (None: none) for points whose predicted standard deviation (``s^2 T^-1`` of the first
         window) exceeds ``target_precision_mm``.
-    gradient_window_mm : float or None
-        Window of :meth:`SubpixelRefiner.window_gradients` (mm); None: the gradient from the neighbours only.
     span_window_mm, span_curvature_threshold : float
         Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
         six second-order terms above which its second-order fit is kept (0: always).
@@ -62,15 +60,12 @@ class SubpixelParams:
     max_no_contact_fraction: float = Field(0.05, ge=0, le=1)
     wide_window_mm: float | None = Field(0.8, gt=0)
     target_precision_mm: float = Field(0.0005, gt=0)
-    gradient_window_mm: float | None = Field(1.0, gt=0)
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
     span_direct_full: float = Field(8.0, gt=1)
     model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 
 
-#: Largest frame-to-frame displacement gradient :meth:`SubpixelRefiner.window_gradients` accepts (5 %).
-_MAX_FRAME_GRADIENT = 0.05
 #: Largest displacement gradient :meth:`SubpixelRefiner.register_span` accepts over a span (20 %: a failed fit).
 _MAX_SPAN_GRADIENT = 0.2
 #: A smaller window of :meth:`SubpixelRefiner.register_span` near the image edge keeps this much room in the second
@@ -161,8 +156,6 @@ class SubpixelRefiner:
         wide = self.params.wide_window_mm
         self._wide = calibration.odd_px(wide, minimum=7) if wide is not None else 0
         self._target_var = calibration.px(self.params.target_precision_mm) ** 2
-        gw = self.params.gradient_window_mm
-        self._gradient_half = calibration.odd_px(gw, minimum=7) // 2 if gw is not None else 0
         self._span_half = calibration.odd_px(self.params.span_window_mm, minimum=7) // 2
         self._max_corr = calibration.px(self.params.max_correction_mm)
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.002)
@@ -329,33 +322,6 @@ class SubpixelRefiner:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         halves = np.full(points.shape[0], self._span_half, np.int64)
         return self._window_statistics(prev_image, curr_image, points, displacement, halves)[:, 3]
-
-    def window_gradients(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
-                         fallback: np.ndarray | None = None) -> np.ndarray:
-        """The skin's displacement gradient at each point, measured in the images: an affine Lucas-Kanade
-        registration (Gauss-Newton, 2 steps, started from the point's displacement and no deformation) of a
-        ``gradient_window_mm`` window around it; ``gradient[i, j, l] = d u_j / d x_l`` as
-        :func:`~skinstretch.processing.global_motion.local_gradients`. ``fallback`` (n, 2, 2) is kept where the
-        window leaves an image, the fit is singular, or it finds a frame-to-frame strain above 5 % (no skin
-        stretches that fast: a failed fit), and everywhere when ``gradient_window_mm`` is None; without it those
-        points' gradients are NaN (for the caller to fill: :meth:`FeatureTracker._refine` fits the neighbours'
-        displacements there only)."""
-        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-        if fallback is None:
-            out = np.full((points.shape[0], 2, 2), np.nan)
-        else:
-            out = np.array(fallback, dtype=np.float64).reshape(-1, 2, 2)
-            if out.shape[0] != points.shape[0]:
-                raise InvalidInputError(f"fallback has {out.shape[0]} rows for {points.shape[0]} points")
-        if self._gradient_half == 0 or out.shape[0] == 0:
-            return out
-        a, gx, gy, b = _registration_pair(prev_image, curr_image)
-        displacement = _displacement_rows(displacement, points, "displacement")
-        q, ok = affine_kernel(a, b, gx, gy, points, displacement, self._gradient_half, 2)
-        g = q[:, 2:].reshape(-1, 2, 2)
-        ok &= np.all(np.abs(g) <= _MAX_FRAME_GRADIENT, axis=(1, 2))
-        out[ok] = g[ok]
-        return out
 
     def register_span(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray, *,
                       min_window_mm: float | None = None) -> SpanFit:

@@ -541,11 +541,7 @@ class FeatureTracker:
             windows = np.concatenate([win, cand_win])[sel]
             cov = (self.refiner.displacement_covariance(a, b, points[sel], disp[sel], windows)
                    if self._fusion_radius > 0 else None)
-            # The gradient measured in each point's own window; the neighbours' fit where that fails.
-            grads = self.refiner.window_gradients(a, b, points[sel], disp[sel])
-            failed = np.flatnonzero(np.isnan(grads[:, 0, 0]))
-            if failed.size:
-                grads[failed] = local_gradients(points[sel], disp[sel], at=failed)
+            grads = local_gradients(points[sel], disp[sel])  # the neighbours' fit
             bias = self.refiner.deformation_bias(a, points[sel], grads, windows)
             # A correction as large as the consistency bound comes from a window with texture in one direction
             # only (parallel ridges, no landmark), where it is ill-determined: left alone.

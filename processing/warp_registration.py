@@ -1,7 +1,7 @@
-"""Lucas-Kanade registration kernels of a window under an affine and a second-order warp (beyond the seed, seed 7.2.2).
+"""Lucas-Kanade registration kernel of a window under a second-order warp (beyond the seed, seed 7.2.2).
 
-Compiled loops for :class:`~skinstretch.processing.displacement_refinement.SubpixelRefiner`: the affine warp measures a
-point's displacement gradient (``window_gradients``), the second-order warp a span's motion (``register_span``). Hand
+Compiled loops for :class:`~skinstretch.processing.displacement_refinement.SubpixelRefiner`: the second-order warp
+measures a span's motion (``register_span``). Hand
 written: OpenCV's ``calcOpticalFlowPyrLK`` registers translations only, and ``findTransformECC`` one warp of a whole
 image at a time (no per-point windows, no second-order warp, no statistic of the fit).
 """
@@ -44,158 +44,16 @@ def _bilinear(b, qx, qy):
 
 
 @njit(nogil=True, fastmath=FASTMATH)
-def affine_kernel(a, b, gx, gy, points, disp, half, steps):
-    """Per point, the affine warp x -> x + d + delta + G (x - p) that registers the window of ``a`` around p onto
-    ``b`` (``steps`` >= 2 Gauss-Newton steps with the gradient of ``a``, from delta = 0, G = 0; fewer when a step
-    moves the window's corners by less than 1e-4 px): rows (delta_x, delta_y, G00, G01, G10, G11); ok False where
-    the window leaves an image or the 6 x 6 system is singular.
-
-    The Jacobian of the residual, ``J = (gx, gy, gx ox, gx oy, gy ox, gy oy)`` with ``(ox, oy) = x - p``, is the
-    first image's, so the Hessian ``sum J J^T`` is the same in both steps: it is summed once, as moments of the
-    gradient products (``gx^2, gx gy, gy^2`` times ``1, ox, oy, ox^2, ox oy, oy^2``) row by row. The first step
-    samples ``b`` at one sub-pixel shift (one bilinear stencil for the window), the second along the affine warp.
-    Each row's sums are float32 (SIMD-wide; relative rounding ~1e-7 over a row of 63 pixels, 1e-8 of a
-    gradient of 0.01), the window's float64."""
-    h, w = a.shape
-    n = points.shape[0]
-    out = np.zeros((n, 6))
-    ok = np.zeros(n, np.bool_)
-    hess = np.zeros((6, 6))
-    rhs = np.zeros(6)
-    for i in range(n):
-        px, py = points[i, 0], points[i, 1]
-        c, r = int(np.round(px)), int(np.round(py))
-        if c - half < 0 or r - half < 0 or c + half >= w or r + half >= h:
-            continue
-        dx, dy = disp[i, 0], disp[i, 1]
-        ix, iy, fx, fy, inside = shifted_window(b, c, r, half, dx, dy)
-        if not inside:
-            continue
-        oxs = np.empty(2 * half + 1, np.float32)
-        for k in range(2 * half + 1):
-            oxs[k] = np.float32(c - half + k - px)
-        w00 = np.float32((1.0 - fx) * (1.0 - fy))
-        w01 = np.float32(fx * (1.0 - fy))
-        w10 = np.float32((1.0 - fx) * fy)
-        w11 = np.float32(fx * fy)
-        # sums of gx^2, gx gy, gy^2 (xx, xy, yy) times 1, ox, oy, ox^2, ox oy, oy^2 (0..5)
-        xx0 = xx1 = xx2 = xx3 = xx4 = xx5 = 0.0
-        xy0 = xy1 = xy2 = xy3 = xy4 = xy5 = 0.0
-        yy0 = yy1 = yy2 = yy3 = yy4 = yy5 = 0.0
-        g0 = g1 = g2 = g3 = g4 = g5 = 0.0  # sum J e
-        for y in range(r - half, r + half + 1):
-            oy = y - py
-            z = np.float32(0.0)
-            rxx0 = rxx1 = rxx2 = rxy0 = rxy1 = rxy2 = ryy0 = ryy1 = ryy2 = z
-            ex0 = ex1 = ey0 = ey1 = z
-            sy = y + iy
-            b0 = b[sy, c - half + ix:c + half + ix + 2]
-            b1 = b[sy + 1, c - half + ix:c + half + ix + 2]
-            ar = a[y, c - half:c + half + 1]
-            gxr = gx[y, c - half:c + half + 1]
-            gyr = gy[y, c - half:c + half + 1]
-            for k in range(2 * half + 1):
-                ox = oxs[k]
-                v = (b0[k] * w00 + b0[k + 1] * w01) + (b1[k] * w10 + b1[k + 1] * w11)
-                err = ar[k] - v
-                ax = gxr[k]
-                ay = gyr[k]
-                pxx, pxy, pyy, ox2 = ax * ax, ax * ay, ay * ay, ox * ox
-                rxx0 += pxx
-                rxx1 += pxx * ox
-                rxx2 += pxx * ox2
-                rxy0 += pxy
-                rxy1 += pxy * ox
-                rxy2 += pxy * ox2
-                ryy0 += pyy
-                ryy1 += pyy * ox
-                ryy2 += pyy * ox2
-                ex, ey = ax * err, ay * err
-                ex0 += ex
-                ex1 += ex * ox
-                ey0 += ey
-                ey1 += ey * ox
-            oy2 = oy * oy
-            xx0 += float(rxx0); xx1 += float(rxx1); xx2 += float(rxx0) * oy; xx3 += float(rxx2); xx4 += float(rxx1) * oy; xx5 += float(rxx0) * oy2  # noqa: E702
-            xy0 += float(rxy0); xy1 += float(rxy1); xy2 += float(rxy0) * oy; xy3 += float(rxy2); xy4 += float(rxy1) * oy; xy5 += float(rxy0) * oy2  # noqa: E702
-            yy0 += float(ryy0); yy1 += float(ryy1); yy2 += float(ryy0) * oy; yy3 += float(ryy2); yy4 += float(ryy1) * oy; yy5 += float(ryy0) * oy2  # noqa: E702
-            g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-        hess[0, 0], hess[0, 1], hess[0, 2], hess[0, 3], hess[0, 4], hess[0, 5] = xx0, xy0, xx1, xx2, xy1, xy2
-        hess[1, 1], hess[1, 2], hess[1, 3], hess[1, 4], hess[1, 5] = yy0, xy1, xy2, yy1, yy2
-        hess[2, 2], hess[2, 3], hess[2, 4], hess[2, 5] = xx3, xx4, xy3, xy4
-        hess[3, 3], hess[3, 4], hess[3, 5] = xx5, xy4, xy5
-        hess[4, 4], hess[4, 5] = yy3, yy4
-        hess[5, 5] = yy5
-        for k in range(6):
-            for l in range(k):
-                hess[k, l] = hess[l, k]
-        scale = hess[0, 0] + hess[1, 1]
-        if not scale > 0.0 or abs(np.linalg.det(hess / scale)) < 1e-12:
-            continue
-        rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-        q = np.linalg.solve(hess, rhs)  # delta_x, delta_y, G00, G01, G10, G11
-        # Later steps along the warp: an affine map, so its samples lie within the parallelogram of the corners'.
-        for _ in range(steps - 1):
-            for cy in (r - half, r + half):
-                for cx in (c - half, c + half):
-                    qx = cx + dx + q[0] + q[2] * (cx - px) + q[3] * (cy - py)
-                    qy = cy + dy + q[1] + q[4] * (cx - px) + q[5] * (cy - py)
-                    if not (qx >= 0.0 and qy >= 0.0 and qx < w - 1 and qy < h - 1):
-                        inside = False
-            if not inside:
-                break
-            g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-            for y in range(r - half, r + half + 1):
-                oy = y - py
-                z = np.float32(0.0)
-                ex0 = ex1 = ey0 = ey1 = z
-                bx = dx + q[0] + q[3] * oy
-                by = y + dy + q[1] + q[5] * oy
-                ar = a[y, c - half:c + half + 1]
-                gxr = gx[y, c - half:c + half + 1]
-                gyr = gy[y, c - half:c + half + 1]
-                for k in range(2 * half + 1):
-                    ox = oxs[k]
-                    qx = c - half + k + bx + q[2] * ox
-                    qy = by + q[4] * ox
-                    err = ar[k] - _bilinear(b, qx, qy)
-                    ex = gxr[k] * err
-                    ey = gyr[k] * err
-                    ex0 += ex
-                    ex1 += ex * ox
-                    ey0 += ey
-                    ey1 += ey * ox
-                g0 += float(ex0); g1 += float(ey0); g2 += float(ex1); g3 += float(ex0) * oy; g4 += float(ey1); g5 += float(ey0) * oy  # noqa: E702
-            rhs[0], rhs[1], rhs[2], rhs[3], rhs[4], rhs[5] = g0, g1, g2, g3, g4, g5
-            step = np.linalg.solve(hess, rhs)
-            q = q + step
-            if (abs(step[0]) + abs(step[1]) + half * (abs(step[2]) + abs(step[3]) + abs(step[4]) + abs(step[5]))
-                    < 1e-4):
-                break
-        if inside and np.all(np.isfinite(q)):
-            out[i] = q
-            ok[i] = True
-    return out, ok
-
-
-#: Exponents (i, j) of the monomials s^i t^j of :func:`second_order_kernel`'s warp: 1, s, t, s^2, s t, t^2.
-_SECOND_ORDER_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
-#: Indices of the affine (1, s, t) and the second-order (s^2, s t, t^2) coefficients among its 12 (x terms, y terms).
-_AFFINE_COEFFS = np.array([0, 1, 2, 6, 7, 8])
-_CURVATURE_COEFFS = np.array([3, 4, 5, 9, 10, 11])
-
-
-@njit(nogil=True, fastmath=FASTMATH)
 def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     """Per point, the second-order warp x -> x + d + sum_k (cx_k, cy_k) m_k(s, t) that registers the window of
     ``a`` around p onto ``b``: m = (1, s, t, s^2, s t, t^2) of the window's normalised coordinates
     (s, t) = (x - p) / half, each within [-1, 1] so that the 12 x 12 system is well scaled. Up to ``steps``
-    Gauss-Newton steps with the gradient of ``a`` (a fixed Hessian, as :func:`affine_kernel`), from no change,
+    Gauss-Newton steps with the gradient of ``a`` (a fixed Hessian: the Jacobian is the first image's), from no change,
     each after the first accelerated by a secant (Anderson, depth 1) combination with the step before, stopping
     once a step moves no pixel by more than 1e-4 px.
 
     Rows (n, 9): 0-1 the translation (delta_x, delta_y) of the centre; 2-5 the displacement gradient
-    (G00, G01, G10, G11) there, px/px as :func:`affine_kernel`'s; 6-7 the translation of the affine model, the
+    (G00, G01, G10, G11) there, px/px, ``G[j, l] = d u_j / d x_l``; 6-7 the translation of the affine model, the
     second-order terms dropped (its least-squares solution at the same linearisation,
     ``c_1 + H_11^-1 H_12 c_2``); 8 the Wald statistic of the six second-order terms, ``c_2^T (H^-1)_22^-1 c_2 / s^2``
     with ``s^2`` the residual variance after the fit times ``(1 + r_x)(1 + r_y) / ((1 - r_x)(1 - r_y))``, r the
@@ -203,8 +61,7 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     texture leave is smooth: fewer independent samples than pixels; about 1 for camera noise). Large: the window's
     displacement is curved. ok False where the system is singular (the correlation matrix of its 12 columns has a
     determinant below 1e-12: no texture, or ridges all one way) or the warp could take the window beyond ``b``
-    (bounded by the sum of its coefficients' magnitudes). Sums along a row are float32 (SIMD-wide, as
-    :func:`affine_kernel`'s), over the window float64."""
+    (bounded by the sum of its coefficients' magnitudes). Sums along a row are float32 (SIMD-wide), over the window float64."""
     h, w = a.shape
     n = points.shape[0]
     out = np.zeros((n, 9))

@@ -37,9 +37,11 @@ def test_stage_rows_cover_both_methods_and_name_their_switches():
 
 
 def test_verdict_counts_a_change_only_beyond_the_noise():
-    on = {"disp mean": 0.030, "disp worst": 0.040, "edge mean": 0.10, "edge worst": 0.20}
+    on = {"disp mean": 0.030, "disp worst": 0.040, "edge mean": 0.10, "edge worst": 0.20, "points mean": 100.0}
     assert ablation.stage_verdict(on, dict(on, **{"edge worst": 0.21})) == "within noise"  # 5 % < 10 %
     assert ablation.stage_verdict(on, dict(on, **{"edge worst": 0.25})) == "pays"
     assert ablation.stage_verdict(on, dict(on, **{"disp mean": 0.020})) == "off better"
     assert ablation.stage_verdict(on, dict(on, **{"disp mean": 0.020, "edge mean": 0.2})) == "pays"
     assert ablation.stage_verdict(on, dict(on, **{"edge mean": math.nan})) == "pays"  # nothing measured off
+    assert ablation.stage_verdict(on, dict(on, **{"points mean": 80.0})) == "pays"  # a sparser mesh off
+    assert ablation.stage_verdict(on, dict(on, **{"points mean": 120.0})) == "within noise"

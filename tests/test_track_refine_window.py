@@ -98,59 +98,6 @@ def test_deformation_bias_uses_each_points_window():
     assert not np.allclose(per_point[1], narrow[1])
 
 
-def _bilinear(image, x, y):
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    im = image.astype(np.float64)
-    return ((im[y0, x0] * (1 - fx) + im[y0, x0 + 1] * fx) * (1 - fy)
-            + (im[y0 + 1, x0] * (1 - fx) + im[y0 + 1, x0 + 1] * fx) * fy)
-
-
-def _affine_fit_reference(a, b, p, d, half):
-    """Two Gauss-Newton steps of the affine registration, written out plainly (the kernel sums it differently)."""
-    af = a.astype(np.float32)
-    gx = cv2.Scharr(af, cv2.CV_32F, 1, 0, scale=1 / 32).astype(np.float64)
-    gy = cv2.Scharr(af, cv2.CV_32F, 0, 1, scale=1 / 32).astype(np.float64)
-    c, r = int(np.round(p[0])), int(np.round(p[1]))
-    y, x = np.mgrid[r - half:r + half + 1, c - half:c + half + 1]
-    ox, oy = (x - p[0]).ravel(), (y - p[1]).ravel()
-    ax, ay = gx[y, x].ravel(), gy[y, x].ravel()
-    jac = np.stack([ax, ay, ax * ox, ax * oy, ay * ox, ay * oy], axis=1)
-    q = np.zeros(6)
-    for _ in range(2):
-        qx = x.ravel() + d[0] + q[0] + q[2] * ox + q[3] * oy
-        qy = y.ravel() + d[1] + q[1] + q[4] * ox + q[5] * oy
-        err = a[y, x].ravel().astype(np.float64) - _bilinear(b, qx, qy)
-        q = q + np.linalg.solve(jac.T @ jac, jac.T @ err)
-    return q[2:].reshape(2, 2)
-
-
-def test_window_gradients_measure_an_affine_field_as_the_plain_fit_does():
-    """The gradient measured in each point's window: the kernel (moments summed row by row, float32 rows) gives the
-    plainly written two-step fit's result, and the field's gradient; a window leaving the image has none (NaN, or
-    the fallback given)."""
-    r = SubpixelRefiner(calibration=CAL)
-    half = CAL.odd_px(SubpixelParams().gradient_window_mm, minimum=7) // 2
-    texture = np.clip(_blotchy(seed=7), 0, 255).astype(np.float32)
-    g = np.array([[0.006, -0.003], [0.002, -0.004]])  # d u_j / d x_l
-    h, w = texture.shape
-    centre = np.array([100.0, 100.0])
-    # b(x + u(x)) = a(x), u(x) = t + g (x - centre): the forward map of warpAffine
-    t = np.array([0.4, -0.3])
-    m = np.hstack([np.eye(2) + g, (t - g @ centre)[:, None]]).astype(np.float32)
-    b = cv2.warpAffine(texture, m, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT).astype(np.uint8)
-    a = texture.astype(np.uint8)
-    pts = np.array([[100.0, 100.0], [96.3, 104.6], [104.2, 97.5], [10.0, 100.0]])
-    disp = t + (pts - centre) @ g.T
-    out = r.window_gradients(a, b, pts, disp)
-    for i in range(3):
-        np.testing.assert_allclose(out[i], _affine_fit_reference(a, b, pts[i], disp[i], half), atol=1e-6)
-        np.testing.assert_allclose(out[i], g, atol=1.5e-3)  # 8-bit images, two steps from no deformation
-    assert np.isnan(out[3]).all()
-    fallback = np.full((4, 2, 2), 0.5)
-    np.testing.assert_array_equal(r.window_gradients(a, b, pts, disp, fallback)[3], fallback[3])
-
-
 def test_a_flat_field_prepares_without_nan():
     """Flat glass round a contact: its local variance rounds either side of 0; the normalised image is the
     middle grey or brighter there (a NaN cast to 0 before), and the gradients are finite."""

@@ -35,8 +35,8 @@ from skinstretch.experiments.analysis.frames import FrameReader
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.progress import progress_bar
 
-__all__ = ["chunk_plan", "measure_features", "measure_flow", "make_tracker", "make_extractor", "FeatureMeasurement",
-           "FlowMeasurement", "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
+__all__ = ["chunk_plan", "measure_features", "measure_flow", "make_tracker", "make_extractor", "MeasurementRun",
+           "MAX_CHUNK_FRAMES", "MIN_FRAMES"]
 
 log = logging.getLogger(__name__)
 
@@ -194,8 +194,8 @@ def chunks_can_join(params) -> bool:
 
 
 @dataclass
-class FeatureMeasurement:
-    """Seconds per stage, and how the measurement ran."""
+class MeasurementRun:
+    """Seconds per stage, and how the measurement ran (chunks, workers)."""
 
     timing: dict[str, float]
     parallel: str
@@ -211,7 +211,7 @@ def measure_features(
     on_frames: Callable[[int, list, list], None],
     on_tracked: Callable[[list], None],
     progress: bool = False,
-) -> FeatureMeasurement:
+) -> MeasurementRun:
     """Track every frame in chunks on ``executor``; ``on_frames(first, tables, flags)`` receives each run of
     frames' feature tables and flags in frame order, once (the caller writes them out), and ``on_tracked(frames)``
     the tracked frames (:class:`~skinstretch.processing.tracking.TrackedFrame`) in frame order, each once, as soon
@@ -255,11 +255,11 @@ def measure_features(
         bar.close()
     how = "serial" if here else describe_executor(executor)
     parallel = f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}, {retracked} re-tracked at their join"
-    return FeatureMeasurement(timing, parallel)
+    return MeasurementRun(timing, parallel)
 
 
 def _extract_apart_track_here(reader: FrameReader, *, n_frames: int, calibration: Calibration, params,
-                              executor: Executor, on_frames, on_tracked, progress: bool) -> FeatureMeasurement:
+                              executor: Executor, on_frames, on_tracked, progress: bool) -> MeasurementRun:
     """:func:`measure_features` where chunks tracked apart could not be joined (:func:`chunks_can_join`): the
     workers extract short chunks ahead while this process tracks every frame in order, as one sequential tracker
     (what a refused join falls back to, without tracking those frames twice)."""
@@ -286,7 +286,7 @@ def _extract_apart_track_here(reader: FrameReader, *, n_frames: int, calibration
         bar.close()
     parallel = (f"{describe_executor(executor)}: features extracted in {len(plan)} chunks, tracked in this process "
                 "(points bridged without end: chunks tracked apart could not be joined)")
-    return FeatureMeasurement(timing, parallel)
+    return MeasurementRun(timing, parallel)
 
 
 # -- flow --------------------------------------------------------------------------------------------------------
@@ -315,12 +315,6 @@ def flow_chunk(reader: FrameReader, first: int, last: int, calibration: Calibrat
     return fields, time.perf_counter() - t0
 
 
-@dataclass
-class FlowMeasurement:
-    timing: dict[str, float]
-    parallel: str
-
-
 def measure_flow(
     reader: FrameReader,
     *,
@@ -330,7 +324,7 @@ def measure_flow(
     executor: Executor,
     on_field: Callable[[Any], None],
     progress: bool = False,
-) -> FlowMeasurement:
+) -> MeasurementRun:
     """Dense flow (:class:`~skinstretch.processing.flow.FlowParams` ``flow_params``) between consecutive frames in
     chunks on ``executor``; ``on_field(field)`` receives every field in pair order."""
     width = executor_width(executor)
@@ -351,5 +345,5 @@ def measure_flow(
     finally:
         bar.close()
     how = "serial" if here else describe_executor(executor)
-    return FlowMeasurement({"flow_s": time.perf_counter() - t0, "flow_cpu_s": busy},
+    return MeasurementRun({"flow_s": time.perf_counter() - t0, "flow_cpu_s": busy},
                            f"{how}: {len(plan)} chunk{'s' if len(plan) > 1 else ''}")

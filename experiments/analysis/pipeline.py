@@ -4,8 +4,9 @@
 
 1. frames are read from the session one at a time (:mod:`.frames`), with glass-fixed shading removed where asked
    for the motion measurement (features are extracted from the frames as recorded);
-2. motion between consecutive frames is measured in chunks on the run's executor (:mod:`.measure`): tracked
-   features refined to sub-pixel, or the dense flow grid;
+2. the method (:mod:`.methods`: features or flow behind one interface) measures the motion between consecutive
+   frames in chunks on the run's executor (:mod:`.measure`): tracked features refined to sub-pixel, or the dense
+   flow grid; everything after it is the one shared tail;
 3. the motion is rectified to the skin once (when the session has a geometric mapping), written to the results
    file pair by pair, and the triangulation strain of every span is computed in batches as pairs arrive; the
    feature method's trajectories are stored as the tracker is done with each frame and built at the end, a block
@@ -41,9 +42,8 @@ from skinstretch.drivers.disk_space import is_disk_full
 from skinstretch.drivers.errors import DiskFullError
 from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.analysis.derive import (
-    Derived, PixelScales, chain_flows, derive, motion_rows, rectified_sample, span_strain, tactile_movie_blocks,
+    Derived, PixelScales, derive, motion_rows, span_strain, tactile_movie_blocks,
 )
-from skinstretch.experiments.analysis.cumulative import feature_cumulative_samples, flow_cumulative_samples
 from skinstretch.experiments.analysis.density import mesh_density
 from skinstretch.experiments.analysis.executor import InlineExecutor, make_executor
 from skinstretch.experiments.analysis.frames import (
@@ -53,26 +53,21 @@ from skinstretch.experiments.analysis.frames import (
     SessionFrames,
     estimate_shading,
 )
-from skinstretch.experiments.analysis.measure import measure_features, measure_flow
+from skinstretch.experiments.analysis.methods import Outputs, measurement_method
 from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params
 from skinstretch.experiments.analysis.plan import AnalysisPlan, plan_analysis, refuse_unfit_clip
 from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
-from skinstretch.experiments.analysis.trajectories import TrajectoryStore
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
-    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRACK_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
+    EDGE_DTYPE, MOTION_DTYPE, PAIR_DTYPE, TRIANGLE_DTYPE, PairStatus, Results, ResultsWriter,
     check_results_dir,
 )
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file, hold_output_dir
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.feature_table import FEATURE_DTYPE, validate_features
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.display_mapping import TactileMovie
-from skinstretch.processing.displacement_refinement import SubpixelRefiner
-from skinstretch.processing.span_registration import SampleUncertainty, SpanFrames, SpanRegistration
-from skinstretch.processing.trajectory_anchoring import KeyframeAnchoring
-from skinstretch.processing.tracking import TRAJECTORY_DTYPE, MotionSample, Trajectories
+from skinstretch.processing.tracking import MotionSample
 
 __all__ = ["analyze", "analyze_frames", "analyze_session", "summarize", "surface_kind", "STRAIN_BATCH_PAIRS"]
 
@@ -85,9 +80,6 @@ MEANINGFUL_SIGMA_PX = 0.05
 MEANINGFUL_EDGE_SIGMA = 0.002
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
-#: Pairs whose longer spans are registered together (SpanRegistration.refine_all, on the run's worker count of
-#: threads): their prepared frames, about this many plus the longest span, are held at once.
-SPAN_REGISTRATION_BATCH = 16
 
 
 class _StrainTables:
@@ -225,64 +217,6 @@ class _MotionTable:
             self.block = []
 
 
-def _rectify_rows(rows: np.ndarray, mapping, px_per_mm: float) -> None:
-    """Image px -> skin px for every position of trajectory rows (seed 3.4)."""
-    for a, b in (("x", "y"), ("raw_x", "raw_y")):
-        xy = np.column_stack([rows[a], rows[b]])
-        out = np.asarray(mapping.image_to_surface(xy), dtype=np.float64) * px_per_mm
-        rows[a], rows[b] = out[:, 0], out[:, 1]
-
-
-def _trajectories_and_motion(store: TrajectoryStore, writer: ResultsWriter, strain: _StrainTables,
-                             motion: _MotionTable, *, n: int, spans: Sequence[int], mapping, px_per_mm: float,
-                             span_registration: SpanRegistration | None = None, threads: int = 1,
-                             uncertainty: SampleUncertainty | None = None) -> None:
-    """The stored trajectories written a block of frames at a time, and the motion of every span that follows from
-    them: pair (k, k + 1) and (k, k + span) as soon as the block holding frame k + the longest span is built. With
-    ``span_registration``, a longer span's chained motion is refined by registering its two frames (in image
-    pixels, before the mapping to the skin), a batch of pairs at a time on ``threads`` threads; ``uncertainty``
-    gives every point of every span its predicted standard error."""
-    measured = uncertainty if uncertainty is not None else (lambda sample: sample)
-    longest = max(spans)
-    kinds = store.kinds
-    carry = np.zeros(0, TRAJECTORY_DTYPE)  # rows of the frames later pairs still need (image pixels)
-    first = 0  # the next pair (first, first + 1)
-    for block in store.blocks():
-        rows = block.rows
-        if mapping is not None:
-            written = rows.copy()
-            _rectify_rows(written, mapping, px_per_mm)
-            writer.append("trajectories", written)
-        else:
-            writer.append("trajectories", rows)
-        tr = Trajectories(n_frames=block.stop, rows=np.concatenate([carry, rows]), kind=kinds)
-        last = n - 2 if block.stop == n else block.stop - 1 - longest  # the last pair whose frames are all built
-        for k0 in range(first, last + 1, SPAN_REGISTRATION_BATCH):
-            longer = []  # (span, chained motion) of this batch of pairs, registered together
-            for k in range(k0, min(last + 1, k0 + SPAN_REGISTRATION_BATCH)):
-                s = rectified_sample(measured(tr.motion(k, k + 1)), mapping, px_per_mm)
-                motion.add(s)
-                for span in spans:
-                    if span == 1:
-                        strain.add(1, s)
-                    elif k + span < n:
-                        longer.append((span, tr.motion(k, k + span)))
-            if span_registration is not None and longer:
-                refined = span_registration.refine_all([c for _, c in longer], threads=threads)
-                longer = [(span, r) for (span, _), r in zip(longer, refined)]
-            for span, chained in longer:
-                strain.add(span, rectified_sample(measured(chained), mapping, px_per_mm))
-        first = max(first, last + 1)
-        carry = tr.rows[tr.rows["frame"] >= first]
-    motion.flush()
-    table = store.track_table()
-    tracks = np.zeros(table["kind"].size, dtype=TRACK_DTYPE)
-    tracks["track"] = np.arange(tracks.size)
-    for name, column in table.items():
-        tracks[name] = column
-    writer.append("tracks", tracks)
-
-
 def analyze(
     source: FrameSource | Sequence[np.ndarray] | np.ndarray,
     *,
@@ -341,103 +275,16 @@ def analyze(
         motion = _MotionTable(writer, stack)
         cumulative = _CumulativeTable(writer, scales)
 
-        if method == "features":
-            n_features = 0
-            store = stack.enter_context(TrajectoryStore(n_frames=n, params=params.tracking,
-                                                        scratch_dir=writer.scratch_dir))
-
-            def on_frames(first: int, tables: list, chunk_flags: list) -> None:
-                nonlocal n_features
-                sizes = [t.shape[0] for t in tables]
-                feats = validate_features(np.concatenate(tables)) if tables else np.zeros(0, FEATURE_DTYPE)
-                feats["frame"] = np.repeat(np.arange(first, first + len(tables), dtype=np.int32), sizes)
-                feats["id"] = np.arange(n_features, n_features + feats.shape[0])
-                n_features += feats.shape[0]
-                writer.append("features", feats)
-                flags[first : first + len(chunk_flags)] = chunk_flags
-
-            m = measure_features(reader, n_frames=n, calibration=calibration, params=params, executor=executor,
-                                 on_frames=on_frames, on_tracked=store.add, progress=progress)
-            t0 = time.perf_counter()
-            # The trajectories' chained drift corrected at key frames (KeyframeAnchoring) and a longer span
-            # registered directly between its two frames (SpanRegistration), as the plan says.
-            span_registration = anchoring = None
-            refiner = SubpixelRefiner(calibration=calibration, params=params.subpixel)
-            frames = SpanFrames(reader, refiner.prepare, keep=SPAN_REGISTRATION_BATCH)
-            if plan.keyframe_smoothing_key_frames is not None:
-                anchoring = KeyframeAnchoring(
-                    refiner, reader, interval=params.tracking.keyframe_interval_frames,
-                    reference_span=params.tracking.keyframe_reference_frames,
-                    smoothing=plan.keyframe_smoothing_key_frames)
-                store.anchor(anchoring)
-            if plan.span_registration:
-                span_registration = SpanRegistration(refiner, reader, frames=frames)
-            _trajectories_and_motion(store, writer, strain, motion, n=n, spans=spans, mapping=mapping,
-                                     px_per_mm=calibration.px_per_mm, span_registration=span_registration,
-                                     threads=1 if params.execution.kind == "serial" else params.execution.workers,
-                                     uncertainty=SampleUncertainty(refiner, frames))
-            store.close()  # its scratch file
-            m.timing["tracking_s"] += time.perf_counter() - t0
-            # the stages' own shares of it (the bench's stages table)
-            m.timing["keyframes_s"] = anchoring.seconds if anchoring is not None else 0.0
-            m.timing["span_registration_s"] = span_registration.seconds if span_registration is not None else 0.0
-            timing, parallel = dict(m.timing), m.parallel
-        else:
-            recent: deque = deque(maxlen=max(spans))
-            stride = params.strain.flow_stride
-            # sim-flow branch: a longer span is the composed consecutive fields refined by registering its own two
-            # frames (SpanRefiner) when the plan says so: composing alone adds up every step's smoothing bias.
-            refiner = None
-            reference: list = [None]  # the field from the reference frame to the newest frame (with a refiner)
-            pair_flow = params.flow  # the plan's: its local prior off over a shape
-            if plan.span_refiner:
-                from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
-
-                refiner = SpanRefiner(DenseFlow(calibration=calibration, params=pair_flow), reader)
-                reference_refiner = ReferenceRefiner(refiner.flow, reader)
-
-            def on_field(f) -> None:
-                if not recent:  # the first field
-                    writer.start_flow(f.grid_x, f.grid_y)
-                writer.append_flow(f.displacement, f.valid)
-                if f.status != "ok" and not any(f.frame_flags):
-                    flags[f.frame_a] = f.status
-                for k, refused in zip((f.frame_a, f.frame_b), f.frame_flags):  # the texture gate names each frame's
-                    flags[k] = refused or flags[k]                              # reason
-                recent.append(f)
-                motion.add(rectified_sample(f.motion(), mapping, calibration.px_per_mm))
-                if refiner is not None:
-                    # Cumulative (DIC's reference frame): the reference field composed with this one, registered
-                    # from the reference frame to frame b directly; chaining alone adds up each step's bias.
-                    measured = None
-                    if reference[0] is not None:
-                        reference[0], measured = reference_refiner.advance(reference[0], f)
-                    elif int(f.valid[::stride, ::stride].sum()) >= 3:
-                        reference[0] = measured = f
-                    if measured is not None and measured.valid.any():  # else a frame refused: no row
-                        cumulative.add(rectified_sample(measured.motion(stride=stride), mapping,
-                                                        calibration.px_per_mm))
-                for span in spans:
-                    if len(recent) >= span:
-                        steps = list(recent)[len(recent) - span:]
-                        chained = (refiner.refine(steps).motion(stride=stride) if refiner is not None and span > 1
-                                   else chain_flows(steps, stride=stride))
-                        strain.add(span, rectified_sample(chained, mapping, calibration.px_per_mm))
-
-            m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=pair_flow, executor=executor,
-                             on_field=on_field, progress=progress)
-            motion.flush()
-            timing, parallel = dict(m.timing), m.parallel
-            timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
+        out = Outputs(writer=writer, motion=motion, strain=strain, cumulative=cumulative, flags=flags,
+                      calibration=calibration, mapping=mapping, spans=spans, executor=executor, stack=stack,
+                      progress=progress)
+        measurement = measurement_method(method)
+        m = measurement.measure(reader, n=n, params=params, plan=plan, out=out)
+        timing, parallel = dict(m.timing), m.parallel
         t0 = time.perf_counter()
         strain.finish()
-        if method == "features":
-            for sample in feature_cumulative_samples(writer.file, n_frames=n):
-                cumulative.add(sample)
-        elif not cumulative.written and not cumulative.batch:  # no refiner: the stored fields chained
-            for sample in flow_cumulative_samples(writer.file, stride=params.strain.flow_stride, mapping=mapping,
-                                                  px_per_mm=calibration.px_per_mm):
-                cumulative.add(sample)
+        for sample in measurement.cumulative_samples(n=n, params=params, out=out):
+            cumulative.add(sample)
         cumulative.finish()
         timing["cumulative_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()

@@ -65,7 +65,6 @@ STAGES: tuple[Stage, ...] = (
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
     Stage("re-linking over gaps", "features", {"tracking": {"max_gap_frames": 0}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
-    Stage("in-window gradient fit", "features", {"subpixel": {"gradient_window_mm": None}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
     Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
@@ -100,16 +99,19 @@ class Run:
     cpu_ms_per_frame: float
     displacement_rmse_px: float
     edge_rmse_11_pct: float
+    points_per_pair: float
 
 
 @dataclass(frozen=True)
 class ClipScore:
-    """One analysis of a clip: its CPU seconds, the clip's frames, and its errors against the truth."""
+    """One analysis of a clip: its CPU seconds, the clip's frames, its errors against the truth and how many
+    points it measured (a stage may pay by keeping points the others would lose)."""
 
     cpu_s: float
     n_frames: int
     displacement_rmse_px: float
     edge_rmse_11_pct: float
+    points_per_pair: float
 
 
 @dataclass
@@ -122,12 +124,14 @@ class _Clip:
     cleanup: Callable[[], None] = field(default=lambda: None)
 
 
-def _scene_clip(scene_name: str, n_frames: int, seed: int) -> _Clip:
+def _scene_clip(scene_name: str, n_frames: int, seed: int, texture: str | None = None) -> _Clip:
     from skinstretch.experiments.analysis import analyze_frames  # noqa: PLC0415
     from skinstretch.experiments.evaluation.tracking import evaluate_tracking  # noqa: PLC0415
     from skinstretch.simulators.scene import load_scene, render_session  # noqa: PLC0415
 
     scene = load_scene(scene_name)
+    if texture is not None:
+        scene = scene.with_texture(texture)
     s = render_session(scene, n_frames=n_frames, seed=seed)
     surface = scene.surface.kind
 
@@ -136,9 +140,11 @@ def _scene_clip(scene_name: str, n_frames: int, seed: int) -> _Clip:
         r = analyze_frames(s.frames, calibration=s.calibration, method=method, params=params, surface=surface)
         cpu = time.process_time() - c0
         ev = evaluate_tracking(r, s.truth)
-        return ClipScore(cpu, n_frames, ev["tracking"]["displacement_rmse_px"], 100.0 * ev["strain"]["edge_rmse_11"])
+        return ClipScore(cpu, n_frames, ev["tracking"]["displacement_rmse_px"], 100.0 * ev["strain"]["edge_rmse_11"],
+                         ev["tracking"]["n_displacements"] / max(n_frames - 1, 1))
 
-    return _Clip(f"{scene_name} seed {seed}", surface not in (None, "", "flat"), analyse)
+    name = f"{scene_name}{'' if texture is None else ' (' + texture + ')'} seed {seed}"
+    return _Clip(name, surface not in (None, "", "flat"), analyse)
 
 
 def _condition_clip(name: str, workdir) -> _Clip:
@@ -152,16 +158,20 @@ def _condition_clip(name: str, workdir) -> _Clip:
         row = conditions.analyse_and_score(c, imported, clip, method, directory, params=params)
         s = row.scores
         return ClipScore(row.cpu_ms_per_frame * imported.n_frames / 1000.0, imported.n_frames,
-                         s.displacement_rmse_px, s.edge_rmse_pct.get(11, math.nan))
+                         s.displacement_rmse_px, s.edge_rmse_pct.get(11, math.nan),
+                         s.points / max(imported.n_frames - 1, 1))
 
     return _Clip(f"conditions: {name}", False, analyse, lambda: shutil.rmtree(directory, ignore_errors=True))
 
 
-def _plan(quick: bool) -> tuple[list[tuple[str, int, int]], list[str]]:
-    """(scene, frames, seed) of the scene clips, and the conditions rows, of a quick or full run."""
+def _plan(quick: bool) -> tuple[list[tuple[str, int, int, str | None]], list[str]]:
+    """(scene, frames, seed, texture) of the scene clips, and the conditions rows, of a quick or full run; the
+    full run adds a motion reversal and a real print as the texture (a sparse print: what bridging and re-linking were
+    built for)."""
     if quick:
-        return [(s, 48, 0) for s in ("slipfront", "ridgeL")], ["base 30 px/mm"]
-    scenes = [(s, 90, seed) for s in ("flatL", "slipfront", "ridgeL", "valleyL") for seed in (0, 1)]
+        return [(s, 48, 0, None) for s in ("slipfront", "ridgeL")], ["base 30 px/mm"]
+    scenes = [(s, 72, seed, None) for s in ("flatL", "slipfront", "ridgeL", "valleyL") for seed in (0, 1)]
+    scenes += [("reversal", 72, 0, None)] + [(s, 72, 0, "afis_p1_2") for s in ("slipfront", "valleyL")]
     return scenes, ["base 30 px/mm", "issue: 19.7 px/mm, white, noise 2"]
 
 
@@ -183,7 +193,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
                 score = clip.analyse(method, stage_params(stage))
                 runs.append(Run(clip.name, clip.shaped, method, None if stage is None else stage.name,
                                 1000.0 * score.cpu_s / score.n_frames, float(score.displacement_rmse_px),
-                                float(score.edge_rmse_11_pct)))
+                                float(score.edge_rmse_11_pct), float(score.points_per_pair)))
                 log.info("%s %s off=%s: %.1f ms/frame, disp %.4f px, edge11 %.3f %%", clip.name, method,
                          runs[-1].stage, runs[-1].cpu_ms_per_frame, runs[-1].displacement_rmse_px,
                          runs[-1].edge_rmse_11_pct)
@@ -206,7 +216,10 @@ def _worse(on: float, off: float, floor: float) -> float:
 def stage_verdict(on: dict[str, float], off: dict[str, float]) -> str:
     """"pays" when switching the stage off worsens the mean or worst of either error beyond the noise, "off
     better" when it improves one beyond the noise and worsens none, else "within noise"."""
-    changes = [_worse(on[k], off[k], NOISE_FLOOR_PX if k.startswith("disp") else NOISE_FLOOR_PCT) for k in on]
+    changes = [_worse(on[k], off[k], NOISE_FLOOR_PX if k.startswith("disp") else NOISE_FLOOR_PCT)
+               for k in on if not k.startswith("points")]
+    # fewer points measured (a sparser mesh) counts against switching off, more points does not count for it
+    changes.append(max(_worse(off["points mean"], on["points mean"], 0.0), 0.0))
     if any(c > 0 for c in changes):
         return "pays"
     if any(c < 0 for c in changes):
@@ -217,12 +230,13 @@ def stage_verdict(on: dict[str, float], off: dict[str, float]) -> str:
 def _summary(runs: list[Run]) -> dict[str, float]:
     d = np.array([r.displacement_rmse_px for r in runs], dtype=np.float64)
     e = np.array([r.edge_rmse_11_pct for r in runs], dtype=np.float64)
+    p = np.array([r.points_per_pair for r in runs], dtype=np.float64)
 
     def agg(x, f):
         return float(f(x)) if np.isfinite(x).all() and x.size else math.nan
 
     return {"disp mean": agg(d, np.mean), "disp worst": agg(d, np.max),
-            "edge mean": agg(e, np.mean), "edge worst": agg(e, np.max)}
+            "edge mean": agg(e, np.mean), "edge worst": agg(e, np.max), "points mean": agg(p, np.mean)}
 
 
 def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
@@ -233,7 +247,7 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
         rows.append(["(every stage on)", method, "", len(base), float(np.mean([r.cpu_ms_per_frame
                                                                                for r in base.values()])), math.nan,
                      s["disp mean"], math.nan, s["disp worst"], math.nan, s["edge mean"], math.nan, s["edge worst"],
-                     math.nan, ""])
+                     math.nan, s["points mean"], math.nan, ""])
         for stage in (st for st in STAGES if st.method == method):
             off = [r for r in runs if r.method == method and r.stage == stage.name]
             if not off:
@@ -244,18 +258,19 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
             rows.append([stage.name, method, stage.switch_text(), len(off),
                          float(np.mean([x.cpu_ms_per_frame for x in on])), cost,
                          a["disp mean"], b["disp mean"], a["disp worst"], b["disp worst"],
-                         a["edge mean"], b["edge mean"], a["edge worst"], b["edge worst"], stage_verdict(a, b)])
-    n_frames = sorted({n for _, n, _ in scenes})
-    seeds = sorted({s for _, _, s in scenes})
+                         a["edge mean"], b["edge mean"], a["edge worst"], b["edge worst"], a["points mean"],
+                         b["points mean"], stage_verdict(a, b)])
+    n_frames = sorted({n for _, n, _, _ in scenes})
+    seeds = sorted({s for _, _, s, _ in scenes})
     return BenchTable(
         title="Every stage beyond the seed's method, switched off alone: CPU it costs, error it changes "
               "(mean and worst over the clips)",
         columns=["stage", "method", "switched off by", "clips", "CPU ms/frame all on", "CPU ms/frame cost",
                  "disp RMSE px on", "off", "worst on", "worst off", "11-frame edge RMSE % on", "off", "worst on",
-                 "worst off", "verdict"],
+                 "worst off", "points/pair on", "off", "verdict"],
         rows=rows,
         notes=[
-            f"Clips: scenes {', '.join(dict.fromkeys(n for n, _, _ in scenes))} ({'/'.join(map(str, n_frames))} "
+            f"Clips: scenes {', '.join(dict.fromkeys(n + (f' ({t})' if t else '') for n, _, _, t in scenes))} ({'/'.join(map(str, n_frames))} "
             f"frames, seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}; exact truth, scored by "
             "evaluate_tracking) and the conditions clip"
             f"{'s' if len(condition_names) > 1 else ''} {'; '.join(repr(n) for n in condition_names)} (40 frames, "
@@ -270,8 +285,9 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
             "Errors: displacement RMSE of consecutive frames, px; 11-frame edge-strain RMSE, percentage points. "
             f"Noise is a fixed threshold, not a seed spread: a change counts when it exceeds {NOISE_FRACTION:.0%} of "
             f"the all-on value and at least {NOISE_FLOOR_PX} px / {NOISE_FLOOR_PCT} pp. Verdict: pays = switching "
-            "it off worsens the mean or worst of either error beyond that; off better = it improves one beyond "
-            "that and worsens none; else within noise.",
+            "it off worsens the mean or worst of either error beyond that, or loses more than that fraction of the "
+            "points measured per consecutive pair (points/pair, mean over the clips); off better = it improves "
+            "an error beyond that and worsens none; else within noise.",
             "No switch, so no row: direct span registration of the features' longer spans as a whole (always on "
             "over plain glass with sub-pixel refinement; only its second-order windows can be switched off); the "
             "extractor's ridge-period statistics and band rule (ExtractionParams has no off for them). The flow's "
@@ -284,7 +300,8 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
 def _run_table(runs: list[Run]) -> BenchTable:
     return BenchTable(
         title="Every analysis of the ablation, clip by clip",
-        columns=["clip", "method", "stage off", "CPU ms/frame", "disp RMSE px", "11-frame edge RMSE %"],
+        columns=["clip", "method", "stage off", "CPU ms/frame", "disp RMSE px", "11-frame edge RMSE %",
+                 "points/pair"],
         rows=[[r.clip, r.method, r.stage or "(none)", r.cpu_ms_per_frame, r.displacement_rmse_px,
-               r.edge_rmse_11_pct] for r in runs],
+               r.edge_rmse_11_pct, r.points_per_pair] for r in runs],
     )
