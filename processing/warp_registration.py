@@ -43,6 +43,13 @@ def _bilinear(b, qx, qy):
             + (b[y0 + 1, x0] * (one - fx) + b[y0 + 1, x0 + 1] * fx) * fy)
 
 
+#: Exponents (i, j) of the monomials s^i t^j of :func:`second_order_kernel`'s warp: 1, s, t, s^2, s t, t^2.
+_SECOND_ORDER_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+#: Indices of the affine (1, s, t) and the second-order (s^2, s t, t^2) coefficients among its 12 (x terms, y terms).
+_AFFINE_COEFFS = np.array([0, 1, 2, 6, 7, 8])
+_CURVATURE_COEFFS = np.array([3, 4, 5, 9, 10, 11])
+
+
 @njit(nogil=True, fastmath=FASTMATH)
 def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     """Per point, the second-order warp x -> x + d + sum_k (cx_k, cy_k) m_k(s, t) that registers the window of
