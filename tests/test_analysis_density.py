@@ -56,10 +56,6 @@ def test_fraction_kept_counts_features_whose_point_stays_for_the_window(window, 
     assert fk.n_in_view == int(np.sum(visible[stays]))
     assert fk.n_kept == int(np.sum(visible[stays & kept_point]))
     assert fk.fraction == (fk.n_kept / fk.n_in_view if fk.n_in_view else None)
-    # Taking the kept points as in view without following them changes nothing when they are.
-    fk2 = fraction_kept(n_frames, window, features_of, _Sliding(20.0), kept_stay_in_view=True)
-    if np.all(stays | ~kept_point):
-        assert (fk2.n_in_view, fk2.n_kept) == (fk.n_in_view, fk.n_kept)
 
 
 def _sparse_results():
