@@ -56,10 +56,6 @@ def test_fraction_kept_counts_features_whose_point_stays_for_the_window(window, 
     assert fk.n_in_view == int(np.sum(visible[stays]))
     assert fk.n_kept == int(np.sum(visible[stays & kept_point]))
     assert fk.fraction == (fk.n_kept / fk.n_in_view if fk.n_in_view else None)
-    # Taking the kept points as in view without following them changes nothing when they are.
-    fk2 = fraction_kept(n_frames, window, features_of, _Sliding(20.0), kept_stay_in_view=True)
-    if np.all(stays | ~kept_point):
-        assert (fk2.n_in_view, fk2.n_kept) == (fk.n_in_view, fk.n_kept)
 
 
 def _sparse_results():
@@ -91,6 +87,24 @@ def test_a_sparse_mesh_is_flagged_and_logged(caplog):
     assert "mean mesh edge" in d.warning and "of the features that stay in view" in d.warning
     assert any("too sparse" in r.getMessage() for r in caplog.records)
     assert MeshDensity.from_dict(json.loads(json.dumps(d.to_dict()))) == d
+
+
+def test_features_not_kept_stay_in_view_through_frames_without_features():
+    # 4 points measured in every pair; their features found in frames 0 and 5 only (extraction refused 1-4), two of
+    # them kept. The in-view region is what was measured in a frame, not its features alone: the two features not
+    # kept stay in view for the 6-frame window and count against (before: no region in frames 1-4, kept 1.0).
+    w = ResultsWriter(None)
+    p = np.array([[100.0, 100.0], [300.0, 100.0], [100.0, 300.0], [300.0, 300.0]])
+    samples = [MotionSample(k, k + 1, p + k, np.ones((4, 2)), np.arange(4)) for k in range(5)]
+    pairs, rows = motion_rows(samples)
+    w.append("motion_pairs", pairs)
+    w.append("motion", rows)
+    feats = np.concatenate([make_features(p[:, 0] + k, p[:, 1] + k, [2] * 4, frame=k) for k in (0, 5)])
+    feats["id"] = np.arange(feats.shape[0])
+    w.append("features", feats)
+    w.file.create_dataset("trajectories", data=np.array([(0,), (1,), (4,), (5,)], dtype=[("feature_index", np.int64)]))
+    d = mesh_density(w.file, method="features", n_frames=6, px_per_mm=62.0, spans=[1], max_edge_px=1e6, window=6)
+    assert d.features_in_view == 8 and d.fraction_kept == 0.5
 
 
 @pytest.fixture(scope="module")

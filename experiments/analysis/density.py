@@ -8,8 +8,11 @@ trajectory. A feature whose skin point leaves the view before the window is full
 and is not kept (a short track, a second detection of one skin point) counts against. Where the skin point goes:
 
 * the analysis (:func:`mesh_density`, no truth) follows it through the motion it measured (the median displacement
-  of the nearest measured points, pair after pair) and calls it in view inside the frame's features' Delaunay
-  triangulation (edges longer than the strain's ``max_edge_mm`` left out);
+  of the nearest measured points, pair after pair) and calls it in view inside the Delaunay triangulation of what
+  it measured in the frame, its features and the motion table's points (edges longer than the strain's
+  ``max_edge_mm`` left out): features alone leave the region empty in a frame where extraction found few or none,
+  and would count every feature not kept as leaving the view. Kept features are followed the same way (at most
+  :data:`_KEPT_FOLLOWED` of them, evenly sampled): taken as in view unfollowed, they overstated the fraction;
 * ``skinstretch evaluate`` (:func:`skinstretch.experiments.evaluation.trajectories.evaluate_trajectories`) follows
   it through the simulator's exact field, in view where feature recall is scored.
 
@@ -55,6 +58,7 @@ MIN_FRACTION_KEPT = 0.8
 
 _BLOCK = 1 << 20  # rows read at a time
 _REACH_MM = 1.0  # a point further than this from every measured point of a pair is not followed through it
+_KEPT_FOLLOWED = 4000  # kept features followed at most (the rest sampled): their fraction in view to +/-0.01
 
 
 @dataclass(frozen=True)
@@ -95,13 +99,12 @@ class SkinPointMotion(Protocol):
 
 
 def fraction_kept(n_frames: int, window: int, features_of: Callable[[int], tuple[np.ndarray, np.ndarray]],
-                  motion: SkinPointMotion, *, kept_stay_in_view: bool = False) -> FractionKept:
+                  motion: SkinPointMotion) -> FractionKept:
     """The fraction kept (module doc) of a sequence of ``n_frames``.
 
     ``features_of(k)`` gives frame k's features: positions (n, 2) and whether each belongs to a kept trajectory.
     Each feature's skin point is followed forward and backward through ``motion`` until it leaves the view or the
-    window is reached (points of all frames at once, one step at a time). ``kept_stay_in_view``: a feature of a kept
-    trajectory is taken to stay in view without being followed (the analysis: it was measured for the window).
+    window is reached (points of all frames at once, one step at a time).
     """
     window = max(int(window), 1)
     counts = [0, 0, 0]  # features, in view, kept
@@ -133,7 +136,7 @@ def fraction_kept(n_frames: int, window: int, features_of: Callable[[int], tuple
                 xy, kept = features_of(k)
                 xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
                 kept = np.asarray(kept, dtype=bool).reshape(-1)
-                rows = np.flatnonzero(~kept) if kept_stay_in_view else np.arange(kept.size)
+                rows = np.arange(kept.size)
                 counts[0] += kept.size
                 kept_of[k] = kept
                 followed[k] = rows
@@ -155,8 +158,6 @@ def fraction_kept(n_frames: int, window: int, features_of: Callable[[int], tuple
     for k in range(n_frames):
         kept, rows = kept_of[k], followed[k]
         stays = np.zeros(kept.size, bool)
-        if kept_stay_in_view:
-            stays[kept] = True
         run = ahead[k][rows] + behind[k][rows] + 1
         stays[rows] = own_view[k] & (run >= window)
         counts[1] += int(stays.sum())
@@ -186,8 +187,8 @@ class _FrameRows:
 class MeasuredMotion:
     """The analysis' own :class:`SkinPointMotion`, from a results file being written: a skin point moves by the
     median displacement of the 6 nearest points measured between the two frames (none within 1 mm: it is not
-    followed), and is in view inside the Delaunay triangulation of the frame's features (triangles with an edge
-    longer than ``max_edge_px`` left out)."""
+    followed), and is in view inside the Delaunay triangulation of the frame's measured points (:meth:`measured_points`;
+    triangles with an edge longer than ``max_edge_px`` left out)."""
 
     def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
         self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
@@ -214,10 +215,23 @@ class MeasuredMotion:
         ok = cKDTree(src).query(points, distance_upper_bound=self._reach)[0] <= self._reach
         return points + local_predictions(points, src, d), ok
 
+    def measured_points(self, frame: int) -> np.ndarray:
+        """(n, 2) where the analysis measured something in ``frame``: its features and the points of the motion
+        table there (a pair's points in its first frame, moved into its second)."""
+        parts = []
+        if self._features is not None:
+            rows = self._features(frame)
+            parts.append(np.column_stack([rows["x"], rows["y"]]))
+        for i, moved in ((self._pair_of.get(int(frame)), False), (self._pair_of.get(int(frame) - 1), True)):
+            if i is not None and self._motion is not None and self._pairs[i + 1] > self._pairs[i]:
+                rows = self._motion(i)
+                xy = np.column_stack([rows["x"], rows["y"]])
+                parts.append(xy + np.column_stack([rows["dx"], rows["dy"]]) if moved else xy)
+        return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 2))
+
     def in_view(self, points, frame):
         if self._region[0] != frame:
-            rows = self._features(frame)
-            self._region = (frame, _region(np.column_stack([rows["x"], rows["y"]]), self._max_edge))
+            self._region = (frame, _region(self.measured_points(frame), self._max_edge))
         region = self._region[1]
         if region is None or points.shape[0] == 0:
             return np.zeros(points.shape[0], bool)
@@ -297,12 +311,19 @@ def mesh_density(f: h5py.File, *, method: str, n_frames: int, px_per_mm: float, 
         motion = MeasuredMotion(f, feature_offsets=offsets, px_per_mm=px_per_mm, max_edge_px=max_edge_px)
         rows_of = _FrameRows(f["features"], offsets)
 
-        def features_of(k: int):
-            rows = rows_of(k)
-            return np.column_stack([rows["x"], rows["y"]]), kept[offsets[k] : offsets[k + 1]]
+        # Kept features are followed like the others (taking them as in view because they were measured overstates
+        # the fraction wherever the view's edge is uncertain), every stride-th one of them, counted stride times.
+        stride = max(1, -(-int(kept.sum()) // _KEPT_FOLLOWED))
+        followed = ~kept | (np.cumsum(kept) % stride == 0)
 
-        fk = fraction_kept(n_frames, int(window or 1), features_of, motion, kept_stay_in_view=True)
-        fraction, in_view = fk.fraction, fk.n_in_view
+        def features_of(k: int):
+            rows, sel = rows_of(k), followed[offsets[k] : offsets[k + 1]]
+            return np.column_stack([rows["x"], rows["y"]])[sel], kept[offsets[k] : offsets[k + 1]][sel]
+
+        fk = fraction_kept(n_frames, int(window or 1), features_of, motion)
+        n_kept = stride * fk.n_kept
+        in_view = n_kept + fk.n_in_view - fk.n_kept
+        fraction = n_kept / in_view if in_view else None
     points = np.asarray(f["motion_pairs"].fields("n_points")[()], dtype=np.float64) if "motion_pairs" in f else \
         np.zeros(0)
     points_per_pair = float(np.median(points)) if points.size else 0.0

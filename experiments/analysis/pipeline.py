@@ -78,6 +78,9 @@ log = logging.getLogger(__name__)
 MEANINGFUL_SIGMA_PX = 0.05
 #: The same for the longest span's edge strain (a fraction): the bench's 11-frame edge-strain target.
 MEANINGFUL_EDGE_SIGMA = 0.002
+#: More than this fraction of the displacements without a bound (windows not matching after the measured motion:
+#: a trajectory that jumped, a texture the registration cannot follow) is warned about.
+MAX_UNBOUNDED_FRACTION = 0.05
 #: Pairs of one span triangulated in one task (one compiled call).
 STRAIN_BATCH_PAIRS = 128
 
@@ -166,7 +169,8 @@ class _SigmaSpread:
         if not self.values.count:
             return None
         median, p95 = self.values.percentiles([50, 95])
-        return {"median": median, "p95": p95, "unbounded": self.unbounded}
+        return {"median": median, "p95": p95, "unbounded": self.unbounded,
+                "unbounded_fraction": self.unbounded / (self.values.count + self.unbounded)}
 
 
 class _Doubts:
@@ -398,6 +402,9 @@ def _warnings(motion: _MotionTable, strain: _StrainTables, uncertainty: dict[str
     if disp is not None and not disp["median"] <= MEANINGFUL_SIGMA_PX:
         out.append(f"the displacements' predicted error is {disp['median']:.3g} px (median standard error), above "
                    f"{MEANINGFUL_SIGMA_PX} px: the frames' texture or noise limit this measurement")
+    if disp is not None and disp.get("unbounded_fraction", 0.0) > MAX_UNBOUNDED_FRACTION:
+        out.append(f"{100 * disp['unbounded_fraction']:.0f} % of the displacements do not match after their measured "
+                   "motion (no error bound): trajectories that jumped, or a texture the registration cannot follow")
     span = max(strain.buffers)
     edges = uncertainty.get(f"edge_change_sigma_span_{span}")
     if edges is not None and not edges["median"] <= MEANINGFUL_EDGE_SIGMA:
