@@ -18,7 +18,9 @@ import numpy as np
 from pydantic import Field
 
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX, RegistrationCheck, registration_check
+from skinstretch.processing.measurement_uncertainty import (
+    MODEL_SIGMA_PX, RegistrationCheck, registration_check, window_match,
+)
 from skinstretch.processing.parameters import parameters
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.warp_registration import FASTMATH, second_order_kernel, shifted_window
@@ -288,6 +290,16 @@ class SubpixelRefiner:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         return _covariances(self._window_statistics(prev_image, curr_image, points, displacement,
                                                     self._window_halves(window_px, points.shape[0])))
+
+    def covariance_and_match(self, prev_image, curr_image, points: np.ndarray, displacement: np.ndarray,
+                             window_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`displacement_covariance` and each window's match after the motion
+        (:func:`~skinstretch.processing.measurement_uncertainty.window_match`; NaN where it has no texture or
+        leaves an image), from one pass over the windows."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        stats = self._window_statistics(prev_image, curr_image, points, displacement,
+                                        self._window_halves(window_px, points.shape[0]))
+        return _covariances(stats), window_match(stats[:, 3], stats[:, 4])
 
     def registration_check(self, prev_image, curr_image, points: np.ndarray,
                            displacement: np.ndarray) -> RegistrationCheck:

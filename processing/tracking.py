@@ -35,6 +35,7 @@ from skinstretch.processing.feature_matching import (  # noqa: F401 - match_feat
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_gradients, local_predictions
 from skinstretch.processing.displacement_refinement import PreparedImage, SubpixelRefiner
 from skinstretch.processing.neighbour_fusion import fuse_with_neighbours
+from skinstretch.processing.measurement_uncertainty import MIN_MATCH
 # smooth_positions stays importable from here, where it was defined before it moved
 from skinstretch.processing.trajectory_smoothing import smooth_positions, smooth_track_rows  # noqa: F401
 from skinstretch.processing.jit import njit
@@ -517,8 +518,21 @@ class FeatureTracker:
         if int(good.sum()) >= 3:
             sel = np.flatnonzero(good)
             windows = np.concatenate([win, cand_win])[sel]
-            cov = (self.refiner.displacement_covariance(a, b, points[sel], disp[sel], windows)
-                   if self._fusion_radius > 0 else None)
+            cov, match = self.refiner.covariance_and_match(a, b, points[sel], disp[sel], windows)
+            # A step whose windows do not look alike after it (another ridge, texture the registration cannot
+            # follow) is not measured: its trajectory restarts there rather than jump (MIN_MATCH, as the results'
+            # uncertainty judges it).
+            astray = match < MIN_MATCH
+            if astray.any():
+                out = sel[astray]
+                mine = out[out < m]
+                ok[mine] = detached[mine] = False
+                dd[mine] = disp[mine] = d[mine]  # the feature's own displacement, as for a failed registration
+                found[out[out >= m] - m] = False
+                sel, windows, cov = sel[~astray], windows[~astray], cov[~astray]
+            if self._fusion_radius <= 0:
+                cov = None
+        if int(good.sum()) >= 3 and sel.size >= 3:
             grads = local_gradients(points[sel], disp[sel])  # the neighbours' fit
             bias = self.refiner.deformation_bias(a, points[sel], grads, windows)
             # A correction as large as the consistency bound comes from a window with texture in one direction

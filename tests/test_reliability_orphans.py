@@ -59,6 +59,18 @@ def _session_processes(sid: int) -> list[psutil.Process]:
     return out
 
 
+def _command_lines(procs: list[psutil.Process]) -> dict[int, str]:
+    """Command line by pid of those of ``procs`` still running (a worker may end, or be a zombie, between listing
+    and reading)."""
+    out = {}
+    for proc in procs:
+        try:
+            out[proc.pid] = " ".join(proc.cmdline())
+        except psutil.Error:
+            continue
+    return out
+
+
 def _sigkill_when_busy(cmd: list[str], *, started_line: str | None, workers: int) -> tuple[list[psutil.Process], float]:
     """Run ``cmd`` in a session of its own; once it printed ``started_line`` (if given) and its forkserver has forked
     ``workers`` workers (and the resource tracker runs), SIGKILL it. Returns the processes of its session still
@@ -72,7 +84,7 @@ def _sigkill_when_busy(cmd: list[str], *, started_line: str | None, workers: int
                 break
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
-            procs = {p.pid: " ".join(p.cmdline()) for p in psutil.Process(sid).children(recursive=True)}
+            procs = _command_lines(psutil.Process(sid).children(recursive=True))
             seen.update(procs)
             if (sum(FORKSERVER in c for c in procs.values()) >= workers + 1
                     and any("resource_tracker" in c for c in procs.values())):
@@ -95,6 +107,9 @@ def _sigkill_when_busy(cmd: list[str], *, started_line: str | None, workers: int
                 proc.kill()
             except psutil.Error:
                 pass
+        if child.poll() is None:  # reap it, so no Popen is left to warn at garbage collection
+            child.kill()
+        child.wait(10)
 
 
 SETTLE_S = 0.6  # > the watcher's scan interval (0.5 s)
