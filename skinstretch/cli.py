@@ -11,6 +11,7 @@ before (the system refused a file: a full disk, a permission) ends it with one l
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import sys
@@ -39,7 +40,9 @@ def _add_verbosity(parser: argparse.ArgumentParser) -> None:
     group.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors; no progress bars")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of every command; with ``argv`` naming a command whose module has its name, of that one alone
+    (importing every command's module costs a command seconds of start-up)."""
     parser = _OneLineErrorParser(
         prog="skinstretch",
         description="Measure fingertip skin stretch from FTIR fingerprint video and play it on a STReSS display.",
@@ -47,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"skinstretch {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for module in public_submodules(_commands):
+    for module in _command_modules(argv):
         module.register(sub)
     for command in sub.choices.values():
         _add_verbosity(command)
@@ -55,6 +58,24 @@ def build_parser() -> argparse.ArgumentParser:
         flags = {a.dest: max(a.option_strings, key=len) for a in command._actions if a.option_strings}
         command.set_defaults(cli_flags=flags)
     return parser
+
+
+def _command_modules(argv: list[str] | None) -> list:
+    """The module of the command ``argv`` names (its first word, when a public module of that name registers it),
+    else every command's module."""
+    word = next((a for a in argv or () if not a.startswith("-")), None)
+    if word and word.isidentifier() and not word.startswith("_"):
+        try:
+            module = importlib.import_module(f"{_commands.__name__}.{word}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{_commands.__name__}.{word}":
+                raise
+        else:
+            probe = argparse.ArgumentParser().add_subparsers()
+            module.register(probe)
+            if word in probe.choices:
+                return [module]
+    return public_submodules(_commands)
 
 
 class _CurrentStderrHandler(logging.StreamHandler):
@@ -86,7 +107,7 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     try:
