@@ -112,3 +112,27 @@ def test_stretch_profile_titles_show_the_amplitude_of_the_table(analysed, monkey
     table = re.search(r"profile: amplitude ([0-9.e+-]+) %", _text((tmp_path / "r.html").read_text()))
     assert table and len(titles) == 1
     assert re.search(r"RMS ([0-9.e+-]+) %", titles[0]).group(1) == table.group(1)
+
+
+@pytest.mark.parametrize("method", ["features", "flow"])
+def test_report_of_an_imported_print_clip_draws_every_figure(tmp_path, method):
+    """A user's clip (a real print at 19.7 px/mm on white, PNG frames, imported): every figure of its report is
+    drawn; none is replaced by a note that it could not be (an IndexError once replaced one)."""
+    import cv2
+
+    from tests.print_clips import print_frame, print_image
+
+    image = print_image()
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(16):
+        cv2.imwrite(str(frames / f"f{k:03d}.png"),
+                    np.clip(print_frame(image, k, px_per_mm=19.7, background=255.0), 0, 255).astype(np.uint8))
+    session, out = tmp_path / "clip.h5", tmp_path / "out"
+    assert main(["import", str(frames), "-o", str(session), "--px-per-mm", "19.7", "--fps", "60", "-q"]) == 0
+    assert main(["analyze", str(session), "-o", str(out), "--method", method, "--span", "1,5", "--min-track", "5",
+                 "--parallel", "serial", "-q"]) == 0
+    assert main(["report", str(out), "-q"]) == 0
+    text = _text((out / "report.html").read_text())
+    assert "could not be drawn" not in text and "Error:" not in text
+    assert (out / "report.html").read_text().count("data:image/png;base64") >= 3

@@ -19,9 +19,8 @@ and is not kept (a short track, a second detection of one skin point) counts aga
 A mesh too sparse to map strain is said, in the summary (``too_sparse`` and ``warning``) and in the log: fewer
 than half of the consecutive pairs give a strain triangulation, fewer than :data:`MIN_POINTS_PER_PAIR` points in a
 typical pair, or a mean edge longer than :data:`MAX_MEAN_EDGE_MM` (the STReSS display's contactors are 1 mm
-apart). A fraction kept under :data:`MIN_FRACTION_KEPT` is warned about too.
+apart). A fraction kept under :data:`MIN_FRACTION_KEPT` is warned about too. All is read from the results file.
 
-Everything is read from the results file as it is being written, a frame or a block of rows at a time.
 Hand-written: following points through a measured motion and testing them against a triangulated region is
 specific to this analysis' tables (scipy's k-d tree and the strain mesh's own Delaunay do the geometry).
 """
