@@ -4,6 +4,7 @@ the predicted standard error of a sample's points (:class:`SampleUncertainty`)."
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -20,7 +21,7 @@ class SpanFrames:
     """Frames prepared once for the spans that use them, in increasing first frame (the features'
     :class:`SpanRegistration` and the flow's ``SpanRefiner``): a frame is prepared as the second frame of a span,
     reused as the first frame of later ones, and dropped once the spans have passed it. ``frame(j)`` gives frame j,
-    ``prepare`` turns it into what the registration takes."""
+    ``prepare`` turns it into what the registration takes. Safe to share between threads."""
 
     def __init__(self, frame: Callable[[int], np.ndarray], prepare: Callable[[np.ndarray], Any], *,
                  keep: int = 0) -> None:
@@ -28,23 +29,27 @@ class SpanFrames:
         self._prepare = prepare
         self._keep = int(keep)
         self._prepared: dict[int, Any] = {}
+        self._lock = threading.RLock()
 
     def pair(self, k0: int, k1: int) -> tuple[Any, Any]:
         """Frames ``k0`` and ``k1`` prepared; frames more than ``keep`` before ``k0`` are dropped (no later span
         starts before them)."""
-        for j in [j for j in self._prepared if j < k0 - self._keep]:
-            del self._prepared[j]
-        return self.get(k0), self.get(k1)
+        with self._lock:
+            for j in [j for j in self._prepared if j < k0 - self._keep]:
+                del self._prepared[j]
+            return self.get(k0), self.get(k1)
 
     def keep_only(self, j: int) -> None:
         """Drop every prepared frame but ``j`` (spans that all start at ``j``: a reference frame)."""
-        for k in [k for k in self._prepared if k != j]:
-            del self._prepared[k]
+        with self._lock:
+            for k in [k for k in self._prepared if k != j]:
+                del self._prepared[k]
 
     def get(self, j: int) -> Any:
-        if j not in self._prepared:
-            self._prepared[j] = self._prepare(self._frame(j))
-        return self._prepared[j]
+        with self._lock:
+            if j not in self._prepared:
+                self._prepared[j] = self._prepare(self._frame(j))
+            return self._prepared[j]
 
 
 class SpanRegistration:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import Executor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -147,6 +147,7 @@ class FlowMethod:
         stride = params.strain.flow_stride
         refiner = None
         reference: list = [None]  # the field from the reference frame to the newest frame (with a refiner)
+        stack = ExitStack()
         if plan.span_refiner:
             from skinstretch.processing.flow import DenseFlow, ReferenceRefiner, SpanRefiner  # noqa: PLC0415
 
@@ -154,6 +155,10 @@ class FlowMethod:
             frames = flow.span_frames(reader, keep=max(out.spans))  # each frame prepared once for both refiners
             refiner = SpanRefiner(flow, reader, frames=frames)
             reference_refiner = ReferenceRefiner(flow, reader, frames=frames)
+            # The spans are refined on a thread of their own while this one registers from the reference frame:
+            # the two are independent, their kernels release the GIL, and this process would otherwise run them
+            # one after the other while the pairs' workers wait.
+            spans_thread = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="span-refiner"))
 
         def on_field(f) -> None:
             if not recent:  # the first field
@@ -165,7 +170,13 @@ class FlowMethod:
                 flags[k] = refused or flags[k]                              # reason
             recent.append(f)
             out.motion.add(out.rectified(f.motion()))
+            refined = {}
             if refiner is not None:
+                due = {span: list(recent)[len(recent) - span:]
+                       for span in out.spans if span > 1 and len(recent) >= span}
+                for steps in due.values():  # frames are read and prepared here, on the one thread that reads
+                    frames.pair(int(steps[0].frame_a), int(f.frame_b))
+                refined = {span: spans_thread.submit(refiner.refine, steps) for span, steps in due.items()}
                 # Cumulative (DIC's reference frame): the reference field composed with this one, registered
                 # from the reference frame to frame b directly; chaining alone adds up each step's bias.
                 measured = None
@@ -177,9 +188,8 @@ class FlowMethod:
                     out.cumulative.add(out.rectified(measured.motion(stride=stride)))
             for span in out.spans:
                 if len(recent) >= span:
-                    steps = list(recent)[len(recent) - span:]
-                    chained = (refiner.refine(steps).motion(stride=stride) if refiner is not None and span > 1
-                               else chain_flows(steps, stride=stride))
+                    chained = (refined[span].result().motion(stride=stride) if span in refined
+                               else chain_flows(list(recent)[len(recent) - span:], stride=stride))
                     out.strain.add(span, out.rectified(chained))
 
         from skinstretch.processing.flow import DenseFlow  # noqa: PLC0415
@@ -187,8 +197,9 @@ class FlowMethod:
         coupling = DenseFlow(calibration=calibration, params=params.flow)  # the nodes' errors are correlated
         for span in out.spans:
             out.strain.regularisation[span] = coupling.regularisation(span=refiner is not None and span > 1)
-        m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=params.flow,
-                         executor=out.executor, on_field=on_field, progress=out.progress)
+        with stack:
+            m = measure_flow(reader, n_frames=n, calibration=calibration, flow_params=params.flow,
+                             executor=out.executor, on_field=on_field, progress=out.progress)
         out.motion.flush()
         timing = dict(m.timing)
         timing["span_refiner_s"] = refiner.seconds if refiner is not None else 0.0  # its share of flow_s
