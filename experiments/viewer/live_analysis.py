@@ -46,7 +46,6 @@ __all__ = ["LiveAnalyzer", "LiveStats", "warm_up"]
 
 MAX_EDGE_MM = 2.0  # the analysis' default (AnalysisParams.max_edge_mm): long hull slivers left out
 SCALE_WINDOW_FRAMES = 60  # the colour scale covers the strains of the last analysed frames (a few seconds)
-EXTRACTION_THREADS = 2  # frames extracted at once while the live thread links the one before
 
 
 @dataclass
@@ -142,28 +141,24 @@ class LiveAnalyzer:
 
     # -- the loop
     def _run(self) -> None:
-        """Extraction and linking overlap: while this thread links frame k to the frame before (matching,
-        refinement, strain), :data:`EXTRACTION_THREADS` threads extract the newest frames after k, so a frame costs
-        about the longer stage, not both (extraction, the longer, mostly runs outside the GIL)."""
-        with ThreadPoolExecutor(EXTRACTION_THREADS, thread_name_prefix="live-extraction") as pool:
-            ahead: deque[tuple[int, Future]] = deque()  # the next frames to link, being extracted, in order
-
-            def top_up() -> None:  # the newest frame, when a thread is free and it is not asked for yet
-                newest = self.source.n_frames() - 1
-                if len(ahead) < EXTRACTION_THREADS and newest > (ahead[-1][0] if ahead else self._last):
-                    ahead.append((newest, pool.submit(self._extract, newest)))
-
+        """Two stages on two threads: while this one links frame k to the frame before (matching, refinement,
+        strain), the other extracts the newest frame after k, so a frame costs the longer stage, not both."""
+        with ThreadPoolExecutor(1, thread_name_prefix="live-extraction") as pool:
+            ahead: tuple[int, Future] | None = None  # the next frame to link, being extracted
             while not self._stop.is_set():
                 try:
-                    top_up()
-                    if not ahead:
-                        if self.source.status() != "recording":
-                            break  # the recording ended and its last frame is analysed
-                        self._stop.wait(self._poll)
-                        continue
-                    k, job = ahead.popleft()
+                    if ahead is None:
+                        k = self.source.n_frames() - 1
+                        if k <= self._last:
+                            if self.source.status() != "recording":
+                                break  # the recording ended and its last frame is analysed
+                            self._stop.wait(self._poll)
+                            continue
+                        ahead = (k, pool.submit(self._extract, k))
+                    k, job = ahead
                     frame = job.result()
-                    top_up()
+                    newest = self.source.n_frames() - 1
+                    ahead = (newest, pool.submit(self._extract, newest)) if newest > k else None
                     if self._last >= 0:
                         self._skipped += k - self._last - 1
                     self._link(k, frame)
@@ -171,8 +166,8 @@ class LiveAnalyzer:
                     self._error = f"{type(exc).__name__}: {exc}"
                     log.warning("live analysis stopped: %s", self._error)
                     break
-            for _, job in ahead:
-                job.cancel()
+            if ahead is not None:
+                ahead[1].cancel()
 
     def analyse_frame(self, k: int) -> FrameOverlays:
         """Analyse frame ``k`` against the previously analysed frame and keep its overlays."""
