@@ -58,18 +58,20 @@ def test_fraction_kept_counts_features_whose_point_stays_for_the_window(window, 
     assert fk.fraction == (fk.n_kept / fk.n_in_view if fk.n_in_view else None)
 
 
-def _sparse_results():
-    """A results file in memory holding a measurement of 4 far-apart points over 6 frames."""
+def _sparse_results(feature_frames=range(6), *, strain=True):
+    """A results file in memory holding a measurement of 4 far-apart points over 6 frames, their features found in
+    ``feature_frames``."""
     w = ResultsWriter(None)
     p = np.array([[100.0, 100.0], [300.0, 100.0], [100.0, 300.0], [300.0, 300.0]])
     samples = [MotionSample(k, k + 1, p + k, np.ones((4, 2)), np.arange(4)) for k in range(5)]
     pairs, rows = motion_rows(samples)
     w.append("motion_pairs", pairs)
     w.append("motion", rows)
-    s = span_strain(samples, span=1, max_edge_px=1e6)
-    for part, table in (("pairs", s.pairs), ("edges", s.edges), ("triangles", s.triangles)):
-        w.append(f"strain/span_1/{part}", table)
-    feats = np.concatenate([make_features(p[:, 0] + k, p[:, 1] + k, [2] * 4, frame=k) for k in range(6)])
+    if strain:
+        s = span_strain(samples, span=1, max_edge_px=1e6)
+        for part, table in (("pairs", s.pairs), ("edges", s.edges), ("triangles", s.triangles)):
+            w.append(f"strain/span_1/{part}", table)
+    feats = np.concatenate([make_features(p[:, 0] + k, p[:, 1] + k, [2] * 4, frame=k) for k in feature_frames])
     feats["id"] = np.arange(feats.shape[0])
     w.append("features", feats)
     return w
