@@ -95,15 +95,7 @@ def test_features_not_kept_stay_in_view_through_frames_without_features():
     # 4 points measured in every pair; their features found in frames 0 and 5 only (extraction refused 1-4), two of
     # them kept. The in-view region is what was measured in a frame, not its features alone: the two features not
     # kept stay in view for the 6-frame window and count against (before: no region in frames 1-4, kept 1.0).
-    w = ResultsWriter(None)
-    p = np.array([[100.0, 100.0], [300.0, 100.0], [100.0, 300.0], [300.0, 300.0]])
-    samples = [MotionSample(k, k + 1, p + k, np.ones((4, 2)), np.arange(4)) for k in range(5)]
-    pairs, rows = motion_rows(samples)
-    w.append("motion_pairs", pairs)
-    w.append("motion", rows)
-    feats = np.concatenate([make_features(p[:, 0] + k, p[:, 1] + k, [2] * 4, frame=k) for k in (0, 5)])
-    feats["id"] = np.arange(feats.shape[0])
-    w.append("features", feats)
+    w = _sparse_results((0, 5), strain=False)
     w.file.create_dataset("trajectories", data=np.array([(0,), (1,), (4,), (5,)], dtype=[("feature_index", np.int64)]))
     d = mesh_density(w.file, method="features", n_frames=6, px_per_mm=62.0, spans=[1], max_edge_px=1e6, window=6)
     assert d.features_in_view == 8 and d.fraction_kept == 0.5
