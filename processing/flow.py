@@ -603,9 +603,8 @@ class DenseFlow:
         towards the sharp one (linearly between ``_ADAPT_FROM`` and ``_ADAPT_TO``) across the level lines of the
         sharp field's deviation from the prior, and along them only as far as that detail has no single direction
         (:func:`_anisotropic_membrane`), and ``_ADAPT_ITERATIONS`` Gauss-Newton iterations re-solve with that
-        locally varying, anisotropic membrane. Smoothing along the detail costs no resolution and removes noise:
-        on the DIC Challenge 2.0 Star images the 51 px window's noise falls from 0.0041 to 0.0027 px at the same
-        resolution (92 px), a slip front's 11-frame edge strain from 0.108 to 0.087 %. A brightness change the
+        locally varying, anisotropic membrane. Smoothing along the detail costs no resolution and removes noise
+        (the `star` and `ablation` benches; tuning log "Moved from docstrings"). A brightness change the
         motion cannot explain mostly raises the residual, not the explained share, so it is left smoothed; over a
         span of frames, though, the skin moves far enough through glass-fixed patterns (ridge, valley) for the sharp field
         to follow them (see :meth:`compute_spans`). Nothing changes where no node qualifies (the iterations are

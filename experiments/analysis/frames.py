@@ -141,10 +141,9 @@ class FrameReader:
         Features are extracted from the frame as recorded: where the skin touches the glass is told by the FTIR
         contrast, which the shading removal equalises on purpose (partial contact gets full contrast, the bare
         glass's noise is amplified up to the gain's limit), and the glass-fixed statistics it subtracts keep a
-        trace of the print, which moves the minutiae and pores found in it (ridgeL and valleyL, 30-frame clips:
-        pore localisation 0.08-0.10 px on the recorded frames, 0.14-0.17 px on the corrected ones, and features
-        found beyond the outline). Their motion is registered on the corrected frames, where the glass-fixed
-        patterns no longer pull it towards zero.
+        trace of the print, which moves the minutiae and pores found in it (tuning log "Moved from docstrings").
+        Their motion is registered on the corrected frames, where the glass-fixed patterns no longer pull it
+        towards zero.
         """
         frame = self.source[k]
         if self.shading is not None and self.shading.good[k]:
