@@ -21,6 +21,9 @@ Rules
   size the file declares (OME, ImageJ); a file that declares none needs one of the two.
 * **Surface**: ``surface`` given, else read from the frames as they are written
   (:mod:`skinstretch.processing.surface_detection`: flat, ridge or valley), recorded with how it was decided.
+* **Lossy video**: the codec's displacement error is measured on the clip's middle frame
+  (:mod:`skinstretch.experiments.codec_error`) and recorded as ``source.codec_error``; the analysis' predicted
+  errors include it.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +42,9 @@ import numpy as np
 from skinstretch import __version__
 from skinstretch.drivers.camera_modes import CameraMode
 from skinstretch.drivers.frame_readers import FrameReader, SourceFrame, open_frame_reader
+from skinstretch.drivers.frame_readers.video import VideoFile
 from skinstretch.drivers.session_file import SessionWriter, replacing_file, write_metadata
+from skinstretch.experiments.codec_error import measure_codec_error
 from skinstretch.experiments.output_paths import REPLACE_IT, check_output_file
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError, Remedy
 from skinstretch.processing.pixel_scale import Calibration
@@ -297,6 +303,8 @@ def import_frames(
                 _set_rate(tmp, fps_out)
             source_record["ridge_period_mm"] = _checked_ridge_period(sample, cal.px_per_mm, reader.name,
                                                                      scale_source)
+            if reader.lossy and isinstance(reader, VideoFile) and sample is not None:
+                source_record["codec_error"] = _codec_error(reader, sample, cal.px_per_mm)
             if contrast is not None:
                 metadata["surface"] = _detected_surface(contrast, reader.name)
             else:
@@ -308,6 +316,18 @@ def import_frames(
                         px_per_mm=cal.px_per_mm, px_per_mm_source=scale_source, conversion=conversion,
                         surface=metadata["surface"]["kind"], surface_source=metadata["surface"]["decided_by"],
                         seconds=seconds)
+
+
+def _codec_error(reader: VideoFile, sample: np.ndarray, px_per_mm: float) -> dict | None:
+    """The lossy codec's displacement error measured on the clip's middle frame (:mod:`..codec_error`), logged; the
+    analysis includes it in its predicted errors. None when it cannot be measured."""
+    with tempfile.TemporaryDirectory(prefix="skinstretch-codec-") as scratch:
+        found = measure_codec_error(reader.path, sample, px_per_mm=px_per_mm, workdir=scratch)
+    if found is None:
+        return None
+    log.info("%s: the codec's displacement error is %.3f px per axis (%s); the analysis' predicted errors include "
+             "it", reader.name, found.sigma_px, found.how)
+    return found.to_dict()
 
 
 def _say_if_lossy(reader: FrameReader) -> None:

@@ -31,8 +31,8 @@ MIN_MATCH = 0.8
 #: The error a window's residual does not show (px per axis, added in quadrature): the bilinear sampling's bias
 #: and what stays of a registration's systematic error; the bench's coverage of the 95 % interval checks it.
 MODEL_SIGMA_PX = 0.01
-#: The same for frames from lossy video: the codec's error follows the motion from frame to frame, and a window's
-#: residual shows little of it (``skinstretch bench --only conditions``, MP4 rows).
+#: The same for frames from lossy video whose codec's error the import did not measure (``source.codec_error``;
+#: :mod:`skinstretch.experiments.codec_error`): the codec's error follows the motion, so a residual shows little of it.
 LOSSY_MODEL_SIGMA_PX = 0.03
 
 #: A 2-D error vector with a standard error ``sigma`` per axis lies within this many ``sigma`` of the truth 95 %

@@ -6,7 +6,7 @@ import pytest
 
 from skinstretch.experiments.analysis import AnalysisParams
 from skinstretch.experiments.analysis.parameters import analysis_params
-from skinstretch.experiments.analysis.plan import plan_analysis
+from skinstretch.experiments.analysis.plan import plan_analysis, plan_rows
 from skinstretch.processing.errors import InsufficientDataError, InvalidInputError
 from skinstretch.processing.tracking import TrackingParams
 from skinstretch.processing.trajectory_anchoring import GLASS_SMOOTHING_KEY_FRAMES, SHAPE_SMOOTHING_KEY_FRAMES
@@ -123,3 +123,16 @@ def test_a_lossy_source_raises_the_model_error_left_at_its_default():
     kept = plan_analysis(analysis_params({"flow": {"model_sigma_px": 0.02}, "subpixel": {"model_sigma_px": 0.02}}),
                          method="flow", n_frames=60, lossy_source=True)  # the user's values are kept
     assert kept.overrides == () and kept.params.flow.model_sigma_px == 0.02 and kept.notes == ()
+    assert plan.shared_sigma_px == 0.0  # the codec's error not measured: the fixed term, all of it independent
+
+
+def test_a_measured_codec_error_enters_the_points_errors_and_its_shared_part_leaves_strain_alone():
+    import math
+
+    from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX
+
+    plan = plan_analysis(analysis_params({}), method="flow", n_frames=60, lossy_source=True, codec_error=(0.05, 0.03))
+    assert plan.params.flow.model_sigma_px == pytest.approx(math.hypot(MODEL_SIGMA_PX, 0.05), abs=1e-4)
+    assert plan.shared_sigma_px == pytest.approx(0.04) and plan.to_dict()["shared_sigma_px"] == plan.shared_sigma_px
+    assert any("measured at import, 0.050 px (0.040 px of it shared" in n for n in plan.notes), plan.notes
+    assert ("codec error shared by neighbours", "0.04 px (strain does not see it)") in plan_rows(plan.to_dict())

@@ -253,10 +253,16 @@ def test_a_lossy_copy_says_so_at_import_and_in_its_analysis(simulated_and_analys
     assert "lossy.mp4: h264 (High) is lossy compression: the frames are not the camera's" in err
     with open_session(session) as s:
         assert s.metadata["source"]["lossy"] is True and s.metadata["source"]["compression"] == "h264 (High)"
+        codec = s.metadata["source"]["codec_error"]  # measured on the clip's own frame at the file's crf
+        assert 0.005 < codec["independent_px"] <= codec["sigma_px"] < 0.2 and "libx264 at crf 18.0" in codec["how"]
     assert main(["analyze", str(session), "-o", str(d / "lossy"), "-q"]) == 0
     assert "the frames were imported from lossy compression (h264 (High))" in capsys.readouterr().err
-    notes = json.loads((d / "lossy" / "summary.json").read_text())["notes"]
+    summary = json.loads((d / "lossy" / "summary.json").read_text())
+    notes = summary["notes"]
     assert any(n.startswith("the frames were imported from lossy compression (h264 (High))") for n in notes), notes
+    assert any(f"measured at import, {codec['sigma_px']:.3f} px" in n for n in notes), notes
+    assert summary["plan"]["shared_sigma_px"] == pytest.approx(np.sqrt(codec["sigma_px"] ** 2
+                                                                       - codec["independent_px"] ** 2), abs=1e-4)
     assert not json.loads((d / "original" / "summary.json").read_text())["notes"]
 
 

@@ -187,3 +187,27 @@ def test_a_failed_registration_is_flagged_in_the_results_and_the_summary(wide_cl
     assert all(reason.startswith(b"the frames do not match") for reason in r.motion_pairs["reason"][doubted])
     assert any("consecutive frame pairs failed a self-check" in w for w in r.summary["warnings"])
     assert r.summary["strain_span_1"]["pairs_doubted"] >= 2
+
+
+def test_an_error_neighbours_share_leaves_the_strain_s_sigma_alone():
+    """A part of every point's error that all points share (a codec's, moving neighbours alike) moves no edge: with
+    ``shared_sigma_px`` the edges' and triangles' predicted errors are those of the independent part alone, and the
+    simulated edge errors agree with them."""
+    from skinstretch.experiments.analysis.derive import span_strain
+    from skinstretch.processing.tracking import MotionSample
+
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(np.arange(8) * 20.0, np.arange(8) * 20.0)
+    p = np.stack([gx.ravel(), gy.ravel()], 1)
+    independent, shared = 0.02, 0.05
+    sigma = np.full(len(p), np.hypot(independent, shared))
+    samples = [MotionSample(k, k + 1, p, rng.normal(0, independent, p.shape) + rng.normal(0, shared, 2), np.arange(len(p)),
+                            sigma=sigma) for k in range(200)]
+    with_shared = span_strain(samples, span=1, max_edge_px=30.0, shared_sigma_px=shared)
+    without = span_strain(samples[:1], span=1, max_edge_px=30.0)
+    ratio = with_shared.edges["change"] / with_shared.edges["change_sigma"]  # true change 0: the error over its sigma
+    assert np.std(ratio) == pytest.approx(1.0, abs=0.05)
+    np.testing.assert_allclose(without.edges["change_sigma"] / with_shared.edges["change_sigma"][:len(without.edges)],
+                               np.hypot(independent, shared) / independent)
+    assert np.all(with_shared.triangles["change_sigma"][:len(without.triangles)]
+                  < without.triangles["change_sigma"])

@@ -11,6 +11,7 @@ tactile movie a block of frames at a time), so nothing here holds the whole sess
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -60,11 +61,13 @@ class PixelScales:
 
 
 def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: float, first_pair: int = 0,
-                min_spacing_px: float = 0.0, regularisation: Regularisation | None = None) -> SpanStrain:
+                min_spacing_px: float = 0.0, regularisation: Regularisation | None = None,
+                shared_sigma_px: float = 0.0) -> SpanStrain:
     """Triangulation strain of a run of pairs of one span (one compiled call for all of them, see
     :func:`~skinstretch.processing.stretch.triangulation_strains`); pair ``i`` of the run is pair ``first_pair + i``
     of the span. Pairs that cannot give one carry the status and the reason. ``regularisation``: the points' errors
-    are correlated as a dense registration's (None: independent, as features')."""
+    are correlated as a dense registration's (None: independent, as features'); ``shared_sigma_px``: a part of
+    every point's error (px per axis, e.g. a lossy codec's) that neighbours share, which cancels in strain."""
     b = triangulation_strains(samples, max_edge_px=max_edge_px, min_spacing_px=min_spacing_px)
     n = len(samples)
     reasons = [b.failure(i) or "" for i in range(n)]
@@ -91,6 +94,11 @@ def span_strain(samples: Sequence[MotionSample], *, span: int, max_edge_px: floa
     edges["length"], edges["change"] = b.edge_length, b.edge_change
     sigma = np.concatenate([np.full(len(smp), np.inf) if smp.sigma is None else np.asarray(smp.sigma, np.float64)
                             for smp in samples]) if samples else np.zeros(0)
+    if shared_sigma_px > 0.0:
+        sigma = np.sqrt(np.maximum(sigma**2 - shared_sigma_px**2, 0.0))  # inf stays inf
+        if regularisation is not None:
+            regularisation = dataclasses.replace(regularisation, independent_px=math.sqrt(max(
+                regularisation.independent_px**2 - shared_sigma_px**2, 0.0)))
     ea, eb = b.edges[:, 0], b.edges[:, 1]
     rho = 0.0 if regularisation is None else regularisation.correlation(b.points[eb] - b.points[ea], sigma[ea],
                                                                         sigma[eb])

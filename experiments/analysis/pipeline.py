@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -87,12 +88,13 @@ STRAIN_BATCH_PAIRS = 128
 
 class _StrainTables:
     """The strain of every span, computed in batches on the executor as pairs arrive and written in pair order; each
-    span's edge changes also go to a :class:`StreamedPercentiles` (the summary's percentiles)."""
+    span's edge changes also go to a :class:`StreamedPercentiles` (the summary's percentiles);
+    ``shared_sigma_px``: the part of the points' errors neighbours share (:func:`.derive.span_strain`)."""
 
     def __init__(self, writer: ResultsWriter, executor: Executor, spans: Sequence[int], max_edge_px: float,
-                 stack: ExitStack, min_spacing_px: float = 0.0) -> None:
+                 stack: ExitStack, min_spacing_px: float = 0.0, shared_sigma_px: float = 0.0) -> None:
         self.writer, self.executor, self.max_edge_px = writer, executor, max_edge_px
-        self.min_spacing_px = min_spacing_px
+        self.min_spacing_px, self.shared_sigma_px = min_spacing_px, shared_sigma_px
         self.buffers: dict[int, list[MotionSample]] = {int(s): [] for s in spans}
         self.done: dict[int, int] = {int(s): 0 for s in spans}  # pairs submitted per span
         self.pending: deque[tuple[int, Future, list, dict]] = deque()
@@ -115,7 +117,8 @@ class _StrainTables:
             return
         self.buffers[span] = []
         kwargs = dict(span=span, max_edge_px=self.max_edge_px, first_pair=self.done[span],
-                      min_spacing_px=self.min_spacing_px, regularisation=self.regularisation.get(span))
+                      min_spacing_px=self.min_spacing_px, regularisation=self.regularisation.get(span),
+                      shared_sigma_px=self.shared_sigma_px)
         fut = self.executor.submit(span_strain, buf, **kwargs)
         self.done[span] += len(buf)
         self.pending.append((span, fut, buf, kwargs))
@@ -237,12 +240,14 @@ def analyze(
     overwrite: bool = False,
     source_notes: Sequence[str] = (),
     lossy_source: bool = False,
+    codec_error: tuple[float, float] | None = None,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
     (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
-    predicted standard errors then include (the plan's).
+    predicted standard errors then include (the plan's): ``codec_error`` as the import measured it (px per axis: the
+    whole, and the part points a window apart do not share; :func:`source_codec_error`).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) enters the
@@ -269,16 +274,18 @@ def analyze(
         t_start = time.perf_counter()
         shading, shading_status = estimate_shading(source, calibration=calibration, params=params, surface=surface)
         plan = plan_analysis(params, method=method, n_frames=n, surface=surface, shading_removed=shading is not None,
-                             shading_status=shading_status, lossy_source=lossy_source)
+                             shading_status=shading_status, lossy_source=lossy_source,
+                             codec_error=codec_error)
         params = plan.params
         notes = [*source_notes, *plan.notes]
         reader = FrameReader(source, shading)
         t_shading = time.perf_counter() - t_start
         writer = stack.enter_context(ResultsWriter(results_path))
         flags = [""] * n
-        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px)
+        strain = _StrainTables(writer, executor, spans, scales.max_edge_px, stack, scales.min_spacing_px,
+                               plan.shared_sigma_px)
         motion = _MotionTable(writer, stack)
-        cumulative = _CumulativeTable(writer, scales)
+        cumulative = _CumulativeTable(writer, scales, plan.shared_sigma_px)
 
         out = Outputs(writer=writer, motion=motion, strain=strain, cumulative=cumulative, flags=flags,
                       calibration=calibration, mapping=mapping, spans=spans, executor=executor, stack=stack,
@@ -333,8 +340,8 @@ class _CumulativeTable:
     """The motion and strain of every frame relative to the reference frame (:mod:`.cumulative`), written a batch
     of frames at a time; empty tables (reference_frame -1) when no frame had 3 measured points."""
 
-    def __init__(self, writer: ResultsWriter, scales: PixelScales) -> None:
-        self.writer, self.scales = writer, scales
+    def __init__(self, writer: ResultsWriter, scales: PixelScales, shared_sigma_px: float = 0.0) -> None:
+        self.writer, self.scales, self.shared_sigma_px = writer, scales, shared_sigma_px
         self.batch: list[MotionSample] = []
         self.written = 0
         self.reference = -1
@@ -348,7 +355,7 @@ class _CumulativeTable:
     def _flush(self) -> None:
         w, batch = self.writer, self.batch
         s = span_strain(batch, span=0, max_edge_px=self.scales.max_edge_px, first_pair=self.written,
-                        min_spacing_px=self.scales.min_spacing_px)
+                        min_spacing_px=self.scales.min_spacing_px, shared_sigma_px=self.shared_sigma_px)
         w.append("cumulative/pairs", s.pairs)
         w.append("cumulative/motion", motion_rows(batch, first_pair=self.written)[1])
         w.append("cumulative/edges", s.edges)
@@ -481,6 +488,19 @@ def source_is_lossy(metadata: dict) -> bool:
     return isinstance(source, dict) and source.get("lossy") is True
 
 
+def source_codec_error(metadata: dict) -> tuple[float, float] | None:
+    """The lossy codec's displacement error the import measured (``source.codec_error``): (the whole, the part points
+    a window apart do not share), px per axis; None when not recorded."""
+    source = metadata.get("source")
+    found = source.get("codec_error") if isinstance(source, dict) else None
+    if not isinstance(found, dict):
+        return None
+    values = [found.get("sigma_px"), found.get("independent_px")]
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in values):
+        return None
+    return float(values[0]), min(float(values[1]), float(values[0]))
+
+
 def notes_on_source(metadata: dict) -> list[str]:
     """What a session's metadata says its frames lost before the analysis: imported from a lossy file."""
     if source_is_lossy(metadata):
@@ -531,12 +551,14 @@ def _analyze_session_held(session_path, outdir, *, method, params, executor, pro
         surface = surface_kind(session.metadata)
         notes = notes_on_source(session.metadata) + session.timestamp_faults()
         lossy = source_is_lossy(session.metadata)
+        codec = source_codec_error(session.metadata) if lossy else None
     source = SessionFrames(session_path)
     outdir.mkdir(parents=True, exist_ok=True)
     try:
         r = analyze(source, calibration=calibration, method=method, params=params, executor=executor,
                     mapping=mapping, results_path=outdir / "results.h5", session_path=str(session_path.resolve()),
-                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes, lossy_source=lossy)
+                    surface=surface, progress=progress, overwrite=overwrite, source_notes=notes, lossy_source=lossy,
+                    codec_error=codec)
         (outdir / "summary.json").write_text(json.dumps(json_safe(r.summary), indent=2, default=json_default))
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):

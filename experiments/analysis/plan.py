@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,7 +48,9 @@ class AnalysisPlan:
     ``plain_glass``: flat (or unknown) surface and no glass shading removed; ``keyframe_smoothing_key_frames``:
     the key-frame anchoring's smoothing window (None: no anchoring); ``span_registration``: the feature method's
     longer spans registered directly between their frames; ``span_refiner``: the flow's longer spans (and cumulative
-    fields) refined by registering their own frames; ``notes``: what the clip's length changed, one sentence each.
+    fields) refined by registering their own frames; ``notes``: what the clip's length changed, one sentence each;
+    ``shared_sigma_px``: the part of every point's predicted error (px per axis) that neighbours share and strain
+    does not see (a lossy codec's, as the import measured it).
     """
 
     method: str
@@ -61,6 +64,7 @@ class AnalysisPlan:
     span_refiner: bool
     overrides: tuple[Override, ...] = ()
     notes: tuple[str, ...] = ()
+    shared_sigma_px: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON-able record (summary ``plan``); the parameters themselves are the results' ``params_json``."""
@@ -76,6 +80,7 @@ class AnalysisPlan:
             "span_refiner": self.span_refiner,
             "local_prior": bool(self.params.flow.local_prior) if self.method == "flow" else None,
             "min_track_frames": self.params.tracking.min_length_frames if self.method == "features" else None,
+            "shared_sigma_px": self.shared_sigma_px,
             "overrides": [dataclasses.asdict(o) for o in self.overrides],
         }
 
@@ -132,21 +137,30 @@ def clip_notes(params: AnalysisParams, n_frames: int, method: str) -> list[str]:
 
 def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface: str | None = None,
                   shading_removed: bool = False, shading_status: str = "off",
-                  lossy_source: bool = False) -> AnalysisPlan:
+                  lossy_source: bool = False, codec_error: tuple[float, float] | None = None) -> AnalysisPlan:
     """The plan of one analysis (see :class:`AnalysisPlan`); ``shading_removed``/``shading_status``: the outcome of
     the glass-shading step (:func:`~skinstretch.experiments.analysis.frames.estimate_shading`); ``lossy_source``:
-    frames through lossy video compression, whose error the predicted errors then include. Refuses a clip the
-    parameters cannot fit (:func:`refuse_unfit_clip`); notes are logged as warnings, overrides as information."""
+    frames through lossy video compression, whose error the predicted errors then include: ``codec_error`` (px per
+    axis: the whole, and the part points a window apart do not share) as the import measured it
+    (:mod:`~skinstretch.experiments.codec_error`), else a fixed term. Refuses a clip the parameters cannot fit
+    (:func:`refuse_unfit_clip`); notes are logged as warnings, overrides as information."""
     refuse_unfit_clip(params, n_frames, method)
     notes = clip_notes(params, n_frames, method)
     overrides: list[Override] = []
+    shared = 0.0
     if lossy_source:
-        params, lossy = _for_lossy_source(params)
+        sigma = None if codec_error is None else codec_error[0]
+        params, lossy, term = _for_lossy_source(params, sigma)
         overrides += lossy
         if lossy:
-            notes.append(f"the predicted errors include {LOSSY_MODEL_SIGMA_PX} px per axis for the lossy compression ("
-                         + ", ".join(o.parameter for o in lossy) + f" {LOSSY_MODEL_SIGMA_PX} instead of "
-                         f"{MODEL_SIGMA_PX}; set them to choose)")
+            if codec_error is not None:
+                shared = round(math.sqrt(max(codec_error[0] ** 2 - codec_error[1] ** 2, 0.0)), 4)
+            why = (f"the codec's error measured at import, {sigma:.3f} px ({shared:.3f} px of it shared by "
+                   "neighbouring points, which strain does not see)" if sigma is not None
+                   else "a fixed codec term (the import did not measure the codec's error)")
+            notes.append(f"the predicted errors include {term} px per axis for the lossy compression, from {why} ("
+                         + ", ".join(o.parameter for o in lossy) + f" {term} instead of {MODEL_SIGMA_PX}; set them "
+                         "to choose)")
     if not shading_removed and shading_status.startswith("not applied") and surface not in (None, "", "flat"):
         # Said out loud: over a shape the shading left in biases the motion there (known gaps, short clips).
         reason = shading_status.removeprefix("not applied: ").removeprefix("glass shading: ").split(";")[0]
@@ -192,20 +206,24 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
     return AnalysisPlan(method=method, n_frames=int(n_frames), surface=surface or None, glass_shading=shading_status,
                         plain_glass=glass, params=used, keyframe_smoothing_key_frames=smoothing,
                         span_registration=span_registration, span_refiner=span_refiner,
-                        overrides=tuple(overrides), notes=tuple(notes))
+                        overrides=tuple(overrides), notes=tuple(notes), shared_sigma_px=shared)
 
 
-def _for_lossy_source(params: AnalysisParams) -> tuple[AnalysisParams, list[Override]]:
+def _for_lossy_source(params: AnalysisParams, codec_sigma_px: float | None
+                      ) -> tuple[AnalysisParams, list[Override], float]:
     """``params`` whose predicted errors include a lossy codec's: ``model_sigma_px`` of the flow and the sub-pixel
-    stages raised to :data:`LOSSY_MODEL_SIGMA_PX` where left at the default (a value the user set is kept)."""
+    stages raised to the model term and ``codec_sigma_px`` in quadrature (None: :data:`LOSSY_MODEL_SIGMA_PX`)
+    where left at the default (a value the user set is kept); with the overrides and the term used."""
+    term = (LOSSY_MODEL_SIGMA_PX if codec_sigma_px is None
+            else round(math.hypot(MODEL_SIGMA_PX, float(codec_sigma_px)), 4))
     changed, overrides = {}, []
     for stage in ("flow", "subpixel"):
         p = getattr(params, stage)
         if p is not None and p.model_sigma_px == MODEL_SIGMA_PX:
-            changed[stage] = dataclasses.replace(p, model_sigma_px=LOSSY_MODEL_SIGMA_PX)
-            overrides.append(Override(f"{stage}.model_sigma_px", MODEL_SIGMA_PX, LOSSY_MODEL_SIGMA_PX,
+            changed[stage] = dataclasses.replace(p, model_sigma_px=term)
+            overrides.append(Override(f"{stage}.model_sigma_px", MODEL_SIGMA_PX, term,
                                       "frames imported from lossy compression"))
-    return (params.model_copy(update=changed) if changed else params), overrides
+    return (params.model_copy(update=changed) if changed else params), overrides, term
 
 
 def plan_rows(plan: dict[str, Any]) -> list[tuple[str, str]]:
@@ -227,6 +245,8 @@ def plan_rows(plan: dict[str, Any]) -> list[tuple[str, str]]:
                  ("minimum trajectory length", f"{plan.get('min_track_frames')} frames")]
     else:
         rows += [("span refiner", on(plan.get("span_refiner"))), ("local prior", on(plan.get("local_prior")))]
+    if plan.get("shared_sigma_px"):
+        rows.append(("codec error shared by neighbours", f"{plan['shared_sigma_px']} px (strain does not see it)"))
     for o in plan.get("overrides") or []:
         rows.append((f"override: {o['parameter']}", f"asked {o['asked']!r}, used {o['used']!r}: {o['reason']}"))
     return rows

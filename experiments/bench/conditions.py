@@ -98,6 +98,10 @@ CONDITIONS: tuple[Condition, ...] = (
     _vary("issue: 25 px/mm through MP4 x264", px_per_mm=25.0, container="x264"),
     _vary("issue: 19.7 px/mm, blur 1 px", px_per_mm=500 / 25.4, blur_px=1.0),
     _vary("issue: 62 px/mm, contrast 35 %, noise 3", px_per_mm=62.0, contrast=0.35, noise_grey=3.0),
+    # lossy video where its error grows (known gaps, "Lossy video")
+    _vary("MP4 x264 at 62 px/mm", px_per_mm=62.0, container="x264"),
+    _vary("MP4 x264 at 62 px/mm, contrast 50 %", px_per_mm=62.0, contrast=0.5, container="x264"),
+    _vary("MP4 x264 at 15 px/mm", px_per_mm=15.0, container="x264"),
 )
 
 
