@@ -4,10 +4,11 @@ A codec's error follows the motion from frame to frame, so a registration's resi
 large it is depends on the codec, its quality setting, the pixel scale and the ridge contrast. It is measured here
 rather than assumed: one decoded frame of the file is moved by known sub-pixel steps (not half or quarter pixels,
 which a codec's motion compensation reproduces exactly), encoded again with the file's codec at the file's quality
-(x264's ``crf`` or ``qp`` as its header records them, else the stream's bit rate), decoded, and registered pair by
-pair with the dense flow. The codec's error per axis is what the encoding adds to the registration's error on the
-same frames uncompressed. A second generation of compression of already decoded frames errs at least as much as the
-first (the ``conditions`` bench: 1.1-2.7 times the first's on a 0.5 px/frame slide), so the term is not too small.
+(x264's or x265's ``crf`` or ``qp`` as their headers record them, else a quantiser matched on a key frame's size,
+else the stream's bit rate), decoded, and registered pair by pair with the dense flow. The codec's error per axis
+is what the encoding adds to the registration's error on the same frames uncompressed. A second generation of
+compression errs about as much as the first or more (docs/tuning-log.md), so the term is seldom too small.
+Hand-written: no library measures a codec's displacement error.
 """
 
 from __future__ import annotations
@@ -39,7 +40,10 @@ _QUANTISER_SCALE = {"mpeg4": (1, 32), "mpeg2video": (1, 32), "mpeg1video": (1, 3
                     "mjpeg": (1, 32), "h263": (1, 32)}
 #: Packets searched for a second key frame.
 _KEY_FRAME_SEARCH = 600
-#: Bytes of the file searched for x264's header (it sits in the first frame).
+#: The options header x264 and x265 write into the stream (its rate control and quality).
+_HEADERS = {"libx264": rb"x264 - core \d+.*?options: ([^\x00]*)",
+            "libx265": rb"x265 \(build[^\x00]*?options: ([^\x00]*)"}
+#: Bytes of the file searched for x264's or x265's header (it sits in the first frame).
 _HEADER_BYTES = 1 << 20
 
 
@@ -66,9 +70,9 @@ class CodecError:
 
 @dataclass(frozen=True)
 class EncoderSettings:
-    """How to encode again like a video file did: ``encoder``, its ``options`` (x264's ``crf`` or ``qp``), else a
-    fixed ``quantizer`` (codecs with one quantiser scale, matched on a key frame of the file), else the stream's
-    ``bit_rate`` (bit/s); ``pix_fmt`` the file's."""
+    """How to encode again like a video file did: ``encoder``, its ``options`` (x264's or x265's ``crf`` or ``qp``),
+    else a fixed ``quantizer`` (codecs with one quantiser scale, matched on a key frame of the file), else the
+    stream's ``bit_rate`` (bit/s); ``pix_fmt`` the file's."""
 
     encoder: str
     options: dict[str, str]
@@ -99,11 +103,11 @@ def encoder_settings(path: str | Path) -> EncoderSettings:
     except (av.FFmpegError, ValueError) as exc:
         raise LookupError(f"no encoder for {name} here ({exc})") from None
     options: dict[str, str] = {}
-    if encoder == "libx264":
+    if encoder in _HEADERS:
         with open(path, "rb") as f:
-            header = re.search(rb"x264 - core \d+.*?options: ([^\x00]*)", f.read(_HEADER_BYTES), re.S)
+            header = re.search(_HEADERS[encoder], f.read(_HEADER_BYTES), re.S)
         if header:
-            found = dict(re.findall(r"(\w+)=(\S+)", header.group(1).decode("ascii", "replace")))
+            found = dict(re.findall(r"(?:^| )([\w-]+)=(\S+)", header.group(1).decode("ascii", "replace")))
             if found.get("rc") == "crf" and "crf" in found:
                 options = {"crf": found["crf"]}
             elif found.get("rc") == "cqp" and "qp" in found:
@@ -153,7 +157,8 @@ def _encode_decode(frames: np.ndarray, settings: EncoderSettings, path: Path) ->
         stream = container.add_stream(settings.encoder, rate=60)
         stream.height, stream.width = frames.shape[1:3]
         stream.pix_fmt = settings.pix_fmt
-        stream.options = dict(settings.options)
+        stream.options = {**settings.options, **({"x265-params": "log-level=error"} if settings.encoder == "libx265"
+                                                 else {})}
         if settings.quantizer is not None:
             stream.codec_context.qmin = stream.codec_context.qmax = settings.quantizer
         elif settings.bit_rate:
@@ -226,5 +231,5 @@ def measure_codec_error(path: str | Path, frame: np.ndarray, *, px_per_mm: float
     # a difference of two independent errors has twice their variance; what the points share cancels in it
     independent = min(sigma, math.sqrt(max(float(np.mean(db**2) - np.mean(da**2)) / 2.0, 0.0)))
     return CodecError(sigma_px=sigma, independent_px=independent,
-                      how=f"{settings.encoder} at {settings.describe()} on the middle frame moved by known sub-pixel steps ({len(b)} "
-                          "points)", n_points=int(len(b)))
+                      how=f"{settings.encoder} at {settings.describe()} on the middle frame moved by known sub-pixel "
+                          f"steps ({len(b)} points)", n_points=int(len(b)))

@@ -15,7 +15,8 @@ _PPM = 30.0
 
 @pytest.fixture(scope="module")
 def frames():
-    clip = render_print_clip(ClipConditions(px_per_mm=_PPM, shape=(240, 320), n_frames=6), PrintMotion(slide_px=(0.4, 0.1)))
+    clip = render_print_clip(ClipConditions(px_per_mm=_PPM, shape=(240, 320), n_frames=6),
+                             PrintMotion(slide_px=(0.4, 0.1)))
     return clip.frames
 
 
@@ -41,6 +42,9 @@ def _mpeg4(path, frames, quantiser):
 def test_the_quality_is_read_from_the_file(tmp_path, frames):
     x264 = encoder_settings(_x264(tmp_path / "a.mp4", frames, 23))
     assert (x264.encoder, x264.options, x264.quantizer, x264.bit_rate) == ("libx264", {"crf": "23.0"}, None, None)
+    x265 = encoder_settings(write_video(tmp_path / "h.mp4", frames, codec="libx265", pix_fmt="yuv420p",
+                                        options={"crf": "26", "x265-params": "log-level=error"}))
+    assert (x265.encoder, x265.options) == ("libx265", {"crf": "26.0"})
     for q in (3, 8):  # no header: the quantiser that gives a key frame of the file its size
         mpeg4 = encoder_settings(_mpeg4(tmp_path / f"q{q}.avi", frames, q))
         assert mpeg4.encoder == "mpeg4" and mpeg4.quantizer == q and mpeg4.bit_rate is None, mpeg4
