@@ -203,6 +203,7 @@ def test_a_port_in_use_gets_one_line_naming_the_flag(analysed, capsys):
 
     _, trial, _, _, _ = analysed
     running = start_server(find_view_target(trial))
+    capsys.readouterr()  # the first server's own start-up line (logged when an earlier test left the CLI's handler)
     try:
         assert main(["view", str(trial), "--port", str(running.port), "--no-browser"]) == 2
     finally:
