@@ -99,12 +99,13 @@ def test_the_scorer_measures_errors_and_the_coverage_of_the_reported_interval():
     s = score_analysis(r, {}, field)
     assert s.points == 8 and s.displacement_rmse_px == pytest.approx(0.03, abs=1e-9)
     assert s.edge_rmse_pct[2] == pytest.approx(0.1, abs=1e-9)
-    assert s.point_coverage is None and s.edge_coverage is None and not s.flagged
+    assert s.point_coverage is None and s.edge_coverage is None and not s.flagged and s.predicted_rmse_px is None
     r, field = _results(0.03, 0.01, 0.0)
     assert score_analysis(r, {"warnings": ["a pair failed"]}, field).point_coverage == 0.0  # 0.03 > 2.448 * 0.01
     r, field = _results(0.03, 0.02, 0.0)
     s = score_analysis(r, {"warnings": ["a pair failed"]}, field)
     assert s.point_coverage == 1.0 and s.warnings == 1 and s.flagged
+    assert s.predicted_rmse_px == pytest.approx(np.sqrt(2) * 0.02)  # the 2-D error a sigma of 0.02 px per axis predicts
 
 
 @pytest.mark.parametrize("disp,strain,flagged,expected", [

@@ -129,14 +129,14 @@ class ConditionRow:
         s = self.scores
         cover = lambda v: "n/a" if v is None else v  # noqa: E731
         return [self.condition, self.method, self.surface or "not read", s.displacement_rmse_px,
-                s.displacement_p99_px, s.edge_rmse_pct.get(11, float("nan")), s.edge_rmse_pct.get(1, float("nan")),
+                cover(s.predicted_rmse_px), s.displacement_p99_px, s.edge_rmse_pct.get(11, float("nan")), s.edge_rmse_pct.get(1, float("nan")),
                 self.cpu_ms_per_frame, s.pairs_not_ok, s.warnings, cover(s.point_coverage), cover(s.edge_coverage),
                 self.verdict]
 
 
-COLUMNS = ["condition", "method", "surface read", "disp RMSE px", "disp p99 px", "11-frame edge RMSE %",
-           "1-frame edge RMSE %", "CPU ms/frame", "pairs not ok", "warnings", "95 % cover pts", "95 % cover edges",
-           "verdict"]
+COLUMNS = ["condition", "method", "surface read", "disp RMSE px", "predicted disp RMSE px", "disp p99 px",
+           "11-frame edge RMSE %", "1-frame edge RMSE %", "CPU ms/frame", "pairs not ok", "warnings", "95 % cover pts",
+           "95 % cover edges", "verdict"]
 
 
 def _write_clip(frames, directory: Path, container: str) -> Path:

@@ -63,6 +63,9 @@ class FieldScores:
         Rows of the pair tables (consecutive and every span) whose status is not ``ok``.
     warnings : int
         Entries of summary.json's ``warnings`` list.
+    predicted_rmse_px : float or None
+        The displacement RMSE the reported sigmas predict (``sqrt(2) sigma`` per point, RMS over the points with a
+        finite sigma), beside ``displacement_rmse_px``; None without uncertainty.
     """
 
     points: int
@@ -75,6 +78,7 @@ class FieldScores:
     edge_coverage: float | None
     pairs_not_ok: int
     warnings: int
+    predicted_rmse_px: float | None = None
 
     @property
     def flagged(self) -> bool:
@@ -133,6 +137,8 @@ def score_analysis(r: Results, summary: dict, truth: KnownField) -> FieldScores:
     length = np.hypot(e[known, 0], e[known, 1])
     sigma = _column(r.motion, "sigma")
     point_coverage = float(np.mean(length <= _POINT_95 * sigma[known])) if sigma is not None and length.size else None
+    finite = sigma[known][np.isfinite(sigma[known])] if sigma is not None else np.zeros(0)
+    predicted = float(np.sqrt(2.0 * np.mean(finite**2))) if finite.size else None
     not_ok = int(np.count_nonzero(r.motion_pairs["status"] != PairStatus.OK))
     edge_rmse, n_edges, edge_coverage = {}, {}, None
     for span, s in sorted(r.strain.items()):
@@ -148,7 +154,7 @@ def score_analysis(r: Results, summary: dict, truth: KnownField) -> FieldScores:
         displacement_p99_px=float(np.percentile(length, 99)) if length.size else math.nan,
         displacement_max_px=float(length.max()) if length.size else math.nan,
         edge_rmse_pct=edge_rmse, edges=n_edges, point_coverage=point_coverage, edge_coverage=edge_coverage,
-        pairs_not_ok=not_ok, warnings=len(summary.get("warnings") or []),
+        pairs_not_ok=not_ok, warnings=len(summary.get("warnings") or []), predicted_rmse_px=predicted,
     )
 
 
