@@ -35,7 +35,7 @@ _MAX_SIDE = (480, 640)
 #: Decoder name -> encoder for the codecs PyAV's FFmpeg can write again.
 _ENCODERS = {"h264": "libx264", "hevc": "libx265", "mpeg4": "mpeg4", "vp9": "libvpx-vp9", "mjpeg": "mjpeg",
              "mpeg2video": "mpeg2video", "av1": "libsvtav1"}
-#: Codecs with one quantiser scale (lowest, highest + 1) whose quality a file's first key frame gives away.
+#: Codecs with one quantiser scale (lowest, highest + 1) whose quality a key frame's size gives away.
 _QUANTISER_SCALE = {"mpeg4": (1, 32), "mpeg2video": (1, 32), "mpeg1video": (1, 32), "msmpeg4": (1, 32),
                     "mjpeg": (1, 32), "h263": (1, 32)}
 #: Packets searched for a second key frame.
@@ -216,7 +216,7 @@ def measure_codec_error(path: str | Path, frame: np.ndarray, *, px_per_mm: float
             lossless.append(_pair_errors(clip, step, flow))
             decoded = _encode_decode(clip, settings, workdir / f"codec-probe-{i}.mkv")
             lossy.append(_pair_errors(decoded, step, flow))
-    except Exception as exc:  # noqa: BLE001 - any failure of a third-party encoder leaves the fixed term in place
+    except Exception as exc:  # noqa: BLE001 - an encoder's or the registration's failure leaves the fixed term
         log.info("%s: the codec's error is not measured: %s: %s", Path(path).name, type(exc).__name__, exc)
         return None
     finally:
