@@ -39,12 +39,6 @@ class SpanFrames:
                 del self._prepared[j]
             return self.get(k0), self.get(k1)
 
-    def keep_only(self, j: int) -> None:
-        """Drop every prepared frame but ``j`` (spans that all start at ``j``: a reference frame)."""
-        with self._lock:
-            for k in [k for k in self._prepared if k != j]:
-                del self._prepared[k]
-
     def get(self, j: int) -> Any:
         with self._lock:
             if j not in self._prepared:
