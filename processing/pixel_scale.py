@@ -71,14 +71,14 @@ class Calibration:
         """A length in mm rounded to whole pixels, at least ``minimum``."""
         return max(int(round(self.px(mm))), minimum)
 
-    def resolvable_reduction(self, most: int) -> int:
+    def resolvable_reduction(self, most: int, *, min_period_px: float = MIN_REDUCED_PERIOD_PX) -> int:
         """The largest integer downsampling factor, at most ``most``, that keeps a ridge period
-        (:data:`RIDGE_PERIOD_MM`) at least :data:`MIN_REDUCED_PERIOD_PX` pixels long (1 at coarse scales).
+        (:data:`RIDGE_PERIOD_MM`) at least ``min_period_px`` pixels long (1 at coarse scales).
 
         >>> Calibration(px_per_mm=62.0).resolvable_reduction(4), Calibration(px_per_mm=19.7).resolvable_reduction(4)
         (4, 1)
         """
-        return max(1, min(int(most), int(self.px(RIDGE_PERIOD_MM) // MIN_REDUCED_PERIOD_PX)))
+        return max(1, min(int(most), int(self.px(RIDGE_PERIOD_MM) // float(min_period_px))))
 
     def resolvable_halvings(self, most: int) -> int:
         """The most pyramid halvings, at most ``most``, that keep a ridge period at least

@@ -4,7 +4,8 @@ The recorder never waits on this: it runs in the viewer's process and reads the 
 like any other reader. Each round it takes the NEWEST frame the recorder has flushed and skips the ones it had no
 time for (lossy by design), so it never falls behind the recording: its rate is what the machine can spare.
 
-Per analysed frame: features extracted (seed 4), matched to the previously analysed frame with the global-motion
+Per analysed frame: features extracted (seed 4; on the frame halved where its ridges stay well resolved,
+:class:`~skinstretch.processing.extraction.ReducedFeatureExtractor`), matched to the previously analysed frame with the global-motion
 prediction (seed 5.1.1), refined to sub-pixel by local registration, and the Delaunay triangulation of the matched
 points measured between the two frames (seed 5.3.1). The glass-shading step and the tactile movie need the whole
 sequence: they come with the analysis after the trial (``skinstretch analyze`` or the runner's worker), which
@@ -34,7 +35,7 @@ from skinstretch.experiments.viewer.session_data import (
 )
 from skinstretch.processing.displacement_refinement import SubpixelRefiner
 from skinstretch.processing.errors import InsufficientDataError, SkinstretchError
-from skinstretch.processing.extraction import ExtractionParams, FeatureExtractor
+from skinstretch.processing.extraction import ReducedFeatureExtractor
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
 from skinstretch.processing.pixel_scale import Calibration
 from skinstretch.processing.stretch import triangulation_strain
@@ -77,7 +78,7 @@ class LiveAnalyzer:
         self.source = source
         cal = Calibration(px_per_mm=float(source.session.calibration.px_per_mm))
         self._cal = cal
-        self._extractor = FeatureExtractor(calibration=cal, params=ExtractionParams())
+        self._extractor = ReducedFeatureExtractor(calibration=cal)
         self._tracker = FeatureTracker(
             # no bridging while recording (the analysis bridges: it has the time)
             calibration=cal, params=TrackingParams(max_bridge_frames=0),

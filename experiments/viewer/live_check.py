@@ -55,6 +55,8 @@ def live_accuracy(overlays: list[dict], truth, truth_rows: np.ndarray, *, px_per
         ok_b = vis[rb] & vis[ra]
 
         def true_index(x: float, y: float) -> int:
+            if not ok_b.any():  # no true feature in view (a print texture's truth lists none)
+                return -1
             d2 = np.where(ok_b, (tree_x - x) ** 2 + (tree_y - y) ** 2, np.inf)
             j = int(np.argmin(d2))
             return j if d2[j] <= radius**2 else -1

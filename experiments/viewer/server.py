@@ -102,6 +102,9 @@ class ViewerState:
             self._switch(target.session, target.results)
         self.update()
         if live and (target.directory is not None or self._status == "recording"):
+            # The live analysis runs two threads of its own on a machine the recorder and the browser share: OpenCV
+            # spreading each call over more threads only adds contention (interleaved live runs, tuning log).
+            cv2.setNumThreads(1)
             # The live analysis' kernels load while the recorder starts, not on its first frames.
             threading.Thread(target=_warm_up_live, name="live-warm-up", daemon=True).start()
 
