@@ -787,6 +787,7 @@ class Session:
         f = self._f = shared.file
         self._frames, self._ts = shared.frames, shared.timestamps
         self._dts, self._ids = shared.device_timestamps, shared.frame_ids
+        self._n_finished: int | None = None  # n_frames of a file that says it is finished
         try:
             cam = f["camera"].attrs
             self.camera_mode = CameraMode(
@@ -805,14 +806,20 @@ class Session:
     # -- summary
     @property
     def n_frames(self) -> int:
-        """Frames with all of image, timestamp and id written (a killed recording may leave ragged ends)."""
+        """Frames with all of image, timestamp and id written (a killed recording may leave ragged ends). Read
+        again on every call while the file says it is being recorded; fixed once it says it is finished."""
+        if self._status != STATUS_RECORDING and self._n_finished is not None:
+            return self._n_finished
         try:
             self._frames.refresh()
             self._ts.refresh()
             self._ids.refresh()
         except (AttributeError, RuntimeError, OSError, ValueError):
             pass
-        return int(min(self._frames.shape[0], self._ts.shape[0], self._ids.shape[0]))
+        n = int(min(self._frames.shape[0], self._ts.shape[0], self._ids.shape[0]))
+        if self._status != STATUS_RECORDING:
+            self._n_finished = n
+        return n
 
     @property
     def shape(self) -> tuple[int, int, int]:
