@@ -5,11 +5,11 @@ like any other reader. Each round it takes the NEWEST frame the recorder has flu
 time for (lossy by design), so it never falls behind the recording: its rate is what the machine can spare.
 
 Per analysed frame: features extracted (seed 4; on the frame halved where its ridges stay well resolved,
-:class:`~skinstretch.processing.extraction.ReducedFeatureExtractor`), matched to the previously analysed frame with the global-motion
-prediction (seed 5.1.1), refined to sub-pixel by local registration, and the Delaunay triangulation of the matched
-points measured between the two frames (seed 5.3.1). The glass-shading step and the tactile movie need the whole
-sequence: they come with the analysis after the trial (``skinstretch analyze`` or the runner's worker), which
-the viewer picks up when its results appear.
+:class:`~skinstretch.processing.extraction.ReducedFeatureExtractor`), matched to the previously analysed frame with
+the global-motion prediction (seed 5.1.1), refined to sub-pixel by local registration at full resolution, and the
+Delaunay triangulation of the matched points measured between the two frames (seed 5.3.1). The glass-shading step
+and the tactile movie need the whole sequence: they come with the analysis after the trial (``skinstretch analyze``
+or the runner's worker), which the viewer picks up when its results appear.
 """
 
 from __future__ import annotations
