@@ -663,9 +663,8 @@ def extract_features(
     )
 
 
-
 #: :class:`ReducedFeatureExtractor` halves a frame only where a ridge period keeps at least this many pixels (at
-#: 62 px/mm 13.3 px, as a 31 px/mm camera sees it; the ``conditions`` bench holds the extractor there).
+#: 62 px/mm 13.3 px, as a 31 px/mm camera sees it; the ``conditions`` bench holds the extractor at 30 px/mm).
 REDUCED_PERIOD_PX = 12.0
 
 
@@ -673,10 +672,12 @@ class ReducedFeatureExtractor:
     """:class:`FeatureExtractor` run on each frame halved (area average) where its ridges stay well resolved
     (:data:`REDUCED_PERIOD_PX`), the features' positions returned in the frame's own pixels.
 
-    Finding features costs about a third at the rig's scale; a caller that registers each feature's window at full
-    resolution (the live view, the tracker) measures the same motion. ``factor`` is 1 at coarse scales (then it is
-    the plain extractor). The result's masks (``background``, ``binary``, ``skeleton``) are those of the reduced
-    frame. Frames of a size that does not divide lose their last row or column of pixels.
+    Finding features costs about a third at the rig's scale, and a caller that registers each feature's window at
+    full resolution (the live view) measures the same motion; but the positions are coarser (pores about 0.3 px from
+    the truth, twice the ``accuracy`` table's target) and small pores are missed, so the analysis does not use it
+    (docs/tuning-log.md, fifth session). ``factor`` is 1 at coarse scales (then it is the plain extractor). The masks
+    (``background``, ``binary``, ``skeleton``) are those of the reduced frame; a frame of odd size loses its last
+    row or column.
     """
 
     def __init__(self, *, calibration: Calibration, params: ExtractionParams | None = None) -> None:
