@@ -129,9 +129,11 @@ def test_a_lossy_source_raises_the_model_error_left_at_its_default():
 def test_a_measured_codec_error_enters_the_points_errors_and_its_shared_part_leaves_strain_alone():
     import math
 
+    from skinstretch.experiments.codec_error import CodecError
     from skinstretch.processing.measurement_uncertainty import MODEL_SIGMA_PX
 
-    plan = plan_analysis(analysis_params({}), method="flow", n_frames=60, lossy_source=True, codec_error=(0.05, 0.03))
+    plan = plan_analysis(analysis_params({}), method="flow", n_frames=60, lossy_source=True,
+                         codec_error=CodecError(sigma_px=0.05, independent_px=0.03, how="given", n_points=100))
     assert plan.params.flow.model_sigma_px == pytest.approx(math.hypot(MODEL_SIGMA_PX, 0.05), abs=1e-4)
     assert plan.shared_sigma_px == pytest.approx(0.04) and plan.to_dict()["shared_sigma_px"] == plan.shared_sigma_px
     assert any("measured at import, 0.050 px (0.040 px of it shared" in n for n in plan.notes), plan.notes

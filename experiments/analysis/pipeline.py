@@ -58,6 +58,7 @@ from skinstretch.experiments.analysis.methods import Outputs, measurement_method
 from skinstretch.experiments.analysis.parameters import METHODS, AnalysisParams, analysis_params
 from skinstretch.experiments.analysis.plan import AnalysisPlan, plan_analysis, refuse_unfit_clip
 from skinstretch.experiments.analysis.percentiles import StreamedPercentiles
+from skinstretch.experiments.codec_error import CodecError
 from skinstretch.experiments.json_encoding import json_default, json_safe
 from skinstretch.experiments.provenance import software_versions
 from skinstretch.experiments.results_file import (
@@ -240,14 +241,14 @@ def analyze(
     overwrite: bool = False,
     source_notes: Sequence[str] = (),
     lossy_source: bool = False,
-    codec_error: tuple[float, float] | None = None,
+    codec_error: CodecError | None = None,
 ) -> Results:
     """Analyse ``source`` (a session's :class:`FrameSource`, or frames in memory) into ``results_path`` (None: a
     results file in memory; an existing file is refused unless ``overwrite``) and return it opened.
     ``source_notes``: what the summary's ``notes`` should say about where the frames came from
     (:func:`notes_on_source`); ``lossy_source``: the frames went through lossy video compression, whose error the
-    predicted standard errors then include (the plan's): ``codec_error`` as the import measured it (px per axis: the
-    whole, and the part points a window apart do not share; :func:`source_codec_error`).
+    predicted standard errors then include (the plan's): ``codec_error`` as the import measured it
+    (:func:`source_codec_error`).
 
     ``executor`` is the run's (:func:`~skinstretch.experiments.analysis.executor.make_executor`); None makes one from
     ``params.execution`` for this analysis alone. ``surface`` ("flat", "ridge", "valley", ...) enters the
@@ -488,9 +489,9 @@ def source_is_lossy(metadata: dict) -> bool:
     return isinstance(source, dict) and source.get("lossy") is True
 
 
-def source_codec_error(metadata: dict) -> tuple[float, float] | None:
-    """The lossy codec's displacement error the import measured (``source.codec_error``): (the whole, the part points
-    a window apart do not share), px per axis; None when not recorded."""
+def source_codec_error(metadata: dict) -> CodecError | None:
+    """The lossy codec's displacement error the import measured (``source.codec_error``); None when not recorded or
+    not a pair of finite, non-negative errors."""
     source = metadata.get("source")
     found = source.get("codec_error") if isinstance(source, dict) else None
     if not isinstance(found, dict):
@@ -498,7 +499,9 @@ def source_codec_error(metadata: dict) -> tuple[float, float] | None:
     values = [found.get("sigma_px"), found.get("independent_px")]
     if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in values):
         return None
-    return float(values[0]), min(float(values[1]), float(values[0]))
+    sigma = float(values[0])
+    return CodecError(sigma_px=sigma, independent_px=min(float(values[1]), sigma), how=str(found.get("how", "")),
+                      n_points=int(found.get("n_points") or 0))
 
 
 def notes_on_source(metadata: dict) -> list[str]:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from skinstretch.experiments.analysis.parameters import AnalysisParams, GlassShadingParams
+from skinstretch.experiments.codec_error import CodecError
 from skinstretch.processing.errors import InsufficientDataError
 from skinstretch.processing.measurement_uncertainty import LOSSY_MODEL_SIGMA_PX, MODEL_SIGMA_PX
 from skinstretch.processing.tracking import DEFAULT_MIN_LENGTH_FRAMES, min_length_for_clip
@@ -137,24 +138,23 @@ def clip_notes(params: AnalysisParams, n_frames: int, method: str) -> list[str]:
 
 def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface: str | None = None,
                   shading_removed: bool = False, shading_status: str = "off",
-                  lossy_source: bool = False, codec_error: tuple[float, float] | None = None) -> AnalysisPlan:
+                  lossy_source: bool = False, codec_error: CodecError | None = None) -> AnalysisPlan:
     """The plan of one analysis (see :class:`AnalysisPlan`); ``shading_removed``/``shading_status``: the outcome of
     the glass-shading step (:func:`~skinstretch.experiments.analysis.frames.estimate_shading`); ``lossy_source``:
-    frames through lossy video compression, whose error the predicted errors then include: ``codec_error`` (px per
-    axis: the whole, and the part points a window apart do not share) as the import measured it
-    (:mod:`~skinstretch.experiments.codec_error`), else a fixed term. Refuses a clip the parameters cannot fit
-    (:func:`refuse_unfit_clip`); notes are logged as warnings, overrides as information."""
+    frames through lossy video compression, whose error the predicted errors then include: ``codec_error`` as the
+    import measured it (:mod:`~skinstretch.experiments.codec_error`), else a fixed term. Refuses a clip the
+    parameters cannot fit (:func:`refuse_unfit_clip`); notes are logged as warnings, overrides as information."""
     refuse_unfit_clip(params, n_frames, method)
     notes = clip_notes(params, n_frames, method)
     overrides: list[Override] = []
     shared = 0.0
     if lossy_source:
-        sigma = None if codec_error is None else codec_error[0]
+        sigma = None if codec_error is None else codec_error.sigma_px
         params, lossy, term = _for_lossy_source(params, sigma)
         overrides += lossy
         if lossy:
             if codec_error is not None:
-                shared = round(math.sqrt(max(codec_error[0] ** 2 - codec_error[1] ** 2, 0.0)), 4)
+                shared = round(codec_error.shared_px, 4)
             why = (f"the codec's error measured at import, {sigma:.3f} px ({shared:.3f} px of it shared by "
                    "neighbouring points, which strain does not see)" if sigma is not None
                    else "a fixed codec term (the import did not measure the codec's error)")
