@@ -160,9 +160,10 @@ RESULTS_DATASETS: dict[str, DatasetInfo] = {
                                          orientation_known=ONE, quality=ONE), ("row",),
                             "every extracted feature (id = row)", column_codes={"kind": _CODES["kind"]}),
     "trajectories": DatasetInfo(_table_units(frame=ONE, track=ONE, x=PX, y=PX, raw_x=PX, raw_y=PX, feature_index=ONE,
-                                             linked=ONE, refined=ONE, run=ONE), ("row",),
+                                             linked=ONE, refined=ONE, run=ONE, anchor_sigma=PX), ("row",),
                                 "one row per track per frame it is present in: refined position, extracted "
-                                "position (NaN where followed by registration), row in features (-1 there)"),
+                                "position (NaN where followed by registration), row in features (-1 there), "
+                                "standard error of the key-frame anchoring"),
     "tracks": DatasetInfo(_table_units(track=ONE, kind=ONE, n_frames=ONE, first_frame=ONE, last_frame=ONE),
                           ("track",), "one row per kept trajectory", column_codes={"kind": _CODES["kind"]}),
     "flow/grid_x": DatasetInfo(PX, ("grid_x",), "x of the grid nodes in frame a"),
@@ -230,8 +231,11 @@ class CumulativeStrain:
         if where.size == 0:
             return None
         rows = self.motion[self.motion["pair"] == int(where[0])]
+        names = rows.dtype.names or ()
         return MotionSample(self.reference_frame, int(frame), np.column_stack([rows["x"], rows["y"]]),
-                            np.column_stack([rows["dx"], rows["dy"]]), rows["id"].astype(np.int64))
+                            np.column_stack([rows["dx"], rows["dy"]]), rows["id"].astype(np.int64),
+                            rows["sigma"].astype(np.float64) if "sigma" in names else None,
+                            rows["match"].astype(np.float64) if "match" in names else None)
 
 
 @dataclass(frozen=True)
@@ -699,6 +703,11 @@ class Results:
         with self.open() as f:
             rows = f["trajectories"][()]
             tracks = f["tracks"][()]
+        if "anchor_sigma" not in (rows.dtype.names or ()):  # written before the column: not estimated
+            old, rows = rows, np.zeros(rows.shape, TRAJECTORY_DTYPE)
+            for name in old.dtype.names:
+                rows[name] = old[name]
+            rows["anchor_sigma"] = np.inf
         return Trajectories(n_frames=self.n_frames, rows=rows.astype(TRAJECTORY_DTYPE, copy=False),
                             kind=tracks["kind"].astype(np.int8))
 

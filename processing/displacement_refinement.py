@@ -354,7 +354,7 @@ class SubpixelRefiner:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         init = _displacement_rows(displacement, points, "displacement")
         if points.shape[0] == 0:
-            return SpanFit(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+            return SpanFit(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0), np.zeros(0))
         halves = np.full(points.shape[0], self._span_half, np.int64)
         if min_window_mm is not None:
             h, w = a.shape
@@ -366,6 +366,7 @@ class SubpixelRefiner:
             shrink = (room < halves) & (room >= self.calibration.odd_px(min_window_mm, minimum=7) // 2)
             halves[shrink] = room[shrink]
         d, ok, curvature = init.copy(), np.zeros(points.shape[0], bool), np.zeros(points.shape[0])
+        sigma = np.full(points.shape[0], np.inf)
         limit = self.params.max_no_contact_fraction
         for half in np.unique(halves):
             sel = np.flatnonzero(halves == half)
@@ -379,7 +380,9 @@ class SubpixelRefiner:
                 if integral is not None:
                     ok_h &= _window_fraction(integral, where, int(half)) <= limit
             d[sel[ok_h]], ok[sel], curvature[sel[ok_h]] = d_h[ok_h], ok_h, fit[ok_h, 8]
-        return SpanFit(d, ok, curvature)
+            var = np.where(curved[:, None], fit[:, 9:11], fit[:, 11:13]).max(axis=1)
+            sigma[sel[ok_h]] = np.sqrt(var[ok_h] + self.params.model_sigma_px ** 2)
+        return SpanFit(d, ok, curvature, sigma)
 
     def deformation_bias(self, prev_image, points: np.ndarray, gradient: np.ndarray,
                          window_px: np.ndarray | None = None) -> np.ndarray:
@@ -527,13 +530,16 @@ def _covariances(stats: np.ndarray) -> np.ndarray:
 
 
 class SpanFit(NamedTuple):
-    """What :meth:`SubpixelRefiner.register_span` measured of each point: ``displacement`` (n, 2) px, ``ok`` (n,)
-    and ``curvature`` (n,), the Wald statistic of the window's second-order terms (compare with
-    ``SubpixelParams.span_curvature_threshold``)."""
+    """What :meth:`SubpixelRefiner.register_span` measured of each point: ``displacement`` (n, 2) px, ``ok`` (n,),
+    ``curvature`` (n,), the Wald statistic of the window's second-order terms (compare with
+    ``SubpixelParams.span_curvature_threshold``), and ``sigma`` (n,) px, the predicted standard error of the
+    displacement along its less certain axis (the fit's residual variance over its Hessian, with ``model_sigma_px``
+    in quadrature; inf where not ok)."""
 
     displacement: np.ndarray
     ok: np.ndarray
     curvature: np.ndarray
+    sigma: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -167,6 +167,7 @@ TRAJECTORY_DTYPE = np.dtype(
         ("linked", np.bool_),
         ("refined", np.bool_),
         ("run", np.int32),
+        ("anchor_sigma", np.float64),
     ]
 )
 
@@ -184,7 +185,11 @@ class Trajectories:
         ``feature_index``: row of the feature in the concatenated feature table of the sequence; ``linked``: the
         displacement from the track's previous frame was measured (consecutive match), as opposed to a start or a
         re-link across a gap; ``refined``: that displacement was refined to sub-pixel by image registration;
-        ``run``: number of the linked run within the track (displacements are measured only within a run).
+        ``run``: number of the linked run within the track (displacements are measured only within a run);
+        ``anchor_sigma``: predicted standard error px (per axis) of the position relative to the run's first key
+        frame from the key frames' registrations (:mod:`~skinstretch.processing.trajectory_anchoring`; 0 where
+        chained only, inf where a key frame's registration could not be used); the chained steps since the last key
+        frame are not in it.
     kind : (T,) int8
         Feature kind of each track.
     """

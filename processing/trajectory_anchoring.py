@@ -9,7 +9,9 @@ sequence's last frame, each point of a linked run is registered directly from it
 motion); the difference from the chained position is the drift, smoothed over ``smoothing`` neighbouring key
 frames (their registrations' noise) and spread linearly over the frames between. A reference serves for
 ``reference_span`` frames (then the key frame reached replaces it), or until a registration from it fails: then
-the key frame before, at its anchored position, serves, and the failed key frame is chained on from it.
+the key frame before, at its anchored position, serves, and the failed key frame is chained on from it. Each
+anchored position carries its variance relative to the run's first key frame: the registrations' predicted
+variances (``SpanFit.sigma``) summed along its chain of references.
 
 On plain glass the corrections follow the drift closely (a line over :data:`GLASS_SMOOTHING_KEY_FRAMES`); over a
 ridge or valley whose shading was removed each registration also carries what that step leaves of the glass-fixed
@@ -75,20 +77,35 @@ EDGE_WINDOW_MM = 0.4
 
 @dataclass(frozen=True)
 class KeyframeCorrections:
-    """Per run (``group``) and key frame: the correction (``dx``, ``dy`` px) to add to its chained positions; sorted
-    by (group, frame). :meth:`at` interpolates between a run's key frames."""
+    """Per run (``group``) and key frame: the correction (``dx``, ``dy`` px) to add to its chained positions, and the
+    variance (px^2 per axis) of the anchored position relative to the run's first key frame (the key frames'
+    registrations along its chain of references; inf where one could not be used); sorted by (group, frame).
+    :meth:`at` and :meth:`variance_at` interpolate between a run's key frames."""
 
     group: np.ndarray  # (m,) int64
     frame: np.ndarray  # (m,) int64
     dx: np.ndarray  # (m,) float64
     dy: np.ndarray  # (m,) float64
+    variance: np.ndarray | None = None  # (m,) float64 px^2; None: zeros
 
     def at(self, group: np.ndarray, frame: np.ndarray) -> np.ndarray:
         """(n, 2) corrections of rows (``group``, ``frame``): linear between the run's key frames on either side,
         the nearest one's before its first and after its last, 0 for a run without key frames."""
+        c = np.column_stack([self.dx, self.dy])
+        return self._interpolated(group, frame, c)
+
+    def variance_at(self, group: np.ndarray, frame: np.ndarray) -> np.ndarray:
+        """(n,) variances of rows (``group``, ``frame``), interpolated as :meth:`at` (an upper bound between key
+        frames: their errors are not independent of each other's)."""
+        v = np.zeros(self.group.size) if self.variance is None else self.variance
+        with np.errstate(invalid="ignore"):  # inf * 0 where a row sits on the other key frame
+            out = self._interpolated(group, frame, np.where(np.isinf(v), 1e300, v)[:, None])[:, 0]
+        return np.where(out >= 1e250, np.inf, out)
+
+    def _interpolated(self, group: np.ndarray, frame: np.ndarray, c: np.ndarray) -> np.ndarray:
         group = np.asarray(group, dtype=np.int64)
         frame = np.asarray(frame, dtype=np.int64)
-        out = np.zeros((group.size, 2))
+        out = np.zeros((group.size, c.shape[1]))
         if self.group.size == 0 or group.size == 0:
             return out
         span = int(max(int(self.frame.max()), int(frame.max()))) + 2
@@ -100,7 +117,6 @@ class KeyframeCorrections:
         lo_c = np.maximum(lo, 0)
         has_hi = (hi < keys.size) & (self.group[hi_c] == group)
         has_lo = (lo >= 0) & (self.group[lo_c] == group)
-        c = np.column_stack([self.dx, self.dy])
         both = has_hi & has_lo
         f0, f1 = self.frame[lo_c], self.frame[hi_c]
         t = np.where(both, (frame - f0) / np.maximum(f1 - f0, 1), 0.0)[:, None]
@@ -132,10 +148,12 @@ class KeyframeAnchoring:
         # per run: reference frame, anchored position there, last key frame seen and chained / anchored there
         self._ref = np.zeros(0, np.int64)
         self._ref_xy = np.zeros((0, 2))
+        self._ref_var = np.zeros(0)  # variance of the anchored position at the reference (module docstring)
+        self._last_var = np.zeros(0)
         self._last = np.full(0, -1, np.int64)
         self._last_chained = np.zeros((0, 2))
         self._last_anchored = np.zeros((0, 2))
-        self._rows: list[tuple[np.ndarray, int, np.ndarray]] = []  # (groups, frame, raw corrections)
+        self._rows: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]] = []  # (groups, frame, corrections, var)
         self._previous = -1
         self._final = False
         self.seconds = 0.0  # spent in add (the stage's share of the analysis' time)
@@ -149,6 +167,8 @@ class KeyframeAnchoring:
         self._last = np.concatenate([self._last, np.full(n - have, -1, np.int64)])
         for name in ("_ref_xy", "_last_chained", "_last_anchored"):
             setattr(self, name, np.concatenate([getattr(self, name), np.zeros((n - have, 2))]))
+        for name in ("_ref_var", "_last_var"):
+            setattr(self, name, np.concatenate([getattr(self, name), np.zeros(n - have)]))
 
     def add(self, k: int, group: np.ndarray, chained: np.ndarray, *, final: bool = False) -> None:
         """Key frame ``k``: the runs present (``group``, distinct ids >= 0) and their chained positions (n, 2) px.
@@ -173,6 +193,7 @@ class KeyframeAnchoring:
         refs = self._ref[g]
         fitted = guess.copy()
         failed = np.zeros(g.size, bool)
+        fit_var = np.full(g.size, np.inf)  # a chained guess's error is not known here
         for r in np.unique(refs):
             sel = np.flatnonzero(refs == r)
             origin = self._ref_xy[g[sel]]
@@ -181,6 +202,7 @@ class KeyframeAnchoring:
                                              min_window_mm=EDGE_WINDOW_MM)
             fitted[sel] = np.where(fit.ok[:, None], origin + fit.displacement, guess[sel])
             failed[sel] = ~fit.ok
+            fit_var[sel] = np.where(fit.ok, fit.sigma ** 2, np.inf)
             jumped = np.flatnonzero(_jumped(fitted[sel] - guess[sel], fit.ok))
             if jumped.size:  # kept where the registration explains the key frame clearly better than the chain
                 at = origin[jumped]
@@ -188,18 +210,24 @@ class KeyframeAnchoring:
                 registered = self.refiner.span_residual_variance(reference, current, at, fitted[sel[jumped]] - at)
                 jumped = jumped[~(chain >= MIN_JUMP_RESIDUAL_RATIO * registered)]
                 fitted[sel[jumped]] = guess[sel[jumped]]
+                fit_var[sel[jumped]] = np.inf
         anchored[cont] = fitted
-        self._rows.append((group, k, anchored - chained))
+        var = np.zeros(group.size)
+        var[cont] = self._ref_var[g] + fit_var
+        self._rows.append((group, k, anchored - chained, var))
         # References: a new run's is this frame, an aged one moves to this frame; after a failed registration (this
         # frame black or saturated, the window out of view or out of contact) the previous key frame serves.
         here = start.copy()
         here[np.flatnonzero(cont)[~failed & (k - refs >= self.reference_span)]] = True
         self._ref[group[here]] = k
         self._ref_xy[group[here]] = anchored[here]
+        self._ref_var[group[here]] = var[here]
         back = np.flatnonzero(cont)[failed]
         self._ref[group[back]] = previous
         self._ref_xy[group[back]] = self._last_anchored[group[back]]
+        self._ref_var[group[back]] = self._last_var[group[back]]
         self._last[group] = k
+        self._last_var[group] = var
         self._last_chained[group] = chained
         self._last_anchored[group] = anchored
         live = set(self._ref[self._last == k].tolist()) | {k}
@@ -216,17 +244,18 @@ class KeyframeAnchoring:
         """The corrections of every run at its key frames, smoothed along the run (:func:`_line_fits` over
         ``smoothing`` key frames: the registrations' noise averaged, a steady drift kept); a run's first key frame
         keeps 0."""
-        group = np.concatenate([np.zeros(0, np.int64)] + [g for g, _, _ in self._rows])
+        group = np.concatenate([np.zeros(0, np.int64)] + [g for g, _, _, _ in self._rows])
         if group.size == 0:  # no key frame, or no run present at any
             z = np.zeros(0)
-            return KeyframeCorrections(group, group.copy(), z, z)
-        frame = np.concatenate([np.full(g.size, k, np.int64) for g, k, _ in self._rows])
-        c = np.concatenate([d for _, _, d in self._rows])
+            return KeyframeCorrections(group, group.copy(), z, z, z)
+        frame = np.concatenate([np.full(g.size, k, np.int64) for g, k, _, _ in self._rows])
+        c = np.concatenate([d for _, _, d, _ in self._rows])
+        var = np.concatenate([v for _, _, _, v in self._rows])
         order = np.lexsort((frame, group))
-        group, frame, c = group[order], frame[order], c[order]
+        group, frame, c, var = group[order], frame[order], c[order], var[order]
         smoothed = _line_fits(group, frame / self.interval, c, self.smoothing)
         smoothed[np.r_[True, group[1:] != group[:-1]]] = 0.0  # a run's first key frame is its reference
-        return KeyframeCorrections(group, frame, *smoothed.T.copy())
+        return KeyframeCorrections(group, frame, *smoothed.T.copy(), var)
 
 
 def _jumped(step: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -59,11 +59,12 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     each after the first accelerated by a secant (Anderson, depth 1) combination with the step before, stopping
     once a step moves no pixel by more than 1e-4 px.
 
-    Rows (n, 9): 0-1 the translation (delta_x, delta_y) of the centre; 2-5 the displacement gradient
+    Rows (n, 13): 0-1 the translation (delta_x, delta_y) of the centre; 2-5 the displacement gradient
     (G00, G01, G10, G11) there, px/px, ``G[j, l] = d u_j / d x_l``; 6-7 the translation of the affine model, the
     second-order terms dropped (its least-squares solution at the same linearisation,
-    ``c_1 + H_11^-1 H_12 c_2``); 8 the Wald statistic of the six second-order terms, ``c_2^T (H^-1)_22^-1 c_2 / s^2``
-    with ``s^2`` the residual variance after the fit times ``(1 + r_x)(1 + r_y) / ((1 - r_x)(1 - r_y))``, r the
+    ``c_1 + H_11^-1 H_12 c_2``); 8 the Wald statistic of the six second-order terms, ``c_2^T (H^-1)_22^-1 c_2 / s^2``;
+    9-10 and 11-12 the predicted variances (px^2) of the translation x and y, ``s^2 (H^-1)_jj``, of the second-order
+    and of the affine model; ``s^2`` the residual variance after the fit times ``(1 + r_x)(1 + r_y) / ((1 - r_x)(1 - r_y))``, r the
     residual's correlation between horizontally and vertically neighbouring pixels (what interpolation and
     texture leave is smooth: fewer independent samples than pixels; about 1 for camera noise). Large: the window's
     displacement is curved. ok False where the system is singular (the correlation matrix of its 12 columns has a
@@ -71,7 +72,7 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
     (bounded by the sum of its coefficients' magnitudes). Sums along a row are float32 (SIMD-wide), over the window float64."""
     h, w = a.shape
     n = points.shape[0]
-    out = np.zeros((n, 9))
+    out = np.zeros((n, 13))
     ok = np.zeros(n, np.bool_)
     side = 2 * half + 1
     inv = 1.0 / half
@@ -221,7 +222,9 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
         q2 = q[_CURVATURE_COEFFS]
         h11 = hess[_AFFINE_COEFFS][:, _AFFINE_COEFFS]
         h12 = hess[_AFFINE_COEFFS][:, _CURVATURE_COEFFS]
-        c22 = np.linalg.inv(hess)[_CURVATURE_COEFFS][:, _CURVATURE_COEFFS]
+        hinv = np.linalg.inv(hess)
+        c22 = hinv[_CURVATURE_COEFFS][:, _CURVATURE_COEFFS]
+        h11inv = np.linalg.inv(h11)
         # residual variance, inflated by the residual's correlation between neighbouring pixels
         rho_x = min(max(lag_x / sse, 0.0), 0.95) if sse > 0.0 else 0.0
         rho_y = min(max(lag_y / sse, 0.0), 0.95) if sse > 0.0 else 0.0
@@ -231,6 +234,8 @@ def second_order_kernel(a, b, gx, gy, points, disp, half, steps):
         out[i, 2], out[i, 3], out[i, 4], out[i, 5] = q[1] * inv, q[2] * inv, q[7] * inv, q[8] * inv
         out[i, 6], out[i, 7] = affine[0], affine[3]
         out[i, 8] = q2 @ np.linalg.solve(c22, q2) / var if var > 0.0 else np.inf
+        out[i, 9], out[i, 10] = var * hinv[0, 0], var * hinv[6, 6]
+        out[i, 11], out[i, 12] = var * h11inv[0, 0], var * h11inv[3, 3]
         ok[i] = True
     return out, ok
 

@@ -174,6 +174,11 @@ def test_the_analysis_is_right_or_says_so(px_per_mm, background, method):
         moved = (e["xb"] + _true_dx(e["xb"], fa, fb)) - (e["xa"] + _true_dx(e["xa"], fa, fb))
         err = e["change"] - (np.hypot(moved, e["yb"] - e["ya"]) / e["length"] - 1)
         assert np.mean(np.abs(err) <= 1.96 * e["change_sigma"]) >= 0.9
+    # the motion from the reference frame (DIC's reference image) carries a sigma that covers its error too
+    c = r.cumulative
+    cm, frame_b = c.motion, c.pairs["frame_b"][c.motion["pair"]]
+    cum_err = np.hypot(cm["dx"] - _true_dx(cm["x"], c.reference_frame, frame_b), cm["dy"])
+    assert (cm.size > 0 and np.mean(cum_err <= RADIUS_95_2D * cm["sigma"]) >= 0.9) or warnings, method
     assert set(r.summary["uncertainty"]) == {"displacement_sigma_px", "edge_change_sigma_span_1",
                                              "edge_change_sigma_span_5"}
 

@@ -53,10 +53,12 @@ def test_register_span_recovers_an_affine_deformation_a_translation_window_misre
     a, b, pts, truth = span_pair
     r = SubpixelRefiner(calibration=CAL)
     start = truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)  # chained motion, a few tenths off
-    d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, start)
+    d, ok, _, sigma = r.register_span(r.prepare(a), r.prepare(b), pts, start)
     assert ok.all()
     err = np.hypot(*(d - truth).T)
     assert err.max() < 0.03, err
+    # its predicted standard error (the fit's residual over its texture) bounds the error, and is informative
+    assert np.all(err <= 2.45 * sigma) and np.all(sigma < 0.05), (err, sigma)
     # The same windows registered by translation only (refine): the deformation across them biases it more.
     lk = r.refine(r.prepare(a), r.prepare(b), pts, start)
     assert np.sqrt(np.mean(np.hypot(*(lk.displacement - truth).T) ** 2)) > 3 * np.sqrt(np.mean(err ** 2))
@@ -94,7 +96,7 @@ def test_register_span_follows_a_band_of_localized_strain_that_an_affine_window_
 
     def rms_error(threshold):
         r = SubpixelRefiner(calibration=CAL, params=SubpixelParams(span_curvature_threshold=threshold))
-        d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, start)
+        d, ok, *_ = r.register_span(r.prepare(a), r.prepare(b), pts, start)
         assert ok.all()
         return np.sqrt(np.mean(np.sum((d - truth) ** 2, axis=1)))
 
@@ -126,11 +128,11 @@ def test_register_span_keeps_the_start_where_it_cannot_measure(span_pair):
     edge = np.array([[5.0, 120.0], [130.0, 120.0]])  # the first window leaves the image
     start = _true(edge, (1.7, -0.6), np.array([[0.04, 0.02], [0.0, -0.02]]), (130.0, 120.0)) + 0.2
     flat = np.full_like(a, 200)  # a flat field: skin out of contact, no texture to register
-    d, ok, _ = r.register_span(r.prepare(a), r.prepare(b), edge, start)
+    d, ok, *_ = r.register_span(r.prepare(a), r.prepare(b), edge, start)
     assert ok.tolist() == [False, True] and np.array_equal(d[0], start[0])
-    d, ok, _ = r.register_span(r.prepare(flat), r.prepare(flat), pts[:3], truth[:3])
+    d, ok, *_ = r.register_span(r.prepare(flat), r.prepare(flat), pts[:3], truth[:3])
     assert not ok.any() and np.array_equal(d, truth[:3]) and np.isfinite(d).all()
-    d, ok, _ = r.register_span(a, b, np.zeros((0, 2)), np.zeros((0, 2)))
+    d, ok, *_ = r.register_span(a, b, np.zeros((0, 2)), np.zeros((0, 2)))
     assert d.shape == (0, 2) and ok.shape == (0,)
     with pytest.raises(InvalidInputError, match="displacement has shape"):
         r.register_span(a, b, pts, truth[:2])
@@ -149,7 +151,7 @@ def test_span_registration_averages_the_direct_and_the_chained_motion(span_pair)
     chained = truth + np.where(np.arange(len(pts))[:, None] % 2 == 0, 0.2, -0.2)  # a chain's accumulated error
     out = reg.refine(MotionSample(0, 11, pts, chained, np.arange(len(pts))))
     r = SubpixelRefiner(calibration=CAL)
-    direct, ok, _ = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
+    direct, ok, *_ = r.register_span(r.prepare(a), r.prepare(b), pts, chained)
     assert ok.all() and out.frame_a == 0 and out.frame_b == 11 and np.array_equal(out.ids, np.arange(len(pts)))
     np.testing.assert_allclose(out.displacement, 0.5 * (direct + chained), rtol=0, atol=1e-12)
     # the chained error is halved

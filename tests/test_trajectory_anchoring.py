@@ -91,6 +91,33 @@ def test_a_black_key_frame_is_chained_over_and_the_next_is_registered_past_it():
         assert np.abs(raw[k] + k * DRIFT).max() < 0.015, k
 
 
+def test_each_anchored_position_carries_its_registrations_variance():
+    """0 at a run's first key frame; a registration's predicted variance at the next ones (covering the anchored
+    position's error); the reference's own variance added once the reference has moved on; inf at a black key
+    frame (nothing registered), finite again past it."""
+    n = 24
+    frames = _frames(n)
+    frames[15] = np.zeros_like(frames[15])
+    p0 = np.array([[x, y] for x in (70.0, 100.5, 130.2, 160.0) for y in (60.0, 95.5, 130.0)])
+    m = p0.shape[0]
+    anchoring = KeyframeAnchoring(SubpixelRefiner(calibration=CAL), frames.__getitem__, interval=5, reference_span=10)
+    var = {}
+    for k in (0, 5, 10, 15, 20, 23):
+        anchoring.add(k, np.arange(m), p0 + k * (STEP + DRIFT), final=k == 23)
+        var[k] = anchoring._rows[-1][3]
+        if k in (5, 10, 20):  # registered: the anchored position's error within its 95 % interval
+            anchored = p0 + k * (STEP + DRIFT) + anchoring._rows[-1][2]
+            err = np.hypot(*(anchored - (p0 + k * STEP)).T)
+            assert np.all(err <= 2.45 * np.sqrt(var[k])), (k, err, np.sqrt(var[k]))
+    assert np.all(var[0] == 0.0)
+    assert np.all((var[5] > 0.0) & (np.sqrt(var[5]) < 0.05)) and np.all(var[10] < 2 * var[5])
+    assert np.all(np.isinf(var[15]))  # black: chained on, from reference 10
+    assert np.all(var[20] > var[10]) and np.all(np.isfinite(var[20]))  # registered from 10, which carries its own
+    c = anchoring.corrections()
+    v = c.variance_at(np.zeros(4, np.int64), np.array([0, 5, 12, 22]))
+    assert v[0] == 0.0 and v[1] == pytest.approx(var[5][0]) and np.isinf(v[2]) and np.isfinite(v[3])
+
+
 def test_corrections_are_linear_between_key_frames_and_held_beyond():
     c = KeyframeCorrections(group=np.array([0, 0, 1]), frame=np.array([0, 10, 5]), dx=np.array([0.0, 1.0, 2.0]),
                             dy=np.array([0.0, -1.0, 0.5]))

@@ -88,6 +88,7 @@ class FeatureMethod:
     anchoring the chained positions, as the plan says)."""
 
     name = "features"
+    keyframe_interval: int | None = None  # the key frames' interval the trajectories were anchored at (measure)
 
     def measure(self, reader: FrameReader, *, n: int, params, plan: AnalysisPlan, out: Outputs) -> MeasurementRun:
         calibration, writer = out.calibration, out.writer
@@ -117,6 +118,7 @@ class FeatureMethod:
                 reference_span=params.tracking.keyframe_reference_frames,
                 smoothing=plan.keyframe_smoothing_key_frames)
             store.anchor(anchoring)
+            self.keyframe_interval = anchoring.interval
         if plan.span_registration:
             span_registration = SpanRegistration(refiner, reader, frames=frames)
         _trajectories_and_motion(store, out, n=n, span_registration=span_registration,
@@ -131,7 +133,7 @@ class FeatureMethod:
         return MeasurementRun(timing, m.parallel)
 
     def cumulative_samples(self, *, n: int, params, out: Outputs) -> Iterator[MotionSample]:
-        return feature_cumulative_samples(out.writer.file, n_frames=n)
+        return feature_cumulative_samples(out.writer.file, n_frames=n, keyframe_interval=self.keyframe_interval)
 
 
 class FlowMethod:

@@ -227,15 +227,18 @@ class TrajectoryStore:
             s = self._read(lo, hi)
             s = s[keep[s["track"]]]
             x, y = s["lx"] + off_x[s["group"]], s["ly"] + off_y[s["group"]]
+            anchor_var = np.zeros(s.size)
             if self._corrections is not None:
                 c = self._corrections.at(s["group"], s["frame"])
                 x, y = x + c[:, 0], y + c[:, 1]
+                anchor_var = self._corrections.variance_at(s["group"], s["frame"])
             if radius > 0:
                 x, y = self._smooth(s, x, y, lo, hi)
             inner = (s["frame"] >= b0) & (s["frame"] < b1)
-            s, x, y = s[inner], x[inner], y[inner]
+            s, x, y, anchor_var = s[inner], x[inner], y[inner], anchor_var[inner]
             rows = np.zeros(s.size, TRAJECTORY_DTYPE)
             rows["frame"], rows["track"], rows["x"], rows["y"] = s["frame"], new_id[s["track"]], x, y
+            rows["anchor_sigma"] = np.sqrt(anchor_var)
             for name in ("raw_x", "raw_y", "feature_index", "linked", "refined", "run"):
                 rows[name] = s[name]
             yield TrajectoryBlock(b0, b1, rows)

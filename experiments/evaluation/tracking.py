@@ -81,9 +81,24 @@ def _rms(a: np.ndarray) -> float:
 def displacement_errors(r: Results, tf: TruthField, *, with_sigma: bool = False):
     """Per measured point of every consecutive pair: |measured - true| px (points with known truth only); with
     ``with_sigma`` also each point's reported standard error (NaN where the results have none)."""
+    return _motion_errors(r.motion_pairs, r.motion, tf, with_sigma=with_sigma)
+
+
+def cumulative_errors(r: Results, tf: TruthField, *, with_sigma: bool = False):
+    """As :func:`displacement_errors`, for the motion from the reference frame (``cumulative``; none in results
+    written before it)."""
+    c = r.cumulative
+    if c is None:
+        return (np.zeros(0), np.zeros(0)) if with_sigma else np.zeros(0)
+    return _motion_errors(c.pairs, c.motion, tf, with_sigma=with_sigma)
+
+
+def _motion_errors(pairs: np.ndarray, motion: np.ndarray, tf: TruthField, *, with_sigma: bool):
     errs, sigmas = [], []
-    for i, pair in enumerate(r.motion_pairs):
-        rows = r.motion[r.motion["pair"] == i]
+    motion = motion[np.argsort(motion["pair"], kind="stable")]
+    bounds = np.searchsorted(motion["pair"], np.arange(len(pairs) + 1))
+    for i, pair in enumerate(pairs):
+        rows = motion[bounds[i] : bounds[i + 1]]
         if rows.size == 0:
             continue
         pts = np.column_stack([rows["x"], rows["y"]])
@@ -291,6 +306,9 @@ def evaluate_tracking(r: Results, truth: SessionTruth) -> dict[str, Any]:
                         "displacement_sigma_median_px": float(np.median(dsigma[np.isfinite(dsigma)])) if np.isfinite(dsigma).any()
                         else math.nan},
     }
+    cerr, csigma = cumulative_errors(r, tf, with_sigma=True)
+    out["tracking"]["cumulative_rmse_px"] = _rms(cerr)
+    out["uncertainty"]["cumulative_coverage_95"] = coverage_95(cerr, csigma, RADIUS_95_2D)
     for span in sorted(r.strain):
         e_err, a_err, e_sigma = edge_strain_errors(r, tf, span, with_sigma=True)
         out["strain"][f"edge_rmse_{span}"] = _rms(e_err)
