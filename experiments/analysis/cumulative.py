@@ -100,12 +100,14 @@ class _StepVariances:
 
     def _steps(self, lo: int, hi: int) -> np.ndarray:
         """The summed variances of the steps lo -> lo + 1 ... hi - 1 -> hi of the reference's tracks."""
+        pairs = [self._pair_of.get(a) for a in range(lo, hi)]
+        if not pairs or None in pairs:
+            return np.full(self._tracks.size, np.inf if pairs else 0.0)
+        first, last = min(pairs), max(pairs)
+        block = self._f["motion"][int(self._rows[first]) : int(self._rows[last + 1])]  # one read for the interval
         total = np.zeros(self._tracks.size)
-        for a in range(lo, hi):
-            p = self._pair_of.get(a)
-            if p is None:
-                return np.full(self._tracks.size, np.inf)
-            rows = self._f["motion"][int(self._rows[p]) : int(self._rows[p + 1])]
+        for p in pairs:
+            rows = block[block["pair"] == p]
             sigma = np.full(self._tracks.size, np.inf)
             _, it, ir = np.intersect1d(self._tracks, rows["id"], assume_unique=True, return_indices=True)
             sigma[it] = rows["sigma"][ir]
