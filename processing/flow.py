@@ -532,7 +532,7 @@ class DenseFlow:
         n_out = int((contact & ~valid).sum())
         disp = np.where(valid[..., None], field, np.nan)
         status = "ok" if valid.any() else "no node registered"
-        check = system.check(lam, self.regularisation(span=span))
+        check = system.check(lam, self.regularisation(span=span), field=field)
         if valid.any():
             # A self-check: right registrations leave windows alike; a field locked onto wrong ridges does not.
             match = float(np.median(check.match[valid]))
@@ -658,6 +658,8 @@ _ADAPT_ITERATIONS = 2
 _ADAPT_FROM = 8.0
 _ADAPT_TO = 12.0
 _ADAPT_SIGMA_NODES = 2.0
+#: SOR sweeps (times ``solver_sweeps``) of the second smoothing that estimates the membrane's bias (check).
+_BIAS_SWEEPS = 4
 
 
 class _LocalPrior:
@@ -765,9 +767,11 @@ class _LinearSystem:
         self.residual = m[5] * self.inb
         self.abs_residual = m[6] / float((2 * self.half + 1) ** 2)
 
-    def check(self, membrane=None, regularisation: Regularisation | None = None) -> RegistrationCheck:
+    def check(self, membrane=None, regularisation: Regularisation | None = None, *,
+              field: np.ndarray | None = None) -> RegistrationCheck:
         """Each node's :func:`registration_check` (gradient products, residual and texture variances; the
-        ``membrane`` weight and ``regularisation`` that smoothed the field)."""
+        ``membrane`` weight and ``regularisation`` that smoothed the field); given the solved ``field``, each
+        sigma also holds, in quadrature, what the membrane's smoothing biases there (:meth:`membrane_bias`)."""
         n = float((2 * self.half + 1) ** 2)
         if self._texture is None:
             # Each node's window inside the image (the full-resolution level: nodes at least half a window in).
@@ -778,9 +782,36 @@ class _LinearSystem:
             c0, c1 = np.maximum(c - half, 0), np.minimum(c + half + 1, w)
             mean, sq = ((ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]) / n for ii in (total, squares))
             self._texture = np.maximum(sq - mean * mean, 0.0)
-        return registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
-                                  model_sigma_px=self.flow.params.model_sigma_px, membrane=membrane,
-                                  regularisation=regularisation)
+        check = registration_check(self.gxx, self.gxy, self.gyy, self.residual / max(n - 2.0, 1.0), self._texture,
+                                   model_sigma_px=self.flow.params.model_sigma_px, membrane=membrane,
+                                   regularisation=regularisation)
+        if field is None or membrane is None:
+            return check
+        bias = self.membrane_bias(field, membrane)
+        return RegistrationCheck(np.sqrt(check.sigma ** 2 + bias ** 2), check.match)
+
+    def membrane_bias(self, field: np.ndarray, membrane) -> np.ndarray:
+        """Per node, px (larger axis): how far smoothing the solved ``field`` once more by the membrane (weight
+        ``membrane``, a number or one per node, on its deviation from the field's affine fit) moves it, the
+        smoothing's own bias estimated from what it did (Tukey's twicing). A field the membrane already left
+        smooth moves little (its noise is not counted twice); a band of strain narrower than the windows, which
+        the membrane flattens, moves by about its bias."""
+        contact = self.contact
+        u = np.ascontiguousarray(field, dtype=np.float64)
+        out = np.zeros(contact.shape)
+        if int(contact.sum()) < 3:
+            return out
+        nx, ny = self.node_x, self.node_y
+        coef, *_ = np.linalg.lstsq(np.column_stack([nx[contact], ny[contact], np.ones(int(contact.sum()))]),
+                                   u[contact], rcond=None)
+        prior = np.stack([nx, ny, np.ones_like(nx)], axis=-1) @ coef
+        lam = np.ascontiguousarray(np.broadcast_to(np.asarray(membrane, dtype=np.float64), contact.shape))
+        rx = self.gxx * u[..., 0] + self.gxy * u[..., 1]  # the data term pulls each node to the solved field
+        ry = self.gxy * u[..., 0] + self.gyy * u[..., 1]
+        none = np.zeros(contact.shape)
+        smoothed = sor_tensor(u, prior, self.gxx, self.gxy, self.gyy, rx, ry, contact, lam, lam, none, none,
+                              _BIAS_SWEEPS * int(self.flow.params.solver_sweeps), float(self.flow.params.sor_omega))
+        return np.where(contact, np.abs(smoothed - u).max(axis=-1), 0.0)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""
