@@ -39,8 +39,10 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 from skinstretch.processing.pixel_scale import RIDGE_PERIOD_MM, Calibration
 from skinstretch.processing.errors import InvalidInputError
-from skinstretch.processing.flow_kernels import compose_steps, membrane_edge_weights, sor, sor_tensor, warped_moments
-from skinstretch.processing.global_motion import GlobalMotionEstimator
+from skinstretch.processing.flow_kernels import (
+    compose_steps, membrane_bias, membrane_edge_weights, sor, sor_tensor, warped_moments,
+)
+from skinstretch.processing.global_motion import GlobalMotionEstimator, affine_motion
 from skinstretch.processing.measurement_uncertainty import (
     MIN_MATCH, MODEL_SIGMA_PX, RegistrationCheck, Regularisation, registration_check,
 )
@@ -484,7 +486,7 @@ class DenseFlow:
                              shift, 0, "no contact", ("no contact", ""))
         pa, pb = fa.pyramid, fb.pyramid
         top = self._levels
-        affine = None if initial is not None else _affine_init(pa[top], pb[top], shift / 2.0**top)
+        affine = None if initial is not None else affine_motion(pa[top], pb[top], shift / 2.0**top)
         if initial is not None:
             # Start from the given field; its invalid nodes from the affine fitted to its valid ones.
             ok = initial.valid
@@ -771,7 +773,8 @@ class _LinearSystem:
               field: np.ndarray | None = None) -> RegistrationCheck:
         """Each node's :func:`registration_check` (gradient products, residual and texture variances; the
         ``membrane`` weight and ``regularisation`` that smoothed the field); given the solved ``field``, each
-        sigma also holds, in quadrature, what the membrane's smoothing biases there (:meth:`membrane_bias`)."""
+        sigma also holds, in quadrature, what the membrane's smoothing biases there
+        (:func:`~skinstretch.processing.flow_kernels.membrane_bias`)."""
         n = float((2 * self.half + 1) ** 2)
         if self._texture is None:
             # Each node's window inside the image (the full-resolution level: nodes at least half a window in).
@@ -787,37 +790,10 @@ class _LinearSystem:
                                    regularisation=regularisation)
         if field is None or membrane is None:
             return check
-        bias = self.membrane_bias(field, membrane)
+        bias = membrane_bias(field, membrane, self.contact, self.node_x, self.node_y, self.gxx, self.gxy, self.gyy,
+                             sweeps=_BIAS_SWEEPS * int(self.flow.params.solver_sweeps),
+                             omega=float(self.flow.params.sor_omega))
         return RegistrationCheck(np.sqrt(check.sigma ** 2 + bias ** 2), check.match)
-
-    def membrane_bias(self, field: np.ndarray, membrane) -> np.ndarray:
-        """Per node, px (larger axis): the bias of the membrane's smoothing ``S`` (weight ``membrane``, a number or
-        one per node, on the deviation from the field's affine fit), estimated from the solved field
-        ``u_hat = S u``: ``(S - I) u = (S - I) u_hat - (S - I)^2 u_hat + ...``, its first two terms (Tukey's
-        twicing and one step more). A field the membrane already left smooth moves little (its noise is not counted
-        twice); a band of strain narrower than the windows, which the membrane flattens, gives about half its bias
-        (the series converges slowly there)."""
-        contact = self.contact
-        u = np.ascontiguousarray(field, dtype=np.float64)
-        out = np.zeros(contact.shape)
-        if int(contact.sum()) < 3:
-            return out
-        nx, ny = self.node_x, self.node_y
-        coef, *_ = np.linalg.lstsq(np.column_stack([nx[contact], ny[contact], np.ones(int(contact.sum()))]),
-                                   u[contact], rcond=None)
-        prior = np.stack([nx, ny, np.ones_like(nx)], axis=-1) @ coef
-        lam = np.ascontiguousarray(np.broadcast_to(np.asarray(membrane, dtype=np.float64), contact.shape))
-        rx = self.gxx * u[..., 0] + self.gxy * u[..., 1]  # the data term pulls each node to the solved field
-        ry = self.gxy * u[..., 0] + self.gyy * u[..., 1]
-        none = np.zeros(contact.shape)
-        sweeps, omega = _BIAS_SWEEPS * int(self.flow.params.solver_sweeps), float(self.flow.params.sor_omega)
-        smoothed = sor_tensor(u, prior, self.gxx, self.gxy, self.gyy, rx, ry, contact, lam, lam, none, none,
-                              sweeps, omega)
-        d1 = np.where(contact[..., None], smoothed - u, 0.0)  # D u_hat, D = S - I
-        rx, ry = self.gxx * d1[..., 0] + self.gxy * d1[..., 1], self.gxy * d1[..., 0] + self.gyy * d1[..., 1]
-        d2 = sor_tensor(d1, np.zeros_like(d1), self.gxx, self.gxy, self.gyy, rx, ry, contact, lam, lam, none, none,
-                        sweeps, omega) - d1  # D^2 u_hat
-        return np.where(contact, np.abs(d1 - d2).max(axis=-1), 0.0)
 
     def inner(self, field: np.ndarray) -> np.ndarray:
         """Nodes whose window, in both images, stays one grid step (and 2 px) away from the image border."""
@@ -832,23 +808,6 @@ class _LinearSystem:
         """Median data weight (trace of G) over the contact nodes with data (1 when there are none)."""
         ok = self.contact & (self.inb > 0)
         return float(np.median((self.gxx + self.gyy)[ok])) if ok.any() else 1.0
-
-
-def _affine_init(a: np.ndarray, b: np.ndarray, shift: np.ndarray) -> np.ndarray | None:
-    """Affine motion between two (downsampled) images by ECC, started from a translation; None if it fails.
-
-    Returns the 2x3 matrix mapping frame-a points to frame-b points (at the resolution of ``a``)."""
-    warp = np.array([[1, 0, shift[0]], [0, 1, shift[1]]], dtype=np.float32)
-    try:
-        # ECC's warp maps template (a) coordinates into the input image (b).
-        _, warp = cv2.findTransformECC(
-            a, b, warp, cv2.MOTION_AFFINE, (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4), None, 3
-        )
-    except cv2.error:
-        return None
-    if not np.all(np.isfinite(warp)) or np.abs(warp[:, :2] - np.eye(2)).max() > 0.3:
-        return None
-    return warp.astype(np.float64)
 
 
 class SpanRefiner:

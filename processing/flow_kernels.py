@@ -1,6 +1,7 @@
 """The compiled kernels of the dense flow (:mod:`skinstretch.processing.flow`), numba, nogil: the second image
 warped by a grid field and the window sums of the brightness-constancy terms at the nodes in one pass, the
-over-relaxed (SOR) solve of the coupled system, and points followed through consecutive fields.
+over-relaxed (SOR) solve of the coupled system, the bias of its membrane estimated with that solve, and points
+followed through consecutive fields.
 
 Hand-written: the window sums at a sparse node grid in one pass, and the block SOR of a 2-vector field with a
 membrane on its deviation from a prior, have no library equivalent (OpenCV's box filters give every pixel, scipy's
@@ -81,6 +82,31 @@ def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, swee
                 _relax_node(u, i, j, gxx[i, j] + total, gyy[i, j] + total, gxy[i, j], rx[i, j] + sx, ry[i, j] + sy,
                             omega)
     return u
+
+
+def membrane_bias(field, membrane, contact, node_x, node_y, gxx, gxy, gyy, *, sweeps, omega):
+    """Per node, px (larger axis): the bias of a membrane smoothing ``S`` (weight ``membrane``, a number or one per
+    node, on the deviation from the field's affine fit; data terms ``gxx, gxy, gyy``), estimated from the solved
+    ``field`` ``u_hat = S u``: ``(S - I) u = (S - I) u_hat - (S - I)^2 u_hat + ...``, its first two terms (Tukey's
+    twicing and one step more), each smoothing ``sweeps`` SOR sweeps. A field the membrane already left smooth moves
+    little (its noise is not counted twice); a band of strain narrower than the windows, which the membrane
+    flattens, gives about half its bias (the series converges slowly there). 0 out of ``contact``."""
+    u = np.ascontiguousarray(field, dtype=np.float64)
+    if int(contact.sum()) < 3:
+        return np.zeros(contact.shape)
+    coef, *_ = np.linalg.lstsq(np.column_stack([node_x[contact], node_y[contact], np.ones(int(contact.sum()))]),
+                               u[contact], rcond=None)
+    prior = np.stack([node_x, node_y, np.ones_like(node_x)], axis=-1) @ coef
+    lam = np.ascontiguousarray(np.broadcast_to(np.asarray(membrane, dtype=np.float64), contact.shape))
+    none = np.zeros(contact.shape)
+
+    def smoothed(v, around):  # the data term pulls each node to v
+        rx, ry = gxx * v[..., 0] + gxy * v[..., 1], gxy * v[..., 0] + gyy * v[..., 1]
+        return sor_tensor(v, around, gxx, gxy, gyy, rx, ry, contact, lam, lam, none, none, sweeps, omega)
+
+    d1 = np.where(contact[..., None], smoothed(u, prior) - u, 0.0)  # D u_hat, D = S - I
+    d2 = smoothed(d1, np.zeros_like(d1)) - d1  # D^2 u_hat
+    return np.where(contact, np.abs(d1 - d2).max(axis=-1), 0.0)
 
 
 def membrane_edge_weights(dxx, dxy, dyy):

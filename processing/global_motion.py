@@ -6,6 +6,8 @@ Two ingredients, used by :class:`skinstretch.processing.tracking.FeatureTracker`
 * :class:`GlobalMotionEstimator` measures the coarse motion between consecutive frames by phase correlation of the
   whole (downsampled) images. It does not depend on the previous displacement, so a reversal or a jump in speed
   is predicted correctly.
+* :func:`affine_motion` measures the affine motion between two (downsampled) whole images by ECC, the dense
+  flow's start.
 * :func:`local_predictions` predicts each feature's displacement from the median displacement of its matched
   neighbours (local structure): after a first matching pass this replaces the single global shift, so features
   in a region that sticks while the rest slides are predicted correctly too.
@@ -215,3 +217,20 @@ def _knn_median(points, matched_points, matched_displacements, k):
             else:
                 out[a, c] = (vals[k // 2 - 1] + vals[k // 2]) / 2.0
     return out
+
+
+def affine_motion(a: np.ndarray, b: np.ndarray, shift: np.ndarray) -> np.ndarray | None:
+    """Affine motion between two (downsampled) images by ECC, started from a translation; None if it fails.
+
+    Returns the 2x3 matrix mapping frame-a points to frame-b points (at the resolution of ``a``)."""
+    warp = np.array([[1, 0, shift[0]], [0, 1, shift[1]]], dtype=np.float32)
+    try:
+        # ECC's warp maps template (a) coordinates into the input image (b).
+        _, warp = cv2.findTransformECC(
+            a, b, warp, cv2.MOTION_AFFINE, (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4), None, 3
+        )
+    except cv2.error:
+        return None
+    if not np.all(np.isfinite(warp)) or np.abs(warp[:, :2] - np.eye(2)).max() > 0.3:
+        return None
+    return warp.astype(np.float64)

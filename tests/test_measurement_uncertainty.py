@@ -154,7 +154,7 @@ def test_the_flow_s_sigma_holds_part_of_what_its_membrane_smooths(monkeypatch):
         return float(np.mean(np.concatenate(inside)))
 
     with_bias = coverage()
-    monkeypatch.setattr(flow_module._LinearSystem, "membrane_bias", lambda self, field, membrane: np.zeros(self.contact.shape))
+    monkeypatch.setattr(flow_module, "membrane_bias", lambda field, membrane, contact, *a, **k: np.zeros(contact.shape))
     noise_only = coverage()
     assert with_bias >= 0.75 and noise_only < 0.5, (with_bias, noise_only)
 
