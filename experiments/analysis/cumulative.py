@@ -77,11 +77,11 @@ class _StepVariances:
         self._f, self._tracks, self._ref, self._n = f, np.asarray(tracks, np.int64), ref, n_frames
         self._interval = interval
         self._ok = "motion" in f and "motion_pairs" in f
-        if self._ok:
-            pairs = f["motion_pairs"][()]
+        if self._ok:  # each pair's rows follow the pair's before it (the pairs' n_points), as StoredSamples reads them
+            pairs = f["motion_pairs"].fields(["frame_a", "frame_b", "n_points"])[()]
             self._pair_of = {int(a): i for i, (a, b) in enumerate(zip(pairs["frame_a"], pairs["frame_b"]))
                              if int(b) == int(a) + 1}
-            self._rows = _frame_offsets(f["motion"].fields("pair")[()], len(pairs))
+            self._rows = np.concatenate([[0], np.cumsum(pairs["n_points"].astype(np.int64))])
         self._span = (-1, -1)
         self._sum = np.zeros(self._tracks.size)
         self._walk = np.zeros(self._tracks.size)  # without key frames: every step since the reference
@@ -103,11 +103,11 @@ class _StepVariances:
         pairs = [self._pair_of.get(a) for a in range(lo, hi)]
         if not pairs or None in pairs:
             return np.full(self._tracks.size, np.inf if pairs else 0.0)
-        first, last = min(pairs), max(pairs)
-        block = self._f["motion"][int(self._rows[first]) : int(self._rows[last + 1])]  # one read for the interval
+        base = int(self._rows[min(pairs)])
+        block = self._f["motion"][base : int(self._rows[max(pairs) + 1])]  # one read for the interval
         total = np.zeros(self._tracks.size)
         for p in pairs:
-            rows = block[block["pair"] == p]
+            rows = block[int(self._rows[p]) - base : int(self._rows[p + 1]) - base]
             sigma = np.full(self._tracks.size, np.inf)
             _, it, ir = np.intersect1d(self._tracks, rows["id"], assume_unique=True, return_indices=True)
             sigma[it] = rows["sigma"][ir]
