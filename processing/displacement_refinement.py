@@ -47,9 +47,11 @@ class SubpixelParams:
     span_window_mm, span_curvature_threshold : float
         Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
         six second-order terms above which its second-order fit is kept (0: always).
-    span_direct_full : float
-        Multiple of that threshold at which :class:`~skinstretch.processing.span_registration.SpanRegistration`
-        keeps a span's direct registration alone (its weight rises from 1/2 at the threshold).
+    register_spans, span_direct_full : bool, float
+        Whether the feature method registers each longer span's two frames directly and combines that with its
+        chained motion (:class:`~skinstretch.processing.span_registration.SpanRegistration`; False: the chained
+        motion alone); multiple of the threshold above at which it keeps the direct registration alone (its weight
+        rises from 1/2 at the threshold).
     model_sigma_px : float
         The error a window's residual does not show (px per axis), added in quadrature to each predicted error.
     """
@@ -64,6 +66,7 @@ class SubpixelParams:
     target_precision_mm: float = Field(0.0005, gt=0)
     span_window_mm: float = Field(0.8, gt=0)
     span_curvature_threshold: float = Field(30.0, ge=0)
+    register_spans: bool = True
     span_direct_full: float = Field(8.0, gt=1)
     model_sigma_px: float = Field(MODEL_SIGMA_PX, ge=0)
 

@@ -62,8 +62,8 @@ def test_shape_with_shading_left_in_turns_refinement_off_and_says_so():
     features = plan_analysis(params, method="features", n_frames=24, surface="ridge", shading_removed=False,
                              shading_status="not applied: glass shading: the skin moved too little")
     assert features.keyframe_smoothing_key_frames is None and not features.span_registration
-    (override,) = features.overrides
-    assert (override.parameter, override.asked, override.used) == ("tracking.keyframe_interval_frames", 5, None)
+    assert {(o.parameter, o.asked, o.used) for o in features.overrides} == {
+        ("tracking.keyframe_interval_frames", 5, None), ("subpixel.register_spans", True, False)}
 
 
 def test_features_anchoring_follows_the_surface():
@@ -72,7 +72,17 @@ def test_features_anchoring_follows_the_surface():
     shape = plan_analysis(params, method="features", n_frames=60, surface="valley", shading_removed=True)
     assert glass.keyframe_smoothing_key_frames == GLASS_SMOOTHING_KEY_FRAMES and glass.span_registration
     assert shape.keyframe_smoothing_key_frames == SHAPE_SMOOTHING_KEY_FRAMES and not shape.span_registration
-    assert glass.overrides == shape.overrides == ()
+    assert glass.overrides == ()
+    (override,) = shape.overrides  # the span registration asked for (the default) is not applied, and says why
+    assert (override.parameter, override.used) == ("subpixel.register_spans", False)
+    assert "over a valley" in override.reason and shape.params.subpixel.register_spans is False
+
+
+def test_the_direct_span_registration_can_be_switched_off():
+    """Its ablation row's switch: the chained motion alone, on glass too."""
+    plan = plan_analysis(analysis_params({"subpixel": {"register_spans": False}}), method="features", n_frames=60)
+    assert plan.plain_glass and not plan.span_registration and plan.overrides == ()
+    assert plan.keyframe_smoothing_key_frames == GLASS_SMOOTHING_KEY_FRAMES  # the key frames stay
 
 
 def test_the_clip_length_is_planned_or_refused():

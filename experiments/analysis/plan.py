@@ -171,6 +171,7 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
     tracking, flow = params.tracking, params.flow
     where = f"over a {surface}" if surface not in (None, "", "flat") else "with glass shading removed"
     smoothing = None
+    subpixel = params.subpixel
     span_registration = span_refiner = False
     if method == "features":
         if tracking.min_length_frames is None:
@@ -185,7 +186,12 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
                 overrides.append(Override("tracking.keyframe_interval_frames", tracking.keyframe_interval_frames,
                                           None, f"key-frame anchoring needs registration on glass: {why}"))
                 tracking = dataclasses.replace(tracking, keyframe_interval_frames=None)
-        span_registration = registered and glass
+        span_registration = registered and glass and params.subpixel.register_spans
+        if params.subpixel is not None and params.subpixel.register_spans and not span_registration:
+            overrides.append(Override("subpixel.register_spans", True, False,
+                                      f"{where} a span's direct registration would follow what is left of the "
+                                      "glass-fixed patterns"))
+            subpixel = dataclasses.replace(params.subpixel, register_spans=False)
     else:
         if flow.local_prior and not glass:
             overrides.append(Override("flow.local_prior", True, False,
@@ -198,7 +204,7 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
                                           f"{where} with its glass shading left in the refinement would follow the "
                                           "shading itself"))
                 flow = dataclasses.replace(flow, refine_spans=False)
-    used = params.model_copy(update={"tracking": tracking, "flow": flow})
+    used = params.model_copy(update={"tracking": tracking, "flow": flow, "subpixel": subpixel})
     for note in notes:
         log.warning("%s", note)
     for override in overrides:

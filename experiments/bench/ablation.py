@@ -64,6 +64,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("bridging", "features", {"tracking": {"max_bridge_frames": 0}}),
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
+    Stage("direct span registration", "features", {"subpixel": {"register_spans": False}}),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
     Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
@@ -288,11 +289,9 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
             "it off worsens the mean or worst of either error beyond that, or loses more than that fraction of the "
             "points measured per consecutive pair (points/pair, mean over the clips); off better = it improves "
             "an error beyond that and worsens none; else within noise.",
-            "No switch, so no row: direct span registration of the features' longer spans as a whole (always on "
-            "over plain glass with sub-pixel refinement; only its second-order windows can be switched off); the "
-            "extractor's ridge-period statistics and band rule (ExtractionParams has no off for them). The flow's "
-            "local prior is already off over a ridge or valley (the analysis turns it off there), so its row "
-            "changes only flat clips.",
+            "No switch, so no row: the extractor's ridge-period statistics and band rule (ExtractionParams has no "
+            "off for them). The features' direct span registration and the flow's local prior act on plain glass "
+            "only (over a ridge or valley the analysis leaves them off), so their rows change only flat clips.",
         ],
     )
 
