@@ -41,12 +41,13 @@ _SERIAL = {"execution": {"kind": "serial"}}
 @dataclass(frozen=True)
 class Stage:
     """A stage beyond the seed's method: its ``method``, the analysis options that switch it off alone, and
-    whether it acts only over a ridge or valley (its row then uses only those clips)."""
+    whether it acts only over a ridge or valley, or only on plain glass (its row then uses only those clips)."""
 
     name: str
     method: str
     switch: dict[str, Any]
     shaped_only: bool = False
+    flat_only: bool = False
 
     def switch_text(self) -> str:
         parts = []
@@ -64,13 +65,13 @@ STAGES: tuple[Stage, ...] = (
     Stage("bridging", "features", {"tracking": {"max_bridge_frames": 0}}),
     Stage("bridge deviation bound", "features", {"tracking": {"max_bridge_deviation_spreads": None}}),
     Stage("neighbour fusion", "features", {"tracking": {"fusion_radius_mm": None}}),
-    Stage("direct span registration", "features", {"subpixel": {"register_spans": False}}),
+    Stage("direct span registration", "features", {"subpixel": {"register_spans": False}}, flat_only=True),
     Stage("second-order span windows", "features", {"subpixel": {"span_curvature_threshold": 1e9}}),
     Stage("wide second window", "features", {"subpixel": {"wide_window_mm": None}}),
     Stage("robust matching", "features", {"robust_matching": False}),
     Stage("glass-shading removal", "features", {"glass_shading": {"enabled": False}}, shaped_only=True),
     Stage("span refiner", "flow", {"flow": {"refine_spans": False}}),
-    Stage("local prior", "flow", {"flow": {"local_prior": False}}),
+    Stage("local prior", "flow", {"flow": {"local_prior": False}}, flat_only=True),
     Stage("adaptive regularisation", "flow", {"flow": {"adaptive": False}}),
     Stage("glass-shading removal", "flow", {"glass_shading": {"enabled": False}}, shaped_only=True),
 )
@@ -189,7 +190,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
                 clip.analyse(method, stage_params(None))  # shaped clip): not a stage's cost
                 warmed.add((method, clip.shaped))
             for stage in (None, *(s for s in STAGES if s.method == method)):
-                if stage is not None and stage.shaped_only and not clip.shaped:
+                if stage is not None and (stage.shaped_only and not clip.shaped or stage.flat_only and clip.shaped):
                     continue
                 score = clip.analyse(method, stage_params(stage))
                 runs.append(Run(clip.name, clip.shaped, method, None if stage is None else stage.name,
@@ -291,7 +292,7 @@ def _stage_table(runs: list[Run], scenes, condition_names) -> BenchTable:
             "an error beyond that and worsens none; else within noise.",
             "No switch, so no row: the extractor's ridge-period statistics and band rule (ExtractionParams has no "
             "off for them). The features' direct span registration and the flow's local prior act on plain glass "
-            "only (over a ridge or valley the analysis leaves them off), so their rows change only flat clips.",
+            "only (over a ridge or valley the analysis leaves them off): their rows use the flat clips alone.",
         ],
     )
 
