@@ -167,11 +167,11 @@ def _condition_clip(name: str, workdir) -> _Clip:
 
 def _plan(quick: bool) -> tuple[list[tuple[str, int, int, str | None]], list[str]]:
     """(scene, frames, seed, texture) of the scene clips, and the conditions rows, of a quick or full run; the
-    full run adds a motion reversal, valleyS and real prints as the texture (sparse prints: what bridging and the wide
-    window were built for)."""
+    full run adds a curved field (stretch: what the flow's local prior was built for), a motion reversal, valleyS and
+    real prints as the texture (sparse prints: what bridging and the wide window were built for)."""
     if quick:
         return [(s, 48, 0, None) for s in ("slipfront", "ridgeL")], ["base 30 px/mm"]
-    scenes = [(s, 72, 0, None) for s in ("flatL", "slipfront", "ridgeL", "valleyL", "reversal")]
+    scenes = [(s, 72, 0, None) for s in ("flatL", "slipfront", "stretch", "ridgeL", "valleyL", "reversal")]
     scenes += [("valleyS", 60, 1, None)]  # where a bridged point once drifted by pixels
     scenes += [("slipfront", 72, 0, "afis_p1_2"), ("valleyL", 72, 0, "afis_p1_2"), ("ridgeL", 72, 0, "afis_p2_1")]
     return scenes, ["base 30 px/mm", "issue: 19.7 px/mm, white, noise 2"]
