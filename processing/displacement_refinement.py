@@ -48,10 +48,9 @@ class SubpixelParams:
         Window (mm) :meth:`SubpixelRefiner.register_span` registers a span's two frames with; Wald statistic of the
         six second-order terms above which its second-order fit is kept (0: always).
     register_spans, span_direct_full : bool, float
-        Whether the feature method registers each longer span's two frames directly and combines that with its
-        chained motion (:class:`~skinstretch.processing.span_registration.SpanRegistration`; False: the chained
-        motion alone); multiple of the threshold above at which it keeps the direct registration alone (its weight
-        rises from 1/2 at the threshold).
+        Whether the feature method also registers a longer span directly (``span_registration.SpanRegistration``;
+        False: its chained motion alone); multiple of the threshold above at which it keeps that registration alone
+        (its weight rises from 1/2 at the threshold).
     model_sigma_px : float
         The error a window's residual does not show (px per axis), added in quadrature to each predicted error.
     """
