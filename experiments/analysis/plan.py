@@ -189,8 +189,8 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
         span_registration = registered and glass and params.subpixel.register_spans
         if params.subpixel is not None and params.subpixel.register_spans and not span_registration:
             overrides.append(Override("subpixel.register_spans", True, False,
-                                      f"{where} a span's direct registration would follow what is left of the "
-                                      "glass-fixed patterns"))
+                                      f"{where} a span's direct registration would follow the glass-fixed "
+                                      "patterns that the shading step leaves or did not remove"))
             subpixel = dataclasses.replace(params.subpixel, register_spans=False)
     else:
         if flow.local_prior and not glass:
