@@ -46,7 +46,7 @@ __all__ = [
     "TRACK_DTYPE", "TENSOR_COLUMNS", "SpanStrain", "CumulativeStrain", "TactileMovieTable", "FlowResults",
     "MeshDensity", "Results", "ResultsWriter",
     "read_results", "AXIS_NAMES", "RESULTS_DATASETS", "results_dataset_info", "RESULTS_FILE", "SUMMARY_FILE",
-    "held_results", "check_results_dir", "refuse_held_results",
+    "held_results", "check_results_dir", "refuse_held_results", "pair_index", "pair_row_offsets",
 ]
 
 log = logging.getLogger(__name__)
@@ -377,7 +377,7 @@ class ResultsWriter:
 
     def samples(self) -> StoredSamples:
         """The motion samples written so far (``motion_pairs`` and ``motion``), read back lazily."""
-        return StoredSamples(lambda: nullcontext(self._f), _pair_index(self._f["motion_pairs"]))
+        return StoredSamples(lambda: nullcontext(self._f), pair_index(self._f["motion_pairs"]))
 
     def _table(self, name: str, dtype: np.dtype) -> h5py.Dataset:
         if name not in self._tables:
@@ -483,9 +483,15 @@ class ResultsWriter:
 # ----------------------------------------------------------------------------------------------------- reading
 
 
-def _pair_index(ds: h5py.Dataset) -> np.ndarray:
+def pair_index(ds: h5py.Dataset) -> np.ndarray:
     """The columns of a ``pairs`` table that locate each pair's rows (not its reasons: 96 bytes a pair)."""
     return ds.fields(["frame_a", "frame_b", "n_points"])[()]
+
+
+def pair_row_offsets(n_points: np.ndarray) -> np.ndarray:
+    """The first row of each pair in the ``motion`` table, and one past the last pair's rows: the pairs' rows follow
+    one another in pair order, ``n_points`` each."""
+    return np.concatenate([[0], np.cumsum(np.asarray(n_points, dtype=np.int64))])
 
 
 class StoredSamples(Sequence):
@@ -496,7 +502,7 @@ class StoredSamples(Sequence):
     def __init__(self, open_file: Callable[[], Any], pairs: np.ndarray, *, block: int = 256) -> None:
         self._open = open_file
         self._pairs = pairs
-        self._offsets = np.concatenate([[0], np.cumsum(pairs["n_points"].astype(np.int64))])
+        self._offsets = pair_row_offsets(pairs["n_points"])
         self._block = int(block)
         self._cache: tuple[int, list[MotionSample]] | None = None
 
@@ -639,7 +645,7 @@ class Results:
         if "motion_pairs" in self.__dict__:
             return StoredSamples(self.open, self.motion_pairs)
         with self.open() as f:
-            return StoredSamples(self.open, _pair_index(f["motion_pairs"]))
+            return StoredSamples(self.open, pair_index(f["motion_pairs"]))
 
     @cached_property
     def strain(self) -> dict[int, SpanStrain]:

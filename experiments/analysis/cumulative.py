@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 
 from skinstretch.experiments.analysis.derive import rectified_sample
+from skinstretch.experiments.results_file import pair_index, pair_row_offsets
 from skinstretch.processing.flow import FlowField
 from skinstretch.processing.tracking import MotionSample
 
@@ -77,11 +78,11 @@ class _StepVariances:
         self._f, self._tracks, self._ref, self._n = f, np.asarray(tracks, np.int64), ref, n_frames
         self._interval = interval
         self._ok = "motion" in f and "motion_pairs" in f
-        if self._ok:  # each pair's rows follow the pair's before it (the pairs' n_points), as StoredSamples reads them
-            pairs = f["motion_pairs"].fields(["frame_a", "frame_b", "n_points"])[()]
+        if self._ok:
+            pairs = pair_index(f["motion_pairs"])
             self._pair_of = {int(a): i for i, (a, b) in enumerate(zip(pairs["frame_a"], pairs["frame_b"]))
                              if int(b) == int(a) + 1}
-            self._rows = np.concatenate([[0], np.cumsum(pairs["n_points"].astype(np.int64))])
+            self._rows = pair_row_offsets(pairs["n_points"])
         self._span = (-1, -1)
         self._sum = np.zeros(self._tracks.size)
         self._walk = np.zeros(self._tracks.size)  # without key frames: every step since the reference

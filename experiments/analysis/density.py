@@ -37,7 +37,7 @@ import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skinstretch.experiments.results_file import MeshDensity, PairStatus
+from skinstretch.experiments.results_file import MeshDensity, PairStatus, pair_row_offsets
 from skinstretch.processing.delaunay import triangulate_points
 from skinstretch.processing.global_motion import local_predictions
 
@@ -192,7 +192,7 @@ class MeasuredMotion:
     def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
         self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
         n = f["motion_pairs"].fields("n_points")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
-        self._pairs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        self._pairs = pair_row_offsets(n)
         self._motion = _FrameRows(f["motion"], self._pairs) if "motion" in f else None
         frame_a = f["motion_pairs"].fields("frame_a")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
         self._pair_of = {int(a): i for i, a in enumerate(frame_a)}

@@ -186,8 +186,9 @@ def plan_analysis(params: AnalysisParams, *, method: str, n_frames: int, surface
                 overrides.append(Override("tracking.keyframe_interval_frames", tracking.keyframe_interval_frames,
                                           None, f"key-frame anchoring needs registration on glass: {why}"))
                 tracking = dataclasses.replace(tracking, keyframe_interval_frames=None)
-        span_registration = registered and glass and params.subpixel.register_spans
-        if params.subpixel is not None and params.subpixel.register_spans and not span_registration:
+        asked = params.subpixel is not None and params.subpixel.register_spans
+        span_registration = asked and registered and glass
+        if asked and not span_registration:
             overrides.append(Override("subpixel.register_spans", True, False,
                                       f"{where} a span's direct registration would follow the glass-fixed "
                                       "patterns that the shading step leaves or did not remove"))

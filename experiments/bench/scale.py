@@ -128,12 +128,13 @@ def _run_sampled(cmd: list[str]) -> tuple[float, TreeSample, str]:
 
 def _displacement_rmse(results, truth) -> float:
     from skinstretch.experiments.evaluation.tracking import TruthField  # noqa: PLC0415
+    from skinstretch.experiments.results_file import pair_row_offsets  # noqa: PLC0415
 
     tf = TruthField(truth)
     pairs = results.motion_pairs
     n = min(pairs.size, tf.n_frames - 1)
     with results.open() as f:  # only the pairs with a truth (the motion table of 18,000 frames is large)
-        offsets = np.concatenate([[0], np.cumsum(pairs["n_points"][:n].astype(np.int64))])
+        offsets = pair_row_offsets(pairs["n_points"][:n])
         m = f["motion"][: int(offsets[-1])]
     errs = []
     for i in range(n):
