@@ -315,16 +315,23 @@ def _chol_solve(chol, rhs):
         for m in range(j):
             acc -= chol[j, m] * z[m]
         z[j] = acc / chol[j, j]
-    x = np.empty(12)
-    for j in range(11, -1, -1):
-        acc = z[j]
-        for m in range(j + 1, 12):
-            acc -= chol[m, j] * x[m]
-        x[j] = acc / chol[j, j]
+    x = _back_substitute(chol, z, 12)
     out = np.empty(12)
     for j in range(12):
         out[_ORDER[j]] = x[j]
     return out
+
+
+@njit(nogil=True)
+def _back_substitute(chol, z, n):
+    """x with ``L^T x = z``, L the leading n x n block of the lower factor ``chol``."""
+    x = np.empty(n)
+    for j in range(n - 1, -1, -1):
+        acc = z[j]
+        for m in range(j + 1, n):
+            acc -= chol[m, j] * x[m]
+        x[j] = acc / chol[j, j]
+    return x
 
 
 @njit(nogil=True)
@@ -360,11 +367,6 @@ def _fit_statistics(chol, q):
         for m in range(6, 12):
             acc += chol[m, j] * q[_ORDER[m]]
         y[j] = acc
-    x = np.empty(6)
-    for j in range(5, -1, -1):
-        acc = y[j]
-        for m in range(j + 1, 6):
-            acc -= chol[m, j] * x[m]
-        x[j] = acc / chol[j, j]
+    x = _back_substitute(chol, y, 6)
     return (wald, q[0] + x[0], q[6] + x[3], _inverse_diagonal(chol, 12, 0), _inverse_diagonal(chol, 12, 3),
             _inverse_diagonal(chol, 6, 0), _inverse_diagonal(chol, 6, 3))
