@@ -16,19 +16,6 @@ import numpy as np
 from skinstretch.processing.jit import njit
 
 
-@njit(nogil=True)
-def _relax_node(u, i, j, ax, ay, c, px, py, omega):
-    """One node's over-relaxed update: solve ``[[ax, c], [c, ay]] x = (px, py)`` and move ``u[i, j]`` by
-    ``omega`` towards it."""
-    det = ax * ay - c * c
-    if abs(det) < 1e-12:
-        det = 1e-12
-    ux = (ay * px - c * py) / det
-    uy = (ax * py - c * px) / det
-    u[i, j, 0] += omega * (ux - u[i, j, 0])
-    u[i, j, 1] += omega * (uy - u[i, j, 1])
-
-
 def sor(u0, prior, gxx, gxy, gyy, rx, ry, contact, lam, sweeps, omega):
     """Block successive over-relaxation of the coupled system at contact nodes: per node, the 2x2 data term
     ``G`` plus ``lam`` times the number of contact neighbours, right-hand side ``r + lam * (sum of the
@@ -53,34 +40,64 @@ def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, swee
     di = (-1, 1, 0, 0, 1, -1, 1, -1)  # up, down, left, right, then the diagonals
     dj = (0, 0, -1, 1, 1, -1, -1, 1)
     n_dirs = 8 if (np.any(wd1 != 0.0) or np.any(wd2 != 0.0)) else 4
+    # What stays fixed over the sweeps, per contact node: its edges' weights (0: no edge), the right-hand side
+    # without the neighbours' current values, and its 2 x 2 system.
+    weight = np.zeros((gy_n, gx_n, n_dirs))
+    bx = np.zeros((gy_n, gx_n))
+    by = np.zeros((gy_n, gx_n))
+    ax = np.zeros((gy_n, gx_n))
+    ay = np.zeros((gy_n, gx_n))
+    inv_det = np.ones((gy_n, gx_n))  # 1 / det: a multiplication in the sweeps, whose nodes wait on each other
+    for i in range(gy_n):
+        for j in range(gx_n):
+            if not contact[i, j]:
+                continue
+            sx = 0.0
+            sy = 0.0
+            total = 0.0
+            for k in range(n_dirs):
+                ii = i + di[k]
+                jj = j + dj[k]
+                if ii < 0 or ii >= gy_n or jj < 0 or jj >= gx_n or not contact[ii, jj]:
+                    continue
+                if k < 2:
+                    we = 0.5 * (wy[i, j] + wy[ii, jj])
+                elif k < 4:
+                    we = 0.5 * (wx[i, j] + wx[ii, jj])
+                elif k < 6:
+                    we = 0.5 * (wd1[i, j] + wd1[ii, jj])
+                else:
+                    we = 0.5 * (wd2[i, j] + wd2[ii, jj])
+                if we <= 0.0:
+                    continue
+                weight[i, j, k] = we
+                sx += we * (prior[i, j, 0] - prior[ii, jj, 0])
+                sy += we * (prior[i, j, 1] - prior[ii, jj, 1])
+                total += we
+            bx[i, j] = rx[i, j] + sx
+            by[i, j] = ry[i, j] + sy
+            ax[i, j] = gxx[i, j] + total
+            ay[i, j] = gyy[i, j] + total
+            d = ax[i, j] * ay[i, j] - gxy[i, j] * gxy[i, j]
+            inv_det[i, j] = 1.0 / (d if abs(d) >= 1e-12 else 1e-12)
     for _ in range(sweeps):
         for i in range(gy_n):
             for j in range(gx_n):
                 if not contact[i, j]:
                     continue
-                sx = 0.0
-                sy = 0.0
-                total = 0.0
+                px = bx[i, j]
+                py = by[i, j]
                 for k in range(n_dirs):
-                    ii = i + di[k]
-                    jj = j + dj[k]
-                    if ii < 0 or ii >= gy_n or jj < 0 or jj >= gx_n or not contact[ii, jj]:
+                    we = weight[i, j, k]
+                    if we == 0.0:
                         continue
-                    if k < 2:
-                        we = 0.5 * (wy[i, j] + wy[ii, jj])
-                    elif k < 4:
-                        we = 0.5 * (wx[i, j] + wx[ii, jj])
-                    elif k < 6:
-                        we = 0.5 * (wd1[i, j] + wd1[ii, jj])
-                    else:
-                        we = 0.5 * (wd2[i, j] + wd2[ii, jj])
-                    if we <= 0.0:
-                        continue
-                    sx += we * (u[ii, jj, 0] - prior[ii, jj, 0] + prior[i, j, 0])
-                    sy += we * (u[ii, jj, 1] - prior[ii, jj, 1] + prior[i, j, 1])
-                    total += we
-                _relax_node(u, i, j, gxx[i, j] + total, gyy[i, j] + total, gxy[i, j], rx[i, j] + sx, ry[i, j] + sy,
-                            omega)
+                    px += we * u[i + di[k], j + dj[k], 0]
+                    py += we * u[i + di[k], j + dj[k], 1]
+                c = gxy[i, j]
+                ux = (ay[i, j] * px - c * py) * inv_det[i, j]
+                uy = (ax[i, j] * py - c * px) * inv_det[i, j]
+                u[i, j, 0] += omega * (ux - u[i, j, 0])
+                u[i, j, 1] += omega * (uy - u[i, j, 1])
     return u
 
 
