@@ -79,7 +79,7 @@ def sor_tensor(u0, prior, gxx, gxy, gyy, rx, ry, contact, wx, wy, wd1, wd2, swee
             ax[i, j] = gxx[i, j] + total
             ay[i, j] = gyy[i, j] + total
             d = ax[i, j] * ay[i, j] - gxy[i, j] * gxy[i, j]
-            inv_det[i, j] = 1.0 / (d if abs(d) >= 1e-12 else 1e-12)
+            inv_det[i, j] = 1.0 / (1e-12 if abs(d) < 1e-12 else d)  # NaN stays NaN
     for _ in range(sweeps):
         for i in range(gy_n):
             for j in range(gx_n):

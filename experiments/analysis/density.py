@@ -37,7 +37,7 @@ import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skinstretch.experiments.results_file import MeshDensity, PairStatus, pair_row_offsets
+from skinstretch.experiments.results_file import MeshDensity, PairStatus, pair_index, pair_row_offsets
 from skinstretch.processing.delaunay import triangulate_points
 from skinstretch.processing.global_motion import local_predictions
 
@@ -191,11 +191,10 @@ class MeasuredMotion:
 
     def __init__(self, f: h5py.File, *, feature_offsets: np.ndarray, px_per_mm: float, max_edge_px: float) -> None:
         self._features = _FrameRows(f["features"], feature_offsets) if "features" in f else None
-        n = f["motion_pairs"].fields("n_points")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
-        self._pairs = pair_row_offsets(n)
+        pairs = pair_index(f["motion_pairs"]) if "motion_pairs" in f else None
+        self._pairs = pair_row_offsets(pairs["n_points"] if pairs is not None else np.zeros(0, np.int64))
         self._motion = _FrameRows(f["motion"], self._pairs) if "motion" in f else None
-        frame_a = f["motion_pairs"].fields("frame_a")[()] if "motion_pairs" in f else np.zeros(0, np.int64)
-        self._pair_of = {int(a): i for i, a in enumerate(frame_a)}
+        self._pair_of = {int(a): i for i, a in enumerate(pairs["frame_a"])} if pairs is not None else {}
         self._reach = _REACH_MM * float(px_per_mm)
         self._max_edge = float(max_edge_px)
         self._region: tuple[int, Any] = (-1, None)
