@@ -165,9 +165,11 @@ class SubpixelRefiner:
     def window_px(self) -> int:
         return self._win
 
-    def prepare(self, image: np.ndarray) -> "PreparedImage":
+    def prepare(self, image: np.ndarray, *, gradient: bool = True) -> "PreparedImage":
         """The image as :meth:`refine` wants it: normalised (when ``normalize_sigma_mm`` is set), with its
-        out-of-contact map. Call once per frame (thread-safe: the analysis calls it on the extraction threads)."""
+        out-of-contact map and, with ``gradient``, the gradient the uncertainty and wide-window steps use (a
+        third of the time; computed on demand when left out). Call once per frame (thread-safe: the analysis
+        calls it on the extraction threads)."""
         image = _as_gray(image, "image")
         sigma = self.calibration.px(self.params.normalize_sigma_mm or 0.15)
         f = image.astype(np.float32)
@@ -180,13 +182,13 @@ class SubpixelRefiner:
         low = (std < self.params.min_contrast).view(np.uint8)
         integral = cv2.integral(low, sdepth=cv2.CV_32S)
         if self.params.normalize_sigma_mm is None:
-            return PreparedImage(image, integral, image_gradient(image))
+            return PreparedImage(image, integral, image_gradient(image) if gradient else None)
         # 128 + 40 d / (std + 2), clipped, truncated to uint8 (in place: the same operations as written out).
         np.multiply(d, 40.0, out=d)
         np.divide(d, np.add(std, 2.0, out=std), out=d)
         np.add(d, 128.0, out=d)
         norm = np.clip(d, 0, 255, out=d).astype(np.uint8)
-        return PreparedImage(norm, integral, image_gradient(norm))
+        return PreparedImage(norm, integral, image_gradient(norm) if gradient else None)
 
     def refine(
         self,

@@ -120,6 +120,22 @@ def test_a_point_registered_a_ridge_astray_is_unbounded(print_pair):
     assert np.all(bad.match < MIN_MATCH) and np.all(np.isinf(bad.sigma))
 
 
+def test_a_frame_prepared_without_its_gradient_measures_the_same(print_pair):
+    """The live view prepares frames without the gradient (it has no uncertainty step): the registration and,
+    where asked for, the covariance (its gradient then computed on demand) are the same."""
+    refiner = SubpixelRefiner(calibration=Calibration(px_per_mm=19.7))
+    full = [refiner.prepare(f) for f in print_pair]
+    lean = [refiner.prepare(f, gradient=False) for f in print_pair]
+    assert lean[0].gradient is None and full[0].gradient is not None
+    assert np.array_equal(lean[0].image, full[0].image)
+    pts = np.array([[150.0, 110.0], [170.0, 130.0], [140.0, 100.0]])
+    start = np.column_stack([_true_dx(pts[:, 0], 0, 1), np.zeros(3)]) + 0.3
+    r_full, r_lean = refiner.refine(*full, pts, start), refiner.refine(*lean, pts, start)
+    assert r_full.refined.all() and np.array_equal(r_full.displacement, r_lean.displacement)
+    cov = [refiner.displacement_covariance(*p, pts, r_full.displacement) for p in (full, lean)]
+    np.testing.assert_array_equal(cov[0], cov[1])
+
+
 @pytest.mark.parametrize("px_per_mm", [19.7, 62.0])
 def test_the_flow_s_sigma_covers_its_error(px_per_mm):
     image = print_image()

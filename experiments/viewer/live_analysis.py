@@ -33,7 +33,7 @@ from skinstretch.experiments.viewer.session_data import (
     convex_hull,
     nice_scale,
 )
-from skinstretch.processing.displacement_refinement import SubpixelRefiner
+from skinstretch.processing.displacement_refinement import SubpixelParams, SubpixelRefiner
 from skinstretch.processing.errors import InsufficientDataError, SkinstretchError
 from skinstretch.processing.extraction import ReducedFeatureExtractor
 from skinstretch.processing.global_motion import GlobalMotionEstimator, local_predictions
@@ -84,7 +84,8 @@ class LiveAnalyzer:
             calibration=cal, params=TrackingParams(max_bridge_frames=0),
             motion_estimator=GlobalMotionEstimator(downsample=cal.resolvable_reduction(4)),
         )
-        self._refiner = SubpixelRefiner(calibration=cal)
+        # One window: the analysis' wider second window for imprecise points costs a quarter of a live frame.
+        self._refiner = SubpixelRefiner(calibration=cal, params=SubpixelParams(wide_window_mm=None))
         self._max_edge_px = cal.px(MAX_EDGE_MM)
         self._max_deviation_px = cal.px(TrackingParams().max_local_deviation_mm)
         self._keep = int(keep_frames)
@@ -180,7 +181,7 @@ class LiveAnalyzer:
         image = self.source.frame(k)
         res = self._extractor.extract(image, frame_index=k)
         return _ExtractedFrame(t0, self.source.timestamp(k), res, self._tracker.prepare_image(image),
-                               self._refiner.prepare(image))
+                               self._refiner.prepare(image, gradient=False))
 
     def _link(self, k: int, frame: "_ExtractedFrame") -> FrameOverlays:
         """Frame ``k`` (:meth:`_extract`) matched to the previously analysed frame, its overlays kept; the frames
@@ -257,8 +258,8 @@ class LiveAnalyzer:
         ids, xy = ids[keep], xy[keep]
         order = np.argsort(ids, kind="stable")  # stable: each track's points stay in frame order
         ids, xy = ids[order], xy[order]
-        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if ids.size else np.zeros(0, np.int64)
-        return [t for t in np.split(xy, starts[1:]) if len(t) >= 2]
+        bounds = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1], True]).tolist() if ids.size else [0]
+        return [xy[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= 2]  # slices: np.split costs 10x
 
 
 @dataclass

@@ -175,7 +175,7 @@ class FrameOverlays:
             "arrows": _round(self.arrows, 3),
             "arrow_ids": _ints(self.arrow_ids),
             "arrow_sigma": _round(np.nan_to_num(self.arrow_sigma, nan=-1.0, posinf=1e9), 4),  # -1 none, 1e9 inf
-            "tails": [_round(t, 1) for t in self.tails],
+            "tails": _round_polylines(self.tails, 1),
             "mesh": mesh,
             "outline": _round(self.outline, 1),
             "window": [float(v) for v in self.window] if self.window is not None else None,
@@ -193,6 +193,14 @@ class FrameOverlays:
 def _round(a: np.ndarray, digits: int) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     return np.ascontiguousarray(np.where(np.isfinite(a), np.round(a, digits), 0.0))
+
+
+def _round_polylines(lines: list[np.ndarray], digits: int) -> list[np.ndarray]:
+    """:func:`_round` of every polyline at once (a live frame has hundreds of short tails)."""
+    if not lines:
+        return []
+    ends = np.cumsum([len(t) for t in lines])[:-1]
+    return np.split(_round(np.concatenate([np.asarray(t, np.float64).reshape(-1, 2) for t in lines]), digits), ends)
 
 
 def _ints(a: np.ndarray) -> np.ndarray:
