@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import cv2
 import numpy as np
@@ -20,6 +21,7 @@ from skinstretch.experiments.viewer.server import TOKEN_COOKIE, ViewerState, cre
 from skinstretch.experiments.viewer.session_data import (
     SessionSource,
     ViewTarget,
+    empty_overlays,
     find_view_target,
     load_results_index,
     nice_scale,
@@ -248,6 +250,48 @@ def test_live_analysis_of_a_recording_matches_the_truth(tmp_path, sim_session):
     assert acc.displacement_rmse_px < 0.1
     assert acc.area_change_rmse < 0.005
     assert all(o.tails for o in overlays[2:])
+
+
+def test_the_live_event_names_the_frame_and_its_overlays_are_fetched(tmp_path, sim_session):
+    """Each live event is the analysed frame's index and times (the page draws fewer frames than are analysed
+    and fetches the overlays of those it draws); the overlay route serves them as the live analysis' own."""
+    s = sim_session
+    path = tmp_path / "live.h5"
+    writer = SessionWriter(path, camera_mode=s.camera_mode, calibration=s.calibration)
+    state = None
+    try:
+        for k in range(4):
+            writer.append_frame(s.frames[k], timestamp=float(s.timestamps[k]), frame_id=k)
+        writer.flush()
+        state = ViewerState(ViewTarget(path, None, None))
+        assert state.analyzer is not None
+        deadline = time.monotonic() + 60
+        while state.analyzer.stats().analysed == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        version, event = state.live_update(-1)
+        assert event is not None and state.live_update(version) == (version, None)
+        ev = json.loads(event)
+        assert set(ev) == {"frame", "exposure_time", "analysed_time"} and len(event) < 200
+        assert ev["exposure_time"] == pytest.approx(float(s.timestamps[ev["frame"]]))
+        ov = json.loads(state.overlays(state.sid, ev["frame"], 1))
+        assert ov["source"] == "live" and ov["frame"] == ev["frame"] and len(ov["features"]["x"]) > 10
+        assert state.snapshot()["live"] is True
+    finally:
+        if state is not None:
+            state.close()
+        writer.close()
+
+
+def test_tails_are_rounded_at_once_as_one_by_one():
+    """The page's JSON of many polylines: rounded together, the same as each on its own (NaN as 0)."""
+    rng = np.random.default_rng(3)
+    tails = [rng.uniform(0, 500, (int(n), 2)) for n in rng.integers(2, 13, 300)]
+    tails[5][1, 0] = np.nan
+    ov = empty_overlays(0, "test")
+    ov.tails = tails
+    got = ov.to_json()["tails"]
+    want = [np.where(np.isfinite(t), np.round(t, 1), 0.0).tolist() for t in tails]
+    assert got == want
 
 
 def test_the_warm_up_runs_the_whole_live_analysis_on_a_made_up_print():

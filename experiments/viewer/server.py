@@ -14,7 +14,7 @@ Routes (``sid`` numbers the session shown: it changes when a followed data direc
     GET /api/info                         what is shown: size, frames, status, results, live analysis
     GET /api/s/{sid}/frame/{k}.bmp        frame k (lossless BMP)
     GET /api/s/{sid}/overlay/{k}?span=s   frame k's overlays (JSON, see session_data.FrameOverlays)
-    GET /api/events                       server-sent events: "state" on any change, "live" per analysed frame
+    GET /api/events                       server-sent events: "state" on any change, "live" per analysed frame (its index)
     GET /api/s/{sid}/gauge?frame=k&x=&y=[&x2=&y2=][&radius_mm=]
                                           a virtual gauge (extensometer) placed on frame k: JSON of every frame
     GET /api/s/{sid}/gauge.csv?...        the same as CSV (what skinstretch probe writes)
@@ -166,7 +166,8 @@ class ViewerState:
 
     # -- what the page asks for
     def snapshot(self) -> dict[str, Any]:
-        """Small state compared by the event stream: any change is sent to the page."""
+        """Small state compared by the event stream: any change is sent to the page (and redraws part of it: the
+        live rate in whole frames/s, not the frame analysed, which has an event of its own)."""
         with self._lock:
             live = self.analyzer.stats() if self.analyzer is not None else None
             return {
@@ -174,8 +175,8 @@ class ViewerState:
                 "n_frames": self._n_frames,
                 "status": self._status,
                 "has_results": self.results is not None,
-                "live_frame": live.last_frame if live else -1,
-                "live_fps": round(live.frames_per_s, 1) if live else 0.0,
+                "live": bool(live and live.last_frame >= 0),
+                "live_fps": round(live.frames_per_s) if live else 0,
                 "live_error": live.error if live else "",
             }
 
@@ -285,13 +286,17 @@ class ViewerState:
         self.update()
 
     def live_update(self, seen_version: int) -> tuple[int, bytes | None]:
-        """(version, the newest live overlays as JSON) when a frame was analysed live since ``seen_version``."""
+        """(version, JSON of the newest live frame: its index and times) when a frame was analysed live since
+        ``seen_version``. The page fetches the overlays of the frames it draws: it draws fewer than are analysed."""
         with self._lock:
             a = self.analyzer
             if a is None or a.version == seen_version:
                 return seen_version, None
             ov = a.latest()
-            return a.version, (ov.to_json_bytes() if ov is not None else None)
+            if ov is None:
+                return a.version, None
+            return a.version, json.dumps({"frame": ov.frame, "exposure_time": ov.exposure_time,
+                                          "analysed_time": ov.analysed_time}).encode()
 
 
 # ------------------------------------------------------------------------------------------- security

@@ -144,10 +144,10 @@ function arrowShown(ov, i) {
   return !(S.maxSigma > 0) || (s >= 0 && s <= S.maxSigma);
 }
 
-function setStatus(st) {
+function setStatus(st) {  // only what changed: every change of the page costs it a repaint
   const b = $("status");
-  b.textContent = st.status + (st.live_frame >= 0 ? `, live analysis ${st.live_fps} frames/s` : "");
-  b.className = "badge " + st.status;
+  setText("status", st.status + (st.live ? `, live analysis ${st.live_fps} frames/s` : ""));
+  if (b.className !== "badge " + st.status) b.className = "badge " + st.status;
 }
 
 function buildLegend() {
@@ -200,7 +200,7 @@ async function overlaysFor(sid, k, span) {
   return p;
 }
 
-async function showFrame(k, live = null) {
+async function showFrame(k, live = false) {  // live: drawn because the live analysis reached frame k
   if (!S.info || S.n === 0) return;
   k = Math.max(0, Math.min(S.n - 1, k));
   if (S.busy) { S.pendingFrame = [k, live]; return; }  // newest request wins; never queue up
@@ -208,7 +208,7 @@ async function showFrame(k, live = null) {
   const t0 = performance.now();
   const sid = S.sid;
   try {
-    const [img, ov] = await Promise.all([imageFor(sid, k), live ? Promise.resolve(live) : overlaysFor(sid, k, S.span)]);
+    const [img, ov] = await Promise.all([imageFor(sid, k), overlaysFor(sid, k, S.span)]);
     if (sid !== S.sid) return;
     S.k = k;
     S.current = { img, ov };
@@ -216,10 +216,11 @@ async function showFrame(k, live = null) {
     draw();
     const ms = performance.now() - t0;
     window.viewerStats.shown.push({ frame: k, ms });
-    if (ov.source === "live" && ov.exposure_time) {
+    if (live && ov.source === "live" && ov.exposure_time) {
       window.viewerStats.live.push({ frame: k, exposure: ov.exposure_time, analysed: ov.analysed_time, shown: Date.now() / 1000 });
     }
-    $("slider").value = String(k);
+    setSliderMax();
+    if ($("slider").value !== String(k)) $("slider").value = String(k);
     const fps = S.info.fps || 60;
     setText("frame-label", `frame ${k} / ${S.n - 1}  (t = ${(k / fps).toFixed(3)} s)`);
     setText("source-label", ov.source === "results" ? `results: ${S.info.results.method}` :
@@ -454,6 +455,11 @@ function drawColorbar(scale, mesh) {
   setText("map-title", `${S.quantity === "area" ? "Area change" : S.quantity === "edge" ? "Edge length change" : S.quantity} of each ${S.quantity === "edge" ? "edge" : "triangle"}`);
 }
 function fmt(v) { return v >= 1 ? v.toFixed(v % 1 ? 1 : 0) : v.toPrecision(2).replace(/0+$/, ""); }
+
+function setSliderMax() {
+  const max = String(Math.max(0, S.n - 1));
+  if ($("slider").max !== max) $("slider").max = max;
+}
 
 function setText(id, text) {  // an unchanged text is left alone (setting it again invalidates the page's layout)
   const el = $(id);
@@ -815,18 +821,30 @@ function listen() {
     const resultsNow = st.has_results && !S.info.results;
     S.n = st.n_frames;
     S.info.status = st.status;
-    $("slider").max = String(Math.max(0, S.n - 1));
+    if (!S.follow) setSliderMax();  // while following, the frame drawn moves it (one repaint, not two)
     setStatus(st);
     if (resultsNow) { await loadInfo(); return; }  // the trial's analysis replaced the live overlays
-    if (S.follow && st.live_frame < 0 && S.n > 0) showFrame(S.n - 1);
+    if (S.follow && !st.live && S.n > 0) showFrame(S.n - 1);
   });
-  es.addEventListener("live", (e) => {
-    const ov = JSON.parse(e.data);
-    if (ov.frame >= S.n) { S.n = ov.frame + 1; $("slider").max = String(S.n - 1); }  // ahead of the last "state"
-    window.viewerStats.liveReceived.push({ frame: ov.frame, exposure: ov.exposure_time, received: Date.now() / 1000 });
-    S.overlays.set(`${S.sid}/${ov.frame}/${S.span}`, Promise.resolve(ov));
-    if (S.follow) showFrame(ov.frame, ov);
+  es.addEventListener("live", (e) => {  // frame k was analysed live; its overlays are fetched when drawn
+    const ev = JSON.parse(e.data);
+    if (ev.frame >= S.n) S.n = ev.frame + 1;  // ahead of the last "state"
+    window.viewerStats.liveReceived.push({ frame: ev.frame, exposure: ev.exposure_time, received: Date.now() / 1000 });
+    if (S.follow) showLive(ev.frame);
   });
+}
+
+// A live frame is drawn at most every LIVE_DRAW_MS (the newest one waiting when the time comes): drawing is most of
+// the page's CPU, and the live analysis runs on the same machine.
+const LIVE_DRAW_MS = Number(new URLSearchParams(location.search).get("live_ms") || 66);
+let liveTimer = null, liveNext = -1, liveDrawn = 0;
+function showLive(k) {
+  liveNext = k;
+  if (liveTimer !== null) return;
+  liveTimer = setTimeout(() => {
+    liveTimer = null; liveDrawn = performance.now();
+    if (S.follow) showFrame(liveNext, true);
+  }, Math.max(0, liveDrawn + LIVE_DRAW_MS - performance.now()));
 }
 
 loadInfo().then(listen).catch((e) => { window.viewerStats.errors.push(String(e)); $("notes").textContent = String(e); });
