@@ -836,7 +836,7 @@ function listen() {
 
 // A live frame is drawn at most every LIVE_DRAW_MS (the newest one waiting when the time comes): drawing is most of
 // the page's CPU, and the live analysis runs on the same machine.
-const LIVE_DRAW_MS = Number(new URLSearchParams(location.search).get("live_ms") || 66);
+const LIVE_DRAW_MS = 66;
 let liveTimer = null, liveNext = -1, liveDrawn = 0;
 function showLive(k) {
   liveNext = k;
