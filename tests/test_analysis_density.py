@@ -142,3 +142,23 @@ def test_flow_density_has_no_features_but_a_mesh(real_print_session):
     d = r.density
     assert d.features_per_frame is None and d.fraction_kept is None and d.window_frames is None
     assert d.points_per_pair > 100 and 0.6 < d.mesh_edge_mm < 1.2 and not d.too_sparse
+
+
+def test_the_in_view_region_kept_as_bits_answers_as_its_mask():
+    """A frame's in-view region is kept as packed bits (both passes of the fraction kept read it): every point in
+    and around it gets the answer of the mask it was drawn as."""
+    from skinstretch.experiments.analysis.density import _REGION_PX, _in_region, _region
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([40, 30], [600, 450], (300, 2))
+    mask, origin = _region(xy, 60.0)
+    region = (np.packbits(mask, axis=1), mask.shape, origin)
+    q = rng.uniform([0, 0], [700, 520], (5000, 2))
+    c = np.round((q[:, 0] - origin[0]) / _REGION_PX).astype(int)
+    r = np.round((q[:, 1] - origin[1]) / _REGION_PX).astype(int)
+    inside = (c >= 0) & (r >= 0) & (c < mask.shape[1]) & (r < mask.shape[0])
+    want = np.zeros(len(q), bool)
+    want[inside] = mask[r[inside], c[inside]] > 0
+    assert 0.2 < want.mean() < 0.9
+    np.testing.assert_array_equal(_in_region(region, q), want)
+    assert not _in_region(None, q).any()

@@ -197,7 +197,9 @@ class MeasuredMotion:
         self._pair_of = {int(a): i for i, a in enumerate(pairs["frame_a"])} if pairs is not None else {}
         self._reach = _REACH_MM * float(px_per_mm)
         self._max_edge = float(max_edge_px)
-        self._region: tuple[int, Any] = (-1, None)
+        # Each frame's region as bits: fraction_kept's forward and backward passes both ask for every frame's.
+        self._regions: dict[int, Any] = {}
+        self._region_bytes = 0
 
     def move(self, points, frame_from, frame_to):
         first = min(frame_from, frame_to)
@@ -228,21 +230,19 @@ class MeasuredMotion:
         return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 2))
 
     def in_view(self, points, frame):
-        if self._region[0] != frame:
-            self._region = (frame, _region(self.measured_points(frame), self._max_edge))
-        region = self._region[1]
-        if region is None or points.shape[0] == 0:
-            return np.zeros(points.shape[0], bool)
-        mask, origin = region
-        c = np.round((points[:, 0] - origin[0]) / _REGION_PX).astype(np.int64)
-        r = np.round((points[:, 1] - origin[1]) / _REGION_PX).astype(np.int64)
-        inside = (c >= 0) & (r >= 0) & (c < mask.shape[1]) & (r < mask.shape[0])
-        out = np.zeros(points.shape[0], bool)
-        out[inside] = mask[r[inside], c[inside]] > 0
-        return out
+        region = self._regions.get(frame, False)
+        if region is False:
+            region = _region(self.measured_points(frame), self._max_edge)
+            if region is not None:
+                region = (np.packbits(region[0], axis=1), region[0].shape, region[1])
+            if self._region_bytes < _REGION_CACHE_BYTES:  # beyond it (long sessions) drawn again when asked for
+                self._regions[frame] = region
+                self._region_bytes += region[0].nbytes if region is not None else 0
+        return _in_region(region, points)
 
 
 _REGION_PX = 2.0  # the in-view region is drawn at this resolution
+_REGION_CACHE_BYTES = 32 << 20  # regions kept for fraction_kept's second pass (about 10 kB a 640x484 frame)
 
 
 def _region(xy: np.ndarray, max_edge: float):
@@ -263,6 +263,20 @@ def _region(xy: np.ndarray, max_edge: float):
     corners = np.round((p - origin) / _REGION_PX).astype(np.int32)
     cv2.fillPoly(mask, corners, 1)
     return mask, origin
+
+
+def _in_region(region, points: np.ndarray) -> np.ndarray:
+    """Whether each of ``points`` lies in ``region``: (mask's rows as np.packbits, mask's shape, origin) or None."""
+    out = np.zeros(points.shape[0], bool)
+    if region is None or points.shape[0] == 0:
+        return out
+    bits, shape, origin = region
+    c = np.round((points[:, 0] - origin[0]) / _REGION_PX).astype(np.int64)
+    r = np.round((points[:, 1] - origin[1]) / _REGION_PX).astype(np.int64)
+    inside = (c >= 0) & (r >= 0) & (c < shape[1]) & (r < shape[0])
+    ri, ci = r[inside], c[inside]
+    out[inside] = (bits[ri, ci >> 3] >> (7 - (ci & 7))) & 1 > 0
+    return out
 
 
 def _frame_offsets(features: h5py.Dataset, n_frames: int) -> np.ndarray:
