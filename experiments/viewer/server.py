@@ -14,7 +14,7 @@ Routes (``sid`` numbers the session shown: it changes when a followed data direc
     GET /api/info                         what is shown: size, frames, status, results, live analysis
     GET /api/s/{sid}/frame/{k}.bmp        frame k (lossless BMP)
     GET /api/s/{sid}/overlay/{k}?span=s   frame k's overlays (JSON, see session_data.FrameOverlays)
-    GET /api/events                       server-sent events: "state" on any change, "live" per analysed frame (its index)
+    GET /api/events                       server-sent events: "state" on a change, "live" per analysed frame (index)
     GET /api/s/{sid}/gauge?frame=k&x=&y=[&x2=&y2=][&radius_mm=]
                                           a virtual gauge (extensometer) placed on frame k: JSON of every frame
     GET /api/s/{sid}/gauge.csv?...        the same as CSV (what skinstretch probe writes)

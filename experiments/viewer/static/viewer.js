@@ -830,6 +830,7 @@ function listen() {
     const ev = JSON.parse(e.data);
     if (ev.frame >= S.n) S.n = ev.frame + 1;  // ahead of the last "state"
     window.viewerStats.liveReceived.push({ frame: ev.frame, exposure: ev.exposure_time, received: Date.now() / 1000 });
+    S.overlays.delete(`${S.sid}/${ev.frame}/${S.span}`);  // fetched before it was analysed: not live yet
     if (S.follow) showLive(ev.frame);
   });
 }
