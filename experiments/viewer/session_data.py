@@ -142,7 +142,7 @@ class FrameOverlays:
         return orjson.loads(self.to_json_bytes())
 
     def to_json_bytes(self) -> bytes:
-        """The page's JSON of these overlays, encoded once (the live view sends the same frame to every page)."""
+        """The page's JSON of these overlays, encoded once (every page drawing a live frame fetches the same)."""
         if self._json is None:
             self._json = orjson.dumps(self._payload(), option=orjson.OPT_SERIALIZE_NUMPY)
         return self._json
