@@ -282,6 +282,18 @@ def test_the_live_event_names_the_frame_and_its_overlays_are_fetched(tmp_path, s
         writer.close()
 
 
+def test_the_live_analysis_takes_frames_in_order_unless_it_falls_behind():
+    """Frames appear a few at a time (at each of the recorder's flushes): analysed in order while within
+    MAX_LAG_FRAMES of the newest, so none is skipped that there is time for; beyond, the newest."""
+    from skinstretch.experiments.viewer.live_analysis import MAX_LAG_FRAMES, _next_frame
+
+    assert _next_frame(-1, 40) == 40  # attached late: the newest first
+    assert _next_frame(10, 10) is None and _next_frame(10, 9) is None
+    assert _next_frame(10, 11) == 11 and _next_frame(10, 12) == 11
+    assert _next_frame(10, 11 + MAX_LAG_FRAMES) == 11
+    assert _next_frame(10, 12 + MAX_LAG_FRAMES) == 12 + MAX_LAG_FRAMES
+
+
 def test_tails_are_rounded_at_once_as_one_by_one():
     """The page's JSON of many polylines: rounded together, the same as each on its own (NaN as 0)."""
     rng = np.random.default_rng(3)

@@ -1,8 +1,9 @@
 """Online features and strain of a session while it is being recorded, for the live view.
 
 The recorder never waits on this: it runs in the viewer's process and reads the session file in HDF5 SWMR mode,
-like any other reader. Each round it takes the NEWEST frame the recorder has flushed and skips the ones it had no
-time for (lossy by design), so it never falls behind the recording: its rate is what the machine can spare.
+like any other reader. It takes the frames in order while it is at most MAX_LAG_FRAMES behind the newest the
+recorder has flushed, and otherwise jumps to the newest, skipping the ones it had no time for (lossy by design): it
+never falls further behind the recording, and its rate is what the machine can spare.
 
 Per analysed frame: features extracted (seed 4; on the frame halved where its ridges stay well resolved,
 :class:`~skinstretch.processing.extraction.ReducedFeatureExtractor`), matched to the previously analysed frame with
@@ -46,6 +47,7 @@ log = logging.getLogger(__name__)
 __all__ = ["LiveAnalyzer", "LiveStats", "warm_up"]
 
 MAX_EDGE_MM = 2.0  # the analysis' default (AnalysisParams.max_edge_mm): long hull slivers left out
+MAX_LAG_FRAMES = 4  # frames analysed in order while at most this many behind the newest; beyond, it skips ahead
 SCALE_WINDOW_FRAMES = 60  # the colour scale covers the strains of the last analysed frames (a few seconds)
 
 
@@ -104,6 +106,7 @@ class LiveAnalyzer:
         self._last = -1
         self._t_first: float | None = None
         self._durations: deque[float] = deque(maxlen=600)
+        self._p95 = (-1, 0.0)  # (version, analysis ms p95) of the last stats()
         self._error = ""
         self.version = 0  # bumped after every analysed frame (the server's event stream watches it)
 
@@ -131,27 +134,31 @@ class LiveAnalyzer:
             return next(reversed(self._overlays.values()), None) if self._overlays else None
 
     def stats(self) -> LiveStats:
+        """What it did so far (the viewer's event stream asks 100 times a second: the percentile is computed once
+        per analysed frame, it held the GIL for 8 % of the live view's time)."""
         with self._lock:
-            dur = np.asarray(self._durations)
+            if self._p95[0] != self.version:
+                dur = np.asarray(self._durations)
+                self._p95 = (self.version, float(np.percentile(dur, 95) * 1e3) if dur.size else 0.0)
             span = (time.monotonic() - self._t_first) if self._t_first is not None else 0.0
             return LiveStats(
                 analysed=self._analysed, skipped=self._skipped,
                 frames_per_s=(self._analysed - 1) / span if span > 0 and self._analysed > 1 else 0.0,
-                last_frame=self._last, analysis_ms_p95=float(np.percentile(dur, 95) * 1e3) if dur.size else 0.0,
-                error=self._error,
+                last_frame=self._last, analysis_ms_p95=self._p95[1], error=self._error,
             )
 
     # -- the loop
     def _run(self) -> None:
         """Two stages on two threads: while this one links frame k to the frame before (matching, refinement,
-        strain), the other extracts the newest frame after k, so a frame costs the longer stage, not both."""
+        strain), the other extracts the next frame (:func:`_next_frame`), so a frame costs the longer stage, not
+        both."""
         with ThreadPoolExecutor(1, thread_name_prefix="live-extraction") as pool:
             ahead: tuple[int, Future] | None = None  # the next frame to link, being extracted
             while not self._stop.is_set():
                 try:
                     if ahead is None:
-                        k = self.source.n_frames() - 1
-                        if k <= self._last:
+                        k = _next_frame(self._last, self.source.n_frames() - 1)
+                        if k is None:
                             if self.source.status() != "recording":
                                 break  # the recording ended and its last frame is analysed
                             self._stop.wait(self._poll)
@@ -159,8 +166,8 @@ class LiveAnalyzer:
                         ahead = (k, pool.submit(self._extract, k))
                     k, job = ahead
                     frame = job.result()
-                    newest = self.source.n_frames() - 1
-                    ahead = (newest, pool.submit(self._extract, newest)) if newest > k else None
+                    after = _next_frame(k, self.source.n_frames() - 1)
+                    ahead = (after, pool.submit(self._extract, after)) if after is not None else None
                     if self._last >= 0:
                         self._skipped += k - self._last - 1
                     self._link(k, frame)
@@ -276,6 +283,17 @@ class _ExtractedFrame:
 
     def __post_init__(self) -> None:
         self.seconds = time.perf_counter() - self.started
+
+
+def _next_frame(previous: int, newest: int) -> int | None:
+    """The frame to analyse after ``previous`` (-1: none yet) when ``newest`` is the newest recorded: the next one
+    while at most MAX_LAG_FRAMES behind the newest (the recorder makes frames visible a few at a time, at each
+    flush: taking only the newest skipped frames there was time for), else the newest; None when there is none."""
+    if newest <= previous:
+        return None
+    if previous < 0 or newest - (previous + 1) > MAX_LAG_FRAMES:
+        return newest
+    return previous + 1
 
 
 def _displacement_of(ids: np.ndarray, sample_ids: np.ndarray, d: np.ndarray) -> np.ndarray:
