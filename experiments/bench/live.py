@@ -3,8 +3,9 @@
 The simulated camera streams the ``ridgeL`` scene (180 rendered frames, looped) in real time into an SWMR session
 file through the experiment :class:`~skinstretch.experiments.recorder.Recorder`, exactly as a trial is recorded.
 The viewer runs in a process of its own (``skinstretch view DATADIR``, as ``record --live`` starts it), follows
-the trial and analyses its newest frame over and over; a headless Chromium shows the page (when Playwright and a
-Chromium are installed; otherwise a server-sent-event client stands in for it, and the notes say so).
+the trial and analyses its newest frame over and over. Two recordings: a headless Chromium showing the page (when
+Playwright and a Chromium are installed; it draws in software, on the same 2 cores), then a server-sent-event
+client that only reads the page's events (what the analysis does with the cores to itself and the recorder).
 
 Reported: frames recorded and dropped (frame-id gaps + camera drops + recorder drops; must be 0), live analysis
 frames/s, page updates/s, latency from the frame's exposure (host time stamp) to the strain on screen (p50, p95,
@@ -75,34 +76,61 @@ def _overlays(url: str, frames: list[int]) -> list[dict]:
 
 def run(options: BenchOptions) -> list[BenchTable]:
     from skinstretch.simulators.scene import render_session  # noqa: PLC0415 - experiments pick the simulated device
-    from skinstretch.simulators.simulated_camera import SimulatedCamera  # noqa: PLC0415
 
     seconds = options.seconds or (5.0 if options.quick else 20.0)
     mode = CAMERA_MODES["full"]
     scene = render_session("ridgeL", seed=0, workers=2)
-    frames = scene.frames
     work = Path(options.workdir) / "live" / time.strftime("%Y%m%d-%H%M%S")
+    no_browser = browser_unavailable_reason()
+    rows, notes = [], []
+    if no_browser is None:
+        rows.append(_record_live(scene, work / "browser", mode, seconds, browser=True, notes=notes))
+    else:
+        notes.append(f"no browser ({no_browser}): no Chromium row")
+    rows.append(_record_live(scene, work / "events", mode, seconds, browser=False, notes=notes))
+    notes += [
+        "the viewer is a separate process reading the SWMR file, so the recorder never waits on it; it analyses the "
+        "newest frame and skips the rest.",
+        "latency = time on screen (page clock; for the event-stream client, the event's arrival) - the frame's host "
+        "time stamp (camera clock, both Unix time).",
+        "display: Chromium (headless, software raster) shows the page as a user's browser would; the event-stream "
+        "client only reads the page's events (what the analysis does when no browser shares the cores).",
+        "accuracy: every live displacement and triangle matched to true features within 0.1 mm (pairs across the "
+        "camera's loop left out).",
+        "speeds measured on a shared 2-core machine; latency includes the SWMR flush interval (25 ms).",
+    ]
+    tables = [BenchTable(
+        title=f"Live view while recording ({seconds:g} s, ridgeL looped)",
+        columns=["mode", "frames", "dropped", "analysed /s", "page updates /s", "latency p50 ms", "latency p95 ms",
+                 "latency max ms", "disp RMSE px", "area RMSE %", "display"],
+        rows=rows, notes=notes)]
+    if no_browser is None:
+        tables.append(_stepping(scene, work / "stepping"))
+    return tables
+
+
+def _record_live(scene, work: Path, mode, seconds: float, *, browser: bool, notes: list[str]) -> list:
+    """Record ``seconds`` of the scene looped with the live viewer attached, shown in Chromium or read by an
+    event-stream client; the table's row."""
+    from skinstretch.simulators.simulated_camera import SimulatedCamera  # noqa: PLC0415
+
+    frames = scene.frames
     trial = work / "000-ridge-live"
     trial.mkdir(parents=True, exist_ok=True)
     viewer = start_live_viewer(work, open_browser=False)
-    notes: list[str] = []
-    no_browser = browser_unavailable_reason()
     client = page_ctx = None
     try:
-        if no_browser is None:
+        if browser:
             from playwright.sync_api import sync_playwright  # noqa: PLC0415
 
             page_ctx = sync_playwright().start()
-            browser = launch_chromium(page_ctx)
-            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            chromium = launch_chromium(page_ctx)
+            page = chromium.new_page(viewport={"width": 1400, "height": 1000})
             page.goto(viewer.url)
             page.wait_for_function("window.viewerStats !== undefined", timeout=30000)
-            display = "Chromium (headless)"
         else:
             client = _EventClient(viewer.url)
             client.start()
-            display = "event-stream client"
-            notes.append(f"no browser ({no_browser}): latency is to the event's arrival, not to the screen")
         time.sleep(1.0)  # the viewer's first look at the directory (every 0.2 s)
         camera = SimulatedCamera(frames.__getitem__, mode, n_frames=len(frames), loop=True)
         count = record_from_camera(camera, trial / "session.h5", mode=mode, calibration=scene.calibration,
@@ -111,7 +139,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
         if page_ctx is not None:
             stats = page.evaluate("window.viewerStats")
             shown, received = stats["live"], stats["liveReceived"]
-            browser.close()
+            chromium.close()
         else:
             client.stop_event.set()
             shown = received = list(client.received)
@@ -125,27 +153,13 @@ def run(options: BenchOptions) -> list[BenchTable]:
         rows = (s.frame_ids - s.frame_ids[0]) % len(frames)
     acc = live_accuracy(overlays, scene.truth, rows, px_per_mm=scene.calibration.px_per_mm)
     p50, p95, worst = latency_percentiles(shown)
-    rows_out = [[f"{mode.width}x{mode.height}@{mode.fps:g}", count.frames, count.dropped, len(analysed) / count.seconds,
-                 len(shown) / count.seconds, p50, p95, worst, acc.displacement_rmse_px, 100 * acc.area_change_rmse,
-                 display]]
-    notes += [
-        f"{count.seconds:.1f} s recorded (status {count.status}); the viewer is a separate process reading the SWMR "
-        "file, so the recorder never waits on it; it analyses the newest frame and skips the rest.",
-        "latency = time on screen (page clock) - the frame's host time stamp (camera clock, both Unix time).",
-        f"accuracy over {acc.pairs} analysed pairs: {acc.displacements} displacements, {acc.triangles} triangles "
-        "matched to true features within 0.1 mm (pairs across the camera's loop left out).",
-        "speeds measured on a shared 2-core machine; latency includes the SWMR flush interval (25 ms).",
-    ]
+    display = "Chromium (headless)" if browser else "event-stream client"
+    notes.append(f"{display}: {count.seconds:.1f} s recorded (status {count.status}); {acc.pairs} analysed pairs, "
+                 f"{acc.displacements} displacements, {acc.triangles} triangles scored.")
     if not np.isfinite(p95):
-        notes.append("no live update reached the page")
-    tables = [BenchTable(
-        title=f"Live view while recording ({seconds:g} s, ridgeL looped)",
-        columns=["mode", "frames", "dropped", "analysed /s", "page updates /s", "latency p50 ms", "latency p95 ms",
-                 "latency max ms", "disp RMSE px", "area RMSE %", "display"],
-        rows=rows_out, notes=notes)]
-    if no_browser is None:
-        tables.append(_stepping(scene, work / "stepping"))
-    return tables
+        notes.append(f"{display}: no live update reached the page")
+    return [f"{mode.width}x{mode.height}@{mode.fps:g}", count.frames, count.dropped, len(analysed) / count.seconds,
+            len(shown) / count.seconds, p50, p95, worst, acc.displacement_rmse_px, 100 * acc.area_change_rmse, display]
 
 
 def _stepping(scene, work: Path) -> BenchTable:
