@@ -90,7 +90,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     rows.append(_record_live(scene, work / "events", mode, seconds, browser=False, notes=notes))
     notes += [
         "the viewer is a separate process reading the SWMR file, so the recorder never waits on it; it analyses the "
-        "newest frame and skips the rest.",
+        "frames in order while at most 4 behind the newest recorded, else jumps to the newest.",
         "latency = time on screen (page clock; for the event-stream client, the event's arrival) - the frame's host "
         "time stamp (camera clock, both Unix time).",
         "display: Chromium (headless, software raster) shows the page as a user's browser would; the event-stream "
