@@ -86,7 +86,7 @@ class LiveAnalyzer:
             calibration=cal, params=TrackingParams(max_bridge_frames=0),
             motion_estimator=GlobalMotionEstimator(downsample=cal.resolvable_reduction(4)),
         )
-        # One window: the analysis' wider second window for imprecise points costs a quarter of a live frame.
+        # One window: the analysis' wider second window for imprecise points costs a sixth of a live frame.
         self._refiner = SubpixelRefiner(calibration=cal, params=SubpixelParams(wide_window_mm=None))
         self._max_edge_px = cal.px(MAX_EDGE_MM)
         self._max_deviation_px = cal.px(TrackingParams().max_local_deviation_mm)
@@ -135,7 +135,7 @@ class LiveAnalyzer:
 
     def stats(self) -> LiveStats:
         """What it did so far (the viewer's event stream asks 100 times a second: the percentile is computed once
-        per analysed frame, it held the GIL for 8 % of the live view's time)."""
+        per analysed frame)."""
         with self._lock:
             if self._p95[0] != self.version:
                 dur = np.asarray(self._durations)

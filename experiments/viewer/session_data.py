@@ -199,8 +199,9 @@ def _round_polylines(lines: list[np.ndarray], digits: int) -> list[np.ndarray]:
     """:func:`_round` of every polyline at once (a live frame has hundreds of short tails)."""
     if not lines:
         return []
-    ends = np.cumsum([len(t) for t in lines])[:-1]
-    return np.split(_round(np.concatenate([np.asarray(t, np.float64).reshape(-1, 2) for t in lines]), digits), ends)
+    rounded = _round(np.concatenate([np.asarray(t, np.float64).reshape(-1, 2) for t in lines]), digits)
+    ends = np.cumsum([0] + [len(t) for t in lines]).tolist()
+    return [rounded[a:b] for a, b in zip(ends[:-1], ends[1:])]
 
 
 def _ints(a: np.ndarray) -> np.ndarray:
