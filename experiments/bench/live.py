@@ -3,7 +3,7 @@
 The simulated camera streams the ``ridgeL`` scene (180 rendered frames, looped) in real time into an SWMR session
 file through the experiment :class:`~skinstretch.experiments.recorder.Recorder`, exactly as a trial is recorded.
 The viewer runs in a process of its own (``skinstretch view DATADIR``, as ``record --live`` starts it), follows
-the trial and analyses its newest frame over and over. Two recordings: a headless Chromium showing the page (when
+the trial and analyses its frames as they come (skipping ahead when it falls behind). Two recordings: a headless Chromium showing the page (when
 Playwright and a Chromium are installed; it draws in software, on the same 2 cores), then a server-sent-event
 client that only reads the page's events (what the analysis does with the cores to itself and the recorder).
 
@@ -27,6 +27,7 @@ from skinstretch.drivers.session_file import open_session
 from skinstretch.experiments.bench import BenchOptions, BenchTable
 from skinstretch.experiments.viewer.browser import browser_unavailable_reason, launch_chromium
 from skinstretch.experiments.recorder import record_from_camera
+from skinstretch.experiments.viewer.live_analysis import MAX_LAG_FRAMES
 from skinstretch.experiments.viewer.live_check import latency_percentiles, live_accuracy
 from skinstretch.experiments.viewer.live_launch import start_live_viewer
 
@@ -55,8 +56,8 @@ class _EventClient(threading.Thread):
                 if line.startswith("event:"):
                     event = line[6:].strip()
                 elif line.startswith("data:") and event == "live":
-                    ov = json.loads(line[5:])
-                    self.received.append({"frame": ov["frame"], "exposure": ov["exposure_time"],
+                    ev = json.loads(line[5:])
+                    self.received.append({"frame": ev["frame"], "exposure": ev["exposure_time"],
                                           "shown": time.time()})
 
 
@@ -90,7 +91,7 @@ def run(options: BenchOptions) -> list[BenchTable]:
     rows.append(_record_live(scene, work / "events", mode, seconds, browser=False, notes=notes))
     notes += [
         "the viewer is a separate process reading the SWMR file, so the recorder never waits on it; it analyses the "
-        "frames in order while at most 4 behind the newest recorded, else jumps to the newest.",
+        f"frames in order while at most {MAX_LAG_FRAMES} behind the newest recorded, else jumps to the newest.",
         "latency = time on screen (page clock; for the event-stream client, the event's arrival) - the frame's host "
         "time stamp (camera clock, both Unix time).",
         "display: Chromium (headless, software raster) shows the page as a user's browser would; the event-stream "
